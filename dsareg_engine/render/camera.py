@@ -1,0 +1,78 @@
+"""Pinhole intrinsics for rendering, and projection of mesh faces to the image."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..geometry import ViewGeometry
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pixel intrinsics of one view (see :mod:`dsareg_engine.geometry` for frames).
+
+    Attributes:
+        focal_px: ``(fx, fy) = (sid/du, sid/dv)``.
+        principal_point_px: ``(u0, v0)``.
+        width, height: image size in pixels.
+    """
+
+    focal_px: tuple[float, float]
+    principal_point_px: tuple[float, float]
+    width: int
+    height: int
+
+    @classmethod
+    def from_view(cls, view: ViewGeometry) -> "Camera":
+        return cls(view.focal_px, view.principal_point_px, view.width, view.height)
+
+
+def transform_points(points: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """Apply 4x4 transforms to points.
+
+    Args:
+        points: ``(V, 3)`` or ``(B, V, 3)``.
+        transforms: ``(B, 4, 4)``.
+
+    Returns:
+        ``(B, V, 3)``.
+    """
+    rotation, translation = transforms[:, :3, :3], transforms[:, :3, 3]
+    if points.dim() == 2:
+        return torch.einsum("bij,vj->bvi", rotation, points) + translation[:, None, :]
+    return torch.einsum("bij,bvj->bvi", rotation, points) + translation[:, None, :]
+
+
+def project_triangles(
+    vertices_view: torch.Tensor, faces: torch.Tensor, camera: Camera, near_mm: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Project view-frame vertices and gather them per face.
+
+    Faces with a vertex at view ``z < near_mm`` (on or behind the source) or a
+    non-finite coordinate are marked invalid and must be skipped by the rasterizer;
+    they are dropped, not clipped.
+
+    Args:
+        vertices_view: ``(B, V, 3)`` mm in the view frame.
+        faces: ``(F, 3)`` int64 vertex indices.
+        camera: intrinsics.
+        near_mm: near limit on view z.
+
+    Returns:
+        triangles: ``(B, F, 3, 2)`` pixel coordinates ``(u, v)`` of each face's corners.
+        valid: ``(B, F)`` bool.
+    """
+    z = vertices_view[..., 2]
+    in_front = z >= near_mm
+    safe_z = torch.where(in_front, z, torch.full_like(z, near_mm))
+    fx, fy = camera.focal_px
+    u0, v0 = camera.principal_point_px
+    u = u0 + fx * vertices_view[..., 0] / safe_z
+    v = v0 + fy * vertices_view[..., 1] / safe_z
+    pixels = torch.stack([u, v], dim=-1)  # (B, V, 2)
+    triangles = pixels[:, faces]  # (B, F, 3, 2)
+    vertex_ok = in_front & torch.isfinite(pixels).all(-1)
+    valid = vertex_ok[:, faces].all(-1)
+    return triangles, valid
