@@ -16,6 +16,8 @@ from .shade import alpha_from_log_keep, hard_from_fragments, soft_log_keep_from_
 
 try:  # numba is a hard dependency, but a broken install must not break rendering
     from . import kernels_numba as _numba
+
+    _SOFTPLUS_TABLE, _SIGMOID_TABLE = _numba.make_tables()
 except Exception:  # pragma: no cover - exercised only on broken installs
     _numba = None
 
@@ -44,7 +46,8 @@ class _SoftLogKeepNumba(torch.autograd.Function):
         boxes = face_pixel_boxes(triangles, valid, width, height, radius).numpy()
         tris = triangles.detach().contiguous().numpy()
         out = torch.zeros((triangles.shape[0], height, width), dtype=triangles.dtype)
-        _numba.soft_log_keep(tris, boxes, height, width, float(sigma), float(radius), out.numpy())
+        exact = triangles.dtype == torch.float64  # tables (~2e-6) suffice for float32 work
+        _numba.soft_log_keep(tris, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, out.numpy())
         ctx.save_for_backward(triangles)
         ctx.boxes, ctx.sigma, ctx.radius = boxes, sigma, radius
         return out
@@ -55,7 +58,7 @@ class _SoftLogKeepNumba(torch.autograd.Function):
         grad = torch.zeros_like(triangles)
         _numba.soft_log_keep_backward(
             triangles.detach().contiguous().numpy(), ctx.boxes, float(ctx.sigma), float(ctx.radius),
-            grad_out.contiguous().numpy(), grad.numpy(),
+            triangles.dtype == torch.float64, _SIGMOID_TABLE, grad_out.contiguous().numpy(), grad.numpy(),
         )
         return grad, None, None, None, None, None
 

@@ -1,0 +1,267 @@
+"""2D X-ray images: PNG / TIFF / JPEG, ``.rad`` + ``.raw`` float images, DICOM XA.
+
+The pixel count is checked from the header before anything is decoded (a PNG of a
+few hundred bytes can declare 50,000 × 50,000 pixels). Images come back as float32
+``(H, W)``; colour is reduced to luminance; DICOM ``MONOCHROME1`` is inverted so that
+higher values are brighter on every input. ``is_mask`` is true when the pixels take
+at most two values (an exported segmentation).
+
+Multi-frame DICOM XA: ``frame`` picks a frame (0-based), ``None`` picks the frame of
+maximum vessel opacification (the frame furthest below the per-pixel brightest
+value over the run, i.e. most contrast in the vessels, which are dark), and
+``"minip"`` takes the per-pixel minimum over all frames.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import warnings as _warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import DsaregInputError
+from ..geometry import ViewGeometry
+from . import rad as rad_format
+from .limits import DEFAULT_LIMITS, InputLimits
+
+_ACCEPTED = "PNG, TIFF, JPEG, DICOM (XA), or a .rad header with its .raw"
+
+
+@dataclass
+class LoadedImage:
+    """One 2D image as the engine uses it."""
+
+    pixels: np.ndarray  # float32 (H, W)
+    is_mask: bool
+    geometry: ViewGeometry | None
+    kind: str
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return (int(self.pixels.shape[1]), int(self.pixels.shape[0]))
+
+
+def detect_image_format(data: bytes) -> str | None:
+    head = data[:16]
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "png"
+    if head[:3] == b"\xff\xd8\xff":
+        return "jpeg"
+    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        return "tiff"
+    if data[128:132] == b"DICM":
+        return "dicom"
+    if rad_format.looks_like_rad(data[:4096]):
+        return "rad"
+    return None
+
+
+def _is_binary(pixels: np.ndarray) -> bool:
+    values = np.unique(pixels[:: max(1, pixels.shape[0] // 512), :: max(1, pixels.shape[1] // 512)])
+    if len(values) > 2:
+        return False
+    return len(np.unique(pixels)) <= 2
+
+
+def _check_pixels(width: int, height: int, limits: InputLimits, field_name: str) -> None:
+    if width < 1 or height < 1:
+        raise DsaregInputError(f"declares an empty image ({width}x{height})", field=field_name)
+    if width * height > limits.max_image_pixels:
+        raise DsaregInputError(
+            f"declares {width}x{height} pixels, above the limit of {limits.max_image_pixels / 1e6:.0f} megapixels",
+            field=field_name,
+        )
+
+
+def read_image(
+    data: bytes | list[bytes],
+    name: str | None = None,
+    limits: InputLimits = DEFAULT_LIMITS,
+    *,
+    frame: int | str | None = None,
+    field_name: str = "image",
+) -> LoadedImage:
+    """Read one 2D image; a list of two parts is a ``.rad`` header and its ``.raw``.
+
+    Raises:
+        DsaregInputError: empty, truncated, unknown format, too many pixels, no pixel data.
+    """
+    if isinstance(data, (list, tuple)):
+        parts = [bytes(p) for p in data]
+        if len(parts) == 1:
+            return read_image(parts[0], name, limits, frame=frame, field_name=field_name)
+        headers = [p for p in parts if rad_format.looks_like_rad(p[:4096])]
+        if len(parts) != 2 or len(headers) != 1:
+            raise DsaregInputError("give one image file, or a .rad header and its .raw", field=field_name)
+        raw = parts[1] if parts[0] is headers[0] else parts[0]
+        return read_rad_image(headers[0], raw, limits, field_name=field_name)
+    if not data:
+        raise DsaregInputError("the file is empty", field=field_name, accepted=_ACCEPTED)
+    fmt = detect_image_format(data)
+    if fmt is None and name and name.lower().endswith((".dcm", ".dicom", ".ima")):
+        fmt = "dicom"
+    if fmt in ("png", "jpeg", "tiff"):
+        return _read_raster(data, fmt, name, limits, frame, field_name)
+    if fmt == "dicom":
+        return read_dicom_image(data, limits, frame=frame, field_name=field_name)
+    if fmt == "rad":
+        raise DsaregInputError("a .rad header needs its .raw file too (send both)", field=field_name)
+    if name and name.lower().endswith(".raw"):
+        raise DsaregInputError("a .raw file needs its .rad header too (send both)", field=field_name)
+    raise DsaregInputError("content is not a recognised image format", field=field_name, accepted=_ACCEPTED)
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    if len(data) >= 24 and data[12:16] == b"IHDR":
+        return struct.unpack(">II", data[16:24])
+    return None
+
+
+def _read_raster(data, fmt, name, limits, frame, field_name) -> LoadedImage:
+    from PIL import Image
+
+    warnings: list[str] = []
+    if name and "." in name:
+        extension = name.rsplit(".", 1)[-1].lower()
+        named = {"png": "png", "jpg": "jpeg", "jpeg": "jpeg", "tif": "tiff", "tiff": "tiff"}.get(extension)
+        if named is not None and named != fmt:
+            warnings.append(f"{field_name}: the file is named '.{extension}' but its content is {fmt.upper()}")
+    if fmt == "png":
+        size = _png_size(data)
+        if size is None:
+            raise DsaregInputError("PNG is truncated (no IHDR header)", field=field_name)
+        _check_pixels(size[0], size[1], limits, field_name)
+    try:
+        with _warnings.catch_warnings():
+            _warnings.simplefilter("error", Image.DecompressionBombWarning)
+            image = Image.open(io.BytesIO(data))
+            _check_pixels(image.size[0], image.size[1], limits, field_name)  # header only, nothing decoded yet
+            n_frames = int(getattr(image, "n_frames", 1))
+            if isinstance(frame, int):
+                if not 0 <= frame < n_frames:
+                    raise DsaregInputError(f"frame {frame} does not exist ({n_frames} frames)", field=field_name)
+                image.seek(frame)
+            elif n_frames > 1:
+                warnings.append(f"{field_name}: {n_frames} pages; the first is used")
+            image.load()
+    except DsaregInputError:
+        raise
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise DsaregInputError("declares too many pixels (decompression bomb)", field=field_name) from None
+    except Exception as exc:
+        raise DsaregInputError(
+            f"{fmt.upper()} data is unreadable or truncated ({str(exc)[:200]})", field=field_name
+        ) from None
+    if image.mode in ("I;16", "I;16B", "I;16L", "I", "F", "L", "1"):
+        pixels = np.asarray(image, dtype=np.float32)
+    elif image.mode in ("LA", "P", "PA"):
+        pixels = np.asarray(image.convert("L"), dtype=np.float32)
+    else:
+        rgb = np.asarray(image.convert("RGB"), dtype=np.float32)
+        pixels = rgb @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    if pixels.ndim != 2:
+        raise DsaregInputError(f"has an unsupported layout {pixels.shape}", field=field_name)
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+    if not np.all(np.isfinite(pixels)):
+        raise DsaregInputError("contains NaN or infinite pixels", field=field_name)
+    return LoadedImage(pixels, _is_binary(pixels) and fmt != "jpeg", None, fmt, warnings)
+
+
+def read_rad_image(header_bytes: bytes, raw: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "image") -> LoadedImage:
+    header = rad_format.parse_rad_header(header_bytes, field_name=f"{field_name}.rad")
+    if header.ndim != 2:
+        raise DsaregInputError("the .rad header describes a volume, not an image", field=field_name)
+    _check_pixels(header.size[0], header.size[1], limits, field_name)
+    pixels = rad_format.read_raw(header, raw, max_bytes=limits.max_image_pixels * 8, field_name=f"{field_name}.raw")
+    if not np.all(np.isfinite(pixels)):
+        raise DsaregInputError("contains NaN or infinite pixels", field=f"{field_name}.raw")
+    warnings = []
+    geometry = None
+    if header.tposition is not None and header.source_position is not None:
+        geometry = rad_format.view_from_rad(header, field_name=f"{field_name}.rad")
+    else:
+        warnings.append(f"{field_name}: the .rad header has no TPosition/SourcePosition; no geometry")
+    return LoadedImage(pixels, _is_binary(pixels), geometry, "rad", warnings)
+
+
+def read_dicom_image(
+    data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, frame: int | str | None = None, field_name: str = "image"
+) -> LoadedImage:
+    """A 2D image (and its C-arm geometry when the tags are there) from DICOM XA."""
+    import pydicom
+
+    from .dicom_xa import view_from_xa
+
+    try:
+        header = pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=True)
+    except Exception as exc:
+        raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
+    rows, cols = int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)
+    if rows < 1 or cols < 1:
+        raise DsaregInputError("DICOM file has no image (Rows/Columns missing)", field=field_name)
+    _check_pixels(cols, rows, limits, field_name)
+    n_frames = int(getattr(header, "NumberOfFrames", 1) or 1)
+    samples = int(getattr(header, "SamplesPerPixel", 1) or 1)
+    if n_frames * rows * cols * samples * 4 > limits.max_volume_bytes:
+        raise DsaregInputError(f"declares {n_frames} frames of {cols}x{rows}, above the size limit", field=field_name)
+    try:
+        dataset = pydicom.dcmread(io.BytesIO(data), force=True)
+    except Exception as exc:
+        raise DsaregInputError(f"DICOM is unreadable or truncated ({str(exc)[:200]})", field=field_name) from None
+    if "PixelData" not in dataset:
+        raise DsaregInputError("DICOM file has no pixel data", field=field_name)
+    try:
+        stack = np.asarray(dataset.pixel_array, dtype=np.float32)
+    except Exception as exc:
+        raise DsaregInputError(f"DICOM pixel data is unreadable ({str(exc)[:200]})", field=field_name) from None
+    if samples > 1:
+        stack = stack @ np.array([0.299, 0.587, 0.114], dtype=np.float32)[: stack.shape[-1]]
+    if stack.ndim == 2:
+        stack = stack[None]
+    if stack.ndim != 3 or stack.shape[1:] != (rows, cols):
+        raise DsaregInputError(f"DICOM pixel data has shape {list(stack.shape)}", field=field_name)
+    slope = float(getattr(dataset, "RescaleSlope", 1.0) or 1.0)
+    intercept = float(getattr(dataset, "RescaleIntercept", 0.0) or 0.0)
+    stack = stack * slope + intercept
+    if str(getattr(dataset, "PhotometricInterpretation", "")).upper() == "MONOCHROME1":
+        stack = stack.max() - stack
+    warnings: list[str] = []
+    if frame == "minip":
+        pixels = stack.min(axis=0)
+        chosen = None
+    elif isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
+        if not 0 <= frame < len(stack):
+            raise DsaregInputError(f"frame {frame} does not exist ({len(stack)} frames)", field=field_name,
+                                   accepted=f"0..{len(stack) - 1}, or 'minip'")
+        chosen = int(frame)
+        pixels = stack[chosen]
+    elif frame is None:
+        chosen = max_opacification_frame(stack)
+        pixels = stack[chosen]
+        if len(stack) > 1:
+            warnings.append(f"{field_name}: frame {chosen} of {len(stack)} used (maximum vessel opacification)")
+    else:
+        raise DsaregInputError(f"frame option {frame!r} is not understood", field=field_name,
+                               accepted="a frame number, 'minip', or nothing (maximum opacification)")
+    geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
+    warnings.extend(geometry_warnings)
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+    return LoadedImage(pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings)
+
+
+def max_opacification_frame(stack: np.ndarray) -> int:
+    """Frame with the most contrast below the run's per-pixel maximum (vessels are dark)."""
+    if len(stack) == 1:
+        return 0
+    step = max(1, max(stack.shape[1:]) // 256)
+    small = stack[:, ::step, ::step].astype(np.float32)
+    background = small.max(axis=0)
+    darkening = background[None] - small
+    # the strongest 5 % of darkening per frame: vessels, not global brightness drift
+    flat = darkening.reshape(len(small), -1)
+    k = max(1, flat.shape[1] // 20)
+    score = np.partition(flat, flat.shape[1] - k, axis=1)[:, -k:].mean(axis=1) - np.median(flat, axis=1)
+    return int(np.argmax(score))

@@ -1,0 +1,32 @@
+"""Size limits applied to every input before (and while) it is decoded."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class InputLimits:
+    """Ceilings that protect the engine from oversized or hostile inputs.
+
+    Attributes:
+        max_faces: A mesh with more faces is refused outright.
+        working_faces: Meshes above this are decimated (shape-preserving) to about this many faces.
+        max_image_pixels: Largest accepted 2D image (width × height of one frame), checked
+            from the header before any pixel is decoded (decompression bombs).
+        max_volume_bytes: Largest accepted decoded volume (or multi-frame image stack),
+            checked from the header's shape × dtype before voxels are read.
+    """
+
+    max_faces: int = 500_000
+    working_faces: int = 20_000
+    max_image_pixels: int = 64_000_000
+    max_volume_bytes: int = 1 << 30
+
+    def __post_init__(self) -> None:
+        for name in ("max_faces", "working_faces", "max_image_pixels", "max_volume_bytes"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be positive")
+
+
+DEFAULT_LIMITS = InputLimits()

@@ -1,0 +1,251 @@
+"""Surface meshes from bytes: OBJ, STL (ASCII and binary), PLY, OFF, GLB.
+
+Nothing here touches the filesystem: the bytes are parsed by trimesh from memory with
+no resolver, so ``mtllib`` and texture references are never followed. The format is
+detected from the content; the file name's extension is only a hint (a warning says
+when it disagrees). Coordinates are taken as millimetres.
+
+Meshes larger than ``limits.working_faces`` are decimated with quadric error
+simplification (fast-simplification, through trimesh), which keeps thin tubes: its
+error metric weighs distance to the original surface, so a thin vessel is never
+collapsed while flat, well-sampled regions can absorb the reduction. Where that
+package is missing, vertex clustering on a fine grid is used instead.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import re
+import struct
+import warnings as _warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import DsaregInputError
+from ..mesh import TriangleMesh
+from .limits import DEFAULT_LIMITS, InputLimits
+
+log = logging.getLogger(__name__)
+
+MESH_FORMATS = ("obj", "stl", "ply", "off", "glb")
+_ACCEPTED = "OBJ, STL (ASCII or binary), PLY, OFF or GLB"
+
+
+@dataclass
+class MeshReadResult:
+    """A mesh and what happened while reading it."""
+
+    mesh: TriangleMesh
+    format: str
+    original_faces: int
+    warnings: list[str] = field(default_factory=list)
+
+
+def detect_mesh_format(data: bytes) -> str | None:
+    """The mesh format the bytes look like, or ``None``."""
+    head = data[:512]
+    if head[:4] == b"glTF":
+        return "glb"
+    if head[:3].lower() == b"ply":
+        return "ply"
+    if len(data) >= 84:
+        (n_faces,) = struct.unpack_from("<I", data, 80)
+        if len(data) == 84 + 50 * n_faces and n_faces > 0:
+            return "stl"
+    stripped = head.lstrip()
+    if re.match(rb"^[A-Z]{0,4}OFF\b", stripped[:12]):
+        return "off"
+    if stripped[:5].lower() == b"solid" and b"facet" in data[:65536].lower():
+        return "stl"
+    if b"\x00" in head:
+        return None
+    if re.search(rb"(?m)^\s*v\s+[-+.\d]", data[:1 << 20]) and re.search(rb"(?m)^\s*f\s+\d", data):
+        return "obj"
+    return None
+
+
+def _declared_faces(data: bytes, fmt: str) -> int | None:
+    """Face count stated by the header (checked against the ceiling before parsing)."""
+    if fmt == "stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
+        return struct.unpack_from("<I", data, 80)[0]
+    if fmt == "stl":
+        return data.lower().count(b"facet normal")
+    if fmt == "ply":
+        match = re.search(rb"element\s+face\s+(\d+)", data[:65536])
+        return int(match.group(1)) if match else None
+    if fmt == "off":
+        text = re.sub(rb"#[^\n]*", b"", data[:65536]).lstrip()
+        numbers = re.sub(rb"^[A-Z]*OFF", b"", text).split()[:3]
+        try:
+            return int(numbers[1])
+        except (IndexError, ValueError):
+            return None
+    if fmt == "obj":
+        return len(re.findall(rb"(?m)^\s*f\s", data))
+    return None
+
+
+def read_mesh(data: bytes, filename: str | None = None, limits: InputLimits = DEFAULT_LIMITS) -> TriangleMesh:
+    """Read a mesh from bytes (see :func:`read_mesh_detailed`)."""
+    return read_mesh_detailed(data, filename, limits).mesh
+
+
+def read_mesh_detailed(
+    data: bytes, filename: str | None = None, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "mesh"
+) -> MeshReadResult:
+    """Parse, validate and (above the working budget) decimate a mesh.
+
+    Raises:
+        DsaregInputError: empty/truncated/unknown data, non-finite vertices, no faces,
+            face indices out of range, more than ``limits.max_faces`` faces.
+    """
+    if not data:
+        raise DsaregInputError("the file is empty", field=field_name, accepted=_ACCEPTED)
+    warnings: list[str] = []
+    extension = filename.rsplit(".", 1)[-1].lower() if filename and "." in filename else None
+    fmt = detect_mesh_format(data)
+    if fmt is None:
+        if extension in MESH_FORMATS:
+            fmt = extension  # let the parser say what is wrong with it
+        else:
+            raise DsaregInputError("content is not a recognised mesh format", field=field_name, accepted=_ACCEPTED)
+    elif extension is not None and extension != fmt:
+        warnings.append(f"{field_name}: the file is named '.{extension}' but its content is {fmt.upper()}; read as {fmt.upper()}")
+    declared = _declared_faces(data, fmt)
+    if declared is not None and declared > limits.max_faces:
+        raise DsaregInputError(
+            f"declares {declared} faces, above the limit of {limits.max_faces}", field=field_name,
+            accepted=f"at most {limits.max_faces} faces (decimate it first)",
+        )
+    vertices, faces = _parse(data, fmt, field_name)
+    mesh = validate_mesh_arrays(vertices, faces, limits, field_name=field_name)
+    original = mesh.n_faces
+    if original > limits.working_faces:
+        mesh = decimate(mesh, limits.working_faces)
+        warnings.append(f"{field_name}: decimated from {original} to {mesh.n_faces} faces (working budget {limits.working_faces})")
+    return MeshReadResult(mesh=mesh, format=fmt, original_faces=original, warnings=warnings)
+
+
+def _parse(data: bytes, fmt: str, field_name: str) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    if fmt == "stl" and not data[:5].lower() == b"solid":
+        (n_faces,) = struct.unpack_from("<I", data, 80) if len(data) >= 84 else (None,)
+        if n_faces is None or len(data) < 84 + 50 * n_faces:
+            raise DsaregInputError(
+                f"binary STL is truncated ({len(data)} bytes, {n_faces} faces declared)", field=field_name
+            )
+    if fmt == "obj":
+        # Never follow material or texture references.
+        data = re.sub(rb"(?m)^\s*(mtllib|usemtl)\b.*$", b"", data)
+    try:
+        with _warnings.catch_warnings():
+            _warnings.simplefilter("ignore")
+            loaded = trimesh.load(file_obj=io.BytesIO(data), file_type=fmt, force="mesh", process=False, resolver=None)
+    except DsaregInputError:
+        raise
+    except Exception as exc:  # trimesh raises many types on malformed data
+        raise DsaregInputError(
+            f"could not be parsed as {fmt.upper()} ({type(exc).__name__}: {str(exc)[:200]})", field=field_name,
+            accepted=_ACCEPTED,
+        ) from None
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))))
+    return vertices, faces
+
+
+def validate_mesh_arrays(
+    vertices: np.ndarray, faces: np.ndarray, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "mesh"
+) -> TriangleMesh:
+    """Check raw arrays and return a clean :class:`TriangleMesh` (duplicate vertices merged)."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise DsaregInputError("has no vertices", field=field_name, accepted=_ACCEPTED)
+    if faces.size == 0:
+        raise DsaregInputError("has no faces (a point cloud or an empty file?)", field=field_name,
+                               accepted="a triangle surface mesh")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise DsaregInputError(f"faces have shape {list(faces.shape)}", field=field_name, accepted="triangles")
+    if len(faces) > limits.max_faces:
+        raise DsaregInputError(f"has {len(faces)} faces, above the limit of {limits.max_faces}", field=field_name)
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.count_nonzero(~np.isfinite(vertices).all(axis=1)))
+        raise DsaregInputError(f"{bad} vertices have NaN or infinite coordinates", field=field_name,
+                               accepted="finite coordinates in mm")
+    if not np.issubdtype(faces.dtype, np.integer):
+        if not np.all(np.isfinite(faces)) or np.any(faces != np.round(faces)):
+            raise DsaregInputError("face indices are not integers", field=field_name)
+    faces = faces.astype(np.int64)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise DsaregInputError(
+            f"face indices span [{faces.min()}, {faces.max()}] but there are {len(vertices)} vertices",
+            field=field_name, accepted="indices in range",
+        )
+    if np.abs(vertices).max() > 1e6:
+        raise DsaregInputError("coordinates exceed 1 km; the mesh must be in millimetres", field=field_name)
+    # Merge coincident vertices (STL stores each triangle separately) and drop degenerate faces.
+    scale = max(float(np.ptp(vertices, axis=0).max()), 1e-9)
+    keys = np.round(vertices / (scale * 1e-9)).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    vertices = vertices[first]
+    faces = inverse.reshape(-1)[faces]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    faces = faces[keep]
+    if len(faces) == 0:
+        raise DsaregInputError("every face is degenerate (zero area)", field=field_name)
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return TriangleMesh(np.ascontiguousarray(vertices[used]), remap[faces])
+
+
+def decimate(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
+    """Reduce ``mesh`` to about ``target_faces`` faces, preserving thin tubes."""
+    if mesh.n_faces <= target_faces:
+        return mesh
+    try:
+        import fast_simplification
+
+        reduction = 1.0 - target_faces / mesh.n_faces
+        vertices, faces = fast_simplification.simplify(
+            mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32), target_reduction=reduction, agg=7
+        )
+        vertices = np.asarray(vertices, dtype=np.float64)
+        faces = np.asarray(faces, dtype=np.int64)
+        if len(faces) == 0:
+            raise RuntimeError("quadric decimation removed every face")
+        return validate_mesh_arrays(vertices, faces, InputLimits(max_faces=max(len(faces), 1)))
+    except ImportError:
+        log.info("fast-simplification not installed; decimating by vertex clustering")
+    return _cluster_decimate(mesh, target_faces)
+
+
+def _cluster_decimate(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
+    """Vertex clustering on the finest grid that reaches the budget (bisection on the cell size)."""
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    lo, hi = extent * 1e-4, extent / 4
+    best = None
+    for _ in range(20):
+        cell = np.sqrt(lo * hi)
+        keys = np.floor(mesh.vertices / cell).astype(np.int64)
+        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        sums = np.zeros((len(counts), 3))
+        np.add.at(sums, inverse, mesh.vertices)
+        faces = inverse[mesh.faces]
+        keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+        faces = np.unique(np.sort(faces[keep], axis=1), axis=0, return_index=True)[1]
+        faces = inverse[mesh.faces][keep][np.sort(faces)]
+        if len(faces) <= target_faces:
+            best = (sums / counts[:, None], faces)
+            hi = cell
+        else:
+            lo = cell
+        if best is not None and hi / lo < 1.05:
+            break
+    if best is None:
+        return mesh
+    return validate_mesh_arrays(best[0], best[1], InputLimits(max_faces=max(len(best[1]), 1)))

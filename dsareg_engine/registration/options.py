@@ -1,0 +1,69 @@
+"""Options of one registration job (pydantic: the CLI and the HTTP service share them)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ..errors import DsaregInputError
+
+Configuration = Literal["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"]
+CONFIGURATIONS: tuple[str, ...] = ("ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap")
+Matrix4 = list[list[float]]
+
+
+class RegistrationOptions(BaseModel):
+    """What a caller may choose; every field has a default that works."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    configuration: Configuration = Field(
+        "simultaneous", description="Views and their order (the paper's Table 1 rows)."
+    )
+    starts: int = Field(4, ge=1, le=64, description="Initial poses optimized in parallel; the best is kept.")
+    start_spread_deg: float = Field(
+        5.0, ge=0.0, le=45.0, description="Rotation spread of the extra starts around the initial pose (degrees)."
+    )
+    start_spread_mm: float = Field(
+        5.0, ge=0.0, le=100.0, description="Translation spread of the extra starts (mm)."
+    )
+    max_iterations: int = Field(300, ge=1, le=5000, description="Cap on gradient iterations per stage.")
+    working_size_px: int = Field(
+        0, ge=0, le=4096, description="Longest image side of the final stage in pixels; 0 = the images' own size."
+    )
+    seed: int = Field(0, description="Seed for the extra starts; the same seed gives the same result.")
+    thin_vessel_weighting: bool = Field(
+        False, description="Weight pixels so thin branches count as much as thick ones."
+    )
+    initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
+    ground_truth_mesh_to_world: Matrix4 | None = Field(
+        None, description="Known pose (synthetic studies): adds error metrics to the result."
+    )
+    segmentation: Literal["auto", "otsu", "vesselness", "mask"] = Field(
+        "auto", description="How DSA images become vessel masks (inputs that are masks are used as they are)."
+    )
+    animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available.")
+
+
+def parse_options(data: dict | str | bytes | None) -> RegistrationOptions:
+    """Validate options given as a dict or JSON text.
+
+    Raises:
+        DsaregInputError: naming the offending field, e.g. ``options.starts``.
+    """
+    try:
+        if data is None:
+            return RegistrationOptions()
+        if isinstance(data, (str, bytes)):
+            return RegistrationOptions.model_validate_json(data)
+        return RegistrationOptions.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        location = ".".join(str(part) for part in first["loc"])
+        raise DsaregInputError(
+            first["msg"],
+            field=f"options.{location}" if location else "options",
+            accepted="a JSON object with fields " + ", ".join(RegistrationOptions.model_fields),
+        ) from None
