@@ -171,7 +171,9 @@ def view_from_angles(
     )
 
 
-def view_from_xa(dataset, frame: int | None = None, *, field_name: str = "image") -> tuple[ViewGeometry | None, list[str]]:
+def view_from_xa(
+    dataset, frame: int | None = None, *, field_name: str = "image"
+) -> tuple[ViewGeometry | None, list[str]]:
     """``(view or None, warnings)`` from an XA dataset; ``None`` when geometry tags are missing."""
     found = xa_geometry(dataset, frame, field_name=field_name)
     if found is None:

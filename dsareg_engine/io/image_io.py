@@ -170,7 +170,9 @@ def _read_raster(data, fmt, name, limits, frame, field_name) -> LoadedImage:
     return LoadedImage(pixels, _is_binary(pixels) and fmt != "jpeg", None, fmt, warnings)
 
 
-def read_rad_image(header_bytes: bytes, raw: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "image") -> LoadedImage:
+def read_rad_image(
+    header_bytes: bytes, raw: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "image"
+) -> LoadedImage:
     header = rad_format.parse_rad_header(header_bytes, field_name=f"{field_name}.rad")
     if header.ndim != 2:
         raise DsaregInputError("the .rad header describes a volume, not an image", field=field_name)
@@ -234,8 +236,11 @@ def read_dicom_image(
         chosen = None
     elif isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
         if not 0 <= frame < len(stack):
-            raise DsaregInputError(f"frame {frame} does not exist ({len(stack)} frames)", field=field_name,
-                                   accepted=f"0..{len(stack) - 1}, or 'minip'")
+            raise DsaregInputError(
+                f"frame {frame} does not exist ({len(stack)} frames)",
+                field=field_name,
+                accepted=f"0..{len(stack) - 1}, or 'minip'",
+            )
         chosen = int(frame)
         pixels = stack[chosen]
     elif frame is None:
@@ -244,12 +249,17 @@ def read_dicom_image(
         if len(stack) > 1:
             warnings.append(f"{field_name}: frame {chosen} of {len(stack)} used (maximum vessel opacification)")
     else:
-        raise DsaregInputError(f"frame option {frame!r} is not understood", field=field_name,
-                               accepted="a frame number, 'minip', or nothing (maximum opacification)")
+        raise DsaregInputError(
+            f"frame option {frame!r} is not understood",
+            field=field_name,
+            accepted="a frame number, 'minip', or nothing (maximum opacification)",
+        )
     geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
     warnings.extend(geometry_warnings)
     pixels = np.ascontiguousarray(pixels, dtype=np.float32)
-    return LoadedImage(pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings)
+    return LoadedImage(
+        pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings
+    )
 
 
 def max_opacification_frame(stack: np.ndarray) -> int:

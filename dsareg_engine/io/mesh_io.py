@@ -61,14 +61,30 @@ def detect_mesh_format(data: bytes) -> str | None:
         return "stl"
     if b"\x00" in head:
         return None
-    if re.search(rb"(?m)^\s*v\s+[-+.\d]", data[:1 << 20]) and re.search(rb"(?m)^\s*f\s+\d", data):
+    if re.search(rb"(?m)^\s*v\s+[-+.\d]", data[: 1 << 20]) and re.search(rb"(?m)^\s*f\s+\d", data):
         return "obj"
     return None
 
 
+def _is_binary_stl(data: bytes) -> bool:
+    """Binary unless it starts with ``solid`` and is not exactly the size a binary STL would be."""
+    if len(data) >= 84 and len(data) == 84 + 50 * struct.unpack_from("<I", data, 80)[0]:
+        return True
+    return data.lstrip()[:5].lower() != b"solid"
+
+
+def _pillow_bomb_warning() -> type[Warning]:
+    try:
+        from PIL import Image
+
+        return Image.DecompressionBombWarning
+    except ImportError:  # pragma: no cover
+        return RuntimeWarning
+
+
 def _declared_faces(data: bytes, fmt: str) -> int | None:
     """Face count stated by the header (checked against the ceiling before parsing)."""
-    if fmt == "stl" and len(data) >= 84 and not data[:5].lower() == b"solid":
+    if fmt == "stl" and len(data) >= 84 and _is_binary_stl(data):
         return struct.unpack_from("<I", data, 80)[0]
     if fmt == "stl":
         return data.lower().count(b"facet normal")
@@ -112,11 +128,14 @@ def read_mesh_detailed(
         else:
             raise DsaregInputError("content is not a recognised mesh format", field=field_name, accepted=_ACCEPTED)
     elif extension is not None and extension != fmt:
-        warnings.append(f"{field_name}: the file is named '.{extension}' but its content is {fmt.upper()}; read as {fmt.upper()}")
+        warnings.append(
+            f"{field_name}: the file is named '.{extension}' but its content is {fmt.upper()}; read as {fmt.upper()}"
+        )
     declared = _declared_faces(data, fmt)
     if declared is not None and declared > limits.max_faces:
         raise DsaregInputError(
-            f"declares {declared} faces, above the limit of {limits.max_faces}", field=field_name,
+            f"declares {declared} faces, above the limit of {limits.max_faces}",
+            field=field_name,
             accepted=f"at most {limits.max_faces} faces (decimate it first)",
         )
     vertices, faces = _parse(data, fmt, field_name)
@@ -124,14 +143,16 @@ def read_mesh_detailed(
     original = mesh.n_faces
     if original > limits.working_faces:
         mesh = decimate(mesh, limits.working_faces)
-        warnings.append(f"{field_name}: decimated from {original} to {mesh.n_faces} faces (working budget {limits.working_faces})")
+        warnings.append(
+            f"{field_name}: decimated from {original} to {mesh.n_faces} faces (working budget {limits.working_faces})"
+        )
     return MeshReadResult(mesh=mesh, format=fmt, original_faces=original, warnings=warnings)
 
 
 def _parse(data: bytes, fmt: str, field_name: str) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
-    if fmt == "stl" and not data[:5].lower() == b"solid":
+    if fmt == "stl" and _is_binary_stl(data):
         (n_faces,) = struct.unpack_from("<I", data, 80) if len(data) >= 84 else (None,)
         if n_faces is None or len(data) < 84 + 50 * n_faces:
             raise DsaregInputError(
@@ -143,12 +164,15 @@ def _parse(data: bytes, fmt: str, field_name: str) -> tuple[np.ndarray, np.ndarr
     try:
         with _warnings.catch_warnings():
             _warnings.simplefilter("ignore")
+            # embedded textures (GLB) are decoded by Pillow: a decompression bomb there is an error
+            _warnings.simplefilter("error", _pillow_bomb_warning())
             loaded = trimesh.load(file_obj=io.BytesIO(data), file_type=fmt, force="mesh", process=False, resolver=None)
     except DsaregInputError:
         raise
     except Exception as exc:  # trimesh raises many types on malformed data
         raise DsaregInputError(
-            f"could not be parsed as {fmt.upper()} ({type(exc).__name__}: {str(exc)[:200]})", field=field_name,
+            f"could not be parsed as {fmt.upper()} ({type(exc).__name__}: {str(exc)[:200]})",
+            field=field_name,
             accepted=_ACCEPTED,
         ) from None
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
@@ -162,19 +186,21 @@ def validate_mesh_arrays(
     """Check raw arrays and return a clean :class:`TriangleMesh` (duplicate vertices merged)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
+    if faces.size == 0:
+        raise DsaregInputError(
+            "has no faces (a point cloud or an empty file?)", field=field_name, accepted="a triangle surface mesh"
+        )
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
         raise DsaregInputError("has no vertices", field=field_name, accepted=_ACCEPTED)
-    if faces.size == 0:
-        raise DsaregInputError("has no faces (a point cloud or an empty file?)", field=field_name,
-                               accepted="a triangle surface mesh")
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise DsaregInputError(f"faces have shape {list(faces.shape)}", field=field_name, accepted="triangles")
     if len(faces) > limits.max_faces:
         raise DsaregInputError(f"has {len(faces)} faces, above the limit of {limits.max_faces}", field=field_name)
     if not np.all(np.isfinite(vertices)):
         bad = int(np.count_nonzero(~np.isfinite(vertices).all(axis=1)))
-        raise DsaregInputError(f"{bad} vertices have NaN or infinite coordinates", field=field_name,
-                               accepted="finite coordinates in mm")
+        raise DsaregInputError(
+            f"{bad} vertices have NaN or infinite coordinates", field=field_name, accepted="finite coordinates in mm"
+        )
     if not np.issubdtype(faces.dtype, np.integer):
         if not np.all(np.isfinite(faces)) or np.any(faces != np.round(faces)):
             raise DsaregInputError("face indices are not integers", field=field_name)
@@ -182,7 +208,8 @@ def validate_mesh_arrays(
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise DsaregInputError(
             f"face indices span [{faces.min()}, {faces.max()}] but there are {len(vertices)} vertices",
-            field=field_name, accepted="indices in range",
+            field=field_name,
+            accepted="indices in range",
         )
     if np.abs(vertices).max() > 1e6:
         raise DsaregInputError("coordinates exceed 1 km; the mesh must be in millimetres", field=field_name)

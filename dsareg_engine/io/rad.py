@@ -34,11 +34,28 @@ from ..geometry import ViewGeometry, view_from_detector_pose
 from ..pose import validate_rigid
 
 _DTYPES = {
-    "float": "<f4", "float32": "<f4", "single": "<f4", "real": "<f4",
-    "double": "<f8", "float64": "<f8",
-    "uchar": "u1", "unsignedchar": "u1", "uint8": "u1", "byte": "u1", "char": "i1", "int8": "i1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "unsignedshort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "unsignedint": "<u4", "uint32": "<u4",
+    "float": "<f4",
+    "float32": "<f4",
+    "single": "<f4",
+    "real": "<f4",
+    "double": "<f8",
+    "float64": "<f8",
+    "uchar": "u1",
+    "unsignedchar": "u1",
+    "uint8": "u1",
+    "byte": "u1",
+    "char": "i1",
+    "int8": "i1",
+    "short": "<i2",
+    "int16": "<i2",
+    "ushort": "<u2",
+    "unsignedshort": "<u2",
+    "uint16": "<u2",
+    "int": "<i4",
+    "int32": "<i4",
+    "uint": "<u4",
+    "unsignedint": "<u4",
+    "uint32": "<u4",
 }
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _KEY = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_ ]*?)\s*(?:\[[^\]]*\])?\s*[:=]\s*(.*)$")
@@ -118,7 +135,8 @@ def parse_rad_header(data: bytes, *, field_name: str = "rad") -> RadHeader:
                 numbers.extend([0.0, 0.0, 0.0, 1.0])
             if len(numbers) != 16:
                 raise DsaregInputError(
-                    f"TPosition has {len(numbers)} numbers", field=f"{field_name}.TPosition",
+                    f"TPosition has {len(numbers)} numbers",
+                    field=f"{field_name}.TPosition",
                     accepted="a 4x4 matrix (16 numbers, row by row)",
                 )
             tposition = np.array(numbers, dtype=np.float64).reshape(4, 4)
@@ -127,7 +145,9 @@ def parse_rad_header(data: bytes, *, field_name: str = "rad") -> RadHeader:
     size_text = values.pop("size", None)
     step_text = values.pop("step", None) or values.pop("spacing", None)
     if size_text is None or step_text is None:
-        missing = [name for name, text_value in (("Size[pixels]", size_text), ("Step[mm]", step_text)) if text_value is None]
+        missing = [
+            name for name, text_value in (("Size[pixels]", size_text), ("Step[mm]", step_text)) if text_value is None
+        ]
         raise DsaregInputError(f"missing key(s) {missing}", field=field_name, accepted="a 3D-2D-GS-CA .rad header")
     size_values = _numbers(size_text)
     step = tuple(_numbers(step_text))
@@ -137,7 +157,9 @@ def parse_rad_header(data: bytes, *, field_name: str = "rad") -> RadHeader:
     if len(step) == 1:
         step = step * len(size)
     if len(step) != len(size) or not all(np.isfinite(step)) or min(step) <= 0:
-        raise DsaregInputError(f"Step '{step_text}' must give {len(size)} positive spacings", field=f"{field_name}.Step")
+        raise DsaregInputError(
+            f"Step '{step_text}' must give {len(size)} positive spacings", field=f"{field_name}.Step"
+        )
     type_text = values.pop("datatype", "float").replace(" ", "").replace("_", "").lower()
     if type_text not in _DTYPES:
         raise DsaregInputError(
@@ -158,9 +180,7 @@ def view_from_rad(header: RadHeader, *, field_name: str = "rad") -> ViewGeometry
     if header.ndim != 2:
         raise DsaregInputError(f"describes a {header.ndim}D volume, not an image", field=field_name)
     if header.tposition is None or header.source_position is None:
-        raise DsaregInputError(
-            "needs TPosition and SourcePosition[mm] to give the imaging geometry", field=field_name
-        )
+        raise DsaregInputError("needs TPosition and SourcePosition[mm] to give the imaging geometry", field=field_name)
     try:
         return view_from_detector_pose(header.size, header.step_mm, header.tposition, header.source_position)
     except DsaregInputError as exc:

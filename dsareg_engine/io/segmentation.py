@@ -54,8 +54,9 @@ def segment_vessels(
     from skimage.morphology import remove_small_objects
 
     if method not in SEGMENTATION_METHODS:
-        raise DsaregInputError(f"unknown segmentation '{method}'", field="segmentation",
-                               accepted=", ".join(SEGMENTATION_METHODS))
+        raise DsaregInputError(
+            f"unknown segmentation '{method}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
+        )
     pixels = np.asarray(pixels)
     if pixels.ndim != 2:
         raise DsaregInputError(f"needs a 2D image, got shape {list(pixels.shape)}", field=field_name)

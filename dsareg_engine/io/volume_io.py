@@ -31,7 +31,9 @@ from . import rad as rad_format
 from .limits import DEFAULT_LIMITS, InputLimits
 
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
-_ACCEPTED = "NIfTI (.nii/.nii.gz), NRRD (.nrrd, attached data), a DICOM series, enhanced multi-frame DICOM, or .rad + .raw"
+_ACCEPTED = (
+    "NIfTI (.nii/.nii.gz), NRRD (.nrrd, attached data), a DICOM series, enhanced multi-frame DICOM, or .rad + .raw"
+)
 
 
 @dataclass
@@ -92,7 +94,11 @@ def detect_volume_format(data: bytes) -> str | None:
 
 
 def read_volume(
-    data: bytes | list[bytes], name: str | None = None, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
+    data: bytes | list[bytes],
+    name: str | None = None,
+    limits: InputLimits = DEFAULT_LIMITS,
+    *,
+    field_name: str = "volume",
 ) -> Volume:
     """Read any accepted volume: one file's bytes, or a list (DICOM series; ``.rad`` + ``.raw`` pair)."""
     if isinstance(data, (list, tuple)):
@@ -176,8 +182,10 @@ def read_nifti(data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name:
 # ---- NRRD -------------------------------------------------------------------------------
 
 _NRRD_SPACES = {
-    "left-posterior-superior": np.eye(4), "lps": np.eye(4),
-    "right-anterior-superior": RAS_TO_LPS, "ras": RAS_TO_LPS,
+    "left-posterior-superior": np.eye(4),
+    "lps": np.eye(4),
+    "right-anterior-superior": RAS_TO_LPS,
+    "ras": RAS_TO_LPS,
 }
 
 
@@ -190,8 +198,9 @@ def read_nrrd(data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: 
     except Exception as exc:
         raise DsaregInputError(f"NRRD header is unreadable ({str(exc)[:200]})", field=field_name) from None
     if "data file" in header or "datafile" in header:
-        raise DsaregInputError("detached NRRD data files are not accepted", field=field_name,
-                               accepted="a .nrrd with attached data")
+        raise DsaregInputError(
+            "detached NRRD data files are not accepted", field=field_name, accepted="a .nrrd with attached data"
+        )
     sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
     if int(header.get("dimension", len(sizes))) != 3 or len(sizes) != 3:
         raise DsaregInputError(f"has sizes {sizes}; a 3D volume is needed", field=field_name)
@@ -278,8 +287,15 @@ def _frame_geometry(dataset, frame: int | None, field_name: str):
     orientation = _nested(dataset, "ImageOrientationPatient", frame)
     spacing = _nested(dataset, "PixelSpacing", frame)
     if position is None or orientation is None or spacing is None:
-        missing = [n for n, v in (("ImagePositionPatient", position), ("ImageOrientationPatient", orientation),
-                                  ("PixelSpacing", spacing)) if v is None]
+        missing = [
+            n
+            for n, v in (
+                ("ImagePositionPatient", position),
+                ("ImageOrientationPatient", orientation),
+                ("PixelSpacing", spacing),
+            )
+            if v is None
+        ]
         raise DsaregInputError(f"DICOM slice lacks {missing}; cannot place it in space", field=field_name)
     try:
         position = np.array([float(x) for x in position])
@@ -312,7 +328,9 @@ def _series_affine(positions: np.ndarray, row_dir, col_dir, spacing, field_name:
     return _check_affine(affine, field_name)
 
 
-def read_dicom_series(parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume") -> Volume:
+def read_dicom_series(
+    parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
+) -> Volume:
     """A volume from the files of one DICOM series (or one enhanced multi-frame file)."""
     headers = []
     for index, part in enumerate(parts):
@@ -337,8 +355,11 @@ def read_dicom_series(parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, 
         kind = "dicom-enhanced"
     else:
         if len(parts) < 2:
-            raise DsaregInputError("a single-slice DICOM is not a volume", field=field_name,
-                                   accepted="all files of a DICOM series, or an enhanced multi-frame file")
+            raise DsaregInputError(
+                "a single-slice DICOM is not a volume",
+                field=field_name,
+                accepted="all files of a DICOM series, or an enhanced multi-frame file",
+            )
         _check_bytes((cols, rows, len(parts)), max(4, bits // 8), limits, field_name)
         for header in headers[1:]:
             if (int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)) != (rows, cols):
@@ -365,7 +386,9 @@ def read_dicom_series(parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, 
 # ---- .rad + .raw ---------------------------------------------------------------------------
 
 
-def read_rad_volume(header_bytes: bytes, raw: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume") -> Volume:
+def read_rad_volume(
+    header_bytes: bytes, raw: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
+) -> Volume:
     header = rad_format.parse_rad_header(header_bytes, field_name=f"{field_name}.rad")
     if header.ndim != 3:
         raise DsaregInputError("the .rad header describes a 2D image, not a volume", field=field_name)
@@ -410,11 +433,15 @@ def volume_to_mesh(
     if voxels.ndim != 3 or min(voxels.shape) < 2:
         raise DsaregInputError(f"needs a 3D volume, got shape {list(voxels.shape)}", field=field_name)
     if not np.all(np.isfinite(voxels)):
-        voxels = np.nan_to_num(voxels, nan=float(np.nanmin(voxels)) if np.isfinite(voxels).any() else 0.0,
-                               posinf=0.0, neginf=0.0)
+        voxels = np.nan_to_num(
+            voxels, nan=float(np.nanmin(voxels)) if np.isfinite(voxels).any() else 0.0, posinf=0.0, neginf=0.0
+        )
     if float(voxels.max()) - float(voxels.min()) <= 0:
-        raise DsaregInputError("is constant: nothing above the threshold", field=field_name,
-                               accepted="a contrast-enhanced volume (vessels brighter than background)")
+        raise DsaregInputError(
+            "is constant: nothing above the threshold",
+            field=field_name,
+            accepted="a contrast-enhanced volume (vessels brighter than background)",
+        )
     smooth = ndimage.gaussian_filter(voxels, smoothing_sigma_vox) if smoothing_sigma_vox > 0 else voxels
     level = float(threshold_otsu(smooth))
     inside = smooth > level

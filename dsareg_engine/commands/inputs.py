@@ -1,0 +1,202 @@
+"""``dsareg inspect``, ``dsareg segment`` and ``dsareg mesh``: look at and convert clinical inputs."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DsaregInputError
+from ..io.segmentation import SEGMENTATION_METHODS
+
+
+def add_parser(subparsers) -> None:
+    inspect = subparsers.add_parser("inspect", help="say what input files are: kind, size, spacing, geometry")
+    inspect.add_argument(
+        "files",
+        nargs="+",
+        metavar="FILE",
+        help="mesh, volume (a DICOM series folder, or a .rad with its .raw), image, or geometry JSON",
+    )
+    inspect.set_defaults(func=_inspect)
+
+    segment = subparsers.add_parser("segment", help="segment the vessels of a DSA image into a PNG mask")
+    segment.add_argument("image", metavar="IMAGE")
+    segment.add_argument("--out", required=True, metavar="MASK.png")
+    segment.add_argument("--method", choices=SEGMENTATION_METHODS, default="auto")
+    segment.add_argument("--frame", default=None, help="multi-frame DICOM: a frame number or 'minip'")
+    segment.set_defaults(func=_segment)
+
+    mesh = subparsers.add_parser("mesh", help="extract the vessel surface of a 3D volume")
+    mesh.add_argument("volume", metavar="VOLUME", help="NIfTI, NRRD, DICOM (file or series folder), or .rad (+ .raw)")
+    mesh.add_argument("--out", required=True, metavar="MESH.obj")
+    mesh.add_argument("--faces", type=int, default=None, help="face budget (default: the working budget)")
+    mesh.set_defaults(func=_mesh)
+
+
+# ---- reading files from disk (the readers themselves only see bytes) -------------------
+
+
+def _read(path: Path, field_name: str) -> bytes:
+    if not path.exists():
+        raise DsaregInputError(f"'{path}' does not exist", field=field_name)
+    return path.read_bytes()
+
+
+def _file_parts(path: Path, field_name: str) -> bytes | list[bytes]:
+    """A folder becomes its files (a DICOM series); a .rad brings its .raw."""
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+        if not files:
+            raise DsaregInputError(f"folder '{path}' is empty", field=field_name)
+        return [p.read_bytes() for p in files]
+    if path.suffix.lower() == ".rad":
+        raw = path.with_suffix(".raw")
+        if not raw.exists():
+            raise DsaregInputError(f"'{raw.name}' (the .raw beside the .rad) is missing", field=field_name)
+        return [_read(path, field_name), raw.read_bytes()]
+    if path.suffix.lower() == ".raw" and path.with_suffix(".rad").exists():
+        return [path.with_suffix(".rad").read_bytes(), _read(path, field_name)]
+    return _read(path, field_name)
+
+
+def _frame(value: str | None):
+    if value is None or value == "minip":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise DsaregInputError(
+            f"'{value}' is not a frame number", field="frame", accepted="an integer or 'minip'"
+        ) from None
+
+
+# ---- inspect --------------------------------------------------------------------------------
+
+
+def describe(path: Path) -> list[str]:
+    """Lines describing one input file (what ``dsareg inspect`` prints)."""
+    from ..geometry_file import load_rig
+    from ..io import rad
+    from ..io.image_io import detect_image_format, read_image
+    from ..io.mesh_io import detect_mesh_format, read_mesh_detailed
+    from ..io.volume_io import detect_volume_format, read_volume
+
+    field_name = path.name
+    data = _file_parts(path, field_name)
+    lines = [f"{path}:"]
+    first = data[0] if isinstance(data, list) else data
+    if isinstance(data, list) and len(data) == 2 and rad.looks_like_rad(first[:4096]):
+        header = rad.parse_rad_header(first, field_name=field_name)
+        kind = "rad-volume" if header.ndim == 3 else "rad-image"
+    elif isinstance(data, list):
+        kind = "volume"
+    elif first.lstrip()[:1] == b"{":
+        kind = "geometry"
+    elif detect_volume_format(first) in ("nifti", "nrrd"):
+        kind = "volume"
+    elif detect_image_format(first) in ("png", "jpeg", "tiff"):
+        kind = "image"
+    elif detect_image_format(first) == "dicom":
+        kind = "dicom"
+    elif detect_mesh_format(first) is not None or path.suffix.lower().lstrip(".") in (
+        "obj",
+        "stl",
+        "ply",
+        "off",
+        "glb",
+    ):
+        kind = "mesh"
+    else:
+        raise DsaregInputError("is not a recognised mesh, volume, image or geometry file", field=field_name)
+
+    if kind == "dicom":  # a multi-frame volume or an XA image
+        try:
+            read_volume([first], path.name, field_name=field_name)
+            kind = "volume"
+        except DsaregInputError:
+            kind = "image"
+    if kind == "geometry":
+        rig = load_rig(first.decode("utf-8", errors="replace"))
+        lines.append("  kind: geometry")
+        for name, view in rig.views.items():
+            lines.append(f"  {name}: {_view_text(view)}")
+        if len(rig.views) == 2:
+            lines.append(f"  angle between views: {rig.angle_between_views_deg():.1f} deg")
+    elif kind == "mesh":
+        result = read_mesh_detailed(first, path.name, field_name=field_name)
+        extent = np.ptp(result.mesh.vertices, axis=0)
+        lines += [
+            f"  kind: mesh ({result.format})",
+            f"  faces: {result.original_faces} (working: {result.mesh.n_faces})",
+            f"  extent mm: {np.round(extent, 2).tolist()}",
+        ]
+        lines += [f"  warning: {w}" for w in result.warnings]
+    elif kind in ("volume", "rad-volume"):
+        volume = read_volume(data, path.name, field_name=field_name)
+        lines += [
+            f"  kind: volume ({volume.kind})",
+            f"  size: {list(volume.data.shape)}",
+            f"  spacing mm: {[round(s, 4) for s in volume.spacing_mm]}",
+            f"  intensity: [{float(volume.data.min()):.4g}, {float(volume.data.max()):.4g}]",
+        ]
+        lines += [f"  warning: {w}" for w in volume.warnings]
+    else:
+        image = read_image(data, path.name, field_name=field_name)
+        height, width = image.pixels.shape
+        lines += [f"  kind: image ({image.kind}{', mask' if image.is_mask else ''})", f"  size: {width}x{height}"]
+        lines.append(f"  geometry: {_view_text(image.geometry) if image.geometry else 'none in the file'}")
+        lines += [f"  warning: {w}" for w in image.warnings]
+    return lines
+
+
+def _view_text(view) -> str:
+    return (
+        f"{view.width}x{view.height} px, spacing {[round(s, 4) for s in view.pixel_spacing_mm]} mm, "
+        f"SID {view.sid_mm:.1f} mm, source at {np.round(view.source_position_world, 1).tolist()} mm"
+    )
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    for name in args.files:
+        print("\n".join(describe(Path(name))))
+    return 0
+
+
+# ---- segment / mesh ----------------------------------------------------------------------
+
+
+def _segment(args: argparse.Namespace) -> int:
+    from PIL import Image
+
+    from ..io.image_io import read_image
+    from ..io.segmentation import segment_vessels
+
+    path = Path(args.image)
+    image = read_image(_file_parts(path, "image"), path.name, frame=_frame(args.frame), field_name="image")
+    method = "mask" if args.method == "auto" and image.is_mask else args.method
+    mask = segment_vessels(image.pixels, method, field_name="image")
+    Image.fromarray(mask.astype(np.uint8) * 255).save(args.out, format="PNG")
+    for warning in image.warnings:
+        print(f"warning: {warning}")
+    print(f"{args.out}: {mask.shape[1]}x{mask.shape[0]} mask, {int(mask.sum())} vessel pixels ({method})")
+    return 0
+
+
+def _mesh(args: argparse.Namespace) -> int:
+    from ..io.limits import DEFAULT_LIMITS
+    from ..io.mesh_io import decimate
+    from ..io.volume_io import read_volume, volume_to_mesh
+
+    path = Path(args.volume)
+    volume = read_volume(_file_parts(path, "volume"), path.name)
+    mesh = volume_to_mesh(volume)
+    budget = args.faces or DEFAULT_LIMITS.working_faces
+    extracted = mesh.n_faces
+    mesh = decimate(mesh, budget)
+    mesh.save(args.out)
+    for warning in volume.warnings:
+        print(f"warning: {warning}")
+    print(f"{args.out}: {mesh.n_faces} faces (extracted {extracted}), world = patient LPS mm")
+    return 0

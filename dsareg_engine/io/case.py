@@ -1,0 +1,178 @@
+"""One registration case from its clinical inputs: the entry point of the CLI and the service."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import DsaregInputError
+from ..geometry import VIEW_NAMES, Rig, ViewGeometry
+from ..geometry_file import PRESETS, load_rig
+from ..mesh import TriangleMesh
+from .image_io import LoadedImage, read_image
+from .limits import DEFAULT_LIMITS, InputLimits
+from .mesh_io import decimate, read_mesh_detailed
+from .segmentation import SEGMENTATION_METHODS, segment_vessels
+from .volume_io import read_volume, volume_to_mesh
+
+ASPECT_TOLERANCE = 0.01
+
+
+@dataclass
+class Case:
+    """Everything a registration needs, validated.
+
+    Attributes:
+        mesh: the vessel surface (mm; for a volume input, in world LPS mm).
+        masks: ``{"ap": bool (H, W), "lat": bool (H, W)}``, each matching its view's
+            ``image_size`` ``(W, H)`` exactly.
+        rig: the two views (resized to the images when needed) and the initial pose.
+        warnings: things a person should know (decimation, frame chosen, resizing...).
+        kinds: what each input was read as (``{"mesh": "stl", "ap": "dicom-xa", ...}``).
+    """
+
+    mesh: TriangleMesh
+    masks: dict[str, np.ndarray]
+    rig: Rig
+    warnings: list[str] = field(default_factory=list)
+    kinds: dict[str, str] = field(default_factory=dict)
+
+
+def load_case(
+    *,
+    mesh: bytes | None = None,
+    mesh_name: str | None = None,
+    volume: bytes | list[bytes] | None = None,
+    volume_name: str | None = None,
+    ap: bytes | list[bytes] | None = None,
+    ap_name: str | None = None,
+    lat: bytes | list[bytes] | None = None,
+    lat_name: str | None = None,
+    geometry: str | dict | None = None,
+    segmentation: str = "auto",
+    limits: InputLimits = DEFAULT_LIMITS,
+    frame: int | str | None = None,
+) -> Case:
+    """Read, validate and segment the inputs of one case.
+
+    Args:
+        mesh / volume: exactly one: a surface mesh file's bytes, or a volume (one file,
+            a DICOM series as a list of files, or a ``.rad`` + ``.raw`` pair as a list).
+        ap, lat: each image file's bytes, or ``[.rad bytes, .raw bytes]``.
+        geometry: a preset name (``"paper"``), JSON text, a parsed dict, or ``None``
+            to take the geometry from the images (DICOM XA tags or ``.rad`` headers).
+            File paths are not accepted here (read the file and pass its text).
+        segmentation: ``"auto"``, ``"otsu"``, ``"vesselness"`` or ``"mask"``.
+        frame: for multi-frame DICOM: a frame number, ``"minip"``, or ``None``
+            (maximum opacification).
+
+    Raises:
+        DsaregInputError: with ``field`` naming the input at fault.
+    """
+    warnings: list[str] = []
+    kinds: dict[str, str] = {}
+    if segmentation not in SEGMENTATION_METHODS:
+        raise DsaregInputError(
+            f"unknown method '{segmentation}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
+        )
+    has_mesh = mesh is not None and (len(mesh) > 0 or mesh_name is not None)
+    has_volume = volume is not None
+    if has_mesh == has_volume:
+        raise DsaregInputError(
+            "give exactly one of a mesh or a volume" + (" (both were given)" if has_mesh else ""),
+            field="mesh",
+            accepted="a surface mesh (OBJ/STL/PLY/OFF/GLB) or a 3D volume (NIfTI/NRRD/DICOM/.rad)",
+        )
+    if has_mesh:
+        result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh")
+        surface, kinds["mesh"] = result.mesh, result.format
+        warnings.extend(result.warnings)
+    else:
+        loaded = read_volume(volume, volume_name, limits, field_name="volume")
+        warnings.extend(loaded.warnings)
+        surface = volume_to_mesh(loaded, field_name="volume")
+        kinds["volume"] = loaded.kind
+        if surface.n_faces > limits.working_faces:
+            original = surface.n_faces
+            surface = decimate(surface, limits.working_faces)
+            warnings.append(f"volume: surface decimated from {original} to {surface.n_faces} faces")
+
+    images: dict[str, LoadedImage] = {}
+    for name, data, filename in (("ap", ap, ap_name), ("lat", lat, lat_name)):
+        if data is None or len(data) == 0:
+            raise DsaregInputError("the image is missing or empty", field=name, accepted="a DSA image or a mask")
+        images[name] = read_image(data, filename, limits, frame=frame, field_name=name)
+        kinds[name] = images[name].kind
+        warnings.extend(images[name].warnings)
+
+    rig = _resolve_rig(geometry, images, warnings, kinds)
+
+    masks: dict[str, np.ndarray] = {}
+    views: dict[str, ViewGeometry] = {}
+    for name in VIEW_NAMES:
+        image = images[name]
+        if name not in rig.views:
+            raise DsaregInputError(f"the geometry has no '{name}' view", field="geometry.views")
+        view = rig.views[name]
+        width, height = image.image_size
+        if (width, height) != view.image_size:
+            view_aspect = view.width / view.height
+            if abs(width / height - view_aspect) > ASPECT_TOLERANCE * view_aspect:
+                raise DsaregInputError(
+                    f"image is {width}x{height} but the geometry's {name} view is "
+                    f"{view.width}x{view.height} (different aspect ratio)",
+                    field=name,
+                    accepted=f"an image of {view.width}x{view.height} or the same aspect ratio",
+                )
+            warnings.append(f"{name}: geometry {view.width}x{view.height} rescaled to the image's {width}x{height}")
+            view = view.resized(width, height)
+        method = "mask" if image.is_mask and segmentation == "auto" else segmentation
+        masks[name] = segment_vessels(image.pixels, method, field_name=name)
+        views[name] = view
+    rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world)
+    return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds)
+
+
+def _resolve_rig(geometry, images: dict[str, LoadedImage], warnings: list[str], kinds: dict[str, str]) -> Rig:
+    if geometry is not None:
+        if isinstance(geometry, (bytes, bytearray)):
+            geometry = geometry.decode("utf-8", errors="replace")
+        if isinstance(geometry, str):
+            text = geometry.strip()
+            if not text:
+                raise DsaregInputError("is empty", field="geometry")
+            if text not in PRESETS and not text.startswith("{"):
+                raise DsaregInputError(
+                    f"'{text[:60]}' is neither a preset nor JSON",
+                    field="geometry",
+                    accepted=f"presets {sorted(PRESETS)} or a JSON geometry",
+                )
+            geometry = text
+            kinds["geometry"] = "preset" if text in PRESETS else "json"
+        elif isinstance(geometry, dict):
+            kinds["geometry"] = "json"
+        else:
+            raise DsaregInputError(
+                f"has type {type(geometry).__name__}",
+                field="geometry",
+                accepted="a preset name, JSON text or an object",
+            )
+        try:
+            rig = load_rig(geometry)
+        except DsaregInputError as exc:
+            if exc.field is None or not exc.field.startswith("geometry"):
+                raise exc.with_field_prefix("geometry") from None
+            raise
+        if any(image.geometry is not None for image in images.values()):
+            warnings.append("geometry: the explicit geometry was used; the geometry in the image headers was ignored")
+        return rig
+    missing = [name for name in VIEW_NAMES if images[name].geometry is None]
+    if missing:
+        raise DsaregInputError(
+            f"no geometry was given and the {' and '.join(missing)} image(s) carry none",
+            field="geometry",
+            accepted="a preset name (e.g. 'paper'), a JSON geometry, or DICOM XA / .rad images with geometry",
+        )
+    kinds["geometry"] = "headers"
+    return Rig(views={name: images[name].geometry for name in VIEW_NAMES})
