@@ -70,11 +70,11 @@ def _curved_centreline(rng, start, direction, length, n_points):
 
 
 def _deflect(rng, direction, sign):
-    """A child direction 25–45° off ``direction``, on alternating sides, with some twist."""
+    """A child direction 25–45° off ``direction``, on alternating sides of a random plane."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(direction[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
     side = np.cross(direction, helper)
     side /= np.linalg.norm(side)
-    twist = rng.uniform(-0.8, 0.8)
+    twist = rng.uniform(0.0, 2.0 * np.pi)
     other = np.cross(direction, side)
     lateral = np.cos(twist) * side + np.sin(twist) * other
     angle = np.radians(rng.uniform(25.0, 45.0))

@@ -1,7 +1,8 @@
 """Fused CPU kernels (numba) for soft and hard silhouettes, with an analytic backward.
 
 Same mathematics as :mod:`.rasterize_torch` + :mod:`.shade` — the tests hold them equal —
-but one pass per face over its pixel box, no per-pair tensors. Work is split over
+but one pass per face over its pixel box, no per-pair tensors. ``n_threads`` is passed in
+(``numba.get_num_threads()``) so the compiled kernels can be cached on disk. Work is split over
 threads by interleaved image row bands (forward: each band owns its output rows, so
 no write conflicts) and interleaved faces (backward: each face owns its gradient).
 
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 from numba import njit, prange
 
 BANDS_PER_THREAD = 8
@@ -171,14 +171,14 @@ def _band(job, n_bands, height):
 
 
 @njit(inline="always")
-def _accumulate_row(s, b, v, x0, x1, radius, inv_sigma, exact, softplus_table, out):
+def _accumulate_row(s, b, v, x0, x1, radius, inv_sigma, exact, softplus_table, floor, out):
     """Add one face's log-keep terms to row v of image b, visiting only pixels that can be near."""
     fv = float(v)
     if s[18] == 0.0:  # degenerate face: no inside, no line bound; exact distances over the box row
         for u in range(x0, x1 + 1):
             d, _, _, _, _ = _signed_distance(float(u), fv, s, radius)
             if d < radius:
-                out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table)
+                out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table) - floor
         return
     a0, b0, a1, b1, a2, b2 = _row_lines(s, fv)
     near_lo, near_hi = _span(a0, b0, a1, b1, a2, b2, -radius, x0, x1)
@@ -188,32 +188,33 @@ def _accumulate_row(s, b, v, x0, x1, radius, inv_sigma, exact, softplus_table, o
     for u in range(near_lo, in_lo):
         d, _, _, _, _ = _signed_distance(float(u), fv, s, radius)
         if d < radius:
-            out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table)
+            out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table) - floor
     for u in range(in_lo, in_hi + 1):
         fu = float(u)
         d = -min(a0 + b0 * fu, min(a1 + b1 * fu, a2 + b2 * fu))
         if d <= 0.0:
-            out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table)
+            out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table) - floor
         else:  # rounding at the span's ends: fall back to the exact test
             d, _, _, _, _ = _signed_distance(fu, fv, s, radius)
             if d < radius:
-                out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table)
+                out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table) - floor
     for u in range(in_hi + 1, near_hi + 1):
         d, _, _, _, _ = _signed_distance(float(u), fv, s, radius)
         if d < radius:
-            out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table)
+            out[b, v, u] += _log_keep(d, inv_sigma, exact, softplus_table) - floor
 
 
 @njit(parallel=True, cache=True)
-def soft_log_keep(triangles, boxes, height, width, sigma, radius, exact, softplus_table, out):
-    """out[b, v, u] = Σ_f log(1 − sigmoid(−d_f/σ)) over faces closer than ``radius`` px.
+def soft_log_keep(triangles, boxes, height, width, sigma, radius, exact, softplus_table, n_threads, out):
+    """out[b, v, u] = Σ_f [log(1 − sigmoid(−d_f/σ)) − log(1 − sigmoid(−r/σ))] over faces with d_f < r.
 
     triangles (B, F, 3, 2) float; boxes (B, F, 4) int32 [x0, x1, y0, y1]; out (B, H, W), zeroed.
     """
     batch, n_faces = triangles.shape[0], triangles.shape[1]
-    n_threads = numba.get_num_threads()
     n_bands = min(height, n_threads * BANDS_PER_THREAD)
     inv_sigma = 1.0 / sigma
+    # Subtracting the value at the radius makes each face's term reach 0 continuously there.
+    floor = _log_keep(radius, inv_sigma, exact, softplus_table)
     for thread in prange(n_threads):
         for job in range(thread, batch * n_bands, n_threads):
             b, row_lo, row_hi = _band(job, n_bands, height)
@@ -226,7 +227,7 @@ def soft_log_keep(triangles, boxes, height, width, sigma, radius, exact, softplu
                     continue
                 s = _face_setup(triangles[b, f, :, 0], triangles[b, f, :, 1])
                 for v in range(y0, y1 + 1):
-                    _accumulate_row(s, b, v, x0, x1, radius, inv_sigma, exact, softplus_table, out)
+                    _accumulate_row(s, b, v, x0, x1, radius, inv_sigma, exact, softplus_table, floor, out)
 
 
 @njit(inline="always")
@@ -238,14 +239,13 @@ def _pair_gradient(d, edge, t, qx, qy, u, v, upstream, inv_sigma, exact, sigmoid
 
 
 @njit(parallel=True, cache=True)
-def soft_log_keep_backward(triangles, boxes, sigma, radius, exact, sigmoid_table, grad_log_keep, grad_triangles):
+def soft_log_keep_backward(triangles, boxes, sigma, radius, exact, sigmoid_table, n_threads, grad_log_keep, grad_triangles):
     """grad_triangles (B, F, 3, 2) = d(loss)/d(corners) given d(loss)/d(log_keep) (B, H, W).
 
     The gradient of a pair flows to the two corners of the face's nearest edge, split
     (1 − t, t) by where the nearest boundary point q lies on it.
     """
     batch, n_faces = triangles.shape[0], triangles.shape[1]
-    n_threads = numba.get_num_threads()
     inv_sigma = 1.0 / sigma
     for thread in prange(n_threads):
         for job in range(thread, batch * n_faces, n_threads):
@@ -295,10 +295,9 @@ def soft_log_keep_backward(triangles, boxes, sigma, radius, exact, sigmoid_table
 
 
 @njit(parallel=True, cache=True)
-def coverage(triangles, boxes, height, width, out):
+def coverage(triangles, boxes, height, width, n_threads, out):
     """out[b, v, u] = True where the pixel centre lies in or on some face (d ≤ 0)."""
     batch, n_faces = triangles.shape[0], triangles.shape[1]
-    n_threads = numba.get_num_threads()
     n_bands = min(height, n_threads * BANDS_PER_THREAD)
     for thread in prange(n_threads):
         for job in range(thread, batch * n_bands, n_threads):

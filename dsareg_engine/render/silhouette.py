@@ -22,6 +22,12 @@ except Exception:  # pragma: no cover - exercised only on broken installs
     _numba = None
 
 
+def _threads() -> int:
+    import numba
+
+    return numba.get_num_threads()
+
+
 def numba_available() -> bool:
     return _numba is not None
 
@@ -47,7 +53,7 @@ class _SoftLogKeepNumba(torch.autograd.Function):
         tris = triangles.detach().contiguous().numpy()
         out = torch.zeros((triangles.shape[0], height, width), dtype=triangles.dtype)
         exact = triangles.dtype == torch.float64  # tables (~2e-6) suffice for float32 work
-        _numba.soft_log_keep(tris, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, out.numpy())
+        _numba.soft_log_keep(tris, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, _threads(), out.numpy())
         ctx.save_for_backward(triangles)
         ctx.boxes, ctx.sigma, ctx.radius = boxes, sigma, radius
         return out
@@ -58,7 +64,7 @@ class _SoftLogKeepNumba(torch.autograd.Function):
         grad = torch.zeros_like(triangles)
         _numba.soft_log_keep_backward(
             triangles.detach().contiguous().numpy(), ctx.boxes, float(ctx.sigma), float(ctx.radius),
-            triangles.dtype == torch.float64, _SIGMOID_TABLE, grad_out.contiguous().numpy(), grad.numpy(),
+            triangles.dtype == torch.float64, _SIGMOID_TABLE, _threads(), grad_out.contiguous().numpy(), grad.numpy(),
         )
         return grad, None, None, None, None, None
 
@@ -72,7 +78,7 @@ def soft_silhouette_from_triangles(
         log_keep = _SoftLogKeepNumba.apply(triangles, valid, width, height, settings.sigma_px, radius)
     else:
         fragments = rasterize_fragments(triangles, valid, width, height, radius)
-        log_keep = soft_log_keep_from_fragments(fragments, settings.sigma_px)
+        log_keep = soft_log_keep_from_fragments(fragments, settings.sigma_px, radius)
     return alpha_from_log_keep(log_keep)
 
 
@@ -84,7 +90,7 @@ def hard_silhouette_from_triangles(
         if _use_numba(settings, triangles):
             boxes = face_pixel_boxes(triangles, valid, width, height, 0.0).numpy()
             out = torch.zeros((triangles.shape[0], height, width), dtype=torch.bool)
-            _numba.coverage(triangles.contiguous().numpy(), boxes, height, width, out.numpy())
+            _numba.coverage(triangles.contiguous().numpy(), boxes, height, width, _threads(), out.numpy())
             return out
         return hard_from_fragments(rasterize_fragments(triangles, valid, width, height, 1e-9))
 

@@ -1,0 +1,327 @@
+"""Two-view 3D/2D registration by silhouette matching.
+
+Loss of one start: ``L = Σ_views λ_v · mean(w_v · (target_v − f(P_v | M))²)`` with ``f`` the
+soft silhouette and ``P_v = world_to_view_v · mesh_to_world``: one rigid pose explains
+both views. Stages run coarse to fine (see :mod:`.schedule`): Adam on all starts at low
+resolution with soft edges and blurred targets (capture range), the best start refined
+at finer levels, and L-BFGS at full resolution with a stop on pose change.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ..geometry import Rig
+from ..mesh import TriangleMesh
+from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
+from ..pose import validate_rigid
+from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
+from .options import RegistrationOptions
+from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
+from .result import RegistrationResult, ViewResult
+from .schedule import Stage, build_schedule
+from .targets import ViewTarget, gaussian_blur, level_target
+
+ProgressCallback = Callable[[dict], None]
+
+AGREEMENT_ADD_MM = 2.0
+"""Starts whose pose lies within this ADD of the best one after the batched stages agree."""
+ADAM_PATIENCE = 15
+ADAM_RELATIVE_TOLERANCE = 1e-3
+LBFGS_POSE_TOLERANCE = 1e-4
+"""L-BFGS stops when a step changes every pose component by less than this (mm units)."""
+MIN_CONVERGED_DICE = 0.5
+
+
+class RegistrationCanceled(Exception):
+    """Raised when ``should_stop()`` returned True between iterations."""
+
+
+@dataclass
+class _StageOutcome:
+    iterations: int
+    seconds: float
+    stopped_by: str  # "tolerance" | "iterations"
+    losses: list[float]
+
+
+class _Problem:
+    """The mesh, the rig and the per-level targets, shared by all stages."""
+
+    def __init__(self, mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options: RegistrationOptions, device: torch.device):
+        self.mesh = mesh
+        self.masks = masks
+        self.rig = rig
+        self.options = options
+        self.device = device
+        self.centre = mesh.centroid
+        self.radius_mm = mesh_radius_mm(mesh.vertices)
+        self._targets: dict[tuple, ViewTarget] = {}
+        self._mesh_tensors: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def mesh_tensors(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        if dtype not in self._mesh_tensors:
+            self._mesh_tensors[dtype] = self.mesh.torch(dtype, self.device)
+        return self._mesh_tensors[dtype]
+
+    def target(self, view_name: str, stage: Stage, dtype: torch.dtype) -> ViewTarget:
+        key = (view_name, stage.scale, stage.blur_px, dtype)
+        if key not in self._targets:
+            target = level_target(
+                self.masks[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
+                self.options.thin_vessel_weighting, dtype,
+            )
+            target.target = target.target.to(self.device)
+            if target.weight is not None:
+                target.weight = target.weight.to(self.device)
+            self._targets[key] = target
+        return self._targets[key]
+
+    def loss(self, mesh_to_world: torch.Tensor, stage: Stage, dtype: torch.dtype) -> torch.Tensor:
+        """Per-start loss ``(B,)`` for poses ``(B, 4, 4)`` (float64, differentiable)."""
+        vertices, faces = self.mesh_tensors(dtype)
+        settings = SilhouetteSettings(sigma_px=stage.sigma_px)
+        total = torch.zeros(mesh_to_world.shape[0], dtype=dtype, device=self.device)
+        for name in stage.views:
+            target = self.target(name, stage, dtype)
+            world_to_view = torch.as_tensor(self.rig.views[name].world_to_view, dtype=torch.float64)
+            mesh_to_view = (world_to_view @ mesh_to_world).to(dtype=dtype, device=self.device)
+            alpha = gaussian_blur(render_soft_silhouette(vertices, faces, mesh_to_view, target.camera, settings), target.blur_px)
+            error = (alpha - target.target) ** 2
+            if target.weight is not None:
+                error = error * target.weight
+            total = total + error.mean(dim=(1, 2))
+        return total
+
+
+def _resolve_device(requested: str) -> torch.device:
+    if requested == "cuda" or (requested == "auto" and torch.cuda.is_available()):
+        if not torch.cuda.is_available():
+            from ..errors import DsaregInputError
+
+            raise DsaregInputError("CUDA was requested but no GPU is available", field="options.device", accepted="auto, cpu")
+        return torch.device("cuda")
+    return torch.device("cpu")
+
+
+def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
+    optimizer = torch.optim.Adam([delta], lr=stage.learning_rate)
+    losses: list[float] = []
+    best, since_best = float("inf"), 0
+    start = time.perf_counter()
+    stopped_by = "iterations"
+    iteration = 0
+    for iteration in range(1, stage.max_iterations + 1):
+        optimizer.zero_grad()
+        per_start = problem.loss(increment(delta), stage, dtype)
+        per_start.sum().backward()
+        optimizer.step()
+        value = float(per_start.detach().min())
+        losses.append(value)
+        report(stage, iteration, value)
+        if value < best * (1.0 - ADAM_RELATIVE_TOLERANCE):
+            best, since_best = value, 0
+        else:
+            since_best += 1
+            if since_best >= ADAM_PATIENCE:
+                stopped_by = "tolerance"
+                break
+    return _StageOutcome(iteration, time.perf_counter() - start, stopped_by, losses)
+
+
+def _run_lbfgs(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
+    optimizer = torch.optim.LBFGS(
+        [delta], lr=1.0, max_iter=stage.max_iterations, max_eval=stage.max_iterations,
+        tolerance_grad=1e-12, tolerance_change=LBFGS_POSE_TOLERANCE, history_size=10, line_search_fn="strong_wolfe",
+    )
+    losses: list[float] = []
+    start = time.perf_counter()
+    # L-BFGS compares its tolerance with loss and slope values: use the sum of squared
+    # errors (the per-pixel mean times the pixel count) so they are of order one.
+    first = problem.target(stage.views[0], stage, dtype).target
+    pixels = float(first.numel())
+
+    def closure():
+        optimizer.zero_grad()
+        mean_loss = problem.loss(increment(delta), stage, dtype).sum()
+        (mean_loss * pixels).backward()
+        losses.append(float(mean_loss.detach()))
+        report(stage, len(losses), losses[-1])
+        return mean_loss.detach() * pixels
+
+    optimizer.step(closure)
+    evaluations = len(losses)
+    stopped_by = "iterations" if evaluations >= stage.max_iterations else "tolerance"
+    return _StageOutcome(evaluations, time.perf_counter() - start, stopped_by, losses)
+
+
+def register(
+    mesh: TriangleMesh,
+    masks: dict[str, np.ndarray],
+    rig: Rig,
+    options: RegistrationOptions | None = None,
+    progress: ProgressCallback | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    target_points: np.ndarray | None = None,
+) -> RegistrationResult:
+    """Estimate ``mesh_to_world`` so the mesh's silhouettes match the vessel masks.
+
+    Args:
+        mesh: vessel surface, mesh-frame mm.
+        masks: ``{"ap": (H, W) bool, "lat": (H, W) bool}``, each the size of its view.
+        rig: view geometry and the initial pose.
+        options: see :class:`RegistrationOptions`.
+        progress: called with ``{"stage", "iteration", "loss", "fraction"}`` every few iterations.
+        should_stop: polled every iteration; True raises :class:`RegistrationCanceled`.
+        target_points: ``(N, 3)`` mesh-frame points for mTRE (default: the vertices).
+
+    Returns:
+        :class:`RegistrationResult`.
+    """
+    options = options or RegistrationOptions()
+    device = _resolve_device(options.device)
+    used_views = ("ap", "lat") if options.configuration not in ("ap", "lat") else (options.configuration,)
+    _check_inputs(masks, rig, used_views)
+    initial = rig.initial_mesh_to_world
+    if options.initial_mesh_to_world is not None:
+        initial = validate_rigid(options.initial_mesh_to_world, field="options.initial_mesh_to_world", allow_mirror=False)
+    problem = _Problem(mesh, masks, rig, options, device)
+    longest = max(max(rig.views[name].image_size) for name in used_views)
+    final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
+    shortest = min(min(rig.views[name].image_size) for name in used_views)
+    stages = [
+        Stage(**{**vars(stage), "scale": stage.scale * final_scale})
+        for stage in build_schedule(options.configuration, round(shortest * final_scale), options.max_iterations)
+    ]
+
+    starts = random_start_poses(initial, problem.centre, options.starts, options.start_spread_deg,
+                                options.start_spread_mm, options.seed)
+    total_budget = sum(stage.max_iterations for stage in stages)
+    done_before = {"count": 0}
+    started = time.perf_counter()
+
+    def report(stage: Stage, iteration: int, loss: float) -> None:
+        if should_stop is not None and should_stop():
+            raise RegistrationCanceled("registration canceled")
+        if progress is not None and (iteration % 5 == 0 or iteration == 1):
+            fraction = min(0.99, (done_before["count"] + iteration) / max(total_budget, 1))
+            progress({"stage": stage.name, "iteration": iteration, "loss": loss, "fraction": fraction})
+
+    poses = starts
+    iterations: dict[str, int] = {}
+    seconds: dict[str, float] = {}
+    loss_history: list[tuple[str, list[float]]] = []
+    pose_history: list[np.ndarray] = [starts[0]]
+    starts_agreeing = 1
+    outcome: _StageOutcome | None = None
+    final_loss = float("nan")
+    for index, stage in enumerate(stages):
+        if not stage.all_starts and len(poses) > 1:
+            poses, starts_agreeing = _keep_best(problem, stage, poses)
+        dtype = torch.float64 if stage.optimizer == "lbfgs" else torch.float32
+        increment = PoseIncrement(poses, problem.centre, problem.radius_mm)
+        delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
+        runner = _run_lbfgs if stage.optimizer == "lbfgs" else _run_adam
+        outcome = runner(problem, stage, increment, delta, dtype, report)
+        done_before["count"] += stage.max_iterations
+        poses = increment.poses(delta.detach())
+        with torch.no_grad():
+            per_start = problem.loss(torch.as_tensor(poses), stage, dtype)
+        best_index = int(torch.argmin(per_start))
+        final_loss = float(per_start[best_index])
+        iterations[stage.name] = outcome.iterations
+        seconds[stage.name] = round(outcome.seconds, 4)
+        loss_history.append((stage.name, outcome.losses))
+        pose_history.append(poses[best_index])
+        if index == len(stages) - 1 and len(poses) > 1:
+            poses, starts_agreeing = _keep_best(problem, stage, poses)
+    estimate = poses[0]
+    total_seconds = time.perf_counter() - started
+
+    view_results = _view_results(problem, initial, estimate, used_views)
+    converged, reason = _convergence(outcome, view_results)
+    metrics = {
+        "loss": final_loss,
+        "iterations": iterations,
+        "seconds": {**seconds, "total": round(total_seconds, 4)},
+        "device": str(device),
+        "converged": converged,
+        "reason": reason,
+        "starts": options.starts,
+        "starts_agreeing": starts_agreeing,
+        "configuration": options.configuration,
+    }
+    if options.ground_truth_mesh_to_world is not None:
+        truth = validate_rigid(options.ground_truth_mesh_to_world, field="options.ground_truth_mesh_to_world", allow_mirror=False)
+        metrics["ground_truth"] = ground_truth_errors(estimate, truth, rig.views, mesh.vertices, target_points)
+        metrics["ground_truth"]["initial_mtre_mm"] = mean_distance_mm(
+            initial, truth, mesh.vertices if target_points is None else target_points
+        )
+    return RegistrationResult(estimate, initial, view_results, metrics, loss_history, pose_history)
+
+
+def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str, ...]) -> None:
+    from ..errors import DsaregInputError
+
+    for name in used_views:
+        if name not in rig.views:
+            raise DsaregInputError(f"the configuration needs the '{name}' view", field=f"geometry.views.{name}")
+        if name not in masks:
+            raise DsaregInputError(f"no vessel mask for the '{name}' view", field=name)
+        expected = rig.views[name].image_size[::-1]
+        if tuple(masks[name].shape) != tuple(expected):
+            raise DsaregInputError(
+                f"mask is {masks[name].shape[1]}x{masks[name].shape[0]} px but the geometry says "
+                f"{expected[1]}x{expected[0]}", field=name, accepted="images of the size given in the geometry",
+            )
+        if not masks[name].any():
+            raise DsaregInputError("the vessel mask is empty: nothing to register to", field=name)
+
+
+def _keep_best(problem: _Problem, stage: Stage, poses: np.ndarray) -> tuple[np.ndarray, int]:
+    """Keep the start with the lowest loss at ``stage``; count the starts that agree with it."""
+    with torch.no_grad():
+        losses = problem.loss(torch.as_tensor(poses), stage, torch.float32)
+    best = poses[int(torch.argmin(losses))]
+    agreeing = sum(
+        mean_distance_mm(pose, best, problem.mesh.vertices) < AGREEMENT_ADD_MM for pose in poses
+    )
+    return best[None], int(agreeing)
+
+
+def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray, used_views) -> dict[str, ViewResult]:
+    vertices, faces = problem.mesh_tensors(torch.float64)
+    results = {}
+    for name, view in problem.rig.views.items():
+        if name not in problem.masks:
+            continue
+        camera = Camera.from_view(view)
+        silhouettes = render_hard_silhouette(
+            vertices, faces, torch.as_tensor(np.stack([view.world_to_view @ initial, view.world_to_view @ estimate])), camera
+        ).cpu().numpy()
+        mesh_to_view = view.world_to_view @ estimate
+        mask = problem.masks[name]
+        results[name] = ViewResult(
+            world_to_view=view.world_to_view,
+            mesh_to_view=mesh_to_view,
+            projection_matrix=view.intrinsic_matrix @ mesh_to_view[:3],
+            dice=dice(silhouettes[1], mask),
+            iou=iou(silhouettes[1], mask),
+            silhouette=silhouettes[1],
+            initial_silhouette=silhouettes[0],
+        )
+    return results
+
+
+def _convergence(outcome: _StageOutcome | None, views: dict[str, ViewResult]) -> tuple[bool, str]:
+    low = {name: round(result.dice, 3) for name, result in views.items() if result.dice < MIN_CONVERGED_DICE}
+    if low:
+        return False, f"silhouettes overlap poorly after optimization (dice {low}); the pose is likely wrong"
+    if outcome is None or outcome.stopped_by != "tolerance":
+        return False, "iteration limit reached before the pose stopped changing"
+    return True, "pose change below tolerance in the final stage"

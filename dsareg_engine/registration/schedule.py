@@ -1,0 +1,87 @@
+"""Coarse-to-fine stage schedules for each configuration of the paper's Table 1."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+COARSEST_SIDE_PX = 96
+"""The coarsest level is the largest power-of-two reduction keeping this many pixels per side."""
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One optimization stage.
+
+    Attributes:
+        name: label in metrics and progress (``"ap:1/8"``, ``"ap+lat:1/1"``...).
+        scale: image scale relative to the working resolution.
+        sigma_px: silhouette edge softness at this level (px of the level's image).
+        blur_px: Gaussian blur of the target at this level (px), widening capture.
+        views: active views (λ = 1), the others have λ = 0.
+        optimizer: ``"adam"`` (robust, batched over starts) or ``"lbfgs"`` (tight final fit).
+        max_iterations: iteration cap (Adam steps, or L-BFGS evaluations).
+        learning_rate: Adam step in mm (pose increments are scaled to mm).
+        all_starts: optimize every start (True) or only the best so far.
+    """
+
+    name: str
+    scale: float
+    sigma_px: float
+    blur_px: float
+    views: tuple[str, ...]
+    optimizer: str
+    max_iterations: int
+    learning_rate: float
+    all_starts: bool
+
+
+def pyramid_scales(image_side_px: int) -> list[float]:
+    """Scales 1/2^k … 1 with the coarsest level at least COARSEST_SIDE_PX on its short side."""
+    scales = [1.0]
+    while image_side_px * scales[0] / 2 >= COARSEST_SIDE_PX:
+        scales.insert(0, scales[0] / 2)
+    return scales
+
+
+def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, final: bool) -> list[Stage]:
+    label = "+".join(views)
+    stages = []
+    for index, scale in enumerate(scales):
+        last = final and index == len(scales) - 1
+        # Levels are set by their place in the ladder: the coarsest (~100 px) always gets
+        # the widest blur and the largest steps, whatever the full image size.
+        rank = len(scales) - 1 - index  # 0 at the finest level
+        stages.append(
+            Stage(
+                name=f"{label}:1/{round(1 / scale)}",
+                scale=scale,
+                sigma_px=0.5,
+                blur_px=0.0 if rank == 0 else (2.0 if index == 0 else 1.0),
+                views=views,
+                optimizer="lbfgs" if last else "adam",
+                max_iterations=min(max_iterations, 60) if last else max_iterations,
+                learning_rate=0.8 if index == 0 else 0.2 / 2 ** max(0, index - 1),
+                all_starts=index == 0 or scale <= 0.25,
+            )
+        )
+    return stages
+
+
+def build_schedule(configuration: str, image_side_px: int, max_iterations: int) -> list[Stage]:
+    """Stages for ``ap``, ``lat``, ``simultaneous``, ``ap_then_lat`` or ``lat_then_ap``.
+
+    Sequential configurations run the whole ladder on the first view, then switch the
+    second view's λ on and repeat the finer half of the ladder with both views.
+    """
+    scales = pyramid_scales(image_side_px)
+    if configuration in ("ap", "lat"):
+        return _ladder((configuration,), scales, max_iterations, final=True)
+    if configuration == "simultaneous":
+        return _ladder(("ap", "lat"), scales, max_iterations, final=True)
+    first = configuration.split("_then_")[0]
+    if configuration not in ("ap_then_lat", "lat_then_ap"):
+        raise ValueError(f"unknown configuration {configuration!r}")
+    second_half = [s for s in scales if s >= scales[len(scales) // 2]]
+    stages = _ladder((first,), scales[:-1] or scales, max_iterations, final=False)
+    both = _ladder(("ap", "lat"), second_half, max_iterations, final=True)
+    return stages + [Stage(**{**vars(s), "all_starts": False}) for s in both]
