@@ -5,6 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 COARSEST_SIDE_PX = 96
+FINAL_SIGMA_PX = 0.25
+"""Sharp edges for the final fit: dense meshes aggregate many faces near the contour, which
+widens the soft silhouette by a fraction of σ and biases the pose; a small σ keeps that bias small."""
 """The coarsest level is the largest power-of-two reduction keeping this many pixels per side."""
 
 
@@ -46,16 +49,18 @@ def pyramid_scales(image_side_px: int) -> list[float]:
 def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, final: bool) -> list[Stage]:
     label = "+".join(views)
     stages = []
+    if final:  # the finest level twice: blurred Adam to settle, then sharp L-BFGS to converge
+        scales = scales + [scales[-1]]
     for index, scale in enumerate(scales):
         last = final and index == len(scales) - 1
         # Levels are set by their place in the ladder: the coarsest (~100 px) always gets
         # the widest blur and the largest steps, whatever the full image size.
-        rank = len(scales) - 1 - index  # 0 at the finest level
+        rank = 0 if last else len(scales) - 1 - index  # 0 at the sharp final level
         stages.append(
             Stage(
-                name=f"{label}:1/{round(1 / scale)}",
+                name=f"{label}:1/{round(1 / scale)}" + (":refine" if last else ""),
                 scale=scale,
-                sigma_px=0.5,
+                sigma_px=FINAL_SIGMA_PX if last else 0.5,
                 blur_px=0.0 if rank == 0 else (2.0 if index == 0 else 1.0),
                 views=views,
                 optimizer="lbfgs" if last else "adam",

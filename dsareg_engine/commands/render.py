@@ -1,0 +1,48 @@
+"""``dsareg render``: hard silhouettes of a mesh in each view of a geometry."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..geometry_file import load_rig
+from ..overlay import write_png
+from ..pose_file import load_pose
+from ..render import Camera, render_hard_silhouette
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("render", help="write ap.png / lat.png hard silhouettes of a mesh")
+    parser.add_argument("--mesh", help="mesh file (OBJ/STL/PLY/OFF/GLB); default: the built-in phantom")
+    parser.add_argument("--geometry", required=True, help="geometry JSON file or preset name (e.g. paper)")
+    parser.add_argument("--pose", help='pose JSON {"mesh_to_world": 4x4}; default: the geometry\'s initial pose')
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.set_defaults(func=run)
+
+
+def load_mesh_argument(path: str | None):
+    """The mesh named on the command line, or the built-in phantom."""
+    if path is None:
+        from ..phantom import make_vessel_phantom
+
+        return make_vessel_phantom()
+    from ..io.mesh_io import read_mesh
+
+    return read_mesh(Path(path).read_bytes(), Path(path).name)
+
+
+def run(args: argparse.Namespace) -> int:
+    mesh = load_mesh_argument(args.mesh)
+    rig = load_rig(args.geometry)
+    pose = load_pose(args.pose) if args.pose else rig.initial_mesh_to_world
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    vertices, faces = mesh.torch(torch.float64)
+    for name, view in rig.views.items():
+        silhouette = render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view @ pose)[None], Camera.from_view(view))[0]
+        write_png(out / f"{name}.png", silhouette.numpy().astype(np.uint8) * 255)
+        print(f"{name}: {view.width}x{view.height} px, {int(silhouette.sum())} pixels covered -> {out / (name + '.png')}")
+    return 0
