@@ -18,6 +18,7 @@ import torch
 
 from ..geometry import Rig
 from ..mesh import TriangleMesh
+from ..io.mesh_io import decimate
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
 from ..pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
@@ -36,6 +37,12 @@ ADAM_RELATIVE_TOLERANCE = 1e-3
 LBFGS_POSE_TOLERANCE = 1e-4
 """L-BFGS stops when a step changes every pose component by less than this (mm units)."""
 MIN_CONVERGED_DICE = 0.5
+LOD_MIN_FACES = 1500
+
+
+def level_of_detail_faces(n_faces: int, scale: float) -> int:
+    """Faces to render at image ``scale``: all of them from 1/2 up, ∝ scale² below, ≥ LOD_MIN_FACES."""
+    return min(n_faces, max(LOD_MIN_FACES, round(n_faces * (2.0 * scale) ** 2)))
 
 
 class RegistrationCanceled(Exception):
@@ -62,12 +69,21 @@ class _Problem:
         self.centre = mesh.centroid
         self.radius_mm = mesh_radius_mm(mesh.vertices)
         self._targets: dict[tuple, ViewTarget] = {}
-        self._mesh_tensors: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
-    def mesh_tensors(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
-        if dtype not in self._mesh_tensors:
-            self._mesh_tensors[dtype] = self.mesh.torch(dtype, self.device)
-        return self._mesh_tensors[dtype]
+    def mesh_tensors(self, dtype: torch.dtype, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertices and faces for rendering at ``scale``: a decimated level of detail below full size.
+
+        Coarse images would otherwise pay for thousands of sub-pixel faces (each touching a
+        whole blur disc) and their silhouettes would swell; keeping about the same face size
+        in pixels at every level keeps both the cost and the swelling in check.
+        """
+        faces_wanted = level_of_detail_faces(self.mesh.n_faces, scale)
+        key = (dtype, faces_wanted)
+        if key not in self._mesh_tensors:
+            mesh = self.mesh if faces_wanted >= self.mesh.n_faces else decimate(self.mesh, faces_wanted)
+            self._mesh_tensors[key] = mesh.torch(dtype, self.device)
+        return self._mesh_tensors[key]
 
     def target(self, view_name: str, stage: Stage, dtype: torch.dtype) -> ViewTarget:
         key = (view_name, stage.scale, stage.blur_px, dtype)
@@ -84,7 +100,7 @@ class _Problem:
 
     def loss(self, mesh_to_world: torch.Tensor, stage: Stage, dtype: torch.dtype) -> torch.Tensor:
         """Per-start loss ``(B,)`` for poses ``(B, 4, 4)`` (float64, differentiable)."""
-        vertices, faces = self.mesh_tensors(dtype)
+        vertices, faces = self.mesh_tensors(dtype, stage.scale)
         settings = SilhouetteSettings(sigma_px=stage.sigma_px)
         total = torch.zeros(mesh_to_world.shape[0], dtype=dtype, device=self.device)
         for name in stage.views:
