@@ -38,11 +38,20 @@ LBFGS_POSE_TOLERANCE = 1e-4
 """L-BFGS stops when a step changes every pose component by less than this (mm units)."""
 MIN_CONVERGED_DICE = 0.5
 LOD_MIN_FACES = 1500
+LOD_FACE_AREA_PX = 2.0
 
 
-def level_of_detail_faces(n_faces: int, scale: float) -> int:
-    """Faces to render at image ``scale``: all of them from 1/2 up, ∝ scale² below, ≥ LOD_MIN_FACES."""
-    return min(n_faces, max(LOD_MIN_FACES, round(n_faces * (2.0 * scale) ** 2)))
+def level_of_detail_faces(n_faces: int, mean_face_area_px: float) -> int:
+    """Faces to keep so the mean projected face covers about ``LOD_FACE_AREA_PX`` px² (≥ LOD_MIN_FACES)."""
+    wanted = n_faces * mean_face_area_px / LOD_FACE_AREA_PX
+    return int(min(n_faces, max(LOD_MIN_FACES, round(wanted))))
+
+
+def mean_projected_face_area_px(mesh: TriangleMesh, view, mesh_to_world: np.ndarray) -> float:
+    """Mean area (px², full resolution) of the mesh's faces projected into ``view``."""
+    pixels = view.project(mesh.vertices @ mesh_to_world[:3, :3].T + mesh_to_world[:3, 3])
+    a, b, c = (pixels[mesh.faces[:, k]] for k in range(3))
+    return float(np.abs(np.cross(b - a, c - a)).mean() / 2.0)
 
 
 class RegistrationCanceled(Exception):
@@ -68,17 +77,23 @@ class _Problem:
         self.device = device
         self.centre = mesh.centroid
         self.radius_mm = mesh_radius_mm(mesh.vertices)
+        self.mean_face_area_px = min(
+            mean_projected_face_area_px(mesh, view, rig.initial_mesh_to_world) for view in rig.views.values()
+        )
         self._targets: dict[tuple, ViewTarget] = {}
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
-    def mesh_tensors(self, dtype: torch.dtype, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-        """Vertices and faces for rendering at ``scale``: a decimated level of detail below full size.
+    def mesh_tensors(self, dtype: torch.dtype, stage: Stage | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertices and faces for rendering a stage: a decimated level of detail for Adam stages.
 
-        Coarse images would otherwise pay for thousands of sub-pixel faces (each touching a
-        whole blur disc) and their silhouettes would swell; keeping about the same face size
-        in pixels at every level keeps both the cost and the swelling in check.
+        Faces much smaller than a pixel cost a whole blur disc each and make the soft
+        silhouette swell; decimating to about ``LOD_FACE_AREA_PX`` px² per face (as projected
+        at the stage's scale) keeps cost and swelling in check. The final L-BFGS stage
+        always uses the full mesh so accuracy does not depend on the decimation.
         """
-        faces_wanted = level_of_detail_faces(self.mesh.n_faces, scale)
+        faces_wanted = self.mesh.n_faces
+        if stage is not None and stage.optimizer != "lbfgs":
+            faces_wanted = level_of_detail_faces(self.mesh.n_faces, self.mean_face_area_px * stage.scale**2)
         key = (dtype, faces_wanted)
         if key not in self._mesh_tensors:
             mesh = self.mesh if faces_wanted >= self.mesh.n_faces else decimate(self.mesh, faces_wanted)
@@ -100,7 +115,7 @@ class _Problem:
 
     def loss(self, mesh_to_world: torch.Tensor, stage: Stage, dtype: torch.dtype) -> torch.Tensor:
         """Per-start loss ``(B,)`` for poses ``(B, 4, 4)`` (float64, differentiable)."""
-        vertices, faces = self.mesh_tensors(dtype, stage.scale)
+        vertices, faces = self.mesh_tensors(dtype, stage)
         settings = SilhouetteSettings(sigma_px=stage.sigma_px)
         total = torch.zeros(mesh_to_world.shape[0], dtype=dtype, device=self.device)
         for name in stage.views:

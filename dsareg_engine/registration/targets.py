@@ -62,10 +62,14 @@ def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
     offsets = torch.arange(-half, half + 1, dtype=images.dtype, device=images.device)
     kernel = torch.exp(-0.5 * (offsets / sigma_px) ** 2)
     kernel = kernel / kernel.sum()
-    x = images[:, None]
-    x = F.conv2d(x, kernel.view(1, 1, 1, -1), padding=(0, half))
-    x = F.conv2d(x, kernel.view(1, 1, -1, 1), padding=(half, 0))
-    return x[:, 0]
+    # Weighted sums of shifted slices: for one channel and a short kernel this is several
+    # times faster than conv2d, forward and especially backward, on the CPU.
+    padded = F.pad(images, (half, half, 0, 0))
+    width = images.shape[-1]
+    rows = sum(kernel[k] * padded[..., :, k : k + width] for k in range(2 * half + 1))
+    padded = F.pad(rows, (0, 0, half, half))
+    height = images.shape[-2]
+    return sum(kernel[k] * padded[..., k : k + height, :] for k in range(2 * half + 1))
 
 
 def thin_vessel_weights(mask: np.ndarray, max_ratio: float = 8.0) -> np.ndarray:
