@@ -32,7 +32,7 @@ ProgressCallback = Callable[[dict], None]
 
 AGREEMENT_ADD_MM = 2.0
 """Starts whose pose lies within this ADD of the best one after the batched stages agree."""
-ADAM_PATIENCE = 15
+ADAM_PATIENCE = 8
 ADAM_RELATIVE_TOLERANCE = 1e-3
 LBFGS_POSE_TOLERANCE = 1e-4
 """L-BFGS stops when a step changes every pose component by less than this (mm units)."""
