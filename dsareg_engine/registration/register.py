@@ -9,6 +9,7 @@ at finer levels, and L-BFGS at full resolution with a stop on pose change.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -130,6 +131,21 @@ class _Problem:
         return total
 
 
+@contextlib.contextmanager
+def _torch_threads(count: int):
+    """Run with ``count`` torch intra-op threads, restoring the previous setting afterwards.
+
+    On the CPU the numba kernels carry the parallel work; the remaining torch operations
+    are small, and torch's spinning OpenMP pool only competes with the kernels' threads.
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 def _resolve_device(requested: str) -> torch.device:
     if requested == "cuda" or (requested == "auto" and torch.cuda.is_available()):
         if not torch.cuda.is_available():
@@ -216,6 +232,20 @@ def register(
     """
     options = options or RegistrationOptions()
     device = _resolve_device(options.device)
+    with _torch_threads(1 if device.type == "cpu" else torch.get_num_threads()):
+        return _register(mesh, masks, rig, options, device, progress, should_stop, target_points)
+
+
+def _register(
+    mesh: TriangleMesh,
+    masks: dict[str, np.ndarray],
+    rig: Rig,
+    options: RegistrationOptions,
+    device: torch.device,
+    progress: ProgressCallback | None,
+    should_stop: Callable[[], bool] | None,
+    target_points: np.ndarray | None,
+) -> RegistrationResult:
     used_views = ("ap", "lat") if options.configuration not in ("ap", "lat") else (options.configuration,)
     _check_inputs(masks, rig, used_views)
     initial = rig.initial_mesh_to_world
