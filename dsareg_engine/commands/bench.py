@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import numpy as np
@@ -37,6 +38,7 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--configs", nargs="+", default=list(CONFIGURATIONS))
         sub.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
         sub.add_argument("--max-mtre", type=float, default=20.0)
+        sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
         sub.set_defaults(func=func)
 
 
@@ -113,8 +115,8 @@ def _summarise(rows: list[dict]) -> str:
             f"{stat('add_mm', 50):.4f} / {stat('add_mm', 90):.4f} | {success:.0f} % | {np.median([r['seconds'] for r in rows]):.1f}")
 
 
-def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int) -> dict:
-    options = RegistrationOptions(configuration=config, starts=multistart, seed=seed,
+def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int, extra: dict) -> dict:
+    options = RegistrationOptions(configuration=config, starts=multistart, seed=seed, **extra,
                                   initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist())
     result = register(mesh, masks, rig, options)
     return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"]}
@@ -129,11 +131,12 @@ def bench_table1(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     initials = [paper_start] + [_perturbation(mesh, np.eye(4), angle, shift, rng) for _ in range(args.starts)]
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {len(initials)} initial poses "
-          f"({np.degrees(angle):.1f} deg, {shift:.1f} mm centre shift), {args.multistart} parallel starts each, device {_device()}")
+          f"({np.degrees(angle):.1f} deg, {shift:.1f} mm centre shift), {args.multistart} parallel starts each, "
+          f"device {_device()}, options {args.options}")
     print("| configuration | rotation ° median / p90 | translation mm median / p90 | ADD mm median / p90 | success (ADD < 1 mm) | median s |")
     print("|---|---|---|---|---|---|")
     for config in args.configs:
-        rows = [_run(mesh, rig, masks, initial, config, args.multistart, args.seed + i) for i, initial in enumerate(initials)]
+        rows = [_run(mesh, rig, masks, initial, config, args.multistart, args.seed + i, json.loads(args.options)) for i, initial in enumerate(initials)]
         print(f"| {config} | {_summarise(rows)} |", flush=True)
     return 0
 
@@ -175,7 +178,7 @@ def bench_capture(args: argparse.Namespace) -> int:
     capture, contiguous = 0.0, True
     for low in np.arange(0.0, args.max_mtre, 1.0):
         rows = [
-            _run(mesh, rig, masks, _offset_with_mtre(mesh, rng.uniform(low, low + 1.0), 30.0, rng), "simultaneous", args.multistart, 0)
+            _run(mesh, rig, masks, _offset_with_mtre(mesh, rng.uniform(low, low + 1.0), 30.0, rng), "simultaneous", args.multistart, 0, json.loads(args.options))
             for _ in range(args.starts)
         ]
         finals = np.array([row["mtre_mm"] for row in rows])

@@ -33,6 +33,8 @@ class RegistrationOptions(BaseModel):
         0, ge=0, le=4096, description="Longest image side of the final stage in pixels; 0 = the images' own size."
     )
     seed: int = Field(0, description="Seed for the extra starts; the same seed gives the same result.")
+    coarse_to_fine: bool = Field(True, description="Image pyramid from ~100 px up (off: full size only).")
+    refine: bool = Field(True, description="Final L-BFGS stage at full size with a pose-change stop rule.")
     thin_vessel_weighting: bool = Field(
         False, description="Weight pixels so thin branches count as much as thick ones."
     )

@@ -257,7 +257,10 @@ def _register(
     shortest = min(min(rig.views[name].image_size) for name in used_views)
     stages = [
         Stage(**{**vars(stage), "scale": stage.scale * final_scale})
-        for stage in build_schedule(options.configuration, round(shortest * final_scale), options.max_iterations)
+        for stage in build_schedule(
+            options.configuration, round(shortest * final_scale), options.max_iterations,
+            options.coarse_to_fine, options.refine,
+        )
     ]
 
     starts = random_start_poses(initial, problem.centre, options.starts, options.start_spread_deg,

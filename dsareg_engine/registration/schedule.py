@@ -49,6 +49,8 @@ def pyramid_scales(image_side_px: int) -> list[float]:
 def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, final: bool) -> list[Stage]:
     label = "+".join(views)
     stages = []
+    if len(scales) == 1 and not final:  # single level, no refinement: plain Adam at full size
+        return [Stage(f"{label}:1/1", 1.0, 0.5, 0.0, views, "adam", max_iterations, 0.1, True)]
     if final:  # the finest level twice: blurred Adam to settle, then sharp L-BFGS to converge
         scales = scales + [scales[-1]]
     for index, scale in enumerate(scales):
@@ -72,21 +74,25 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
     return stages
 
 
-def build_schedule(configuration: str, image_side_px: int, max_iterations: int) -> list[Stage]:
+def build_schedule(
+    configuration: str, image_side_px: int, max_iterations: int, coarse_to_fine: bool = True, refine: bool = True
+) -> list[Stage]:
     """Stages for ``ap``, ``lat``, ``simultaneous``, ``ap_then_lat`` or ``lat_then_ap``.
 
     Sequential configurations run the whole ladder on the first view, then switch the
     second view's λ on and repeat the finer half of the ladder with both views.
+    ``coarse_to_fine=False`` keeps only the full-size level; ``refine=False`` drops the
+    final L-BFGS stage (both exist to measure what each contributes).
     """
-    scales = pyramid_scales(image_side_px)
+    scales = pyramid_scales(image_side_px) if coarse_to_fine else [1.0]
     if configuration in ("ap", "lat"):
-        return _ladder((configuration,), scales, max_iterations, final=True)
+        return _ladder((configuration,), scales, max_iterations, final=refine)
     if configuration == "simultaneous":
-        return _ladder(("ap", "lat"), scales, max_iterations, final=True)
+        return _ladder(("ap", "lat"), scales, max_iterations, final=refine)
     first = configuration.split("_then_")[0]
     if configuration not in ("ap_then_lat", "lat_then_ap"):
         raise ValueError(f"unknown configuration {configuration!r}")
     second_half = [s for s in scales if s >= scales[len(scales) // 2]]
     stages = _ladder((first,), scales[:-1] or scales, max_iterations, final=False)
-    both = _ladder(("ap", "lat"), second_half, max_iterations, final=True)
-    return stages + [Stage(**{**vars(s), "all_starts": False}) for s in both]
+    both = _ladder(("ap", "lat"), second_half, max_iterations, final=refine)
+    return stages + [Stage(**{**vars(s), "all_starts": False, "name": s.name if s.name not in {t.name for t in stages} else s.name + ":both"}) for s in both]
