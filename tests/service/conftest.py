@@ -1,10 +1,7 @@
 from __future__ import annotations
 
 import pytest
-
-from .helpers import Server, engine_ready, make_example_case
-
-needs_engine = pytest.mark.skipif(not engine_ready(), reason="engine entry points load_case/run_registration_case not present yet")
+from service_testkit import Server, make_example_case
 
 
 @pytest.fixture(scope="session")

@@ -5,12 +5,11 @@ from __future__ import annotations
 import asyncio
 
 import pytest
+from service_testkit import make_example_case
 
 from service.blobs import BlobStore
 from service.store import InputFile
 from service.validation import ValidatorPool
-
-from .helpers import make_example_case
 
 
 def _loader_present() -> bool:

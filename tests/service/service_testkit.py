@@ -15,6 +15,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 CASE_SIZE = 128
@@ -29,6 +30,9 @@ def engine_ready() -> bool:
     except ImportError:
         return False
     return True
+
+
+needs_engine = pytest.mark.skipif(not engine_ready(), reason="engine entry points load_case/run_registration_case missing")
 
 
 @dataclass
@@ -46,7 +50,7 @@ def png_bytes(mask: np.ndarray) -> bytes:
     from PIL import Image
 
     buffer = io.BytesIO()
-    Image.fromarray((mask.astype(np.uint8) * 255)).save(buffer, format="PNG")
+    Image.fromarray(mask.astype(np.uint8) * 255).save(buffer, format="PNG")
     return buffer.getvalue()
 
 
@@ -113,14 +117,14 @@ class Server:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, wait_ready: bool = True, timeout: float = 90.0) -> "Server":
+    def start(self, wait_ready: bool = True, timeout: float = 90.0) -> Server:
         env = {**os.environ, "DSAREG_LEASE_SECONDS": "3", "DSAREG_POLL_SECONDS": "0.2",
                "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2", "DSAREG_VALIDATION_TIMEOUT_SECONDS": "60",
                "PYTHONUNBUFFERED": "1", **self.env}
         for key in ("DSAREG_API_KEYS", "DSAREG_API_KEY_HASHES", "DSAREG_CONFIG"):
             if key not in self.env:
                 env.pop(key, None)
-        self.log = open(self.log_path, "ab")
+        self.log = open(self.log_path, "ab")  # noqa: SIM115 - closed in stop()
         self.process = subprocess.Popen(
             [sys.executable, "-m", "service", "serve", "--host", self.host, "--port", str(self.port),
              "--data-dir", str(self.data_dir), "--workers", str(self.workers), *self.extra_args],
@@ -164,9 +168,10 @@ class Server:
 
 
 def submit(client: httpx.Client, case: ExampleCase, options: dict | None = None, headers: dict | None = None,
-           geometry: dict | str | None = None) -> httpx.Response:
-    files = [("mesh", ("phantom.obj", case.mesh_obj, "application/octet-stream")),
-             ("ap", ("ap.png", case.ap_png, "image/png")), ("lat", ("lat.png", case.lat_png, "image/png"))]
+           geometry: dict | str | None = None, names: tuple[str, str, str] = ("phantom.obj", "ap.png", "lat.png"),
+           ) -> httpx.Response:
+    files = [("mesh", (names[0], case.mesh_obj, "application/octet-stream")),
+             ("ap", (names[1], case.ap_png, "image/png")), ("lat", (names[2], case.lat_png, "image/png"))]
     geometry = case.geometry if geometry is None else geometry
     data = {"geometry": geometry if isinstance(geometry, str) else json.dumps(geometry),
             "options": json.dumps(FAST_OPTIONS if options is None else options)}

@@ -7,8 +7,7 @@ import signal
 import sqlite3
 import time
 
-from .conftest import needs_engine
-from .helpers import Server, submit, wait_for
+from service_testkit import Server, needs_engine, submit, wait_for
 
 SLOW = {"starts": 2, "max_iterations": 400}
 
@@ -74,3 +73,17 @@ def test_sigkill_worker_mid_job_is_retried_once_to_completion(tmp_path, example_
         assert "restarting" in srv.logs()
     finally:
         srv.stop()
+
+
+@needs_engine
+def test_graceful_stop_hands_the_running_job_back(tmp_path, example_case):
+    srv = Server(tmp_path / "data", workers=1).start()
+    try:
+        with srv.client() as c:
+            job_id = submit(c, example_case, options={**SLOW, "seed": 9}).json()["id"]
+            wait_for(c, job_id, statuses=("running",), timeout=60)
+    finally:
+        srv.stop()  # SIGTERM: uvicorn shuts down, workers stop at their next progress check
+    (status, attempts), = _db_rows(srv.data_dir, "SELECT status, attempts FROM jobs WHERE id=?", (job_id,))
+    assert (status, attempts) == ("queued", 0)  # back in the queue, no attempt used up
+    assert _events(srv.data_dir, job_id)[-1] == "released"

@@ -4,14 +4,11 @@ from __future__ import annotations
 
 import io
 import json
-import time
 
 import httpx
 import numpy as np
 import pytest
-
-from .conftest import needs_engine
-from .helpers import CASE_SIZE, FAST_OPTIONS, dice, render_mask, small_views, submit, wait_for
+from service_testkit import CASE_SIZE, FAST_OPTIONS, dice, needs_engine, render_mask, small_views, submit, wait_for
 
 PROBLEM = "application/problem+json"
 
@@ -43,7 +40,9 @@ def test_health_ready_docs_and_loopback_only(server):
 @needs_engine
 def test_end_to_end_phantom(server, example_case):
     with server.client() as c:
-        response = submit(c, example_case)
+        # client file names may carry patient identifiers: only their suffix may be kept
+        names = ("DOE_JANE_19700101.obj", "DOE_JANE_19700101_ap.png", "DOE_JANE_19700101_lat.png")
+        response = submit(c, example_case, names=names)
         assert response.status_code == 202, response.text
         job = response.json()
         assert response.headers["location"] == f"/v1/registrations/{job['id']}"
@@ -77,6 +76,11 @@ def test_end_to_end_phantom(server, example_case):
         assert 'dsareg_jobs{state="succeeded"}' in metrics and "dsareg_queue_depth" in metrics
         assert "dsareg_job_duration_seconds_bucket" in metrics
         assert 'route="/v1/registrations/{job_id}"' in metrics
+    assert "DOE_JANE" not in server.logs()
+    for path in server.data_dir.rglob("*"):
+        assert "DOE_JANE" not in path.name
+        if path.is_file() and path.name.startswith("jobs.sqlite3"):
+            assert b"DOE_JANE" not in path.read_bytes()
 
 
 @needs_engine
@@ -193,9 +197,13 @@ def test_unreadable_files_are_422_with_field(server, example_case):
 
 
 def test_schemathesis_contract(server):
-    """Property-based: every documented operation, generated inputs, never a 5xx."""
+    """Property-based, against the live OpenAPI document: every operation, generated valid and
+    invalid inputs, all of schemathesis' checks (no 5xx, status codes, headers, content types and
+    bodies conform to the schema, invalid data rejected). Only "schema-valid data is accepted" is
+    left out: a schema cannot say which bytes are a readable mesh or image, so those get a 422."""
     schemathesis = pytest.importorskip("schemathesis")
     from hypothesis import HealthCheck, Phase, given, settings
+    from schemathesis.checks import positive_data_acceptance
 
     schema = schemathesis.openapi.from_url(server.url + "/openapi.json")
     failures: list[str] = []
@@ -205,21 +213,18 @@ def test_schemathesis_contract(server):
         @settings(max_examples=8, deadline=None, phases=[Phase.explicit, Phase.generate],
                   suppress_health_check=list(HealthCheck), derandomize=True, database=None)
         def check(case):
-            response = case.call(base_url=server.url, timeout=60)
-            if response.status_code >= 500:
-                failures.append(f"{operation.label}: {response.status_code} {response.text[:200]}")
-            elif response.status_code >= 400:
-                content_type = response.headers.get("content-type")
-                content_type = content_type[0] if isinstance(content_type, list) else content_type
-                assert content_type.startswith(PROBLEM), (operation.label, response.text[:200])
+            case.call_and_validate(base_url=server.url, timeout=60, excluded_checks=[positive_data_acceptance])
 
-        check()
+        try:
+            check()
+        except Exception as exc:  # noqa: BLE001 - collect all operations' failures
+            failures.append(f"{operation.label}: {' '.join(str(exc).split())[:800]}")
 
     operations = [result.ok() for result in schema.get_all_operations()]
     assert len(operations) >= 10
     for operation in operations:
         run(operation)
-    assert not failures, failures[:5]
+    assert not failures, "\n".join(failures)
     with server.client() as c:
         assert c.get("/healthz").status_code == 200
 
@@ -255,7 +260,7 @@ def test_python_client_and_submit_command(server, example_case, tmp_path):
          "--ap", str(tmp_path / "ap.png"), "--lat", str(tmp_path / "lat.png"),
          "--geometry", str(tmp_path / "geometry.json"), "--options", json.dumps({**FAST_OPTIONS, "seed": 6}),
          "--wait", "--out", str(out)],
-        capture_output=True, text=True, timeout=240,
+        capture_output=True, text=True, timeout=240, check=False,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "succeeded" in proc.stderr and "%" in proc.stderr  # the progress bar was drawn
@@ -265,6 +270,6 @@ def test_python_client_and_submit_command(server, example_case, tmp_path):
     bad = subprocess.run(
         [sys.executable, "-m", "service", "submit", "--server", server.url, "--mesh", str(tmp_path / "m.obj"),
          "--ap", str(tmp_path / "ap.png"), "--lat", str(tmp_path / "lat.png"), "--options", '{"starts": -1}'],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, check=False,
     )
     assert bad.returncode == 2 and "options.starts" in bad.stderr and "Traceback" not in bad.stderr

@@ -1,0 +1,96 @@
+"""The only module that calls the registration engine's entry points.
+
+Both the API's input validator (in its own processes) and the workers go through
+:func:`load_job_case`, so what the API accepted is exactly what the worker loads.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from .blobs import BlobStore
+from .store import InputFile
+
+ROLE_NAMES = {"mesh": "mesh", "volume": "volume", "ap": "ap", "lat": "lat"}
+
+
+def geometry_argument(geometry: str | None) -> str | dict | None:
+    """Stored geometry text → what ``load_case`` takes (a preset name or a parsed dict).
+
+    The API only stores preset names or JSON object text, so a file path can never reach
+    ``load_rig`` (which would otherwise read a server-side file).
+    """
+    if geometry is None:
+        return None
+    text = geometry.strip()
+    if text.startswith("{"):
+        return json.loads(text)
+    return text
+
+
+def input_limits(limits: dict[str, int] | None) -> Any:
+    """``InputLimits`` with the configured ceilings (engine defaults for the others)."""
+    from dsareg_engine.io.limits import DEFAULT_LIMITS, InputLimits
+
+    chosen = {k: v for k, v in (limits or {}).items() if v}
+    return InputLimits(**chosen) if chosen else DEFAULT_LIMITS
+
+
+def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
+                  limits: dict[str, int] | None = None) -> Any:
+    """Call ``dsareg_engine.io.case.load_case`` for stored inputs; ``read(sha256) -> bytes``.
+
+    Several files of one role (a DICOM series, a ``.rad`` + ``.raw`` pair) are passed as a
+    list in the order they were uploaded; names are ``<role><sanitized suffix>``.
+    """
+    from dsareg_engine.io.case import load_case
+
+    kwargs: dict[str, Any] = {"geometry": geometry_argument(geometry), "segmentation": segmentation,
+                              "limits": input_limits(limits)}
+    for role in ("mesh", "volume", "ap", "lat"):
+        items = [f for f in inputs if f.role == role]
+        if not items:
+            continue
+        if role == "mesh" or len(items) == 1:
+            kwargs[role] = read(items[0].sha256)
+        else:
+            kwargs[role] = [read(item.sha256) for item in items]
+        kwargs[f"{role}_name"] = role + items[0].suffix
+    return load_case(**kwargs)
+
+
+def case_summary(case: Any) -> dict[str, Any]:
+    summary: dict[str, Any] = {"warnings": [str(w) for w in getattr(case, "warnings", []) or []]}
+    try:
+        summary["faces"] = int(case.mesh.n_faces)
+        summary["views"] = {name: list(mask.shape[::-1]) for name, mask in case.masks.items()}
+    except Exception:  # noqa: BLE001, S110 - the summary is informative only
+        pass
+    return summary
+
+
+def blob_reader(blobs: BlobStore):
+    return blobs.read
+
+
+ARTIFACT_FILES = {
+    "result.json": "application/json",
+    "overlay_ap.png": "image/png",
+    "overlay_lat.png": "image/png",
+    "mask_ap.png": "image/png",
+    "mask_lat.png": "image/png",
+    "animation.gif": "image/gif",
+}
+
+
+def collect_artifacts(out_dir: Path, blobs: BlobStore) -> dict[str, str]:
+    """Move the engine's known output files into the blob store: ``{file name: sha256}``."""
+    artifacts: dict[str, str] = {}
+    for name in ARTIFACT_FILES:
+        path = out_dir / name
+        if path.is_file():
+            digest, _ = blobs.put_file(path)
+            artifacts[name] = digest
+    return artifacts

@@ -1,0 +1,172 @@
+"""Service settings: environment variables (prefix ``DSAREG_``) and/or a config file.
+
+The config file (JSON or TOML, named by ``DSAREG_CONFIG`` or ``--config``) gives the same
+keys as the environment without the prefix, in lower case; environment variables win
+over the file, explicit keyword arguments (the CLI) win over both.
+
+API keys are never kept in clear: ``api_keys`` (plain, for convenience) are hashed
+with SHA-256 at load time and merged into ``api_key_hashes``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+
+def hash_api_key(key: str) -> str:
+    """The at-rest form of an API key: lower-case hex SHA-256 of its UTF-8 bytes."""
+    return hashlib.sha256(key.strip().encode("utf-8")).hexdigest()
+
+
+def _split_list(value: Any) -> Any:
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("["):
+            return json.loads(text)
+        return [part.strip() for part in text.split(",") if part.strip()]
+    return value
+
+
+class ServiceSettings(BaseSettings):
+    """Every knob of ``dsareg serve``."""
+
+    model_config = SettingsConfigDict(env_prefix="DSAREG_", extra="ignore", validate_default=True)
+
+    # where
+    data_dir: Path = Field(Path("./dsareg-data"), description="Inputs, artifacts and the default SQLite database.")
+    database_url: str | None = Field(None, description="Any SQLAlchemy URL; default sqlite:///<data_dir>/jobs.sqlite3.")
+    host: str = "127.0.0.1"
+    port: int = 8000
+
+    # workers
+    workers: int = Field(1, ge=0, le=64, description="Embedded worker processes (0: API only, jobs stay queued).")
+    threads_per_worker: int = Field(1, ge=1, le=256, description="torch.set_num_threads in each worker.")
+    lease_seconds: float = Field(30.0, gt=0.5, description="A claimed job is the worker's until this long after its last heartbeat.")
+    heartbeat_seconds: float | None = Field(None, description="Default lease_seconds / 3.")
+    max_attempts: int = Field(3, ge=1, le=20, description="Claims of one job before it fails for good.")
+    poll_seconds: float = Field(0.5, gt=0.0, description="How often an idle worker looks for queued jobs.")
+    progress_interval_seconds: float = Field(0.5, ge=0.0, description="Least time between two progress writes of a job.")
+
+    # limits
+    max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="Whole request body, enforced while streaming.")
+    queue_limit: int = Field(1000, ge=1, description="Queued jobs at most; more → 503 with Retry-After.")
+    queue_limit_per_key: int = Field(200, ge=1, description="Queued jobs of one API key at most; more → 429.")
+    validation_timeout_seconds: float = Field(60.0, gt=0.0, description="Input parsing time at most before a 422.")
+    validation_processes: int = Field(1, ge=1, le=16, description="Processes that parse inputs for the API.")
+    validation_memory_mb: int = Field(4096, ge=0, description="Extra address space for one input parse (0: unlimited).")
+    max_mesh_faces: int | None = Field(None, ge=1, description="Refuse meshes with more faces (engine default 500k).")
+    max_image_pixels: int | None = Field(None, ge=1, description="Refuse larger images, from the header (engine default 64 MP).")
+    max_volume_bytes: int | None = Field(None, ge=1, description="Refuse larger decoded volumes (engine default 1 GiB).")
+    job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
+
+    # retention
+    retention_hours: float = Field(168.0, gt=0.0, description="Finished jobs and their files are removed after this.")
+    sweep_interval_seconds: float = Field(300.0, gt=0.0, description="Period of the retention sweep and lease recovery.")
+
+    # auth
+    api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list, description="Plain keys (hashed at load).")
+    api_key_hashes: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="SHA-256 hex digests of accepted keys."
+    )
+
+    log_level: str = "info"
+
+    @field_validator("api_keys", "api_key_hashes", mode="before")
+    @classmethod
+    def _lists(cls, value: Any) -> Any:
+        return _split_list(value)
+
+    @field_validator("api_key_hashes")
+    @classmethod
+    def _hex(cls, value: list[str]) -> list[str]:
+        out = []
+        for item in value:
+            item = item.strip().lower()
+            if len(item) != 64 or any(c not in "0123456789abcdef" for c in item):
+                raise ValueError("api_key_hashes must be SHA-256 hex digests (64 hex characters)")
+            out.append(item)
+        return out
+
+    @model_validator(mode="after")
+    def _hash_plain_keys(self) -> ServiceSettings:
+        hashes = list(dict.fromkeys([*self.api_key_hashes, *(hash_api_key(k) for k in self.api_keys if k.strip())]))
+        object.__setattr__(self, "api_key_hashes", hashes)
+        object.__setattr__(self, "api_keys", [])  # clear text is not kept
+        return self
+
+    # ---- derived ----------------------------------------------------------------------
+    @property
+    def auth_enabled(self) -> bool:
+        return bool(self.api_key_hashes)
+
+    @property
+    def effective_database_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'jobs.sqlite3').resolve()}"
+
+    @property
+    def effective_heartbeat_seconds(self) -> float:
+        return self.heartbeat_seconds or max(0.2, self.lease_seconds / 3.0)
+
+    @property
+    def input_limits(self) -> dict[str, int]:
+        """Keyword arguments of the engine's ``InputLimits`` (only those configured)."""
+        chosen = {"max_faces": self.max_mesh_faces, "max_image_pixels": self.max_image_pixels,
+                  "max_volume_bytes": self.max_volume_bytes}
+        return {k: v for k, v in chosen.items() if v}
+
+    @property
+    def effective_host(self) -> str:
+        """No keys → loopback only, whatever was asked for."""
+        return self.host if self.auth_enabled else "127.0.0.1"
+
+
+def load_config_file(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    if not isinstance(data, dict):
+        raise TypeError(f"config file {path} must hold an object")
+    return {key.lower(): value for key, value in data.items()}
+
+
+def load_settings(config_file: str | Path | None = None, **overrides: Any) -> ServiceSettings:
+    """Settings from (lowest first) the config file, the environment, then ``overrides``.
+
+    Keyword overrides whose value is ``None`` are ignored (unset CLI flags).
+    """
+    file_values: dict[str, Any] = {}
+    config_file = config_file or os.environ.get("DSAREG_CONFIG")
+    if config_file:
+        file_values = load_config_file(config_file)
+    env_only = ServiceSettings()  # environment (and defaults)
+    env_set = {name for name in ServiceSettings.model_fields if f"DSAREG_{name.upper()}" in os.environ}
+    merged: dict[str, Any] = dict(file_values)
+    for name in env_set:
+        merged[name] = getattr(env_only, name)
+    if "api_key_hashes" in env_set or "api_keys" in env_set:
+        merged["api_key_hashes"] = env_only.api_key_hashes + list(file_values.get("api_key_hashes", []))
+        merged["api_keys"] = file_values.get("api_keys", [])
+    merged.update({k: v for k, v in overrides.items() if v is not None})
+    return ServiceSettings.model_validate(merged) if merged else env_only
+
+
+def settings_to_env(settings: ServiceSettings) -> dict[str, str]:
+    """Environment that recreates ``settings`` in a child process (hashes only, never clear keys)."""
+    env: dict[str, str] = {}
+    for name in ServiceSettings.model_fields:
+        value = getattr(settings, name)
+        if name == "api_keys" or value is None:
+            continue
+        if isinstance(value, list):
+            env[f"DSAREG_{name.upper()}"] = json.dumps(value)
+        else:
+            env[f"DSAREG_{name.upper()}"] = str(value)
+    return env

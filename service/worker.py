@@ -1,0 +1,251 @@
+"""A worker: claims jobs from the store and runs them (one at a time).
+
+Runs in its own process (started by an executor with the ``spawn`` context). See
+:mod:`service.store` for the lease protocol. A background thread renews the lease
+every ``heartbeat`` seconds even when the engine reports no progress (loading,
+writing), and reads the job's ``cancel_requested`` flag; the engine's
+``should_stop`` callback then answers from memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from .blobs import BlobStore
+from .engine_adapter import collect_artifacts, load_job_case
+from .problems import TYPE_BASE
+from .settings import ServiceSettings
+from .store import JobRecord, JobStore, SqlJobStore, random_token
+
+log = logging.getLogger("dsareg.service.worker")
+
+
+def make_worker_id(index: int) -> str:
+    return f"{socket.gethostname()[:40]}-{os.getpid()}-w{index}-{random_token(3)}"
+
+
+class _JobControl:
+    """State shared by the engine callbacks and the heartbeat thread of one running job."""
+
+    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any):
+        self.store = store
+        self.job = job
+        self.worker_id = worker_id
+        self.settings = settings
+        self.stop_event = stop
+        self.cancel = job.cancel_requested
+        self.lost = False
+        self.timed_out = False
+        self.started = time.monotonic()
+        self.last_progress_write = 0.0
+        self.latest_progress: dict[str, Any] | None = None
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def finish(self) -> None:
+        self._done.set()
+        self._thread.join(5)
+
+    def _write(self, progress: dict | None) -> None:
+        try:
+            owned, cancel = self.store.heartbeat(self.job.id, self.worker_id, self.settings.lease_seconds, progress)
+        except Exception:  # noqa: BLE001 - a database hiccup: try again next beat
+            log.warning("job %s: heartbeat failed", self.job.id)
+            return
+        if not owned:
+            self.lost = True
+        self.cancel = self.cancel or cancel
+
+    def _beat(self) -> None:
+        interval = self.settings.effective_heartbeat_seconds
+        while not self._done.wait(interval):
+            with self._lock:
+                pending = self.latest_progress
+                self.latest_progress = None
+            self._write(pending)
+            if time.monotonic() - self.started > self.settings.job_timeout_seconds:
+                self.timed_out = True
+
+    def progress(self, update: dict) -> None:
+        progress = {
+            "stage": str(update.get("stage", "")),
+            "iteration": int(update.get("iteration", 0) or 0),
+            "loss": None if update.get("loss") is None else float(update["loss"]),
+            "fraction": max(0.0, min(1.0, float(update.get("fraction", 0.0) or 0.0))),
+        }
+        now = time.monotonic()
+        if now - self.last_progress_write >= self.settings.progress_interval_seconds:
+            self.last_progress_write = now
+            self._write(progress)
+        else:
+            with self._lock:
+                self.latest_progress = progress
+
+    def should_stop(self) -> bool:
+        return self.cancel or self.lost or self.timed_out or self.stop_event.is_set()
+
+
+def json_safe(value: Any) -> Any:
+    """Plain JSON: numpy scalars/arrays to Python, NaN/inf to None (strict JSON has no NaN)."""
+    import math
+
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return json_safe(value.tolist())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (str, int, bool)) or value is None:
+        return value
+    return str(value)
+
+
+def _problem(job_id: str, status: int, kind: str, title: str, detail: str, **extra: Any) -> dict[str, Any]:
+    body = {"type": TYPE_BASE + kind, "title": title, "status": status, "detail": detail,
+            "instance": f"/v1/registrations/{job_id}"}
+    body.update({k: v for k, v in extra.items() if v is not None})
+    return body
+
+
+def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any) -> str:
+    """Run a claimed job to an end state; returns what happened (for logs and tests)."""
+    from dsareg_engine.errors import DsaregInputError
+    from dsareg_engine.pipeline import RegistrationCanceled, run_registration_case
+    from dsareg_engine.registration.options import parse_options
+
+    control = _JobControl(store, job, worker_id, settings, stop)
+    out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    control.start()
+    outcome = "lost"
+    try:
+        options = parse_options(job.options)
+        case = load_job_case(job.inputs, job.geometry, options.segmentation, blobs.read, settings.input_limits)
+        if control.should_stop():
+            raise RegistrationCanceled("stopped before start")
+        control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
+        result = run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop)
+        if control.lost:
+            return "lost"
+        result = json_safe(result if isinstance(result, dict) else {"value": result})
+        warnings = [str(w) for w in getattr(case, "warnings", []) or []]
+        if warnings and "warnings" not in result:
+            result["warnings"] = warnings
+        artifacts = collect_artifacts(out_dir, blobs)
+        ok = store.complete(job.id, worker_id, "succeeded", result=result, artifacts=artifacts)
+        if ok:  # shared (identical) artifacts may have been removed by a concurrent delete before we referenced them
+            for name, digest in artifacts.items():
+                if not blobs.exists(digest):
+                    blobs.put_file(out_dir / name)
+        outcome = "succeeded" if ok else "lost"
+    except RegistrationCanceled:
+        if control.lost:
+            outcome = "lost"
+        elif control.cancel:
+            outcome = "canceled" if store.complete(job.id, worker_id, "canceled") else "lost"
+        elif control.timed_out:
+            err = _problem(job.id, 500, "job-timeout", "Job timed out",
+                           f"the registration did not finish within {settings.job_timeout_seconds:g} s; "
+                           "try fewer starts, fewer iterations or a smaller working_size_px")
+            outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
+        else:  # worker shutting down: hand the job back
+            store.release(job.id, worker_id)
+            outcome = "released"
+    except DsaregInputError as exc:
+        err = _problem(job.id, 422, "invalid-input", "Unprocessable input", str(exc), field=exc.field, accepted=exc.accepted)
+        outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
+    except Exception:
+        log.exception("job %s: internal error", job.id)
+        err = _problem(job.id, 500, "internal-error", "Internal error",
+                       f"the registration failed because of an internal error (logged under job {job.id})")
+        outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
+    finally:
+        control.finish()
+        shutil.rmtree(out_dir, ignore_errors=True)
+        try:
+            out_dir.parent.rmdir()
+        except OSError:
+            pass
+    log.info("job %s: %s after %.2f s (attempt %d, %d input bytes)", job.id, outcome, time.monotonic() - started,
+             job.attempts, job.input_bytes)
+    return outcome
+
+
+def warm_up() -> None:
+    """Load the engine and its compiled kernels before the first job (best effort)."""
+    try:
+        import numpy as np
+        import torch
+
+        import dsareg_engine.pipeline  # noqa: F401
+        from dsareg_engine.geometry import ViewGeometry
+        from dsareg_engine.render import Camera, render_hard_silhouette, render_soft_silhouette
+
+        view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
+                            principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
+        vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]])
+        faces = torch.tensor([[0, 1, 2]])
+        pose = torch.eye(4)[None]
+        render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
+        render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
+    except Exception:
+        log.debug("warm-up skipped", exc_info=True)
+
+
+def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> None:
+    """Entry point of a worker process."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through ``stop``
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        import torch
+
+        torch.set_num_threads(settings.threads_per_worker)
+    except Exception:  # noqa: BLE001
+        log.warning("could not set torch threads")
+    warm_up()
+    store = SqlJobStore(settings.effective_database_url, create_schema=False)
+    blobs = BlobStore(Path(settings.data_dir))
+    worker_id = make_worker_id(index)
+    log.info("worker %s started", worker_id)
+    last_seen = 0.0
+    try:
+        while not stop.is_set():
+            now = time.monotonic()
+            if now - last_seen > max(1.0, settings.effective_heartbeat_seconds):
+                try:
+                    store.worker_seen(worker_id, os.getpid())
+                except Exception:  # noqa: BLE001
+                    log.warning("worker %s: store not reachable", worker_id)
+                last_seen = now
+            try:
+                job = store.claim(worker_id, settings.lease_seconds)
+            except Exception:  # noqa: BLE001
+                log.warning("worker %s: claim failed", worker_id)
+                job = None
+            if job is None:
+                wake.wait(settings.poll_seconds)
+                wake.clear()
+                continue
+            log.info("job %s: claimed by %s (attempt %d)", job.id, worker_id, job.attempts)
+            run_one(store, blobs, job, worker_id, settings, stop)
+            last_seen = 0.0
+    finally:
+        store.dispose()
+        log.info("worker %s stopped", worker_id)
