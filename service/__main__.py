@@ -7,20 +7,13 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dsareg_engine.errors import DsaregInputError
+    from dsareg_engine.cli import run_parsed
 
     from .commands import add_parser
 
     parser = argparse.ArgumentParser(prog="python -m service")
     add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except DsaregInputError as exc:
-        print(f"dsareg: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    return run_parsed(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -12,8 +12,9 @@ import torch
 from ..geometry import Rig
 from ..geometry_file import load_rig
 from ..metrics import mean_distance_mm
+from ..pose import so3_log
 from ..registration import CONFIGURATIONS, RegistrationOptions, register
-from ..registration.parameterization import PoseIncrement, mesh_radius_mm
+from ..registration.parameterization import PoseIncrement
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from .render import load_mesh_argument
 
@@ -126,7 +127,7 @@ def bench_table1(args: argparse.Namespace) -> int:
     mesh = load_mesh_argument(args.mesh)
     rig, masks = _synthetic_case(mesh, args.size)
     paper_start = rig.initial_mesh_to_world
-    angle = np.linalg.norm(__import__("dsareg_engine.pose", fromlist=["so3_log"]).so3_log(paper_start[:3, :3]))
+    angle = np.linalg.norm(so3_log(paper_start[:3, :3]))
     shift = np.linalg.norm(paper_start[:3, :3] @ mesh.centroid + paper_start[:3, 3] - mesh.centroid)
     rng = np.random.default_rng(args.seed)
     initials = [paper_start] + [_perturbation(mesh, np.eye(4), angle, shift, rng) for _ in range(args.starts)]

@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..errors import DsaregInputError
 from ..geometry import Rig
 from ..mesh import TriangleMesh
 from ..io.mesh_io import decimate
@@ -70,7 +71,10 @@ class _StageOutcome:
 class _Problem:
     """The mesh, the rig and the per-level targets, shared by all stages."""
 
-    def __init__(self, mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options: RegistrationOptions, device: torch.device):
+    def __init__(
+        self, mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options: RegistrationOptions,
+        device: torch.device, initial_mesh_to_world: np.ndarray,
+    ):
         self.mesh = mesh
         self.masks = masks
         self.rig = rig
@@ -79,7 +83,7 @@ class _Problem:
         self.centre = mesh.centroid
         self.radius_mm = mesh_radius_mm(mesh.vertices)
         self.mean_face_area_px = min(
-            mean_projected_face_area_px(mesh, view, rig.initial_mesh_to_world) for view in rig.views.values()
+            mean_projected_face_area_px(mesh, view, initial_mesh_to_world) for view in rig.views.values()
         )
         self._targets: dict[tuple, ViewTarget] = {}
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
@@ -149,8 +153,6 @@ def _torch_threads(count: int):
 def _resolve_device(requested: str) -> torch.device:
     if requested == "cuda" or (requested == "auto" and torch.cuda.is_available()):
         if not torch.cuda.is_available():
-            from ..errors import DsaregInputError
-
             raise DsaregInputError("CUDA was requested but no GPU is available", field="options.device", accepted="auto, cpu")
         return torch.device("cuda")
     return torch.device("cpu")
@@ -251,7 +253,7 @@ def _register(
     initial = rig.initial_mesh_to_world
     if options.initial_mesh_to_world is not None:
         initial = validate_rigid(options.initial_mesh_to_world, field="options.initial_mesh_to_world", allow_mirror=False)
-    problem = _Problem(mesh, masks, rig, options, device)
+    problem = _Problem(mesh, masks, rig, options, device, initial)
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -307,7 +309,7 @@ def _register(
     estimate = poses[0]
     total_seconds = time.perf_counter() - started
 
-    view_results = _view_results(problem, initial, estimate, used_views)
+    view_results = _view_results(problem, initial, estimate)
     converged, reason = _convergence(outcome, view_results)
     metrics = {
         "loss": final_loss,
@@ -330,8 +332,6 @@ def _register(
 
 
 def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str, ...]) -> None:
-    from ..errors import DsaregInputError
-
     for name in used_views:
         if name not in rig.views:
             raise DsaregInputError(f"the configuration needs the '{name}' view", field=f"geometry.views.{name}")
@@ -358,7 +358,7 @@ def _keep_best(problem: _Problem, stage: Stage, poses: np.ndarray) -> tuple[np.n
     return best[None], int(agreeing)
 
 
-def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray, used_views) -> dict[str, ViewResult]:
+def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) -> dict[str, ViewResult]:
     vertices, faces = problem.mesh_tensors(torch.float64)
     results = {}
     for name, view in problem.rig.views.items():

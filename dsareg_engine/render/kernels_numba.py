@@ -18,6 +18,7 @@ import math
 import os
 
 import numba
+import numpy as np
 from numba import njit, prange
 
 # The work is split into exactly n_threads coarse chunks, so the simple, non-spinning
@@ -100,16 +101,14 @@ TABLE_STEP = 1.0 / 128.0
 TABLE_MAX = 24.0
 
 
-def make_tables() -> "tuple[numpy.ndarray, numpy.ndarray]":
+def make_tables() -> tuple[np.ndarray, np.ndarray]:
     """Tables of log1p(exp(−a)) and sigmoid(−a) for a ∈ [0, TABLE_MAX] in steps of TABLE_STEP.
 
     Linear interpolation in them is accurate to ~2e-6, well below float32 image noise,
     and replaces two transcendental calls per face–pixel pair.
     """
-    import numpy
-
-    a = numpy.arange(0.0, TABLE_MAX + 2 * TABLE_STEP, TABLE_STEP)
-    return numpy.log1p(numpy.exp(-a)), 1.0 / (1.0 + numpy.exp(a))
+    a = np.arange(0.0, TABLE_MAX + 2 * TABLE_STEP, TABLE_STEP)
+    return np.log1p(np.exp(-a)), 1.0 / (1.0 + np.exp(a))
 
 
 @njit(inline="always")
