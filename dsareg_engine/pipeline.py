@@ -1,8 +1,8 @@
 """One registration job end to end: case in, result files out (used by the CLI and the service).
 
 Writes into ``out_dir``: ``result.json``, ``overlay_{ap,lat}.png``, ``mask_{ap,lat}.png``
-(the masks actually registered, 0/255) and, when asked, ``animation.gif`` and
-``loss.png``.
+(the masks actually registered, 0/255), ``loss.png`` (loss per iteration) and, when
+asked, ``animation.gif``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import torch
 
-from .overlay import overlay_image, write_png
+from .overlay import loss_plot, overlay_image, write_png
 from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
 from .render import Camera, render_hard_silhouette
 
@@ -54,6 +54,7 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
     for name, view in result.views.items():
         write_png(out_dir / f"overlay_{name}.png", overlay_image(masks[name], view.initial_silhouette, view.silhouette))
         write_png(out_dir / f"mask_{name}.png", masks[name].astype(np.uint8) * 255)
+    write_png(out_dir / "loss.png", loss_plot(result.loss_history))
     if animation and mesh is not None and rig is not None:
         write_animation(out_dir / "animation.gif", result, masks, mesh, rig)
     return data

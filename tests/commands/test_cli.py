@@ -54,6 +54,7 @@ def test_register_end_to_end(case):
     overlay = cv2.imread(str(out / "overlay_ap.png"))
     assert overlay.shape == (200, 240, 3)
     assert (out / "animation.gif").stat().st_size > 0
+    assert cv2.imread(str(out / "loss.png")).shape == (360, 640, 3)
 
 
 def test_user_errors_are_one_line_and_exit_2(case, capsys):
