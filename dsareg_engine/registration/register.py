@@ -365,9 +365,8 @@ def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) 
         if name not in problem.masks:
             continue
         camera = Camera.from_view(view)
-        silhouettes = render_hard_silhouette(
-            vertices, faces, torch.as_tensor(np.stack([view.world_to_view @ initial, view.world_to_view @ estimate])), camera
-        ).cpu().numpy()
+        poses = torch.as_tensor(np.stack([view.world_to_view @ initial, view.world_to_view @ estimate]), device=problem.device)
+        silhouettes = render_hard_silhouette(vertices, faces, poses, camera).cpu().numpy()
         mesh_to_view = view.world_to_view @ estimate
         mask = problem.masks[name]
         results[name] = ViewResult(
