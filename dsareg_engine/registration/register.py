@@ -322,6 +322,12 @@ def _register(
         "starts_agreeing": starts_agreeing,
         "configuration": options.configuration,
     }
+    if len(used_views) == 1:
+        metrics["warnings"] = [
+            f"single-view registration ({used_views[0]}): translation along that view's central ray and "
+            "out-of-plane rotation are only weakly determined by one silhouette; check the pose with the "
+            "other view (its dice is reported when its mask is given) or register with both views"
+        ]
     if options.ground_truth_mesh_to_world is not None:
         truth = validate_rigid(options.ground_truth_mesh_to_world, field="options.ground_truth_mesh_to_world", allow_mirror=False)
         metrics["ground_truth"] = ground_truth_errors(estimate, truth, rig.views, mesh.vertices, target_points)
