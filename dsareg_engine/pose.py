@@ -13,10 +13,14 @@ Conventions used throughout dsareg:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from .errors import DsaregInputError
+
+if TYPE_CHECKING:  # torch is imported where it is used, so numpy-only users (the API) stay light
+    import torch
 
 ORTHONORMAL_TOLERANCE = 1e-4
 """Largest entry of ``|R Rᵀ − I|`` accepted for a rotation (or mirrored rotation)."""
@@ -31,6 +35,8 @@ def so3_exp(rotation_vector: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(B, 3, 3)`` rotation matrices.
     """
+    import torch
+
     theta_sq = (rotation_vector * rotation_vector).sum(-1, keepdim=True)  # (B, 1)
     small = theta_sq < 1e-8
     safe_sq = torch.where(small, torch.ones_like(theta_sq), theta_sq)
@@ -45,6 +51,8 @@ def so3_exp(rotation_vector: torch.Tensor) -> torch.Tensor:
 
 def hat(vector: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric cross-product matrices: ``(B, 3) -> (B, 3, 3)``."""
+    import torch
+
     x, y, z = vector.unbind(-1)
     zero = torch.zeros_like(x)
     return torch.stack(
@@ -73,9 +81,9 @@ def so3_log(rotation: np.ndarray) -> np.ndarray:
 def rotation_about_axis(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """3x3 rotation by ``angle_rad`` about ``axis`` (right-hand rule), numpy float64."""
     axis = np.asarray(axis, dtype=np.float64)
-    axis = axis / np.linalg.norm(axis)
-    rotvec = torch.as_tensor(axis * angle_rad, dtype=torch.float64)[None]
-    return so3_exp(rotvec)[0].numpy()
+    x, y, z = axis / np.linalg.norm(axis)
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
 
 
 def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
