@@ -53,7 +53,8 @@ def mean_projected_face_area_px(mesh: TriangleMesh, view, mesh_to_world: np.ndar
     """Mean area (px², full resolution) of the mesh's faces projected into ``view``."""
     pixels = view.project(mesh.vertices @ mesh_to_world[:3, :3].T + mesh_to_world[:3, 3])
     a, b, c = (pixels[mesh.faces[:, k]] for k in range(3))
-    return float(np.abs(np.cross(b - a, c - a)).mean() / 2.0)
+    e1, e2 = b - a, c - a
+    return float(np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).mean() / 2.0)
 
 
 class RegistrationCanceled(Exception):
