@@ -29,6 +29,7 @@ def add_parser(subparsers) -> None:
     render.add_argument("--batch", type=int, default=1)
     render.add_argument("--repeats", type=int, default=20)
     render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"])
+    render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
     render.set_defaults(func=bench_render)
     for name, func in (("table1", bench_table1), ("capture", bench_capture)):
         sub = which.add_parser(name)
@@ -50,6 +51,7 @@ def _device() -> str:
 def bench_render(args: argparse.Namespace) -> int:
     import numba
 
+    torch.set_num_threads(args.torch_threads)
     mesh = load_mesh_argument(args.mesh)
     rig = load_rig("paper")
     device = _device()
