@@ -25,6 +25,9 @@ class Stage:
         max_iterations: iteration cap (Adam steps, or L-BFGS evaluations).
         learning_rate: Adam step in mm (pose increments are scaled to mm).
         all_starts: optimize every start (True) or only the best so far.
+        add_initial_starts: before this stage, add the initial starts back as candidates
+            (sequential configurations: the single-view phase may have drifted along the
+            directions one view cannot see).
     """
 
     name: str
@@ -36,6 +39,7 @@ class Stage:
     max_iterations: int
     learning_rate: float
     all_starts: bool
+    add_initial_starts: bool = False
 
 
 def pyramid_scales(image_side_px: int) -> list[float]:
@@ -50,7 +54,7 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
     label = "+".join(views)
     stages = []
     if len(scales) == 1 and not final:  # single level, no refinement: plain Adam at full size
-        return [Stage(f"{label}:1/1", 1.0, 0.5, 0.0, views, "adam", max_iterations, 0.1, True)]
+        return [Stage(f"{label}:1/{round(1 / scales[0])}", scales[0], 0.5, 0.0, views, "adam", max_iterations, 0.1, True)]
     if final:  # the finest level twice: blurred Adam to settle, then sharp L-BFGS to converge
         scales = scales + [scales[-1]]
     for index, scale in enumerate(scales):
@@ -92,7 +96,10 @@ def build_schedule(
     first = configuration.split("_then_")[0]
     if configuration not in ("ap_then_lat", "lat_then_ap"):
         raise ValueError(f"unknown configuration {configuration!r}")
-    second_half = [s for s in scales if s >= scales[len(scales) // 2]]
+    # Phase 1: the first view alone up to half size. Phase 2 (λ of the second view on): both
+    # views from the second level up, with the initial starts competing again with phase 1's
+    # result, because one view leaves depth and out-of-plane rotation weakly determined.
     stages = _ladder((first,), scales[:-1] or scales, max_iterations, final=False)
-    both = _ladder(("ap", "lat"), second_half, max_iterations, final=refine)
-    return stages + [Stage(**{**vars(s), "all_starts": False, "name": s.name if s.name not in {t.name for t in stages} else s.name + ":both"}) for s in both]
+    both = _ladder(("ap", "lat"), scales[1:] if len(scales) > 2 else scales, max_iterations, final=refine)
+    both[0] = Stage(**{**vars(both[0]), "all_starts": True, "add_initial_starts": True})
+    return stages + both

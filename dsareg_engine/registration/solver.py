@@ -288,6 +288,8 @@ def _register(
     outcome: _StageOutcome | None = None
     final_loss = float("nan")
     for index, stage in enumerate(stages):
+        if stage.add_initial_starts:
+            poses = np.concatenate([poses, starts])
         if not stage.all_starts and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
         dtype = torch.float64 if stage.optimizer == "lbfgs" else torch.float32
