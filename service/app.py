@@ -30,6 +30,7 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .blobs import BlobStore, safe_suffix
+from .dbblobs import make_blob_store
 from .executor import Executor, make_executor
 from .middleware import BodyLimitMiddleware, MetricsMiddleware
 from .models import EXAMPLE_ID, Health, JobList, JobStatus, job_status
@@ -95,8 +96,8 @@ class Sweeper:
             log.warning("job %s: lease expired, requeued", job_id)
         for job_id in failed:
             log.warning("job %s: lease expired, no attempts left (or canceled)", job_id)
-        if requeued:
-            self.ctx.executor.notify()
+        self.ctx.executor.requeued(requeued)
+        self.ctx.executor.maintain(store)
         now = time.time()
         if force_retention or now - self.last_retention >= settings.sweep_interval_seconds:
             self.last_retention = now
@@ -208,13 +209,13 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     async def lifespan(app: FastAPI):
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         store = SqlJobStore(settings.effective_database_url)
-        blobs = BlobStore(settings.data_dir)
+        blobs = make_blob_store(settings, store.engine)
         validator = None
         if start_background:
             validator = ValidatorPool(settings.validation_processes, settings.validation_timeout_seconds,
                                       settings.validation_memory_mb, threads=settings.threads_per_worker)
             validator.start()
-        ex = executor or make_executor(settings)
+        ex = executor or make_executor(settings, store)
         ctx = ServiceContext(settings=settings, store=store, blobs=blobs, validator=validator, executor=ex,
                              registry=registry, uploads=uploads)
         holder["ctx"] = ctx
@@ -523,7 +524,7 @@ def _install_routes(app: FastAPI) -> None:
                 await upload.seek(0)
                 await asyncio.to_thread(ctx.blobs.put_stream, upload.file)
         ctx.uploads.inc(total)
-        ctx.executor.notify()
+        await asyncio.to_thread(ctx.executor.submit, stored.id)
         log.info("job %s: queued (%d files, %d bytes)", stored.id, len(inputs), total)
         return JSONResponse(
             job_status(stored).model_dump(mode="json"), status_code=202,
@@ -590,8 +591,8 @@ def _install_routes(app: FastAPI) -> None:
             why = f"the job is {job.status}" if job.status != "succeeded" else "the job did not produce it"
             raise Problem(404, f"{name} is not available: {why}", kind="artifact-not-available",
                           extra={"job_status": job.status})
-        path = ctx.blobs.path(digest)
-        if not path.is_file():
+        path = ctx.blobs.local_path(digest)
+        if path is None:
             raise Problem(404, f"{name} is no longer stored", kind="artifact-not-available")
         return FileResponse(path, media_type=media, headers={"Cache-Control": "private, max-age=86400"})
 
@@ -628,6 +629,7 @@ def _install_routes(app: FastAPI) -> None:
             raise Problem(409, f"the job already finished ({job.status}); nothing to cancel", kind="job-finished",
                           extra={"job_status": job.status})
         updated = ctx.store.request_cancel(job_id) or job
+        ctx.executor.cancel(job_id)
         code = 202 if updated.status == "running" else 200
         return JSONResponse(job_status(updated).model_dump(mode="json"), status_code=code)
 
@@ -638,6 +640,7 @@ def _install_routes(app: FastAPI) -> None:
         job = owned_job(ctx, job_id, who)
         if job.status == "running":
             ctx.store.request_cancel(job_id)
+            ctx.executor.cancel(job_id)
         orphans = ctx.store.delete(job_id)
         ctx.blobs.delete(orphans, min_age_seconds=0.0)
         ctx.blobs.remove_job_work(job_id)

@@ -107,6 +107,11 @@ class BlobStore:
     def read(self, digest: str) -> bytes:
         return self.path(digest).read_bytes()
 
+    def local_path(self, digest: str) -> Path | None:
+        """A local file with the blob's content (None when not stored)."""
+        path = self.path(digest)
+        return path if path.is_file() else None
+
     def delete(self, digests: list[str], *, min_age_seconds: float = 10.0) -> int:
         """Remove blobs (those touched in the last ``min_age_seconds`` are left for the next sweep)."""
         removed = 0

@@ -26,6 +26,23 @@ def add_parser(subparsers: Any) -> None:
     serve.add_argument("--log-level", help="debug, info, warning, error")
     serve.set_defaults(func=run_serve)
 
+    worker = subparsers.add_parser(
+        "worker", help="run a standalone worker (Celery, or a polling worker on the job store)",
+        description="Run one worker process that claims jobs from the shared job store. --engine celery consumes "
+                    "the Celery queue (DSAREG_BROKER_URL); --engine embedded polls the job table. Settings as for serve.",
+    )
+    worker.add_argument("--engine", choices=("celery", "embedded"), default="celery")
+    worker.add_argument("--pool", choices=("threads", "solo"), default="threads",
+                        help="Celery pool; one job at a time either way (threads: revocations arrive while a job runs)")
+    worker.add_argument("--hostname", help="Celery node name (default celery@<host>)")
+    worker.add_argument("--data-dir", type=Path, help="local scratch space and blob cache")
+    worker.add_argument("--database-url", help="SQLAlchemy URL of the shared job store")
+    worker.add_argument("--broker-url", help="Celery broker, e.g. redis://redis:6379/0")
+    worker.add_argument("--threads-per-worker", type=int, help="torch threads of this process")
+    worker.add_argument("--config", help="config file (JSON or TOML)")
+    worker.add_argument("--log-level", help="debug, info, warning, error")
+    worker.set_defaults(func=run_worker)
+
     submit = subparsers.add_parser("submit", help="submit a registration to a dsareg server",
                                    description="Submit a job; with --wait, show progress and download the outputs.")
     submit.add_argument("--server", required=True, help="base URL, e.g. http://127.0.0.1:8000")
@@ -62,6 +79,31 @@ def run_serve(args: argparse.Namespace) -> int:
     app = create_app(settings)
     uvicorn.run(app, host=host, port=settings.port, log_level=settings.log_level.lower(), access_log=False,
                 timeout_graceful_shutdown=10)
+    return 0
+
+
+def run_worker(args: argparse.Namespace) -> int:
+    from .settings import load_settings
+
+    settings = load_settings(
+        args.config, data_dir=args.data_dir, database_url=args.database_url, broker_url=args.broker_url,
+        threads_per_worker=args.threads_per_worker, log_level=args.log_level,
+    )
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    if args.engine == "celery":
+        from .celery_executor import run_worker as run_celery_worker
+
+        run_celery_worker(settings, pool=args.pool, hostname=args.hostname)
+        return 0
+    import threading
+
+    from .store import SqlJobStore
+    from .worker import worker_main
+
+    SqlJobStore(settings.effective_database_url).dispose()  # create the schema if this is the first process
+    stop, wake = threading.Event(), threading.Event()
+    worker_main(settings, 0, stop, wake)
     return 0
 
 

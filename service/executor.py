@@ -35,6 +35,21 @@ class Executor(abc.ABC):
     @abc.abstractmethod
     def alive_workers(self) -> int: ...
 
+    def submit(self, job_id: str) -> None:
+        """A job was queued (the API calls this after inserting it)."""
+        self.notify()
+
+    def cancel(self, job_id: str) -> None:
+        """Cancellation was requested in the job table (workers also read the flag)."""
+
+    def requeued(self, job_ids: list[str]) -> None:
+        """Jobs went back to ``queued`` (lease recovery)."""
+        if job_ids:
+            self.notify()
+
+    def maintain(self, store: Any) -> None:
+        """Periodic work of the API's sweeper (e.g. re-dispatching jobs a broker lost)."""
+
     def describe(self) -> dict[str, Any]:
         return {"kind": type(self).__name__, "alive_workers": self.alive_workers()}
 
@@ -128,5 +143,9 @@ class EmbeddedProcessExecutor(Executor):
                     process.join(3)
 
 
-def make_executor(settings: ServiceSettings) -> Executor:
+def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
+    if settings.executor == "celery":
+        from .celery_executor import CeleryExecutor
+
+        return CeleryExecutor(settings, store)
     return EmbeddedProcessExecutor(settings) if settings.workers > 0 else NoExecutor()

@@ -15,7 +15,7 @@ import json
 import os
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -48,7 +48,10 @@ class ServiceSettings(BaseSettings):
 
     # workers
     workers: int = Field(1, ge=0, le=64, description="Embedded worker processes (0: API only, jobs stay queued).")
-    threads_per_worker: int = Field(1, ge=1, le=256, description="torch.set_num_threads in each worker.")
+    threads_per_worker: int = Field(
+        0, ge=0, le=256,
+        description="CPU threads (torch and the numba kernels) of each worker; 0 = the cores shared among the workers.",
+    )
     lease_seconds: float = Field(30.0, gt=0.5, description="A claimed job is the worker's until this long after its last heartbeat.")
     heartbeat_seconds: float | None = Field(None, description="Default lease_seconds / 3.")
     max_attempts: int = Field(3, ge=1, le=20, description="Claims of one job before it fails for good.")
@@ -76,6 +79,20 @@ class ServiceSettings(BaseSettings):
     api_key_hashes: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="SHA-256 hex digests of accepted keys."
     )
+
+    # scale-out (see service/README.md, "Scale-out with Celery")
+    executor: Literal["embedded", "celery"] = Field(
+        "embedded", description="Who runs jobs: embedded worker processes of the API, or Celery workers.")
+    broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (executor=celery).")
+    celery_queue: str = Field("dsareg", description="Celery queue of registration jobs.")
+    broker_visibility_timeout_seconds: float = Field(
+        0.0, ge=0.0, description="Redis visibility timeout; 0: job_timeout_seconds * 2 + 600 (longer than any job).")
+    blob_backend: Literal["auto", "files", "database"] = Field(
+        "auto", description="Inputs/artifacts: files in data_dir, or a table of the job database "
+                            "(auto: database with executor=celery, else files).")
+    redispatch_after_seconds: float = Field(
+        60.0, gt=0.0, description="A queued job not picked up this long is sent to the broker again (executor=celery).")
+    task_max_retries: int = Field(5, ge=0, le=50, description="Retries of a Celery task on a transient store error.")
 
     log_level: str = "info"
 
@@ -121,6 +138,16 @@ class ServiceSettings(BaseSettings):
         chosen = {"max_faces": self.max_mesh_faces, "max_image_pixels": self.max_image_pixels,
                   "max_volume_bytes": self.max_volume_bytes}
         return {k: v for k, v in chosen.items() if v}
+
+    @property
+    def effective_blob_backend(self) -> str:
+        if self.blob_backend != "auto":
+            return self.blob_backend
+        return "database" if self.executor == "celery" else "files"
+
+    @property
+    def effective_visibility_timeout(self) -> float:
+        return self.broker_visibility_timeout_seconds or self.job_timeout_seconds * 2.0 + 600.0
 
     @property
     def effective_host(self) -> str:

@@ -120,6 +120,14 @@ class JobStore(abc.ABC):
     @abc.abstractmethod
     def claim(self, worker_id: str, lease_seconds: float) -> JobRecord | None: ...
 
+    def claim_job(self, job_id: str, worker_id: str, lease_seconds: float) -> JobRecord | None:
+        """Claim one given job (same guard as :meth:`claim`); None when it is not queued."""
+        raise NotImplementedError
+
+    def queued_since(self, before: float, limit: int = 1000) -> list[str]:
+        """Ids of queued jobs not updated since ``before`` (oldest first)."""
+        raise NotImplementedError
+
     @abc.abstractmethod
     def heartbeat(self, job_id: str, worker_id: str, lease_seconds: float, progress: dict | None = None) -> tuple[bool, bool]:
         """Extend the lease (and store progress); returns ``(still_owned, cancel_requested)``."""
@@ -392,21 +400,32 @@ class SqlJobStore(JobStore):
             if not candidates:
                 return None
             for job_id in candidates:
-                now = time.time()
-                with self.writer.begin() as conn:
-                    won = conn.execute(
-                        jobs.update().where(jobs.c.id == job_id, jobs.c.status == "queued").values(
-                            status="running", worker_id=worker_id, lease_expires_at=now + lease_seconds,
-                            attempts=jobs.c.attempts + 1, started_at=sa.func.coalesce(jobs.c.started_at, now),
-                            updated_at=now, progress=None,
-                        )
-                    ).rowcount
-                    if won:
-                        attempt = conn.execute(sa.select(jobs.c.attempts).where(jobs.c.id == job_id)).scalar_one()
-                        self._event(conn, job_id, "claimed", worker_id, attempt)
-                if won:
-                    return self.get(job_id)
+                job = self.claim_job(job_id, worker_id, lease_seconds)
+                if job is not None:
+                    return job
         return None
+
+    def claim_job(self, job_id: str, worker_id: str, lease_seconds: float) -> JobRecord | None:
+        now = time.time()
+        with self.writer.begin() as conn:
+            won = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, jobs.c.status == "queued").values(
+                    status="running", worker_id=worker_id, lease_expires_at=now + lease_seconds,
+                    attempts=jobs.c.attempts + 1, started_at=sa.func.coalesce(jobs.c.started_at, now),
+                    updated_at=now, progress=None,
+                )
+            ).rowcount
+            if won:
+                attempt = conn.execute(sa.select(jobs.c.attempts).where(jobs.c.id == job_id)).scalar_one()
+                self._event(conn, job_id, "claimed", worker_id, attempt)
+        return self.get(job_id) if won else None
+
+    def queued_since(self, before: float, limit: int = 1000) -> list[str]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(
+                sa.select(jobs.c.id).where(jobs.c.status == "queued", jobs.c.updated_at < before)
+                .order_by(jobs.c.created_at, jobs.c.id).limit(limit)
+            ).scalars())
 
     def heartbeat(self, job_id: str, worker_id: str, lease_seconds: float, progress: dict | None = None) -> tuple[bool, bool]:
         now = time.time()

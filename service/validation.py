@@ -58,7 +58,7 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
     try:
         import torch
 
-        torch.set_num_threads(max(1, threads))
+        torch.set_num_threads(max(1, threads or 1))
         import dsareg_engine.io.case
     except Exception:  # noqa: BLE001
         engine_ok = False

@@ -15,7 +15,6 @@ import shutil
 import socket
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 from .blobs import BlobStore
@@ -34,8 +33,10 @@ def make_worker_id(index: int) -> str:
 class _JobControl:
     """State shared by the engine callbacks and the heartbeat thread of one running job."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any):
+    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
+                 cancel_hint: Any = None):
         self.store = store
+        self.cancel_hint = cancel_hint  # e.g. "the Celery task was revoked": cancel without waiting for a beat
         self.job = job
         self.worker_id = worker_id
         self.settings = settings
@@ -93,6 +94,8 @@ class _JobControl:
                 self.latest_progress = progress
 
     def should_stop(self) -> bool:
+        if not self.cancel and self.cancel_hint is not None and self.cancel_hint():
+            self.cancel = True
         return self.cancel or self.lost or self.timed_out or self.stop_event.is_set()
 
 
@@ -120,13 +123,17 @@ def _problem(job_id: str, status: int, kind: str, title: str, detail: str, **ext
     return body
 
 
-def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any) -> str:
-    """Run a claimed job to an end state; returns what happened (for logs and tests)."""
+def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
+            cancel_hint: Any = None) -> str:
+    """Run a claimed job to an end state; returns what happened (for logs and tests).
+
+    ``cancel_hint``: optional callable, true when the job was canceled by other means than
+    the job table's flag (the Celery executor passes "this task was revoked")."""
     from dsareg_engine.errors import DsaregInputError
     from dsareg_engine.pipeline import RegistrationCanceled, run_registration_case
     from dsareg_engine.registration.options import parse_options
 
-    control = _JobControl(store, job, worker_id, settings, stop)
+    control = _JobControl(store, job, worker_id, settings, stop, cancel_hint)
     out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -214,14 +221,16 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        import torch
+        from dsareg_engine.threads import default_cpu_threads, set_cpu_threads
 
-        torch.set_num_threads(settings.threads_per_worker)
+        set_cpu_threads(settings.threads_per_worker or default_cpu_threads(max(1, settings.workers)))
     except Exception:  # noqa: BLE001
-        log.warning("could not set torch threads")
+        log.warning("could not set the worker's CPU threads")
     warm_up()
     store = SqlJobStore(settings.effective_database_url, create_schema=False)
-    blobs = BlobStore(Path(settings.data_dir))
+    from .dbblobs import make_blob_store
+
+    blobs = make_blob_store(settings, store.engine, cache=False)
     worker_id = make_worker_id(index)
     log.info("worker %s started", worker_id)
     last_seen = 0.0

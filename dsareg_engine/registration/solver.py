@@ -19,8 +19,8 @@ import torch
 
 from ..errors import DsaregInputError
 from ..geometry import Rig
-from ..mesh import TriangleMesh
 from ..io.mesh_io import decimate
+from ..mesh import TriangleMesh
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
 from ..pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
