@@ -204,11 +204,12 @@ def warm_up() -> None:
 
         view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
                             principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
-        vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]])
         faces = torch.tensor([[0, 1, 2]])
-        pose = torch.eye(4)[None]
-        render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
-        render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
+        for dtype in (torch.float32, torch.float64):  # Adam stages run in float32, the L-BFGS fit in float64
+            vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
+            pose = torch.eye(4, dtype=dtype)[None]
+            render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
+            render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
     except Exception:
         log.debug("warm-up skipped", exc_info=True)
 
