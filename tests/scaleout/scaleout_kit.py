@@ -7,17 +7,18 @@ Environment overrides for CI machines that provide their own servers:
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
+
+from service_testkit import LoggedProcess
 
 from service.localservers import PostgresServer, RedisServer, free_port  # noqa: F401 - re-exported
 
 REPO = Path(__file__).resolve().parents[2]
 
 
-class CeleryWorker:
+class CeleryWorker(LoggedProcess):
     """``python -m service worker --engine celery`` as a separate process."""
 
     def __init__(self, name: str, data_dir: Path, env: dict[str, str], pool: str = "threads"):
@@ -41,33 +42,6 @@ class CeleryWorker:
     @property
     def pid(self) -> int | None:
         return None if self.process is None else self.process.pid
-
-    def alive(self) -> bool:
-        return self.process is not None and self.process.poll() is None
-
-    def kill(self) -> None:
-        if self.alive():
-            os.killpg(self.process.pid, signal.SIGKILL)
-            self.process.wait(10)
-
-    def stop(self, timeout: float = 30.0) -> None:
-        if self.process is None:
-            return
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait(10)
-        self.log.close()
-        self.process = None
-
-    def logs(self) -> str:
-        try:
-            return self.log_path.read_text(errors="replace")
-        except OSError:
-            return ""
 
 
 def pid_of_worker_id(worker_id: str) -> int:
