@@ -45,6 +45,29 @@ def transform_points(points: torch.Tensor, transforms: torch.Tensor) -> torch.Te
     return torch.einsum("bij,bvj->bvi", rotation, points) + translation[:, None, :]
 
 
+def project_points(vertices_view: torch.Tensor, camera: Camera, near_mm: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection of view-frame points to pixels.
+
+    Args:
+        vertices_view: ``(B, V, 3)`` mm in the view frame.
+        camera: intrinsics.
+        near_mm: points with view ``z < near_mm`` (on or behind the source) are flagged.
+
+    Returns:
+        pixels: ``(B, V, 2)`` ``(u, v)``; finite placeholders where not ok.
+        ok: ``(B, V)`` bool, in front of the near limit and finite.
+    """
+    z = vertices_view[..., 2]
+    in_front = z >= near_mm
+    safe_z = torch.where(in_front, z, torch.full_like(z, near_mm))
+    fx, fy = camera.focal_px
+    u0, v0 = camera.principal_point_px
+    u = u0 + fx * vertices_view[..., 0] / safe_z
+    v = v0 + fy * vertices_view[..., 1] / safe_z
+    pixels = torch.stack([u, v], dim=-1)
+    return pixels, in_front & torch.isfinite(pixels).all(-1)
+
+
 def project_triangles(
     vertices_view: torch.Tensor, faces: torch.Tensor, camera: Camera, near_mm: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -64,17 +87,8 @@ def project_triangles(
         triangles: ``(B, F, 3, 2)`` pixel coordinates ``(u, v)`` of each face's corners.
         valid: ``(B, F)`` bool.
     """
-    z = vertices_view[..., 2]
-    in_front = z >= near_mm
-    safe_z = torch.where(in_front, z, torch.full_like(z, near_mm))
-    fx, fy = camera.focal_px
-    u0, v0 = camera.principal_point_px
-    u = u0 + fx * vertices_view[..., 0] / safe_z
-    v = v0 + fy * vertices_view[..., 1] / safe_z
-    pixels = torch.stack([u, v], dim=-1)  # (B, V, 2)
+    pixels, vertex_ok = project_points(vertices_view, camera, near_mm)
     # index_select (backward: index_add) is much faster on CPU than advanced indexing
     # (backward: index_put with accumulation).
     triangles = pixels.index_select(1, faces.reshape(-1)).view(pixels.shape[0], faces.shape[0], 3, 2)
-    vertex_ok = in_front & torch.isfinite(pixels).all(-1)
-    valid = vertex_ok[:, faces].all(-1)
-    return triangles, valid
+    return triangles, vertex_ok[:, faces].all(-1)

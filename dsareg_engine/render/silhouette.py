@@ -1,15 +1,16 @@
 """Soft and hard silhouettes of a mesh, batched over poses; backend dispatch.
 
-Data flow: mesh vertices ``(V, 3)`` → ``mesh_to_view`` ``(B, 4, 4)`` → projected face
-corners ``(B, F, 3, 2)`` px → rasterize (per-pixel face distances) → shade → ``(B, H, W)``.
+Data flow: mesh vertices ``(V, 3)`` → ``mesh_to_view`` ``(B, 4, 4)`` → projected vertices
+``(B, V, 2)`` px → face corners ``(B, F, 3, 2)`` → rasterize (per-pixel face distances) →
+shade → ``(B, H, W)``. The numba back end fuses the last three steps.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
-from .boxes import face_pixel_boxes
-from .camera import Camera, project_triangles, transform_points
+from .camera import Camera, project_points, project_triangles, transform_points
 from .rasterize_torch import rasterize_fragments
 from .settings import SilhouetteSettings
 from .shade import alpha_from_log_keep, hard_from_fragments, soft_log_keep_from_fragments
@@ -44,55 +45,45 @@ def _use_numba(settings: SilhouetteSettings, tensor: torch.Tensor) -> bool:
     return _numba is not None and tensor.device.type == "cpu"
 
 
+def _gather_faces(pixels: torch.Tensor, vertex_ok: torch.Tensor, faces: torch.Tensor, width: int, height: int, radius: float):
+    """Numba: ``(B, V, 2)`` pixels → face corners ``(B, F, 3, 2)`` and pixel boxes ``(B, F, 4)``."""
+    batch, n_faces = pixels.shape[0], faces.shape[0]
+    pixels_np = pixels.detach().contiguous().numpy()
+    triangles = np.empty((batch, n_faces, 3, 2), dtype=pixels_np.dtype)
+    boxes = np.empty((batch, n_faces, 4), dtype=np.int32)
+    faces_np = faces.contiguous().numpy()
+    _numba.gather_faces(pixels_np, vertex_ok.contiguous().numpy(), faces_np, width, height, float(radius), triangles, boxes)
+    return triangles, boxes, faces_np
+
+
 class _SoftLogKeepNumba(torch.autograd.Function):
-    """``Σ_f log(1 − sigmoid(−d_f/σ))`` per pixel with the fused CPU kernels."""
+    """``Σ_f log(1 − sigmoid(−d_f/σ))`` per pixel from projected vertices, with the fused CPU kernels.
+
+    Taking vertices (not per-face corners) lets the kernels gather corners and scatter
+    their gradients themselves, which is cheaper than torch's index_select/index_add.
+    """
 
     @staticmethod
-    def forward(ctx, triangles, valid, width, height, sigma, radius):  # type: ignore[override]
-        boxes = face_pixel_boxes(triangles, valid, width, height, radius).numpy()
-        tris = triangles.detach().contiguous().numpy()
-        out = torch.zeros((triangles.shape[0], height, width), dtype=triangles.dtype)
-        exact = triangles.dtype == torch.float64  # tables (~2e-6) suffice for float32 work
-        _numba.soft_log_keep(tris, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, _threads(), out.numpy())
-        ctx.save_for_backward(triangles)
-        ctx.boxes, ctx.sigma, ctx.radius = boxes, sigma, radius
+    def forward(ctx, pixels, vertex_ok, faces, width, height, sigma, radius):  # type: ignore[override]
+        triangles, boxes, faces_np = _gather_faces(pixels, vertex_ok, faces, width, height, radius)
+        out = torch.zeros((pixels.shape[0], height, width), dtype=pixels.dtype)
+        exact = pixels.dtype == torch.float64  # tables (~2e-6) suffice for float32 work
+        _numba.soft_log_keep(triangles, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, _threads(), out.numpy())
+        ctx.triangles, ctx.boxes, ctx.faces = triangles, boxes, faces_np
+        ctx.sigma, ctx.radius, ctx.n_vertices = sigma, radius, pixels.shape[1]
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # type: ignore[override]
-        (triangles,) = ctx.saved_tensors
-        grad = torch.zeros_like(triangles)
+        triangles = ctx.triangles
+        grad_triangles = np.zeros_like(triangles)
         _numba.soft_log_keep_backward(
-            triangles.detach().contiguous().numpy(), ctx.boxes, float(ctx.sigma), float(ctx.radius),
-            triangles.dtype == torch.float64, _SIGMOID_TABLE, _threads(), grad_out.contiguous().numpy(), grad.numpy(),
+            triangles, ctx.boxes, float(ctx.sigma), float(ctx.radius), triangles.dtype == np.float64,
+            _SIGMOID_TABLE, _threads(), grad_out.contiguous().numpy(), grad_triangles,
         )
-        return grad, None, None, None, None, None
-
-
-def soft_silhouette_from_triangles(
-    triangles: torch.Tensor, valid: torch.Tensor, width: int, height: int, settings: SilhouetteSettings
-) -> torch.Tensor:
-    """Soft silhouettes ``(B, H, W)`` in [0, 1] from projected faces ``(B, F, 3, 2)`` px."""
-    radius = settings.blur_radius_px
-    if _use_numba(settings, triangles):
-        log_keep = _SoftLogKeepNumba.apply(triangles, valid, width, height, settings.sigma_px, radius)
-    else:
-        fragments = rasterize_fragments(triangles, valid, width, height, radius)
-        log_keep = soft_log_keep_from_fragments(fragments, settings.sigma_px, radius)
-    return alpha_from_log_keep(log_keep)
-
-
-def hard_silhouette_from_triangles(
-    triangles: torch.Tensor, valid: torch.Tensor, width: int, height: int, settings: SilhouetteSettings
-) -> torch.Tensor:
-    """Binary silhouettes ``(B, H, W)`` bool: pixel centres inside (or on) some face."""
-    with torch.no_grad():
-        if _use_numba(settings, triangles):
-            boxes = face_pixel_boxes(triangles, valid, width, height, 0.0).numpy()
-            out = torch.zeros((triangles.shape[0], height, width), dtype=torch.bool)
-            _numba.coverage(triangles.contiguous().numpy(), boxes, height, width, _threads(), out.numpy())
-            return out
-        return hard_from_fragments(rasterize_fragments(triangles, valid, width, height, 1e-9))
+        grad_pixels = torch.zeros((triangles.shape[0], ctx.n_vertices, 2), dtype=grad_out.dtype)
+        _numba.scatter_to_vertices(grad_triangles, ctx.faces, grad_pixels.numpy())
+        return grad_pixels, None, None, None, None, None, None
 
 
 def render_soft_silhouette(
@@ -113,8 +104,16 @@ def render_soft_silhouette(
     Returns:
         ``(B, H, W)`` in [0, 1], differentiable w.r.t. ``mesh_to_view`` and ``vertices``.
     """
-    triangles, valid = project_triangles(transform_points(vertices, mesh_to_view), faces, camera, settings.near_mm)
-    return soft_silhouette_from_triangles(triangles, valid, camera.width, camera.height, settings)
+    vertices_view = transform_points(vertices, mesh_to_view)
+    radius = settings.blur_radius_px
+    if _use_numba(settings, vertices_view):
+        pixels, vertex_ok = project_points(vertices_view, camera, settings.near_mm)
+        log_keep = _SoftLogKeepNumba.apply(pixels, vertex_ok, faces, camera.width, camera.height, settings.sigma_px, radius)
+    else:
+        triangles, valid = project_triangles(vertices_view, faces, camera, settings.near_mm)
+        fragments = rasterize_fragments(triangles, valid, camera.width, camera.height, radius)
+        log_keep = soft_log_keep_from_fragments(fragments, settings.sigma_px, radius)
+    return alpha_from_log_keep(log_keep)
 
 
 def render_hard_silhouette(
@@ -124,10 +123,20 @@ def render_hard_silhouette(
     camera: Camera,
     settings: SilhouetteSettings = SilhouetteSettings(),
 ) -> torch.Tensor:
-    """Binary silhouettes ``(B, H, W)`` bool; equals the soft one thresholded at 0.5 as σ → 0."""
+    """Binary silhouettes ``(B, H, W)`` bool: pixel centres inside (or on) some face.
+
+    Equals the soft silhouette thresholded at 0.5 as σ → 0.
+    """
     with torch.no_grad():
-        triangles, valid = project_triangles(transform_points(vertices, mesh_to_view), faces, camera, settings.near_mm)
-    return hard_silhouette_from_triangles(triangles, valid, camera.width, camera.height, settings)
+        vertices_view = transform_points(vertices, mesh_to_view)
+        if _use_numba(settings, vertices_view):
+            pixels, vertex_ok = project_points(vertices_view, camera, settings.near_mm)
+            triangles, boxes, _ = _gather_faces(pixels, vertex_ok, faces, camera.width, camera.height, 0.0)
+            out = torch.zeros((pixels.shape[0], camera.height, camera.width), dtype=torch.bool)
+            _numba.coverage(triangles, boxes, camera.height, camera.width, _threads(), out.numpy())
+            return out
+        triangles, valid = project_triangles(vertices_view, faces, camera, settings.near_mm)
+        return hard_from_fragments(rasterize_fragments(triangles, valid, camera.width, camera.height, 1e-9))
 
 
 class SilhouetteRenderer(torch.nn.Module):

@@ -83,6 +83,32 @@ def test_numba_and_torch_backends_agree(phantom):
     assert torch.allclose(results["numba"][1], results["torch"][1], rtol=1e-6, atol=1e-9)
 
 
+def test_backends_agree_on_large_sliver_and_degenerate_faces():
+    """Faces far larger than the kernels' flat chunks, a sliver, a zero-area face, two poses."""
+    vertices = torch.tensor(
+        [[-30.0, -25.0, 0.0], [35.0, -20.0, 2.0], [5.0, 30.0, -1.0],  # covers most of the image
+         [-20.0, 10.0, 0.0], [20.0, 10.4, 0.0], [-19.0, 10.1, 0.0],  # sliver
+         [0.0, -5.0, 0.0], [4.0, -1.0, 0.0], [8.0, 3.0, 0.0]],  # collinear: zero area
+        dtype=torch.float64,
+    )
+    faces = torch.tensor([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    camera = Camera((60.0, 55.0), (47.5, 40.0), 96, 81)
+    pose = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    pose[:, 2, 3] = torch.tensor([70.0, 90.0])
+    pose[1, 0, 3] = 3.0
+    weights = torch.rand((2, 81, 96), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    results = {}
+    for backend in ("numba", "torch"):
+        verts = vertices.clone().requires_grad_(True)
+        alpha = render_soft_silhouette(verts, faces, pose, camera, SilhouetteSettings(sigma_px=2.0, backend=backend))
+        (alpha * weights).sum().backward()
+        results[backend] = (alpha.detach(), verts.grad)
+    assert results["numba"][0].max() > 0.99 and results["numba"][0].min() < 0.01
+    assert torch.allclose(results["numba"][0], results["torch"][0], atol=1e-9)
+    # The zero-area face's edges overlap, so its vertex gradients are ambiguous (ties); not compared.
+    assert torch.allclose(results["numba"][1][:6], results["torch"][1][:6], rtol=1e-6, atol=1e-9)
+
+
 def test_float32_tables_close_to_exact(phantom):
     view = load_rig("paper").views["ap"].resized(160, 160)
     pose = torch.as_tensor(view.world_to_view)[None]
