@@ -35,7 +35,6 @@ ProgressCallback = Callable[[dict], None]
 AGREEMENT_ADD_MM = 2.0
 """Starts whose pose lies within this ADD of the best one after the batched stages agree."""
 ADAM_PATIENCE = 8
-ADAM_RELATIVE_TOLERANCE = 1e-3
 LBFGS_POSE_TOLERANCE = 1e-4
 """L-BFGS stops when a step changes every pose component by less than this (mm units)."""
 MIN_CONVERGED_DICE = 0.5
@@ -174,7 +173,7 @@ def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
         value = float(per_start.detach().min())
         losses.append(value)
         report(stage, iteration, value)
-        if value < best * (1.0 - ADAM_RELATIVE_TOLERANCE):
+        if value < best * (1.0 - stage.plateau_tolerance):
             best, since_best = value, 0
         else:
             since_best += 1
