@@ -10,7 +10,7 @@ from dsareg_engine.metrics import dice, ground_truth_errors, iou, mean_distance_
 from dsareg_engine.pose import make_transform, rotation_about_axis
 from dsareg_engine.registration.options import parse_options
 from dsareg_engine.registration.parameterization import PoseIncrement, random_start_poses
-from dsareg_engine.registration.schedule import build_schedule, pyramid_scales
+from dsareg_engine.registration.schedule import PLATEAU_TOLERANCE, SWITCH_TOLERANCE, build_schedule, pyramid_scales
 from dsareg_engine.registration.targets import thin_vessel_weights
 
 
@@ -67,6 +67,10 @@ def test_schedule_shapes():
     assert all(stage.views == ("ap", "lat") for stage in stages)
     sequential = build_schedule("ap_then_lat", 800, 300)
     assert sequential[0].views == ("ap",) and sequential[-1].views == ("ap", "lat")
+    # The single-view phase hands over at a looser plateau; the two-view phase keeps the strict one.
+    assert {stage.plateau_tolerance for stage in sequential if stage.views == ("ap",)} == {SWITCH_TOLERANCE}
+    assert {stage.plateau_tolerance for stage in sequential if len(stage.views) == 2} == {PLATEAU_TOLERANCE}
+    assert {stage.plateau_tolerance for stage in stages} == {PLATEAU_TOLERANCE}
     assert build_schedule("lat", 400, 100)[-1].views == ("lat",)
 
 
