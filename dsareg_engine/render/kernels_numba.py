@@ -8,10 +8,10 @@ no write conflicts) and interleaved faces (backward: each face owns its gradient
 
 The per-pixel work is written branch-free (all three point–segment distances, the inside
 test as a select) so LLVM turns the inner loops into SIMD code; profiling showed the
-earlier branchy early-outs cost more in mispredictions than they saved. The forward
-visits, per face and row, only the columns whose centres can be within the blur radius
-(from the three edge lines); the backward sweeps the face's whole box as one flat loop,
-which vectorizes even when rows are only a few pixels long.
+earlier branchy early-outs cost more in mispredictions than they saved. Both passes
+visit, per face and row, only the columns whose centres can be within the blur radius
+(:func:`_near_columns`); the backward packs those pixels into flat chunks, so its loop
+vectorizes even when rows are only a few pixels long.
 """
 
 from __future__ import annotations

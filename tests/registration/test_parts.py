@@ -88,3 +88,28 @@ def test_thin_vessel_weights_favour_thin_branches():
     weights = thin_vessel_weights(mask)
     assert weights.mean() == pytest.approx(1.0, rel=1e-5)
     assert weights[41, 30] > 3 * weights[16, 30]
+
+
+class _SlowlyImprovingProblem:
+    """Stands in for the registration problem: its loss falls by 0.1 % per evaluation, forever."""
+
+    def __init__(self):
+        self.evaluations = 0
+
+    def loss(self, poses, stage, dtype):
+        self.evaluations += 1
+        return poses.sum(-1) * 0.0 + 0.999 ** self.evaluations
+
+
+@pytest.mark.parametrize("tolerance, stops", [(PLATEAU_TOLERANCE, False), (SWITCH_TOLERANCE, True)])
+def test_adam_stops_on_a_plateau_of_the_stage_tolerance(tolerance, stops):
+    from dsareg_engine.registration.schedule import Stage
+    from dsareg_engine.registration.solver import ADAM_PATIENCE, _run_adam
+
+    stage = Stage("ap:1/1", 1.0, 0.5, 0.0, ("ap",), "adam", 60, 0.1, True, plateau_tolerance=tolerance)
+    delta = torch.zeros((2, 6), dtype=torch.float64, requires_grad=True)
+    outcome = _run_adam(_SlowlyImprovingProblem(), stage, lambda d: d, delta, torch.float64, lambda *args: None)
+    if stops:  # 0.1 % per step never adds up to 1 % within the patience window
+        assert outcome.stopped_by == "tolerance" and outcome.iterations == ADAM_PATIENCE + 1
+    else:  # every step or two beats the best by 0.1 %: runs to the cap
+        assert outcome.stopped_by == "iterations" and outcome.iterations == 60
