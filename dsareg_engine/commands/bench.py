@@ -1,4 +1,4 @@
-"""``dsareg bench``: benchmarks that print numbers (render speed, Table 1, capture range)."""
+"""``dsareg bench``: benchmarks that print numbers (render speed, Table 1, capture range, robustness)."""
 
 from __future__ import annotations
 
@@ -14,13 +14,14 @@ from ..geometry_file import load_rig
 from ..metrics import mean_distance_mm
 from ..pose import so3_log
 from ..registration import CONFIGURATIONS, RegistrationOptions, register
-from ..registration.parameterization import PoseIncrement
+from ..registration.parameterization import PoseIncrement, random_start_poses
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
+from ..segmentation_errors import CORRUPTIONS, corrupt
 from .render import load_mesh_argument
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("bench", help="benchmarks (render, table1, capture)")
+    parser = subparsers.add_parser("bench", help="benchmarks (render, table1, capture, robustness)")
     which = parser.add_subparsers(dest="bench", required=True)
     render = which.add_parser("render", help="ms per forward and forward+backward")
     render.add_argument("--mesh")
@@ -42,6 +43,16 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--max-mtre", type=float, default=20.0)
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
         sub.set_defaults(func=func)
+    robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
+    robust.add_argument("--mesh")
+    robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
+    robust.add_argument("--seed", type=int, default=0)
+    robust.add_argument("--size", type=int, default=800, help="image side in px")
+    robust.add_argument("--offset", type=float, nargs=2, default=[10.0, 10.0], metavar=("DEG", "MM"),
+                        help="initial rotation (deg) and translation (mm) offset")
+    robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS))
+    robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
+    robust.set_defaults(func=bench_robustness)
 
 
 def _device() -> str:
@@ -191,4 +202,32 @@ def bench_capture(args: argparse.Namespace) -> int:
             capture = low + 1.0
         print(f"| {low:.0f}–{low + 1:.0f} | {success:.0f} | {np.median(finals):.3f} | {np.median([r['seconds'] for r in rows]):.1f} |", flush=True)
     print(f"capture range (largest initial mTRE with ≥ 95 % success in every bin up to it): {capture:.0f} mm")
+    return 0
+
+
+def bench_robustness(args: argparse.Namespace) -> int:
+    """Simultaneous registrations against masks with simulated segmentation errors."""
+    mesh = load_mesh_argument(args.mesh)
+    rig, clean = _synthetic_case(mesh, args.size)
+    degrees, millimetres = args.offset
+    initials = random_start_poses(np.eye(4), mesh.centroid, args.starts + 1, degrees, millimetres, seed=args.seed + 1)[1:]
+    print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.starts} initial poses "
+          f"({degrees:g} deg, {millimetres:g} mm), {args.multistart} parallel starts each, simultaneous")
+    print("| corruption | mask px AP / LAT (clean: " + " / ".join(str(int(clean[v].sum())) for v in ("ap", "lat"))
+          + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s |")
+    print("|---|---|---|---|---|---|---|")
+    for name in args.corruptions:
+        rows = []
+        for index, initial in enumerate(initials):
+            rng = np.random.default_rng(args.seed + 1000 * index)
+            masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
+            options = RegistrationOptions(configuration="simultaneous", starts=args.multistart, seed=args.seed + index,
+                                          initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist())
+            result = register(mesh, masks, rig, options)
+            rows.append({**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"],
+                         "converged": result.metrics["converged"], "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
+        add = np.array([row["add_mm"] for row in rows])
+        print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
+              f"{np.median([row['rotation_error_deg'] for row in rows]):.3f} | {np.mean(add < 1.0) * 100:.0f} % | "
+              f"{sum(not row['converged'] for row in rows)} | {np.median([row['seconds'] for row in rows]):.1f} |", flush=True)
     return 0
