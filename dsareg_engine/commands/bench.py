@@ -52,6 +52,7 @@ def add_parser(subparsers) -> None:
                         help="initial rotation (deg) and translation (mm) offset")
     robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS))
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
+    robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     robust.set_defaults(func=bench_robustness)
 
 
@@ -212,7 +213,7 @@ def bench_robustness(args: argparse.Namespace) -> int:
     degrees, millimetres = args.offset
     initials = random_start_poses(np.eye(4), mesh.centroid, args.starts + 1, degrees, millimetres, seed=args.seed + 1)[1:]
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.starts} initial poses "
-          f"({degrees:g} deg, {millimetres:g} mm), {args.multistart} parallel starts each, simultaneous")
+          f"({degrees:g} deg, {millimetres:g} mm), {args.multistart} parallel starts each, simultaneous, options {args.options}")
     print("| corruption | mask px AP / LAT (clean: " + " / ".join(str(int(clean[v].sum())) for v in ("ap", "lat"))
           + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s |")
     print("|---|---|---|---|---|---|---|")
@@ -222,7 +223,8 @@ def bench_robustness(args: argparse.Namespace) -> int:
             rng = np.random.default_rng(args.seed + 1000 * index)
             masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
             options = RegistrationOptions(configuration="simultaneous", starts=args.multistart, seed=args.seed + index,
-                                          initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist())
+                                          initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist(),
+                                          **json.loads(args.options))
             result = register(mesh, masks, rig, options)
             rows.append({**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"],
                          "converged": result.metrics["converged"], "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})

@@ -38,6 +38,12 @@ class RegistrationOptions(BaseModel):
     thin_vessel_weighting: bool = Field(
         False, description="Weight pixels so thin branches count as much as thick ones."
     )
+    border_correction: bool = Field(
+        True,
+        description="Before the fine stages, measure per view how much wider (px) the vessel mask is than the "
+        "model's silhouette and move the target's border by that much (segmentation thresholds rarely put "
+        "the border exactly on the model's surface); reported as metrics.border_shift_px.",
+    )
     initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
     ground_truth_mesh_to_world: Matrix4 | None = Field(
         None, description="Known pose (synthetic studies): adds error metrics to the result."

@@ -28,6 +28,7 @@ from .options import RegistrationOptions
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .result import RegistrationResult, ViewResult
 from .schedule import Stage, build_schedule
+from .border import update_border_shift
 from .targets import ViewTarget, gaussian_blur, level_target
 
 ProgressCallback = Callable[[dict], None]
@@ -86,6 +87,7 @@ class _Problem:
             mean_projected_face_area_px(mesh, view, initial_mesh_to_world) for view in rig.views.values()
         )
         self._targets: dict[tuple, ViewTarget] = {}
+        self.border_shift_px = {name: 0.0 for name in masks}
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def mesh_tensors(self, dtype: torch.dtype, stage: Stage | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,17 +108,27 @@ class _Problem:
         return self._mesh_tensors[key]
 
     def target(self, view_name: str, stage: Stage, dtype: torch.dtype) -> ViewTarget:
-        key = (view_name, stage.scale, stage.blur_px, dtype)
+        shift = self.border_shift_px[view_name]
+        key = (view_name, stage.scale, stage.blur_px, dtype, shift)
         if key not in self._targets:
             target = level_target(
                 self.masks[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
-                self.options.thin_vessel_weighting, dtype,
+                self.options.thin_vessel_weighting, dtype, shift,
             )
             target.target = target.target.to(self.device)
             if target.weight is not None:
                 target.weight = target.weight.to(self.device)
             self._targets[key] = target
         return self._targets[key]
+
+    def update_border_shifts(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> None:
+        """Re-measure each view's target border shift against the full mesh at ``mesh_to_world``."""
+        vertices, faces = self.mesh_tensors(torch.float64)
+        for name in views:
+            view = self.rig.views[name]
+            pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
+            silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
+            self.border_shift_px[name] = update_border_shift(self.masks[name], silhouette, self.border_shift_px[name])
 
     def loss(self, mesh_to_world: torch.Tensor, stage: Stage, dtype: torch.dtype) -> torch.Tensor:
         """Per-start loss ``(B,)`` for poses ``(B, 4, 4)`` (float64, differentiable)."""
@@ -286,9 +298,12 @@ def _register(
     starts_agreeing = 1
     outcome: _StageOutcome | None = None
     final_loss = float("nan")
+    finest_scale = max(stage.scale for stage in stages)
     for index, stage in enumerate(stages):
         if stage.add_initial_starts:
             poses = np.concatenate([poses, starts])
+        if options.border_correction and index > 0 and stage.scale >= 0.5 * finest_scale:
+            problem.update_border_shifts(pose_history[-1], stage.views)
         if not stage.all_starts and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
         dtype = torch.float64 if stage.optimizer == "lbfgs" else torch.float32
@@ -324,6 +339,8 @@ def _register(
         "starts_agreeing": starts_agreeing,
         "configuration": options.configuration,
     }
+    if options.border_correction:
+        metrics["border_shift_px"] = {name: round(problem.border_shift_px[name], 4) for name in used_views}
     if len(used_views) == 1:
         metrics["warnings"] = [
             f"single-view registration ({used_views[0]}): translation along that view's central ray and "

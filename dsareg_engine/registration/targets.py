@@ -1,4 +1,4 @@
-"""Target silhouettes per view and pyramid level: resampled masks, blur, thin-vessel weights."""
+"""Target silhouettes per view and pyramid level: resampled masks, border shift, blur, thin-vessel weights."""
 
 from __future__ import annotations
 
@@ -35,11 +35,16 @@ class ViewTarget:
 
 
 def level_target(
-    mask: np.ndarray, view: ViewGeometry, scale: float, blur_px: float, thin_vessel_weighting: bool, dtype: torch.dtype
+    mask: np.ndarray, view: ViewGeometry, scale: float, blur_px: float, thin_vessel_weighting: bool, dtype: torch.dtype,
+    border_shift_px: float = 0.0,
 ) -> ViewTarget:
-    """Resample a full-resolution mask ``(H, W)`` bool to ``scale`` and build the level's target."""
+    """Resample a full-resolution mask ``(H, W)`` bool to ``scale`` and build the level's target.
+
+    ``border_shift_px`` (full-resolution px) moves the mask's border outward (negative: inward)
+    first, see :func:`shifted_mask`.
+    """
     level_view = view.scaled(scale) if scale != 1.0 else view
-    image = mask.astype(np.float32)
+    image = shifted_mask(mask, border_shift_px)
     if level_view.image_size != view.image_size:
         image = cv2.resize(image, level_view.image_size, interpolation=cv2.INTER_AREA)
     weight = None
@@ -47,6 +52,19 @@ def level_target(
         weight = torch.as_tensor(thin_vessel_weights(image > 0.5), dtype=dtype)
     target = gaussian_blur(torch.as_tensor(image, dtype=dtype)[None], blur_px)[0]
     return ViewTarget(level_view, Camera.from_view(level_view), target, weight, blur_px)
+
+
+def shifted_mask(mask: np.ndarray, shift_px: float) -> np.ndarray:
+    """Coverage ``(H, W)`` float32 in [0, 1] of ``mask`` with its border moved outward by ``shift_px``.
+
+    The border is taken half a pixel beyond the outermost pixel centres; each pixel's coverage
+    is a 1-px linear ramp across the moved border, evaluated at its centre's signed distance.
+    A shift of 0 returns the mask itself; negative shifts move the border inward.
+    """
+    if shift_px == 0.0:
+        return mask.astype(np.float32)
+    signed = np.where(mask, 0.5 - ndimage.distance_transform_edt(mask), ndimage.distance_transform_edt(~mask) - 0.5)
+    return np.clip(0.5 - signed + shift_px, 0.0, 1.0).astype(np.float32)
 
 
 def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
