@@ -11,10 +11,12 @@ positions, not their widths, then fix the depth.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+import cv2
 from skimage.measure import perimeter
 
-from .targets import shifted_mask
+from .targets import shifted_mask, signed_border_distance
+
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 
 MAX_BORDER_SHIFT_PX = 2.0
 """Largest correction (full-resolution px, either sign): beyond it the mismatch is not a border."""
@@ -22,7 +24,7 @@ BAND_PX = 3.0
 """Pixels farther than this from the other outline are structures of their own, not border."""
 
 
-def update_border_shift(mask: np.ndarray, silhouette: np.ndarray, shift_px: float) -> float:
+def update_border_shift(mask: np.ndarray, silhouette: np.ndarray, shift_px: float, signed: np.ndarray | None = None) -> float:
     """One area-matching update of the target's border shift.
 
     Only pixels within BAND_PX of both outlines count: vessels the mask has and the model
@@ -32,15 +34,19 @@ def update_border_shift(mask: np.ndarray, silhouette: np.ndarray, shift_px: floa
         mask: ``(H, W)`` bool target mask at full resolution.
         silhouette: ``(H, W)`` bool hard silhouette of the model at the current pose, same size.
         shift_px: the shift in use (0 at first).
+        signed: :func:`~.targets.signed_border_distance` of ``mask`` (computed when not given).
 
     Returns:
         The new shift (px, positive = move the target's border outward), clamped to
         ±MAX_BORDER_SHIFT_PX; unchanged when nothing of the two lies near the other.
     """
-    target = shifted_mask(mask, shift_px)
-    near_silhouette = ndimage.distance_transform_edt(~silhouette) <= BAND_PX
-    near_target = ndimage.distance_transform_edt(target <= 0.5) <= BAND_PX
-    boundary = silhouette & ~ndimage.binary_erosion(silhouette)
+    if signed is None:
+        signed = signed_border_distance(mask)
+    target = shifted_mask(mask, shift_px, signed)
+    outside = (~silhouette).astype(np.uint8)
+    near_silhouette = cv2.distanceTransform(outside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= BAND_PX
+    near_target = signed <= shift_px + BAND_PX - 0.5  # within BAND_PX of a pixel of the shifted target
+    boundary = silhouette & (cv2.erode(silhouette.astype(np.uint8), _CROSS, borderValue=0) == 0)
     if not boundary.any():
         return shift_px
     shared_outline = perimeter(silhouette) * (boundary & near_target).sum() / boundary.sum()

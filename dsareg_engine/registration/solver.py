@@ -29,7 +29,7 @@ from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .result import RegistrationResult, ViewResult
 from .schedule import Stage, build_schedule
 from .border import update_border_shift
-from .targets import ViewTarget, gaussian_blur, level_target
+from .targets import ViewTarget, gaussian_blur, level_target, signed_border_distance
 
 ProgressCallback = Callable[[dict], None]
 
@@ -88,6 +88,7 @@ class _Problem:
         )
         self._targets: dict[tuple, ViewTarget] = {}
         self.border_shift_px = {name: 0.0 for name in masks}
+        self._signed_distance: dict[str, np.ndarray] = {}
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def mesh_tensors(self, dtype: torch.dtype, stage: Stage | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,13 +114,19 @@ class _Problem:
         if key not in self._targets:
             target = level_target(
                 self.masks[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
-                self.options.thin_vessel_weighting, dtype, shift,
+                self.options.thin_vessel_weighting, dtype, shift, self.signed_distance(view_name) if shift else None,
             )
             target.target = target.target.to(self.device)
             if target.weight is not None:
                 target.weight = target.weight.to(self.device)
             self._targets[key] = target
         return self._targets[key]
+
+    def signed_distance(self, view_name: str) -> np.ndarray:
+        """The view's mask as a signed border distance (px), computed once."""
+        if view_name not in self._signed_distance:
+            self._signed_distance[view_name] = signed_border_distance(self.masks[view_name])
+        return self._signed_distance[view_name]
 
     def update_border_shifts(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> None:
         """Re-measure each view's target border shift against the full mesh at ``mesh_to_world``."""
@@ -128,7 +135,8 @@ class _Problem:
             view = self.rig.views[name]
             pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
             silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
-            self.border_shift_px[name] = update_border_shift(self.masks[name], silhouette, self.border_shift_px[name])
+            self.border_shift_px[name] = update_border_shift(
+                self.masks[name], silhouette, self.border_shift_px[name], self.signed_distance(name))
 
     def loss(self, mesh_to_world: torch.Tensor, stage: Stage, dtype: torch.dtype) -> torch.Tensor:
         """Per-start loss ``(B,)`` for poses ``(B, 4, 4)`` (float64, differentiable)."""

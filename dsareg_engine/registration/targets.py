@@ -36,15 +36,15 @@ class ViewTarget:
 
 def level_target(
     mask: np.ndarray, view: ViewGeometry, scale: float, blur_px: float, thin_vessel_weighting: bool, dtype: torch.dtype,
-    border_shift_px: float = 0.0,
+    border_shift_px: float = 0.0, signed: np.ndarray | None = None,
 ) -> ViewTarget:
     """Resample a full-resolution mask ``(H, W)`` bool to ``scale`` and build the level's target.
 
     ``border_shift_px`` (full-resolution px) moves the mask's border outward (negative: inward)
-    first, see :func:`shifted_mask`.
+    first, see :func:`shifted_mask` (``signed``: the mask's signed border distance, if known).
     """
     level_view = view.scaled(scale) if scale != 1.0 else view
-    image = shifted_mask(mask, border_shift_px)
+    image = shifted_mask(mask, border_shift_px, signed)
     if level_view.image_size != view.image_size:
         image = cv2.resize(image, level_view.image_size, interpolation=cv2.INTER_AREA)
     weight = None
@@ -54,16 +54,29 @@ def level_target(
     return ViewTarget(level_view, Camera.from_view(level_view), target, weight, blur_px)
 
 
-def shifted_mask(mask: np.ndarray, shift_px: float) -> np.ndarray:
+def signed_border_distance(mask: np.ndarray) -> np.ndarray:
+    """Signed distance (px) from each pixel centre to the mask's border, negative inside: ``(H, W)`` float32.
+
+    The border is taken half a pixel beyond the outermost pixel centres, so the pixels just
+    inside read −0.5 and those just outside +0.5.
+    """
+    pixels = mask.astype(np.uint8)
+    inside = cv2.distanceTransform(pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    outside = cv2.distanceTransform(1 - pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.where(mask, 0.5 - inside, outside - 0.5).astype(np.float32)
+
+
+def shifted_mask(mask: np.ndarray, shift_px: float, signed: np.ndarray | None = None) -> np.ndarray:
     """Coverage ``(H, W)`` float32 in [0, 1] of ``mask`` with its border moved outward by ``shift_px``.
 
-    The border is taken half a pixel beyond the outermost pixel centres; each pixel's coverage
-    is a 1-px linear ramp across the moved border, evaluated at its centre's signed distance.
-    A shift of 0 returns the mask itself; negative shifts move the border inward.
+    Each pixel's coverage is a 1-px linear ramp across the moved border, evaluated at its
+    centre's signed distance (``signed``: :func:`signed_border_distance` of the mask, computed
+    when not given). A shift of 0 returns the mask itself; negative shifts move it inward.
     """
     if shift_px == 0.0:
         return mask.astype(np.float32)
-    signed = np.where(mask, 0.5 - ndimage.distance_transform_edt(mask), ndimage.distance_transform_edt(~mask) - 0.5)
+    if signed is None:
+        signed = signed_border_distance(mask)
     return np.clip(0.5 - signed + shift_px, 0.0, 1.0).astype(np.float32)
 
 
