@@ -310,7 +310,11 @@ def _register(
     for index, stage in enumerate(stages):
         if stage.add_initial_starts:
             poses = np.concatenate([poses, starts])
-        if options.border_correction and index > 0 and stage.scale >= 0.5 * finest_scale:
+        # Fine stages only, and not in the single-view phase of a sequential configuration: one
+        # view's depth is loose there, and a border measured at a wrong magnification costs the
+        # two-view stages extra iterations to undo.
+        if (options.border_correction and index > 0 and stage.scale >= 0.5 * finest_scale
+                and set(stage.views) == set(used_views)):
             problem.update_border_shifts(pose_history[-1], stage.views)
         if not stage.all_starts and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
