@@ -10,8 +10,8 @@ positions, not their widths, then fix the depth.
 
 from __future__ import annotations
 
-import numpy as np
 import cv2
+import numpy as np
 from skimage.measure import perimeter
 
 from .targets import shifted_mask, signed_border_distance
