@@ -134,7 +134,7 @@ def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int, ext
     options = RegistrationOptions(configuration=config, starts=multistart, seed=seed, **extra,
                                   initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist())
     result = register(mesh, masks, rig, options)
-    return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"]}
+    return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"], "converged": result.metrics["converged"]}
 
 
 def bench_table1(args: argparse.Namespace) -> int:
@@ -222,12 +222,8 @@ def bench_robustness(args: argparse.Namespace) -> int:
         for index, initial in enumerate(initials):
             rng = np.random.default_rng(args.seed + 1000 * index)
             masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
-            options = RegistrationOptions(configuration="simultaneous", starts=args.multistart, seed=args.seed + index,
-                                          initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist(),
-                                          **json.loads(args.options))
-            result = register(mesh, masks, rig, options)
-            rows.append({**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"],
-                         "converged": result.metrics["converged"], "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
+            row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, json.loads(args.options))
+            rows.append({**row, "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
         add = np.array([row["add_mm"] for row in rows])
         print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
               f"{np.median([row['rotation_error_deg'] for row in rows]):.3f} | {np.mean(add < 1.0) * 100:.0f} % | "

@@ -10,6 +10,9 @@ def face_pixel_boxes(
 ) -> torch.Tensor:
     """Inclusive pixel ranges whose centres lie within ``radius_px`` of each face's box.
 
+    (The torch path's boxes; ``kernels_numba.gather_faces`` computes the same boxes in its
+    own pass, and the backend-agreement tests hold the two equal.)
+
     Pixel centres are at integer ``(u, v)``, so a face spanning ``[u_min, u_max]`` touches
     columns ``ceil(u_min − r) … floor(u_max + r)``, clamped to the image. Invalid faces and
     faces entirely off the image get an empty box (``x0 > x1``).
