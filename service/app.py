@@ -255,6 +255,9 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(MetricsMiddleware, histogram=http_latency, routes_getter=lambda: app.router.routes)
     _install_handlers(app)
     _install_routes(app)
+    from .dicom_routes import install_dicom_routes
+
+    install_dicom_routes(app, get_ctx, principal, owned_job)
     original_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -412,6 +415,10 @@ def _install_routes(app: FastAPI) -> None:
         if key is not None and (not key.strip() or len(key) > 255):
             raise Problem(400, "Idempotency-Key must be 1 to 255 characters", field="Idempotency-Key")
         content_type = request.headers.get("content-type", "")
+        if content_type.lower().startswith("application/json"):  # inputs by DICOMweb reference
+            from .dicom_routes import submit_by_reference
+
+            return await submit_by_reference(ctx, request, who, key)
         if not content_type.lower().startswith("multipart/form-data"):
             raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat",
                           accepted="multipart/form-data")

@@ -82,6 +82,11 @@ ARTIFACT_FILES = {
     "mask_ap.png": "image/png",
     "mask_lat.png": "image/png",
     "animation.gif": "image/gif",
+    # DICOM results (service/dicom_jobs.py)
+    "reg.dcm": "application/dicom",
+    "overlay_ap.dcm": "application/dicom",
+    "overlay_lat.dcm": "application/dicom",
+    "loss.dcm": "application/dicom",
 }
 
 

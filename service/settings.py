@@ -94,9 +94,19 @@ class ServiceSettings(BaseSettings):
         60.0, gt=0.0, description="A queued job not picked up this long is sent to the broker again (executor=celery).")
     task_max_retries: int = Field(5, ge=0, le=50, description="Retries of a Celery task on a transient store error.")
 
+    # DICOMweb (service/dicomweb.py): the only PACS a request may name, with their credentials
+    dicomweb_servers: Annotated[list[Any], NoDecode] = Field(
+        default_factory=list,
+        description='DICOMweb servers jobs may read from / store to: JSON list of {"url", "username"?, "password"?, '
+                    '"token"?} (or plain URLs); a request naming any other URL is refused (422).')
+    dicomweb_timeout_seconds: float = Field(30.0, gt=0.0, description="Timeout of one DICOMweb HTTP request.")
+    dicomweb_retries: int = Field(2, ge=0, le=10, description="Retries of a DICOMweb request on connection errors, "
+                                                              "timeouts and 408/429/502/503/504.")
+    dicomweb_retry_backoff_seconds: float = Field(0.5, ge=0.0, description="First retry delay (doubles each retry).")
+
     log_level: str = "info"
 
-    @field_validator("api_keys", "api_key_hashes", mode="before")
+    @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
         return _split_list(value)

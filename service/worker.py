@@ -18,7 +18,9 @@ import time
 from typing import Any
 
 from .blobs import BlobStore
-from .engine_adapter import collect_artifacts, load_job_case
+from .dicom_jobs import DicomJob, pacs_problem
+from .dicomweb import PacsError
+from .engine_adapter import collect_artifacts
 from .problems import TYPE_BASE
 from .settings import ServiceSettings
 from .store import JobRecord, JobStore, SqlJobStore, random_token
@@ -141,7 +143,8 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     outcome = "lost"
     try:
         options = parse_options(job.options)
-        case = load_job_case(job.inputs, job.geometry, options.segmentation, blobs.read, settings.input_limits)
+        dicom_job = DicomJob(job, blobs.read, settings)  # inputs by DICOMweb reference; DICOM results
+        case = dicom_job.load_case(options.segmentation, settings.input_limits)
         if control.should_stop():
             raise RegistrationCanceled("stopped before start")
         control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
@@ -152,6 +155,7 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
         warnings = [str(w) for w in getattr(case, "warnings", []) or []]
         if warnings and "warnings" not in result:
             result["warnings"] = warnings
+        result = dicom_job.finish(result, out_dir)
         artifacts = collect_artifacts(out_dir, blobs)
         ok = store.complete(job.id, worker_id, "succeeded", result=result, artifacts=artifacts)
         if ok:  # shared (identical) artifacts may have been removed by a concurrent delete before we referenced them
@@ -172,6 +176,9 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
         else:  # worker shutting down: hand the job back
             store.release(job.id, worker_id)
             outcome = "released"
+    except PacsError as exc:
+        err = _problem(job.id, 502, "pacs-error", "PACS error", str(exc), **pacs_problem(exc))
+        outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
     except DsaregInputError as exc:
         err = _problem(job.id, 422, "invalid-input", "Unprocessable input", str(exc), field=exc.field, accepted=exc.accepted)
         outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"

@@ -1,0 +1,344 @@
+"""DICOMweb (QIDO-RS / WADO-RS / STOW-RS) for registrations requested by reference.
+
+* The request names a PACS by URL; only URLs listed in the server's settings
+  (``DSAREG_DICOMWEB_SERVERS``) are accepted, and the credentials come from that entry,
+  never from the request (no server-side request forgery, no credential injection).
+* UIDs are checked against the DICOM UID syntax before they go into a URL path.
+* Every HTTP call has a timeout; connection errors, timeouts and 429/502/503/504 are retried
+  a bounded number of times with exponential back-off; anything else fails at once.
+  A failure raises :class:`PacsError` naming the server, the step and the HTTP status,
+  which the worker turns into a failed job (``type .../pacs-error``).
+
+Plain httpx is used (already a dependency) rather than a DICOMweb client library: the three
+calls we need are short and we want exact control of timeouts, retries and error text.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+import uuid
+from dataclasses import dataclass
+from email.parser import BytesParser
+from email.policy import HTTP
+from typing import Any, Literal
+
+import httpx
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+UID_PATTERN = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
+RETRIABLE_STATUS = {408, 429, 502, 503, 504}
+DICOM_JSON = "application/dicom+json"
+
+
+def _uid(value: str) -> str:
+    value = value.strip()
+    if len(value) > 64 or not UID_PATTERN.match(value):
+        raise ValueError("must be a DICOM UID (digits and dots, at most 64 characters)")
+    return value
+
+
+def normalize_url(url: str) -> str:
+    return url.strip().rstrip("/")
+
+
+# ---- request model ----------------------------------------------------------------------------
+
+
+class ImageRef(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    series_uid: str = Field(description="Series Instance UID of the XA (or other image) series.")
+    sop_instance_uid: str | None = Field(None, description="The instance; default the series' first (by Instance Number).")
+    frame: int | Literal["minip"] | None = Field(
+        None, description="Multi-frame XA: 0-based frame, 'minip', or null for maximum opacification.")
+
+    @field_validator("series_uid", "sop_instance_uid")
+    @classmethod
+    def check_uid(cls, value):
+        return value if value is None else _uid(value)
+
+    @field_validator("frame")
+    @classmethod
+    def _frame(cls, value):
+        if isinstance(value, int) and value < 0:
+            raise ValueError("frame must be 0 or more")
+        return value
+
+
+class VolumeRef(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    series_uid: str = Field(description="Series Instance UID of the 3D volume (3D-RA / CTA) series.")
+    study_uid: str | None = Field(None, description="Its study, when it is not the XA study.")
+
+    @field_validator("series_uid", "study_uid")
+    @classmethod
+    def check_uid(cls, value):
+        return value if value is None else _uid(value)
+
+
+class DicomwebSource(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    url: str = Field(description="DICOMweb base URL; must be one of the server's configured DICOMweb servers.",
+                     examples=["http://pacs.example:8042/dicom-web"])
+    study_uid: str = Field(description="Study Instance UID of the biplane XA study (results are stored into it).")
+    ap: ImageRef
+    lat: ImageRef
+    volume: VolumeRef
+
+    @field_validator("study_uid")
+    @classmethod
+    def check_uid(cls, value):
+        return _uid(value)
+
+    @model_validator(mode="after")
+    def _frames(self) -> DicomwebSource:
+        if self.ap.frame is not None and self.lat.frame is not None and self.ap.frame != self.lat.frame:
+            raise ValueError("ap.frame and lat.frame must be equal when both are given (one frame rule serves both views)")
+        return self
+
+    @property
+    def frame(self):
+        return self.ap.frame if self.ap.frame is not None else self.lat.frame
+
+
+class Source(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    dicomweb: DicomwebSource
+
+
+class DicomwebRegistrationRequest(BaseModel):
+    """``POST /v1/registrations`` with ``Content-Type: application/json``: inputs by reference."""
+
+    model_config = ConfigDict(extra="forbid")
+    source: Source
+    options: dict[str, Any] = Field(default_factory=dict, description="RegistrationOptions, as in the multipart form.")
+    store_results: bool = Field(True, description="STOW-RS the REG and the overlays back into the study.")
+
+
+# ---- errors --------------------------------------------------------------------------------------
+
+
+class PacsError(Exception):
+    """A DICOMweb call failed for good: which server, which step, which HTTP status."""
+
+    def __init__(self, server: str, step: str, detail: str, status: int | None = None, attempts: int = 1):
+        self.server, self.step, self.detail, self.status, self.attempts = server, step, detail, status, attempts
+        where = f" (HTTP {status})" if status is not None else ""
+        tries = f" after {attempts} attempts" if attempts > 1 else ""
+        super().__init__(f"PACS {server}: {step} failed{where}{tries}: {detail}")
+
+    def problem_extra(self) -> dict[str, Any]:
+        return {"server": self.server, "step": self.step, "http_status": self.status, "attempts": self.attempts}
+
+
+# ---- server settings -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PacsServer:
+    url: str
+    username: str | None = None
+    password: str | None = None
+    token: str | None = None
+
+    @property
+    def auth(self) -> httpx.Auth | None:
+        if self.username is not None:
+            return httpx.BasicAuth(self.username, self.password or "")
+        return None
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
+
+def configured_servers(settings) -> dict[str, PacsServer]:
+    """``{normalized url: PacsServer}`` from ``settings.dicomweb_servers`` (dicts, or plain URLs)."""
+    servers: dict[str, PacsServer] = {}
+    for entry in getattr(settings, "dicomweb_servers", None) or []:
+        if isinstance(entry, str):
+            entry = {"url": entry}
+        url = normalize_url(str(entry["url"]))
+        servers[url] = PacsServer(url, entry.get("username"), entry.get("password"), entry.get("token"))
+    return servers
+
+
+def resolve_server(settings, url: str) -> PacsServer | None:
+    return configured_servers(settings).get(normalize_url(url))
+
+
+# ---- the client --------------------------------------------------------------------------------------
+
+
+def _multipart_parts(response: httpx.Response) -> list[bytes]:
+    """The bodies of a ``multipart/related`` response."""
+    content_type = response.headers.get("content-type", "")
+    if not content_type.lower().startswith("multipart/"):
+        return [response.content] if response.content else []
+    message = BytesParser(policy=HTTP).parsebytes(b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n"
+                                                   + response.content)
+    return [part.get_payload(decode=True) for part in message.iter_parts()]
+
+
+class DicomwebClient:
+    """QIDO-RS / WADO-RS / STOW-RS against one configured server, with bounded retries."""
+
+    def __init__(self, server: PacsServer, *, timeout: float = 30.0, retries: int = 2, backoff: float = 0.5,
+                 transport: httpx.BaseTransport | None = None):
+        self.server = server
+        self.retries = max(0, int(retries))
+        self.backoff = backoff
+        self.client = httpx.Client(base_url=server.url, auth=server.auth, headers=server.headers,
+                                   timeout=httpx.Timeout(timeout, connect=min(timeout, 10.0)), transport=transport,
+                                   follow_redirects=False)
+        self.calls = 0
+
+    def close(self) -> None:
+        self.client.close()
+
+    def __enter__(self) -> DicomwebClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _request(self, method: str, path: str, step: str, ok=(200,), **kwargs) -> httpx.Response:
+        attempts = 0
+        while True:
+            attempts += 1
+            self.calls += 1
+            try:
+                response = self.client.request(method, path, **kwargs)
+            except httpx.TimeoutException as exc:
+                error, status = f"no answer within the timeout ({type(exc).__name__})", None
+            except httpx.TransportError as exc:
+                error, status = f"cannot connect ({type(exc).__name__}: {str(exc)[:120]})", None
+            else:
+                if response.status_code in ok:
+                    return response
+                status = response.status_code
+                error = _error_text(response)
+                if status not in RETRIABLE_STATUS:
+                    raise PacsError(self.server.url, step, error, status, attempts)
+            if attempts > self.retries:
+                raise PacsError(self.server.url, step, error, status, attempts)
+            time.sleep(self.backoff * 2 ** (attempts - 1))
+
+    # QIDO-RS
+    def search_instances(self, study: str, series: str) -> list[dict]:
+        response = self._request("GET", f"/studies/{study}/series/{series}/instances", "search instances (QIDO-RS)",
+                                 ok=(200, 204), headers={"Accept": DICOM_JSON})
+        if response.status_code == 204 or not response.content:
+            return []
+        try:
+            return list(response.json())
+        except ValueError:
+            raise PacsError(self.server.url, "search instances (QIDO-RS)", "the answer is not DICOM JSON") from None
+
+    # WADO-RS
+    def retrieve_instance(self, study: str, series: str, instance: str) -> bytes:
+        step = "retrieve instance (WADO-RS)"
+        response = self._request("GET", f"/studies/{study}/series/{series}/instances/{instance}", step,
+                                 headers={"Accept": 'multipart/related; type="application/dicom"'})
+        parts = _multipart_parts(response)
+        if len(parts) != 1:
+            raise PacsError(self.server.url, step, f"expected one instance, got {len(parts)}")
+        return parts[0]
+
+    def retrieve_series(self, study: str, series: str) -> list[bytes]:
+        step = "retrieve series (WADO-RS)"
+        response = self._request("GET", f"/studies/{study}/series/{series}", step,
+                                 headers={"Accept": 'multipart/related; type="application/dicom"'})
+        parts = _multipart_parts(response)
+        if not parts:
+            raise PacsError(self.server.url, step, "the series has no instances", response.status_code)
+        return parts
+
+    # STOW-RS
+    def store(self, study: str, instances: list[bytes]) -> list[str]:
+        """Store ``instances`` into ``study``; the SOP Instance UIDs the server reports as stored."""
+        step = "store results (STOW-RS)"
+        boundary = uuid.uuid4().hex
+        body = b"".join(b"--" + boundary.encode() + b"\r\nContent-Type: application/dicom\r\n\r\n" + data + b"\r\n"
+                        for data in instances) + b"--" + boundary.encode() + b"--\r\n"
+        response = self._request(
+            "POST", f"/studies/{study}", step, ok=(200, 202),
+            content=body, headers={"Content-Type": f'multipart/related; type="application/dicom"; boundary={boundary}',
+                                   "Accept": DICOM_JSON})
+        try:
+            answer = response.json() if response.content else {}
+        except ValueError:
+            answer = {}
+        failed = (answer.get("00081198") or {}).get("Value") or []
+        if failed:
+            reasons = sorted({str((item.get("00081197") or {}).get("Value", ["?"])[0]) for item in failed})
+            raise PacsError(self.server.url, step, f"{len(failed)} instance(s) refused (failure reasons {reasons})",
+                            response.status_code)
+        stored = []
+        for item in (answer.get("00081199") or {}).get("Value") or []:
+            uid = (item.get("00081155") or {}).get("Value") or []
+            if uid:
+                stored.append(str(uid[0]))
+        return stored
+
+
+def _error_text(response: httpx.Response) -> str:
+    text = response.text[:300].strip().replace("\n", " ") if response.content else ""
+    reason = response.reason_phrase or "error"
+    return f"{reason}{': ' + text if text else ''}"
+
+
+def _dicom_json_value(item: dict, tag: str):
+    value = (item.get(tag) or {}).get("Value") or []
+    return value[0] if value else None
+
+
+# ---- the job's side ------------------------------------------------------------------------------------
+
+
+@dataclass
+class FetchedStudy:
+    ap: bytes
+    lat: bytes
+    volume: list[bytes]
+    warnings: list[str]
+    seconds: float
+    calls: int
+
+
+def fetch_inputs(client: DicomwebClient, source: DicomwebSource) -> FetchedStudy:
+    """The AP and LAT instances and every instance of the volume series."""
+    started = time.perf_counter()
+    warnings: list[str] = []
+    images: dict[str, bytes] = {}
+    for name in ("ap", "lat"):
+        ref: ImageRef = getattr(source, name)
+        instance = ref.sop_instance_uid
+        if instance is None:
+            found = client.search_instances(source.study_uid, ref.series_uid)
+            if not found:
+                raise PacsError(client.server.url, "search instances (QIDO-RS)",
+                                f"{name}: series {ref.series_uid} has no instances in study {source.study_uid}", 404)
+
+            def number(item: dict) -> float:
+                value = _dicom_json_value(item, "00200013")
+                try:
+                    return float(value)
+                except (TypeError, ValueError):
+                    return float("inf")
+
+            found.sort(key=number)
+            instance = _dicom_json_value(found[0], "00080018")
+            if not instance:
+                raise PacsError(client.server.url, "search instances (QIDO-RS)", f"{name}: no SOPInstanceUID in the answer")
+            if len(found) > 1:
+                warnings.append(f"{name}: series has {len(found)} instances; the first by Instance Number was used "
+                                "(give sop_instance_uid to choose)")
+        images[name] = client.retrieve_instance(source.study_uid, ref.series_uid, _uid(str(instance)))
+    volume = client.retrieve_series(source.volume.study_uid or source.study_uid, source.volume.series_uid)
+    return FetchedStudy(images["ap"], images["lat"], volume, warnings, time.perf_counter() - started, client.calls)
+
+
+def parse_reference(data: bytes) -> DicomwebRegistrationRequest:
+    return DicomwebRegistrationRequest.model_validate(json.loads(data))
