@@ -97,15 +97,19 @@ def stub():
 @pytest.fixture(scope="module")
 def service(tmp_path_factory, orthanc, stub):
     closed = f"http://127.0.0.1:{free_port()}/dicom-web"  # nothing listens there
+    triggering = OrthancServer(password="trigger-test")  # started by the trigger test, with the example's Lua
     servers = [{"url": orthanc.dicomweb_url, "username": orthanc.user, "password": orthanc.password},
+               {"url": triggering.dicomweb_url, "username": triggering.user, "password": triggering.password},
                {"url": orthanc.dicomweb_url.replace("/dicom-web", "/bad-credentials"), "username": "x", "password": "y"},
                {"url": closed}, {"url": stub.url + "/slow"}, {"url": stub.url + "/busy"}]
     env = {"DSAREG_DICOMWEB_SERVERS": json.dumps(servers), "DSAREG_DICOMWEB_TIMEOUT_SECONDS": "1",
            "DSAREG_DICOMWEB_RETRIES": "2", "DSAREG_DICOMWEB_RETRY_BACKOFF_SECONDS": "0.1"}
     srv = Server(tmp_path_factory.mktemp("dicomweb") / "data", workers=1, env=env).start()
     srv.closed_url = closed
+    srv.triggering = triggering
     yield srv
     srv.stop()
+    triggering.stop()
 
 
 def reference(study, url: str, store: bool = True, **changes) -> dict:
@@ -199,3 +203,49 @@ def test_pacs_errors_fail_the_job_with_a_clear_reason(service, orthanc, stub, up
     else:
         assert (error.get("http_status"), error["attempts"]) == expected, error
     assert error["step"].startswith(("search", "retrieve"))
+
+
+def example_lua(dsareg_url: str, dicomweb_url: str, options: str = "{ starts = 1 }") -> str:
+    text = (Path(__file__).resolve().parents[2] / "examples" / "pacs" / "orthanc_trigger.lua").read_text()
+    for name, value in (("DSAREG", f'"{dsareg_url}"'), ("PACS_DICOMWEB", f'"{dicomweb_url}"'), ("OPTIONS", options)):
+        lines = [line for line in text.splitlines() if line.startswith(f"local {name} = ")]
+        assert len(lines) == 1, name
+        text = text.replace(lines[0], f"local {name} = {value}")
+    return text
+
+
+def test_orthanc_lua_trigger_registers_a_stable_study(service, study, dciodvfy, tmp_path):
+    """examples/pacs/orthanc_trigger.lua: upload a study, Orthanc posts the job, dsareg stores the REG back."""
+    pacs = service.triggering
+    pacs.lua = example_lua(service.url, pacs.dicomweb_url)
+    pacs.stable_age = 1
+    try:
+        pacs.start()
+    except Exception as exc:  # noqa: BLE001
+        pytest.skip(f"cannot start Orthanc ({str(exc)[:200]})")
+    auth = (pacs.user, pacs.password)
+    with httpx.Client(base_url=pacs.url, auth=auth, timeout=30) as client:
+        for data in study.instances():
+            assert client.post("/instances", content=data).status_code == 200
+        deadline = time.monotonic() + 240
+        reg = None
+        while time.monotonic() < deadline and reg is None:
+            time.sleep(1)
+            try:
+                listing = client.get("/series", params={"expand": ""}).json()
+            except httpx.TransportError:  # Orthanc may drop a kept-alive connection
+                continue
+            for series in listing:
+                if series["MainDicomTags"].get("Modality") == "REG":
+                    reg = client.get(f"/instances/{series['Instances'][0]}/file").content
+        assert reg is not None, pacs.logs()[-3000:]
+        time.sleep(pacs.stable_age + 2)  # the stored results make the study stable again: no second job
+        modalities = [s["MainDicomTags"].get("Modality") for s in client.get("/series", params={"expand": ""}).json()]
+    assert sorted(modalities) == ["CT", "OT", "REG", "XA", "XA"], modalities
+    (tmp_path / "reg.dcm").write_bytes(reg)
+    assert dciodvfy(tmp_path / "reg.dcm") == []
+    matrix = read_registration_matrix(pydicom.dcmread(io.BytesIO(reg)), study.uids["volume_frame"])
+    assert rotation_deg(matrix, study.mesh_to_world) < 1.0
+    assert np.linalg.norm((matrix - study.mesh_to_world)[:3, 3]) < 0.5
+    assert "dsareg: registration requested" in pacs.logs()
+    assert "already registered, skipped" in pacs.logs()
