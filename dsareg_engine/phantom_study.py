@@ -138,8 +138,12 @@ def make_biplane_study(
     pitch_mm: float = 0.5,
     depth: int = 2,
     seed: int = 3,
+    slice_px: int | None = None,
 ) -> BiplaneStudy:
-    """The study; ``mesh_to_world`` (volume LPS mm → C-arm isocentre LPS mm) defaults to 6° / 5 mm off identity."""
+    """The study; ``mesh_to_world`` (volume LPS mm → C-arm isocentre LPS mm) defaults to 6° / 5 mm off identity.
+
+    ``slice_px``: pad the slices with background to this size (e.g. 512, as a real CTA / 3D-RA).
+    """
     import torch
 
     from .io.dicom_xa import view_from_angles
@@ -158,6 +162,11 @@ def make_biplane_study(
     phantom = make_vessel_phantom(depth=depth, seed=seed)
     study_uid = new_uid()
     volume, affine = voxelize_mesh(phantom, pitch_mm)
+    if slice_px is not None and slice_px > max(volume.shape[:2]):  # realistic slice size: pad with background
+        before = [(slice_px - n) // 2 for n in volume.shape[:2]]
+        volume = np.pad(volume, [(b, slice_px - n - b) for b, n in zip(before, volume.shape[:2])] + [(0, 0)])
+        affine = affine.copy()
+        affine[:3, 3] -= affine[:3, :2] @ np.array(before, dtype=np.float64)
     parts, volume_series, frame_uid = _ct_series(volume, affine, study_uid)
     mesh = volume_to_mesh(read_volume(parts))  # exactly the model dsareg builds from the series
     vertices, faces = mesh.torch(torch.float64)

@@ -20,8 +20,6 @@ import re
 import time
 import uuid
 from dataclasses import dataclass
-from email.parser import BytesParser
-from email.policy import HTTP
 from typing import Any, Literal
 
 import httpx
@@ -172,13 +170,27 @@ def resolve_server(settings, url: str) -> PacsServer | None:
 
 
 def _multipart_parts(response: httpx.Response) -> list[bytes]:
-    """The bodies of a ``multipart/related`` response."""
+    """The bodies of a ``multipart/related`` response (split on the boundary; no copies of headers)."""
     content_type = response.headers.get("content-type", "")
     if not content_type.lower().startswith("multipart/"):
         return [response.content] if response.content else []
-    message = BytesParser(policy=HTTP).parsebytes(b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n"
-                                                   + response.content)
-    return [part.get_payload(decode=True) for part in message.iter_parts()]
+    match = re.search(r'boundary="?([^";]+)"?', content_type, flags=re.IGNORECASE)
+    if match is None:
+        raise ValueError("multipart answer without a boundary")
+    delimiter = b"--" + match.group(1).strip().encode("latin-1")
+    body = response.content
+    parts = []
+    for chunk in body.split(delimiter)[1:]:
+        if chunk.startswith(b"--"):  # the closing delimiter
+            break
+        head_end = chunk.find(b"\r\n\r\n")
+        if head_end < 0:
+            continue
+        payload = chunk[head_end + 4:]
+        if payload.endswith(b"\r\n"):
+            payload = payload[:-2]
+        parts.append(payload)
+    return parts
 
 
 class DicomwebClient:
@@ -225,6 +237,12 @@ class DicomwebClient:
                 raise PacsError(self.server.url, step, error, status, attempts)
             time.sleep(self.backoff * 2 ** (attempts - 1))
 
+    def _parts(self, response: httpx.Response, step: str) -> list[bytes]:
+        try:
+            return _multipart_parts(response)
+        except ValueError as exc:
+            raise PacsError(self.server.url, step, str(exc), response.status_code) from None
+
     # QIDO-RS
     def search_instances(self, study: str, series: str) -> list[dict]:
         response = self._request("GET", f"/studies/{study}/series/{series}/instances", "search instances (QIDO-RS)",
@@ -241,7 +259,7 @@ class DicomwebClient:
         step = "retrieve instance (WADO-RS)"
         response = self._request("GET", f"/studies/{study}/series/{series}/instances/{instance}", step,
                                  headers={"Accept": 'multipart/related; type="application/dicom"'})
-        parts = _multipart_parts(response)
+        parts = self._parts(response, step)
         if len(parts) != 1:
             raise PacsError(self.server.url, step, f"expected one instance, got {len(parts)}")
         return parts[0]
@@ -250,7 +268,7 @@ class DicomwebClient:
         step = "retrieve series (WADO-RS)"
         response = self._request("GET", f"/studies/{study}/series/{series}", step,
                                  headers={"Accept": 'multipart/related; type="application/dicom"'})
-        parts = _multipart_parts(response)
+        parts = self._parts(response, step)
         if not parts:
             raise PacsError(self.server.url, step, "the series has no instances", response.status_code)
         return parts
