@@ -113,7 +113,37 @@ def _replay(existing: JobRecord, fingerprint: str) -> Response:
                         headers={"Location": f"/v1/registrations/{existing.id}"})
 
 
+def _inline_schema(model) -> dict:
+    """``model``'s JSON schema with its ``$defs`` inlined (it goes inside an operation, not components)."""
+    schema = model.model_json_schema()
+    defs = schema.pop("$defs", {})
+
+    def resolve(node):
+        if isinstance(node, dict):
+            ref = node.get("$ref", "")
+            if ref.startswith("#/$defs/"):
+                return resolve({**defs[ref.rsplit("/", 1)[1]], **{k: v for k, v in node.items() if k != "$ref"}})
+            return {k: resolve(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [resolve(v) for v in node]
+        return node
+
+    return resolve(schema)
+
+
+def document_json_submission(app: FastAPI) -> None:
+    """Add the ``application/json`` (DICOMweb reference) body to the submit operation's OpenAPI."""
+    for route in app.routes:
+        if getattr(route, "path", None) == "/v1/registrations" and "POST" in getattr(route, "methods", ()):
+            extra = route.openapi_extra if route.openapi_extra is not None else {}
+            content = extra.setdefault("requestBody", {"required": True}).setdefault("content", {})
+            content["application/json"] = {"schema": _inline_schema(DicomwebRegistrationRequest)}
+            route.openapi_extra = extra
+
+
 def install_dicom_routes(app: FastAPI, get_ctx, principal, owned_job) -> None:
+    document_json_submission(app)
+
     @app.get("/v1/registrations/{job_id}/dicom/{name}", tags=["results"],
              summary="DICOM results: Spatial Registration (reg.dcm) and Secondary Capture overlays",
              response_class=Response,
@@ -122,7 +152,7 @@ def install_dicom_routes(app: FastAPI, get_ctx, principal, owned_job) -> None:
                         **problem_responses(401, 403, 404, 422)})
     def get_dicom(request: Request, job_id: str,
                   name: Literal["reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm"],
-                  who: str = Depends(principal)) -> Response:  # noqa: B008
+                  who: str = Depends(principal)) -> Response:
         ctx = get_ctx(request)
         job = owned_job(ctx, job_id, who)
         digest = job.artifacts.get(name)

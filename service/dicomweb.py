@@ -209,7 +209,7 @@ class DicomwebClient:
     def close(self) -> None:
         self.client.close()
 
-    def __enter__(self) -> DicomwebClient:
+    def __enter__(self) -> DicomwebClient:  # noqa: PYI034
         return self
 
     def __exit__(self, *exc) -> None:

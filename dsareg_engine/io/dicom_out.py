@@ -134,7 +134,7 @@ def read_sources(ap=None, lat=None, volume=None) -> DicomSources:
 
 
 def _now() -> tuple[str, str]:
-    now = _dt.datetime.now(_dt.timezone.utc).astimezone()
+    now = _dt.datetime.now(_dt.UTC).astimezone()
     return now.strftime("%Y%m%d"), now.strftime("%H%M%S.%f")
 
 
@@ -152,7 +152,7 @@ def _copy(src, dst, keywords) -> None:
 
 def _base(sop_class: str, sop_instance: str, sources: DicomSources, study_uid: str):
     from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID
+    from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian
 
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = sop_class
@@ -354,7 +354,6 @@ def build_secondary_capture(
     instance_uid: str | None = None,
 ):
     """An RGB Secondary Capture image (``rgb``: (H, W, 3) uint8) in ``study_uid``."""
-    from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
 
     rgb = np.ascontiguousarray(rgb, dtype=np.uint8)

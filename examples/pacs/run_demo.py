@@ -33,9 +33,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from dsareg_engine.io.dicom_out import read_registration_matrix  # noqa: E402
-from dsareg_engine.phantom_study import make_biplane_study  # noqa: E402
-from service.localservers import OrthancServer, free_port  # noqa: E402
+from dsareg_engine.io.dicom_out import read_registration_matrix
+from dsareg_engine.phantom_study import make_biplane_study
+from service.localservers import OrthancServer, free_port
 
 OPTIONS = {"starts": 1}
 

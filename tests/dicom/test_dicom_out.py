@@ -10,7 +10,12 @@ import pytest
 from PIL import Image
 
 from dsareg_engine.io.dicom_out import (
-    REG_SOP_CLASS, SC_SOP_CLASS, DicomSources, read_registration_matrix, read_sources, write_dicom_outputs,
+    REG_SOP_CLASS,
+    SC_SOP_CLASS,
+    DicomSources,
+    read_registration_matrix,
+    read_sources,
+    write_dicom_outputs,
 )
 from dsareg_engine.pose import make_transform
 

@@ -22,11 +22,11 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
 
-from service_testkit import Server, wait_for  # noqa: E402
+from service_testkit import Server, wait_for
 
-from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix  # noqa: E402
-from service.dicomweb import DicomwebClient, PacsServer  # noqa: E402
-from service.localservers import OrthancServer, free_port  # noqa: E402
+from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
+from service.dicomweb import DicomwebClient, PacsServer
+from service.localservers import OrthancServer, free_port
 
 OPTIONS = {"starts": 1}
 
