@@ -32,19 +32,38 @@ OPTIONS = {"starts": 1}
 
 
 class Stub:
-    """A misbehaving DICOMweb server: ``/slow/...`` answers after 5 s, ``/busy/...`` always 503."""
+    """A misbehaving DICOMweb server: ``/slow/...`` answers after 5 s, ``/busy/...`` always 503,
+    ``/nostore/...`` forwards reads to ``upstream`` (Orthanc) but answers every STOW with 500."""
 
-    def __init__(self):
+    def __init__(self, upstream: str | None = None, auth: tuple[str, str] | None = None):
         self.hits: dict[str, int] = {}
+        self.upstream, self.auth = upstream, auth
         stub = self
 
         class Handler(BaseHTTPRequestHandler):
             def log_message(self, *args):
                 pass
 
+            def do_POST(self):
+                self.rfile.read(int(self.headers.get("Content-Length", 0)))
+                body = b"storage is full"
+                self.send_response(500)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
             def do_GET(self):
                 kind = self.path.split("/")[1]
                 stub.hits[kind] = stub.hits.get(kind, 0) + 1
+                if kind == "nostore":
+                    answer = httpx.get(stub.upstream + self.path[len("/nostore"):], auth=stub.auth,
+                                       headers={"Accept": self.headers.get("Accept", "*/*")}, timeout=30)
+                    self.send_response(answer.status_code)
+                    self.send_header("Content-Type", answer.headers.get("content-type", "application/octet-stream"))
+                    self.send_header("Content-Length", str(len(answer.content)))
+                    self.end_headers()
+                    self.wfile.write(answer.content)
+                    return
                 if kind == "slow":
                     time.sleep(5)
                 self.send_response(503 if kind == "busy" else 200)
@@ -88,8 +107,8 @@ def uploaded(orthanc, study):
 
 
 @pytest.fixture(scope="module")
-def stub():
-    server = Stub()
+def stub(orthanc):
+    server = Stub(orthanc.dicomweb_url, (orthanc.user, orthanc.password))
     yield server
     server.stop()
 
@@ -101,7 +120,8 @@ def service(tmp_path_factory, orthanc, stub):
     servers = [{"url": orthanc.dicomweb_url, "username": orthanc.user, "password": orthanc.password},
                {"url": triggering.dicomweb_url, "username": triggering.user, "password": triggering.password},
                {"url": orthanc.dicomweb_url.replace("/dicom-web", "/bad-credentials"), "username": "x", "password": "y"},
-               {"url": closed}, {"url": stub.url + "/slow"}, {"url": stub.url + "/busy"}]
+               {"url": closed}, {"url": stub.url + "/slow"}, {"url": stub.url + "/busy"},
+               {"url": stub.url + "/nostore"}]
     env = {"DSAREG_DICOMWEB_SERVERS": json.dumps(servers), "DSAREG_DICOMWEB_TIMEOUT_SECONDS": "1",
            "DSAREG_DICOMWEB_RETRIES": "2", "DSAREG_DICOMWEB_RETRY_BACKOFF_SECONDS": "0.1"}
     srv = Server(tmp_path_factory.mktemp("dicomweb") / "data", workers=1, env=env).start()
@@ -172,6 +192,13 @@ def test_url_not_configured_is_refused_at_submission(service, uploaded):
         bad_uid = reference(uploaded, service.closed_url, study_uid="1.2.3/../../x")
         response = client.post("/v1/registrations", json=bad_uid)
         assert response.status_code == 422 and "study_uid" in response.json()["field"]
+        # Idempotency-Key: the same reference twice is one job
+        first = client.post("/v1/registrations", json=reference(uploaded, service.closed_url),
+                            headers={"Idempotency-Key": "study-1"})
+        again = client.post("/v1/registrations", json=reference(uploaded, service.closed_url),
+                            headers={"Idempotency-Key": "study-1"})
+        assert (first.status_code, again.status_code) == (202, 200) and first.json()["id"] == again.json()["id"]
+        wait_for(client, first.json()["id"], timeout=60)
         # credentials in the request are not accepted (extra fields are refused)
         sneaky = reference(uploaded, service.closed_url)
         sneaky["source"]["dicomweb"]["password"] = "x"
@@ -249,3 +276,38 @@ def test_orthanc_lua_trigger_registers_a_stable_study(service, study, dciodvfy, 
     assert np.linalg.norm((matrix - study.mesh_to_world)[:3, 3]) < 0.5
     assert "dsareg: registration requested" in pacs.logs()
     assert "already registered, skipped" in pacs.logs()
+
+
+def test_store_failure_fails_the_job_but_keeps_the_pose(service, stub, uploaded):
+    with service.client() as client:
+        response = client.post("/v1/registrations", json=reference(uploaded, stub.url + "/nostore"))
+        assert response.status_code == 202, response.text
+        job = wait_for(client, response.json()["id"], timeout=300)
+    assert job["status"] == "failed", job
+    error = job["error"]
+    assert error["step"] == "store results (STOW-RS)" and error["http_status"] == 500 and error["attempts"] == 1
+    assert "storage is full" in error["detail"]
+    pose = np.asarray(error["mesh_to_world"])
+    assert rotation_deg(pose, uploaded.mesh_to_world) < 1.0
+
+
+def test_uploaded_dicom_case_gets_the_same_dicom_results(service, study, dciodvfy, tmp_path):
+    """The same study as a multipart upload: the DICOM results carry the inputs' patient and study."""
+    files = [("ap", ("ap.dcm", study.ap, "application/dicom")), ("lat", ("lat.dcm", study.lat, "application/dicom"))]
+    files += [("volume", (f"v{i:03d}.dcm", part, "application/dicom")) for i, part in enumerate(study.volume)]
+    with service.client() as client:
+        response = client.post("/v1/registrations", files=files, data={"options": json.dumps(OPTIONS)})
+        assert response.status_code == 202, response.text
+        job = wait_for(client, response.json()["id"], timeout=300)
+        assert job["status"] == "succeeded", job
+        assert "stored" not in job["result"]["dicom"]
+        for name in ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm"):
+            served = client.get(f"/v1/registrations/{job['id']}/dicom/{name}")
+            assert served.status_code == 200, name
+            (tmp_path / name).write_bytes(served.content)
+            assert dciodvfy(tmp_path / name) == [], name
+        assert client.get(f"/v1/registrations/{job['id']}/dicom/other.dcm").status_code == 422
+    reg = pydicom.dcmread(tmp_path / "reg.dcm")
+    assert reg.StudyInstanceUID == study.study_uid and reg.PatientID == "DSAREG-PHANTOM-1"
+    matrix = read_registration_matrix(reg, study.uids["volume_frame"])
+    np.testing.assert_allclose(matrix, np.asarray(job["result"]["mesh_to_world"]), rtol=0, atol=1e-9)
