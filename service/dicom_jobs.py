@@ -43,7 +43,8 @@ class DicomJob:
             raise PacsError(source.url, "configuration", "no longer one of this server's DICOMweb servers")
         return DicomwebClient(server, timeout=self.settings.dicomweb_timeout_seconds,
                               retries=self.settings.dicomweb_retries,
-                              backoff=self.settings.dicomweb_retry_backoff_seconds)
+                              backoff=self.settings.dicomweb_retry_backoff_seconds,
+                              max_bytes=self.settings.max_upload_bytes)
 
     def load_case(self, segmentation: str, limits: dict | None):
         from dsareg_engine.io.case import load_case

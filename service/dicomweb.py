@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 UID_PATTERN = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
 RETRIABLE_STATUS = {408, 429, 502, 503, 504}
+TOTAL_TIME_FACTOR = 10  # one answer may take at most this many request timeouts in all
 DICOM_JSON = "application/dicom+json"
 
 
@@ -197,10 +198,12 @@ class DicomwebClient:
     """QIDO-RS / WADO-RS / STOW-RS against one configured server, with bounded retries."""
 
     def __init__(self, server: PacsServer, *, timeout: float = 30.0, retries: int = 2, backoff: float = 0.5,
-                 transport: httpx.BaseTransport | None = None):
+                 max_bytes: int = 512 * 1024 * 1024, transport: httpx.BaseTransport | None = None):
         self.server = server
         self.retries = max(0, int(retries))
         self.backoff = backoff
+        self.max_bytes = max_bytes
+        self.deadline = TOTAL_TIME_FACTOR * timeout  # whole answer, so a trickling server cannot hold a job
         self.client = httpx.Client(base_url=server.url, auth=server.auth, headers=server.headers,
                                    timeout=httpx.Timeout(timeout, connect=min(timeout, 10.0)), transport=transport,
                                    follow_redirects=False)
@@ -221,7 +224,7 @@ class DicomwebClient:
             attempts += 1
             self.calls += 1
             try:
-                response = self.client.request(method, path, **kwargs)
+                response = self._fetch(method, path, step, **kwargs)
             except httpx.TimeoutException as exc:
                 error, status = f"no answer within the timeout ({type(exc).__name__})", None
             except httpx.TransportError as exc:
@@ -236,6 +239,24 @@ class DicomwebClient:
             if attempts > self.retries:
                 raise PacsError(self.server.url, step, error, status, attempts)
             time.sleep(self.backoff * 2 ** (attempts - 1))
+
+    def _fetch(self, method: str, path: str, step: str, **kwargs) -> httpx.Response:
+        """One request, its answer read in chunks under a byte cap and a total time limit."""
+        started = time.monotonic()
+        with self.client.stream(method, path, **kwargs) as response:
+            chunks, total = [], 0
+            for chunk in response.iter_bytes():  # decoded (Content-Encoding)
+                total += len(chunk)
+                if total > self.max_bytes:
+                    raise PacsError(self.server.url, step, f"the answer exceeds {self.max_bytes} bytes "
+                                                           "(DSAREG_MAX_UPLOAD_BYTES)", response.status_code)
+                if time.monotonic() - started > self.deadline:
+                    raise httpx.ReadTimeout(f"the answer took over {self.deadline:g} s")
+                chunks.append(chunk)
+        headers = [(k, v) for k, v in response.headers.multi_items()
+                   if k.lower() not in ("content-encoding", "content-length", "transfer-encoding")]
+        return httpx.Response(response.status_code, headers=headers, content=b"".join(chunks),
+                              request=response.request)
 
     def _parts(self, response: httpx.Response, step: str) -> list[bytes]:
         try:
