@@ -92,7 +92,8 @@ def test_without_dicom_inputs_nothing_is_invented(dciodvfy, tmp_path):
 
 
 def test_cli_register_volume_with_dicom_out(study, tmp_path, capsys):
-    from conftest import DCIODVFY, dciodvfy_errors
+    import shutil
+    import subprocess
 
     from dsareg_engine.cli import main
 
@@ -111,7 +112,10 @@ def test_cli_register_volume_with_dicom_out(study, tmp_path, capsys):
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["metrics"]["ground_truth"]["add_mm"] < 0.5
     for name in ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm"):
-        assert not DCIODVFY or dciodvfy_errors(tmp_path / "dicom" / name) == [], name
+        if shutil.which("dciodvfy"):  # validated here when installed; this test also runs without it
+            done = subprocess.run(["dciodvfy", str(tmp_path / "dicom" / name)], check=False, capture_output=True,
+                                  text=True, timeout=60)
+            assert not [x for x in (done.stdout + done.stderr).splitlines() if x.startswith("Error")], name
     reg = pydicom.dcmread(tmp_path / "dicom" / "reg.dcm")
     matrix = read_registration_matrix(reg, study.uids["volume_frame"])
     np.testing.assert_allclose(matrix, np.asarray(result["mesh_to_world"]), rtol=0, atol=1e-9)
