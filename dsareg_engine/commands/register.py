@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     result = register(case.mesh, case.masks, case.rig, parsed, progress=show)
     print()
     out = Path(args.out)
-    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation)
+    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images)
     metrics = result.metrics
     dice_text = ", ".join(f"{name} dice {view.dice:.3f}" for name, view in result.views.items())
     print(f"{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
