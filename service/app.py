@@ -31,6 +31,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .blobs import BlobStore, safe_suffix
 from .dbblobs import make_blob_store
+from .docs_offline import install_docs
 from .executor import Executor, make_executor
 from .middleware import BodyLimitMiddleware, MetricsMiddleware
 from .models import EXAMPLE_ID, Health, JobList, JobStatus, status_body, summary_body
@@ -251,11 +252,15 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
         ),
         lifespan=lifespan,
         responses=problem_responses(500),
+        docs_url=None,  # served offline by docs_offline.install_docs
+        redoc_url=None,
+        generate_unique_id_function=_operation_id,
     )
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     app.add_middleware(MetricsMiddleware, histogram=http_latency, routes_getter=lambda: app.router.routes)
     _install_handlers(app)
     _install_routes(app)
+    install_docs(app)
     original_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -325,6 +330,11 @@ def _install_handlers(app: FastAPI) -> None:
                   exc_info=exc)
         return _problem_response(500, problem_body(500, "an internal error occurred; it has been logged",
                                                    instance=request.url.path))
+
+
+def _operation_id(route: Any) -> str:
+    """operationId = the handler's name (``submit``, ``get_job``, ``list_jobs``...): what generated clients call."""
+    return route.name
 
 
 def _route_template(request: Request) -> str:

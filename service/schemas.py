@@ -191,7 +191,7 @@ def multipart_schema(presets: list[str]) -> dict[str, Any]:
             "geometry": {
                 "description": "The C-arm geometry: a preset name, GeometryFile JSON (text or a file part), or "
                                "nothing when DICOM XA / .rad headers carry it.",
-                "oneOf": [
+                "anyOf": [
                     {"type": "string", "enum": presets, "description": "A preset name."},
                     {"type": "string", "contentMediaType": "application/json",
                      "contentSchema": {"$ref": REF.format(model="GeometryFile")}},
