@@ -4,7 +4,7 @@ FastAPI's default pages load their scripts, styles, fonts and favicon from publi
 they stay blank on a hospital network without internet. The assets come from the
 ``fastapi-offline`` wheel (Swagger UI bundle and CSS, ReDoc standalone, a favicon) and are
 mounted under ``/docs-static``; the pages name nothing outside the server (no Google Fonts,
-no Swagger validator badge). Without that package the service falls back to FastAPI's CDN
+no Swagger validator badge, ReDoc's CDN logo replaced by the local favicon). Without that package the service falls back to FastAPI's CDN
 pages and logs a warning.
 """
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 log = logging.getLogger("dsareg.service")
@@ -24,6 +24,7 @@ STATIC_URL = "/docs-static"
 DOCS_URL = "/docs"
 REDOC_URL = "/redoc"
 OAUTH2_REDIRECT_URL = "/docs/oauth2-redirect"
+REDOC_LOGO_URL = "https://cdn.redoc.ly/redoc/logo-mini.svg"
 ASSETS = ("swagger-ui-bundle.js", "swagger-ui.css", "redoc.standalone.js", "favicon.png")
 SWAGGER_PARAMETERS = {
     "validatorUrl": None,  # no badge fetched from validator.swagger.io
@@ -58,6 +59,15 @@ def install_docs(app: FastAPI) -> bool:
                             "https://fastapi.tiangolo.com/img/favicon.png")
         redoc_js = "https://cdn.jsdelivr.net/npm/redoc@2/bundles/redoc.standalone.js"
     else:
+        # ReDoc's sidebar shows a logo from its CDN: serve the bundle with that one URL pointed home
+        redoc_source = (folder / "redoc.standalone.js").read_text(encoding="utf-8").replace(
+            REDOC_LOGO_URL, f"{STATIC_URL}/favicon.png")
+
+        @app.get(f"{STATIC_URL}/redoc.standalone.js", include_in_schema=False)
+        async def redoc_bundle() -> Response:
+            return Response(redoc_source, media_type="text/javascript",
+                            headers={"Cache-Control": "public, max-age=86400"})
+
         app.mount(STATIC_URL, StaticFiles(directory=str(folder)), name="docs-static")
         js, css, favicon = (f"{STATIC_URL}/swagger-ui-bundle.js", f"{STATIC_URL}/swagger-ui.css",
                             f"{STATIC_URL}/favicon.png")
