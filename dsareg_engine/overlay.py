@@ -117,7 +117,7 @@ def _scale_bar(image: np.ndarray, mm_per_px: float, font_px: int) -> None:
     image[:] = cv2.cvtColor(np.asarray(pil), cv2.COLOR_RGB2BGR)
 
 
-def _caption_band(width: int, caption: Caption, font_px: int) -> np.ndarray:
+def _caption_band(width: int, caption: Caption, font_px: int, on_image: bool = False) -> np.ndarray:
     """The band under the image: title line (view, Dice, verdict), a legend line, job/stage line."""
     from PIL import Image, ImageDraw
 
@@ -148,7 +148,8 @@ def _caption_band(width: int, caption: Caption, font_px: int) -> np.ndarray:
     y += line
     x = pad
     swatch = max(8, font_px - 2)
-    for label, colour, filled in (("target vessels", (TARGET_GREY,) * 3, True),
+    target = ("DSA image", (60, 60, 60)) if on_image else ("target vessels", (TARGET_GREY,) * 3)
+    for label, colour, filled in ((target[0], target[1], True),
                                   ("initial", INITIAL_BGR[::-1], False), (caption.final_label, FINAL_BGR[::-1], False)):
         top = y + (font_px - swatch) // 2 + 2
         if filled:
@@ -239,7 +240,8 @@ def overlay_image(
     font_px = max(13, min(28, width // 32))
     if caption.mm_per_px:
         _scale_bar(image, caption.mm_per_px / factor, font_px)
-    return np.concatenate([image, _caption_band(width, caption, font_px)], axis=0)
+    on_image = background is not None and len(np.unique(background[::4, ::4])) > 2
+    return np.concatenate([image, _caption_band(width, caption, font_px, on_image)], axis=0)
 
 
 def write_png(path, image: np.ndarray) -> None:
