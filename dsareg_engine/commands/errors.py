@@ -39,7 +39,8 @@ def input_file(value: str) -> Path:
     """An input file that must exist (a folder is accepted too: a DICOM series)."""
     path = Path(value).expanduser()
     if not path.exists():
-        raise argparse.ArgumentTypeError(f"file not found: '{value}'")
+        where = "" if path.is_absolute() else f"; relative paths start in {Path.cwd()}"
+        raise argparse.ArgumentTypeError(f"file not found: '{value}' (accepted: an existing file{where})")
     return path
 
 
