@@ -39,6 +39,7 @@ class Caption:
         stage: animation frames: the optimization stage and iteration.
         mm_per_px: image pixel size at the vessel's depth (draws the scale bar).
         final_label: legend of the orange contour (animation frames: ``"current"``).
+        dice_label: how the Dice is named (animation frames: measured on the smaller preview).
     """
 
     view: str | None = None
@@ -49,6 +50,7 @@ class Caption:
     stage: str | None = None
     mm_per_px: float | None = None
     final_label: str = "registered"
+    dice_label: str = "Dice"
 
 
 def display_base(target_mask: np.ndarray, background: np.ndarray | None = None) -> np.ndarray:
@@ -134,7 +136,7 @@ def _caption_band(width: int, caption: Caption, font_px: int, on_image: bool = F
     if caption.view:
         pieces.append((caption.view.upper(), (255, 255, 255), bold))
     if caption.dice is not None and math.isfinite(caption.dice):
-        pieces.append((f"Dice {caption.dice:.3f}", (255, 255, 255), font))
+        pieces.append((f"{caption.dice_label} {caption.dice:.3f}", (255, 255, 255), font))
     if caption.verdict:
         colour = (255, 255, 255) if caption.ok is None else (GOOD_RGB if caption.ok else BAD_RGB)
         pieces.append((caption.verdict, colour, bold))

@@ -176,7 +176,8 @@ def write_animation(path: Path, result: RegistrationResult, masks: dict[str, np.
             current = _silhouette(vertices, faces, small, pose)
             text = stage if stage in ("initial", "registered") else f"stage {stage}, iteration {iteration}"
             caption = Caption(view=name, dice=dice(current, targets[name]), stage=f"{number + 1}/{len(sequence)}  {text}",
-                              final_label="registered" if stage == "registered" else "current")
+                              final_label="registered" if stage == "registered" else "current",
+                              dice_label="preview Dice")
             panels.append(overlay_image(targets[name], initials[name], current, backgrounds[name], caption=caption,
                                         box=boxes[name], display_side=max_side))
         height = max(p.shape[0] for p in panels)
