@@ -66,6 +66,7 @@ def test_loss_plot_is_log_scaled_with_legend_outside():
 
 @pytest.mark.slow
 def test_animation_starts_at_the_initial_contour_and_has_stage_labels(tmp_path):
+    import torch
     from PIL import Image
 
     from dsareg_engine.geometry import Rig
@@ -76,8 +77,6 @@ def test_animation_starts_at_the_initial_contour_and_has_stage_labels(tmp_path):
     from dsareg_engine.registration.options import RegistrationOptions
     from dsareg_engine.registration.parameterization import random_start_poses
     from dsareg_engine.render import Camera, render_hard_silhouette
-
-    import torch
 
     mesh = make_vessel_phantom()
     paper = load_rig("paper")

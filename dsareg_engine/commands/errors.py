@@ -142,7 +142,7 @@ def explain(exc: BaseException) -> tuple[int, str]:
     try:
         from pydantic import ValidationError
     except ImportError:  # pragma: no cover
-        ValidationError = ()  # type: ignore[assignment]  # noqa: N806
+        ValidationError = ()  # type: ignore[assignment]
     if isinstance(exc, ValidationError):
         first = exc.errors()[0] if exc.errors() else {"loc": (), "msg": str(exc)}
         where = ".".join(str(p) for p in first.get("loc", ())) or exc.title
@@ -168,7 +168,7 @@ def run_guarded(func: Callable[[argparse.Namespace], int | None], args: argparse
         return 130
     except SystemExit:
         raise
-    except BaseException as exc:  # noqa: BLE001 - the CLI's single error path
+    except BaseException as exc:
         if getattr(args, "debug", False):
             raise
         code, message = explain(exc)
