@@ -1,8 +1,9 @@
 """The ``dsareg`` command line: one sub-command per job, each in its own module.
 
 Sub-command modules expose ``add_parser(subparsers)``; the parser they register sets
-``func`` to a callable ``(args) -> int``. User errors (:class:`DsaregInputError`) are
-printed as one line and exit with status 2; no traceback reaches the user.
+``func`` to a callable ``(args) -> int``. Errors go through one path
+(:mod:`dsareg_engine.commands.errors`): one line on stderr, exit status 2 for usage and
+input errors, 1 when the work failed; no traceback reaches the user unless ``--debug``.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import argparse
 import importlib
 import sys
 
-from .errors import DsaregInputError
+from .commands.errors import run_guarded
 
 COMMAND_MODULES = (
     "dsareg_engine.commands.render",
@@ -23,7 +24,11 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dsareg", description="3D/2D vessel registration for biplane DSA")
+    parser = argparse.ArgumentParser(
+        prog="dsareg", description="3D/2D vessel registration for biplane DSA. `dsareg COMMAND --help` describes "
+        "each command.",
+        epilog="Exit status: 0 done, 1 the work failed (server unreachable, job failed), 2 usage or input error.")
+    parser.add_argument("--debug", action="store_true", help="show Python tracebacks of errors (for bug reports)")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
@@ -41,14 +46,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run_parsed(args: argparse.Namespace) -> int:
-    """Run a parsed sub-command; user errors become one line on stderr and exit status 2."""
-    try:
-        return int(args.func(args) or 0)
-    except DsaregInputError as exc:
-        print(f"dsareg: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    """Run a parsed sub-command; errors become one line on stderr and exit status 2 (usage) or 1."""
+    return run_guarded(args.func, args)
 
 
 if __name__ == "__main__":

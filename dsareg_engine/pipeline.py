@@ -2,21 +2,27 @@
 
 Writes into ``out_dir``: ``result.json``, ``overlay_{ap,lat}.png``, ``mask_{ap,lat}.png``
 (the masks actually registered, 0/255), ``loss.png`` (loss per iteration) and, when
-asked, ``animation.gif``.
+asked, ``animation.gif``. Overlays show the DSA image (or the mask) with the initial and
+registered contours, a caption (view, Dice, verdict, job) and a scale bar in mm at the
+vessel's depth; the animation runs from the initial contour to the registered one with each
+frame's stage and iteration.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 import torch
 
-from .overlay import loss_plot, overlay_image, write_png
+from .metrics import dice
+from .overlay import Caption, crop_box, overlay_image, write_png
+from .plots import loss_figure
 from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
+from .registration.progress import REGISTRATION_SHARE
 from .render import Camera, render_hard_silhouette
 
 __all__ = ["RegistrationCanceled", "run_registration_case", "write_outputs"]
@@ -28,8 +34,12 @@ def run_registration_case(
     out_dir: Path,
     progress: Callable[[dict], None] | None = None,
     should_stop: Callable[[], bool] | None = None,
+    label: str | None = None,
 ) -> dict:
     """Register a loaded case (``mesh``, ``masks``, ``rig``, ``warnings``) and write its outputs.
+
+    Args:
+        label: shown in the overlays' captions (the service passes ``"job <id>"``).
 
     Returns:
         The JSON-ready result dict (also written as ``result.json``).
@@ -38,7 +48,8 @@ def run_registration_case(
         RegistrationCanceled: ``should_stop()`` returned True.
     """
     result = register(case.mesh, case.masks, case.rig, options, progress=progress, should_stop=should_stop)
-    data = write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation)
+    data = write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
+                         images=getattr(case, "images", None), label=label, progress=progress)
     warnings = list(getattr(case, "warnings", []) or [])
     if warnings:
         data["warnings"] = warnings
@@ -46,39 +57,136 @@ def run_registration_case(
     return data
 
 
-def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_dir: Path, mesh=None, rig=None, animation: bool = False) -> dict:
-    """Write result.json, overlays and masks (and the animation) for a finished registration."""
+def verdict_of(data: dict) -> tuple[str, bool | None]:
+    """Short verdict text and whether it is good, from a result dict.
+
+    Reads ``verdict`` when the engine gives one (a string, or an object with
+    ``status``/``label`` and optionally ``ok``), else ``metrics.converged``.
+    """
+    verdict = data.get("verdict", (data.get("metrics") or {}).get("verdict"))
+    if isinstance(verdict, dict):
+        text = str(verdict.get("status") or verdict.get("label") or verdict.get("verdict") or "")
+        ok = verdict.get("ok")
+        if text:
+            return text, ok if isinstance(ok, bool) else _good_word(text)
+    elif isinstance(verdict, str) and verdict:
+        return verdict, _good_word(verdict)
+    converged = (data.get("metrics") or {}).get("converged")
+    if converged is None:
+        return "", None
+    return ("converged" if converged else "NOT converged"), bool(converged)
+
+
+def _good_word(text: str) -> bool | None:
+    lowered = text.lower()
+    if any(word in lowered for word in ("not", "fail", "reject", "uncertain", "doubt", "poor", "wrong")):
+        return False
+    if any(word in lowered for word in ("ok", "good", "accept", "converged", "success", "pass", "confident")):
+        return True
+    return None
+
+
+def mm_per_pixel_at_mesh(view, mesh_to_view: np.ndarray, mesh=None) -> float | None:
+    """Pixel size in mm at the depth of the mesh's centre (what a scale bar on the image means)."""
+    centre = np.append(np.asarray(mesh.centroid, float), 1.0) if mesh is not None else np.array([0.0, 0.0, 0.0, 1.0])
+    depth = float((np.asarray(mesh_to_view) @ centre)[2])
+    if not np.isfinite(depth) or depth <= 0 or not view.sid_mm:
+        return None
+    return float(np.mean(view.pixel_spacing_mm)) * depth / float(view.sid_mm)
+
+
+def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_dir: Path, mesh=None, rig=None,
+                  animation: bool = False, *, images: dict[str, np.ndarray] | None = None, label: str | None = None,
+                  progress: Callable[[dict], None] | None = None) -> dict:
+    """Write result.json, overlays, masks and the loss plot (and the animation) for a finished registration."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = result.to_dict()
+    if progress is not None:
+        progress({"stage": "outputs", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE})
     (out_dir / "result.json").write_text(json.dumps(data, indent=2))
+    verdict, ok = verdict_of(data)
     for name, view in result.views.items():
-        write_png(out_dir / f"overlay_{name}.png", overlay_image(masks[name], view.initial_silhouette, view.silhouette))
+        scale = mm_per_pixel_at_mesh(rig.views[name], view.mesh_to_view, mesh) if rig is not None else None
+        caption = Caption(view=name, dice=view.dice, verdict=verdict, ok=ok, job=label, mm_per_px=scale)
+        background = (images or {}).get(name)
+        write_png(out_dir / f"overlay_{name}.png",
+                  overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption))
         write_png(out_dir / f"mask_{name}.png", masks[name].astype(np.uint8) * 255)
-    write_png(out_dir / "loss.png", loss_plot(result.loss_history))
+    write_png(out_dir / "loss.png", loss_figure(result.loss_history, title=f"Loss per iteration{' - ' + label if label else ''}"))
     if animation and mesh is not None and rig is not None:
-        write_animation(out_dir / "animation.gif", result, masks, mesh, rig)
+        if progress is not None:
+            progress({"stage": "animation", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE + 0.01})
+        write_animation(out_dir / "animation.gif", result, masks, mesh, rig, images=images, label=label)
     return data
 
 
-def write_animation(path: Path, result: RegistrationResult, masks: dict[str, np.ndarray], mesh, rig, max_side: int = 320) -> None:
-    """An animated GIF: both views side by side, one frame per recorded pose."""
+MIN_FRAMES = 24
+MAX_FRAMES = 48
+
+
+def animation_frames(result: RegistrationResult) -> list[tuple[str, int, np.ndarray]]:
+    """``(stage, iteration, pose)`` frames: the initial pose, up to MAX_FRAMES along the way (the
+    last iteration of every stage included), the registered pose; at least MIN_FRAMES."""
+    recorded = list(result.frames)
+    if len(recorded) <= 1:  # no per-iteration record: one frame per stage
+        recorded = [("initial", 0, result.initial_mesh_to_world)]
+        recorded += [(name, len(losses), pose) for (name, losses), pose in zip(result.loss_history, result.pose_history[1:])]
+    first, path = recorded[0], recorded[1:]
+    if len(path) > MAX_FRAMES:
+        last_of_stage = {i for i in range(len(path)) if i == len(path) - 1 or path[i + 1][0] != path[i][0]}
+        picks = set(np.linspace(0, len(path) - 1, MAX_FRAMES - len(last_of_stage)).round().astype(int).tolist())
+        path = [path[i] for i in sorted(picks | last_of_stage)]
+    frames = [first, *path, ("registered", path[-1][1] if path else 0, result.mesh_to_world)]
+    while len(frames) < MIN_FRAMES:  # hold the first and last frames (a short run still plays readably)
+        frames.insert(0, first)
+        if len(frames) < MIN_FRAMES:
+            frames.append(frames[-1])
+    return frames
+
+
+def write_animation(path: Path, result: RegistrationResult, masks: dict[str, np.ndarray], mesh, rig, max_side: int = 320,
+                    *, images: dict[str, np.ndarray] | None = None, label: str | None = None) -> None:
+    """An animated GIF: both views side by side, from the initial contour to the registered one,
+    each frame captioned with its stage and iteration."""
     from PIL import Image
 
     vertices, faces = mesh.torch(torch.float64)
-    frames = []
-    for pose in [*result.pose_history, result.mesh_to_world]:
+    initial_pose = result.initial_mesh_to_world
+    small_views, targets, backgrounds, initials, boxes = {}, {}, {}, {}, {}
+    for name in result.views:
+        view = rig.views[name]
+        scale = min(1.0, max_side / max(view.image_size))
+        small = view.scaled(scale)
+        small_views[name] = small
+        targets[name] = cv2.resize(masks[name].astype(np.uint8), small.image_size, interpolation=cv2.INTER_NEAREST).astype(bool)
+        image = (images or {}).get(name)
+        if image is not None and len(np.unique(image[::4, ::4])) <= 2:
+            image = None  # a mask: drawn as the target itself
+        backgrounds[name] = None if image is None else cv2.resize(image.astype(np.float32), small.image_size,
+                                                                    interpolation=cv2.INTER_AREA)
+        initials[name] = _silhouette(vertices, faces, small, initial_pose)
+        # one region per view for the whole animation: the target and the initial and final contours
+        boxes[name] = crop_box([targets[name], initials[name], _silhouette(vertices, faces, small, result.mesh_to_world)])
+    frames, durations = [], []
+    sequence = animation_frames(result)
+    for number, (stage, iteration, pose) in enumerate(sequence):
         panels = []
         for name in result.views:
-            view = rig.views[name]
-            scale = min(1.0, max_side / max(view.image_size))
-            small = view.scaled(scale)
-            silhouette = render_hard_silhouette(
-                vertices, faces, torch.as_tensor(small.world_to_view @ pose)[None], Camera.from_view(small)
-            )[0].numpy()
-            target = cv2.resize(masks[name].astype(np.uint8), small.image_size, interpolation=cv2.INTER_NEAREST).astype(bool)
-            initial = np.zeros_like(target)
-            panels.append(overlay_image(target, initial, silhouette))
+            small = small_views[name]
+            current = _silhouette(vertices, faces, small, pose)
+            text = stage if stage in ("initial", "registered") else f"stage {stage}, iteration {iteration}"
+            caption = Caption(view=name, dice=dice(current, targets[name]), stage=f"{number + 1}/{len(sequence)}  {text}",
+                              final_label="registered" if stage == "registered" else "current",
+                              dice_label="preview Dice")
+            panels.append(overlay_image(targets[name], initials[name], current, backgrounds[name], caption=caption,
+                                        box=boxes[name], display_side=max_side))
         height = max(p.shape[0] for p in panels)
-        panels = [np.pad(p, ((0, height - p.shape[0]), (0, 0), (0, 0))) for p in panels]
+        panels = [np.pad(p, ((height - p.shape[0], 0), (0, 0), (0, 0)), constant_values=40) for p in panels]
         frames.append(Image.fromarray(cv2.cvtColor(np.concatenate(panels, axis=1), cv2.COLOR_BGR2RGB)))
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=400, loop=0)
+        durations.append(1200 if number in (0, len(sequence) - 1) else 150)
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=durations, loop=0, optimize=False)
+
+
+def _silhouette(vertices, faces, view, pose: np.ndarray) -> np.ndarray:
+    return render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view @ pose)[None],
+                                  Camera.from_view(view))[0].numpy()

@@ -31,10 +31,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .blobs import BlobStore, safe_suffix
 from .dbblobs import make_blob_store
+from .docs_offline import install_docs
 from .executor import Executor, make_executor
 from .middleware import BodyLimitMiddleware, MetricsMiddleware
-from .models import EXAMPLE_ID, Health, JobList, JobStatus, job_status
+from .models import EXAMPLE_ID, Health, JobList, JobStatus, status_body, summary_body
 from .problems import PROBLEM_MEDIA_TYPE, Problem, ProblemDetails, problem_body, problem_responses
+from .schemas import document as document_payloads
 from .settings import ServiceSettings
 from .store import STATUSES, ConflictError, InputFile, JobRecord, JobStore, SqlJobStore, decode_cursor, new_job_id
 from .validation import ValidatorPool
@@ -250,6 +252,9 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
         ),
         lifespan=lifespan,
         responses=problem_responses(500),
+        docs_url=None,  # served offline by docs_offline.install_docs
+        redoc_url=None,
+        generate_unique_id_function=_operation_id,
     )
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     app.add_middleware(MetricsMiddleware, histogram=http_latency, routes_getter=lambda: app.router.routes)
@@ -258,12 +263,14 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     from .dicom_routes import install_dicom_routes
 
     install_dicom_routes(app, get_ctx, principal, owned_job)
+    install_docs(app)
     original_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema:
             return app.openapi_schema
         schema = original_openapi()
+        document_payloads(schema)  # options, geometry and result schemas; the multipart parts
         schemas = schema.setdefault("components", {}).setdefault("schemas", {})
         schemas["ProblemDetails"] = ProblemDetails.model_json_schema(ref_template="#/components/schemas/{model}")
         # FastAPI documents its own 422 body; ours is problem+json like every other error
@@ -326,6 +333,11 @@ def _install_handlers(app: FastAPI) -> None:
                   exc_info=exc)
         return _problem_response(500, problem_body(500, "an internal error occurred; it has been logged",
                                                    instance=request.url.path))
+
+
+def _operation_id(route: Any) -> str:
+    """operationId = the handler's name (``submit``, ``get_job``, ``list_jobs``...): what generated clients call."""
+    return route.name
 
 
 def _route_template(request: Request) -> str:
@@ -534,7 +546,7 @@ def _install_routes(app: FastAPI) -> None:
         await asyncio.to_thread(ctx.executor.submit, stored.id)
         log.info("job %s: queued (%d files, %d bytes)", stored.id, len(inputs), total)
         return JSONResponse(
-            job_status(stored).model_dump(mode="json"), status_code=202,
+            status_body(stored), status_code=202,
             headers={"Location": f"/v1/registrations/{stored.id}", "Retry-After": RETRY_AFTER_QUEUED},
         )
 
@@ -543,7 +555,7 @@ def _install_routes(app: FastAPI) -> None:
             raise Problem(409, "this Idempotency-Key was already used with a different request; use a new key",
                           kind="idempotency-conflict", field="Idempotency-Key",
                           extra={"job_id": existing.id})
-        return JSONResponse(job_status(existing).model_dump(mode="json"), status_code=200,
+        return JSONResponse(status_body(existing), status_code=200,
                             headers={"Location": f"/v1/registrations/{existing.id}"})
 
     @app.get("/v1/registrations", response_model=JobList, tags=["registrations"], summary="List jobs (newest first)",
@@ -555,7 +567,7 @@ def _install_routes(app: FastAPI) -> None:
         limit: int = Query(20, ge=1, le=100, description="Page size."),
         cursor: str | None = Query(None, max_length=200, description="next_cursor of the previous page."),
         who: str = Depends(principal),
-    ) -> JobList:
+    ) -> Response:
         ctx = get_ctx(request)
         if status is not None and status not in STATUSES:
             raise Problem(422, f"unknown status '{status[:20]}'", field="status", accepted=", ".join(STATUSES))
@@ -568,14 +580,15 @@ def _install_routes(app: FastAPI) -> None:
         next_link = None
         if next_cursor:
             next_link = f"/v1/registrations?limit={limit}&cursor={next_cursor}" + (f"&status={status}" if status else "")
-        return JobList(items=[job_status(r) for r in records], next_cursor=next_cursor, links={"next": next_link})
+        return JSONResponse({"items": [summary_body(r) for r in records], "next_cursor": next_cursor,
+                             "links": {"next": next_link}})
 
     @app.get("/v1/registrations/{job_id}", response_model=JobStatus, tags=["registrations"], summary="Job status",
              responses=problem_responses(401, 403, 404))
     def get_job(request: Request, job_id: str, who: str = Depends(principal)) -> Response:
         job = owned_job(get_ctx(request), job_id, who)
         headers = {"Retry-After": RETRY_AFTER_QUEUED} if job.status in ("queued", "running") else {}
-        return JSONResponse(job_status(job).model_dump(mode="json"), headers=headers)
+        return JSONResponse(status_body(job), headers=headers)
 
     @app.get("/v1/registrations/{job_id}/result", tags=["results"], summary="Registration result (JSON)",
              responses={200: {"description": "mesh_to_world, per-view results and metrics",
@@ -623,6 +636,11 @@ def _install_routes(app: FastAPI) -> None:
     def get_animation(request: Request, job_id: str, who: str = Depends(principal)) -> Response:
         return _artifact(request, job_id, who, "animation.gif", "image/gif")
 
+    @app.get("/v1/registrations/{job_id}/loss.png", tags=["results"], summary="Plot of the loss per iteration",
+             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404)})
+    def get_loss_plot(request: Request, job_id: str, who: str = Depends(principal)) -> Response:
+        return _artifact(request, job_id, who, "loss.png", "image/png")
+
     @app.post("/v1/registrations/{job_id}/cancel", response_model=JobStatus, tags=["registrations"],
               summary="Cancel a job",
               description="A queued job is canceled at once (200); a running job stops at its next progress check "
@@ -638,7 +656,7 @@ def _install_routes(app: FastAPI) -> None:
         updated = ctx.store.request_cancel(job_id) or job
         ctx.executor.cancel(job_id)
         code = 202 if updated.status == "running" else 200
-        return JSONResponse(job_status(updated).model_dump(mode="json"), status_code=code)
+        return JSONResponse(status_body(updated), status_code=code)
 
     @app.delete("/v1/registrations/{job_id}", status_code=204, tags=["registrations"], summary="Delete a job and its files",
                 response_class=Response, responses={204: {"description": "Deleted."}, **problem_responses(401, 403, 404)})

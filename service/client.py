@@ -11,6 +11,8 @@ from typing import Any
 import httpx
 
 FINISHED = ("succeeded", "failed", "canceled")
+LINKED_FILES = {"overlay_ap": "overlay_ap.png", "overlay_lat": "overlay_lat.png", "mask_ap": "mask_ap.png",
+                "mask_lat": "mask_lat.png", "loss_plot": "loss.png", "animation": "animation.gif"}
 
 
 class ServiceError(Exception):
@@ -140,23 +142,24 @@ class RegistrationClient:
         return written
 
     def download_all(self, job_id: str, out_dir: Path) -> list[Path]:
-        """result.json, overlays, masks, and the animation when there is one."""
+        """result.json and every file the job links to: overlays, masks, loss plot, animation."""
         out_dir = Path(out_dir)
-        written = self.download_overlays(job_id, out_dir)
-        for view in ("ap", "lat"):
-            path = out_dir / f"mask_{view}.png"
-            path.write_bytes(self.download(job_id, "masks", view))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        links = self.get(job_id).get("links") or {}
+        written: list[Path] = []
+        for key, filename in LINKED_FILES.items():
+            if key not in links:
+                continue
+            response = self.http.get(links[key])
+            if response.status_code == 404 and key == "animation":  # older servers link it always
+                continue
+            _raise_for(response)
+            path = out_dir / filename
+            path.write_bytes(response.content)
             written.append(path)
         result_path = out_dir / "result.json"
         result_path.write_text(json.dumps(self.result(job_id), indent=2))
         written.append(result_path)
-        try:
-            gif = self.download(job_id, "animation")
-            (out_dir / "animation.gif").write_bytes(gif)
-            written.append(out_dir / "animation.gif")
-        except ServiceError as exc:
-            if exc.status != 404:
-                raise
         return written
 
     def cancel(self, job_id: str) -> dict[str, Any]:

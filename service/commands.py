@@ -17,12 +17,14 @@ def add_parser(subparsers: Any) -> None:
                     "a config file (--config or DSAREG_CONFIG, JSON or TOML), and these flags (highest priority).",
     )
     serve.add_argument("--host", help="bind address (forced to 127.0.0.1 when no API keys are configured)")
-    serve.add_argument("--port", type=int)
+    serve.add_argument("--port", type=int, help="TCP port (default 8000)")
     serve.add_argument("--data-dir", type=Path, help="inputs, artifacts and the default SQLite database")
     serve.add_argument("--database-url", help="SQLAlchemy URL (default: SQLite in the data dir)")
     serve.add_argument("--workers", type=int, help="embedded worker processes (default 1)")
     serve.add_argument("--threads-per-worker", type=int, help="torch threads per worker")
-    serve.add_argument("--config", help="config file (JSON or TOML)")
+    serve.add_argument("--config", metavar="FILE",
+                       help="service settings file (JSON or TOML, keys as the DSAREG_* variables without the prefix); "
+                            "not the registration configuration, which is an option of each job")
     serve.add_argument("--log-level", help="debug, info, warning, error")
     serve.set_defaults(func=run_serve)
 
@@ -31,7 +33,8 @@ def add_parser(subparsers: Any) -> None:
         description="Run one worker process that claims jobs from the shared job store. --engine celery consumes "
                     "the Celery queue (DSAREG_BROKER_URL); --engine embedded polls the job table. Settings as for serve.",
     )
-    worker.add_argument("--engine", choices=("celery", "embedded"), default="celery")
+    worker.add_argument("--engine", choices=("celery", "embedded"), default="celery",
+                        help="celery: consume the Celery queue; embedded: poll the job table (default celery)")
     worker.add_argument("--pool", choices=("threads", "solo"), default="threads",
                         help="Celery pool; one job at a time either way (threads: revocations arrive while a job runs)")
     worker.add_argument("--hostname", help="Celery node name (default celery@<host>)")
@@ -39,25 +42,41 @@ def add_parser(subparsers: Any) -> None:
     worker.add_argument("--database-url", help="SQLAlchemy URL of the shared job store")
     worker.add_argument("--broker-url", help="Celery broker, e.g. redis://redis:6379/0")
     worker.add_argument("--threads-per-worker", type=int, help="torch threads of this process")
-    worker.add_argument("--config", help="config file (JSON or TOML)")
+    worker.add_argument("--config", metavar="FILE", help="service settings file (JSON or TOML), as for serve")
     worker.add_argument("--log-level", help="debug, info, warning, error")
     worker.set_defaults(func=run_worker)
 
-    submit = subparsers.add_parser("submit", help="submit a registration to a dsareg server",
-                                   description="Submit a job; with --wait, show progress and download the outputs.")
-    submit.add_argument("--server", required=True, help="base URL, e.g. http://127.0.0.1:8000")
+    from dsareg_engine.commands.errors import input_file, options_help
+
+    submit = subparsers.add_parser(
+        "submit", help="submit a registration to a dsareg server (and wait for it)",
+        description="Submit a job to a running `dsareg serve`. Without --wait, prints the job id and returns; with "
+                    "--wait (or --out), shows progress, prints a one-line summary and, with --out, downloads "
+                    "result.json, overlays, masks and the animation.",
+        epilog="Exit status: 0 succeeded (or submitted, without --wait), 1 the job failed or the server is "
+               "unreachable, 2 usage or input error (the server's 4xx answers name the field).")
+    submit.add_argument("--server", required=True, metavar="URL", help="base URL, e.g. http://127.0.0.1:8000")
     model = submit.add_mutually_exclusive_group(required=True)
-    model.add_argument("--mesh", type=Path, help="vessel mesh file")
-    model.add_argument("--volume", type=Path, nargs="+", help="volume file(s) (a DICOM series: several files)")
-    submit.add_argument("--ap", type=Path, required=True)
-    submit.add_argument("--lat", type=Path, required=True)
-    submit.add_argument("--geometry", help="preset name, geometry JSON file, or JSON text")
-    submit.add_argument("--options", help="options as JSON text or a JSON file")
-    submit.add_argument("--api-key", help="API key (default: DSAREG_API_KEY)")
-    submit.add_argument("--idempotency-key", help="makes retrying this submission safe")
+    model.add_argument("--mesh", type=input_file, metavar="FILE", help="vessel mesh in mm (OBJ, STL, PLY, OFF, GLB)")
+    model.add_argument("--volume", type=input_file, nargs="+", metavar="FILE",
+                       help="vessel volume file(s): NIfTI, NRRD, .rad + .raw, or a DICOM series as several files")
+    submit.add_argument("--ap", type=input_file, required=True, metavar="FILE",
+                        help="AP DSA image or vessel mask (PNG, TIFF, JPEG, DICOM XA)")
+    submit.add_argument("--lat", type=input_file, required=True, metavar="FILE", help="LAT image or mask (as --ap)")
+    submit.add_argument("--geometry", metavar="PRESET|FILE|JSON",
+                        help="a preset name (paper), a geometry JSON file, or JSON text; optional with DICOM XA")
+    submit.add_argument("--options", metavar="JSON|FILE", help=options_help())
+    submit.add_argument("--ground-truth", type=input_file, metavar="POSE.json",
+                        help='pose file {"mesh_to_world": 4x4} of the true pose; adds error metrics to the result')
+    submit.add_argument("--api-key", help="API key (default: the DSAREG_API_KEY environment variable)")
+    submit.add_argument("--idempotency-key", metavar="KEY", help="makes retrying this submission safe")
     submit.add_argument("--wait", action="store_true", help="wait for the job, showing progress")
-    submit.add_argument("--out", type=Path, help="with --wait: directory for result.json, overlays and masks")
-    submit.add_argument("--timeout", type=float, default=3600.0, help="with --wait: give up after this many seconds")
+    submit.add_argument("--out", type=Path, metavar="DIR",
+                        help="download result.json, overlays, masks (and the animation) here; implies --wait")
+    submit.add_argument("--json", action="store_true",
+                        help="print the job (without --wait) or the result (with --wait) as JSON on stdout")
+    submit.add_argument("--timeout", type=float, default=3600.0, metavar="SECONDS",
+                        help="with --wait: give up after this many seconds (default 3600)")
     submit.set_defaults(func=run_submit)
 
 
@@ -107,55 +126,76 @@ def run_worker(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_json_arg(value: str | None, field: str) -> Any:
-    if value is None:
-        return None
-    text = value
-    if not value.lstrip().startswith(("{", "[")) and Path(value).is_file():
-        text = Path(value).read_text(encoding="utf-8")
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        from dsareg_engine.errors import DsaregInputError
-
-        raise DsaregInputError(f"is not valid JSON ({exc.msg})", field=field) from None
+def summary_line(final: dict[str, Any]) -> str:
+    """One line like `dsareg register` prints: verdict, Dice per view, time, ground-truth errors."""
+    result = final.get("result") or {}
+    metrics = result.get("metrics") or {}
+    verdict = result.get("verdict") if isinstance(result.get("verdict"), str) else None
+    if isinstance(result.get("verdict"), dict):
+        verdict = result["verdict"].get("status") or result["verdict"].get("label")
+    state = verdict or ("converged" if metrics.get("converged") else "NOT converged")
+    reason = metrics.get("reason")
+    views = result.get("views") or {}
+    dice = ", ".join(f"{name} dice {view.get('dice', float('nan')):.3f}" for name, view in views.items()
+                     if isinstance(view, dict) and isinstance(view.get("dice"), (int, float)))
+    seconds = (metrics.get("seconds") or {}).get("total")
+    parts = [f"job {final.get('id')}: {state}" + (f" ({reason})" if reason else "")]
+    if dice:
+        parts.append(dice)
+    if isinstance(seconds, (int, float)):
+        parts.append(f"{seconds:.1f} s")
+    gt = metrics.get("ground_truth")
+    if isinstance(gt, dict) and "add_mm" in gt:
+        parts.append(f"rotation {gt.get('rotation_error_deg', float('nan')):.4f} deg, "
+                     f"translation {gt.get('translation_error_mm', float('nan')):.4f} mm, ADD {gt['add_mm']:.4f} mm")
+    return "; ".join(parts)
 
 
 def run_submit(args: argparse.Namespace) -> int:
     import os
 
-    from .client import RegistrationClient, ServiceError
+    from dsareg_engine.commands.errors import CommandFailed, geometry_argument, json_argument
+    from dsareg_engine.errors import DsaregInputError
+    from dsareg_engine.pose_file import load_pose
 
-    geometry: Any = args.geometry
-    if geometry is not None and not geometry.lstrip().startswith("{") and Path(geometry).is_file():
-        geometry = Path(geometry)
-    options = _read_json_arg(args.options, "options")
+    from .client import RegistrationClient
+
+    geometry = geometry_argument(args.geometry)
+    options = json_argument(args.options, "--options")
+    if options is not None and not isinstance(options, dict):
+        raise DsaregInputError("must be a JSON object", field="--options", accepted='e.g. {"starts": 2}')
+    if args.ground_truth:
+        options = {**(options or {}), "ground_truth_mesh_to_world": load_pose(args.ground_truth).tolist()}
+    wait = args.wait or args.out is not None
     client = RegistrationClient(args.server, api_key=args.api_key or os.environ.get("DSAREG_API_KEY"))
     try:
         job = client.submit(ap=args.ap, lat=args.lat, mesh=args.mesh, volume=args.volume, geometry=geometry,
                             options=options, idempotency_key=args.idempotency_key)
-        print(f"job {job['id']}: {job['status']}", file=sys.stderr)
-        if not args.wait:
-            print(json.dumps(job, indent=2))
+        print(f"job {job['id']}: {job['status']} ({args.server.rstrip('/')}{job['links']['self']})", file=sys.stderr)
+        if not wait:
+            if args.json:
+                print(json.dumps(job, indent=2))
+            else:
+                print(job["id"])
             return 0
         bar = _ProgressBar()
-        final = client.wait(job["id"], progress=bar.update, timeout=args.timeout)
-        bar.close()
-        print(f"job {final['id']}: {final['status']}", file=sys.stderr)
+        try:
+            final = client.wait(job["id"], progress=bar.update, timeout=args.timeout)
+        finally:
+            bar.close()
         if final["status"] != "succeeded":
             err = final.get("error") or {}
-            if err:
-                print(f"  {err.get('title')}: {err.get('detail')}", file=sys.stderr)
-            return 1
+            detail = f": {err.get('title')}: {err.get('detail')}" if err else ""
+            raise CommandFailed(f"job {final['id']} {final['status']}{detail}")
         if args.out:
             written = client.download_all(final["id"], args.out)
             for path in written:
                 print(f"  wrote {path}", file=sys.stderr)
-        print(json.dumps(final.get("result"), indent=2))
+        if args.json:
+            print(json.dumps(final.get("result"), indent=2))
+        else:
+            print(summary_line(final))
         return 0
-    except ServiceError as exc:
-        print(f"dsareg: error: {exc}", file=sys.stderr)
-        return 2
     finally:
         client.close()
 

@@ -82,6 +82,7 @@ ARTIFACT_FILES = {
     "mask_ap.png": "image/png",
     "mask_lat.png": "image/png",
     "animation.gif": "image/gif",
+    "loss.png": "image/png",
     # DICOM results (service/dicom_jobs.py)
     "reg.dcm": "application/dicom",
     "overlay_ap.dcm": "application/dicom",

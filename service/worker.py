@@ -148,7 +148,8 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
         if control.should_stop():
             raise RegistrationCanceled("stopped before start")
         control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
-        result = run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop)
+        result = run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop,
+                                       label=f"job {job.id}")
         if control.lost:
             return "lost"
         result = json_safe(result if isinstance(result, dict) else {"value": result})

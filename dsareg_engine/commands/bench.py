@@ -21,36 +21,41 @@ from .render import load_mesh_argument
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("bench", help="benchmarks (render, table1, capture, robustness)")
+    parser = subparsers.add_parser(
+        "bench", help="benchmarks (render, table1, capture, robustness)",
+        description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
+                    "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
     render = which.add_parser("render", help="ms per forward and forward+backward")
-    render.add_argument("--mesh")
-    render.add_argument("--size", type=int, nargs="+", default=[256, 400, 800])
-    render.add_argument("--sigma", type=float, nargs="+", default=[0.5, 1.0])
-    render.add_argument("--batch", type=int, default=1)
-    render.add_argument("--repeats", type=int, default=20)
-    render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"])
+    render.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    render.add_argument("--size", type=int, nargs="+", default=[256, 400, 800], help="image sides in px")
+    render.add_argument("--sigma", type=float, nargs="+", default=[0.5, 1.0], help="silhouette edge softness in px")
+    render.add_argument("--batch", type=int, default=1, help="poses rendered at once")
+    render.add_argument("--repeats", type=int, default=20, help="timed runs (the median is printed)")
+    render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"], help="rasterizer (default auto)")
     render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
     render.set_defaults(func=bench_render)
     for name, func in (("table1", bench_table1), ("capture", bench_capture)):
-        sub = which.add_parser(name)
-        sub.add_argument("--mesh")
+        sub = which.add_parser(name, help={"table1": "the paper's Table 1: accuracy per configuration",
+                                           "capture": "capture range: success per initial mTRE bin"}[name])
+        sub.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
         sub.add_argument("--starts", type=int, default=20, help="random initial poses (table1) / per bin (capture)")
-        sub.add_argument("--seed", type=int, default=0)
+        sub.add_argument("--seed", type=int, default=0, help="random seed of the initial poses")
         sub.add_argument("--size", type=int, default=800, help="image side in px")
-        sub.add_argument("--configs", nargs="+", default=list(CONFIGURATIONS))
+        sub.add_argument("--configs", nargs="+", default=list(CONFIGURATIONS), help="configurations to run (default all)")
         sub.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
-        sub.add_argument("--max-mtre", type=float, default=20.0)
+        sub.add_argument("--max-mtre", type=float, default=20.0, help="largest initial mTRE in mm")
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
         sub.set_defaults(func=func)
     robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
-    robust.add_argument("--mesh")
+    robust.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
     robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
-    robust.add_argument("--seed", type=int, default=0)
+    robust.add_argument("--seed", type=int, default=0, help="random seed of the initial poses")
     robust.add_argument("--size", type=int, default=800, help="image side in px")
     robust.add_argument("--offset", type=float, nargs=2, default=[10.0, 10.0], metavar=("DEG", "MM"),
                         help="initial rotation (deg) and translation (mm) offset")
-    robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS))
+    robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS),
+                        help="simulated segmentation errors to apply (default all)")
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     robust.set_defaults(func=bench_robustness)

@@ -22,15 +22,17 @@ def add_parser(subparsers) -> None:
     inspect.set_defaults(func=_inspect)
 
     segment = subparsers.add_parser("segment", help="segment the vessels of a DSA image into a PNG mask")
-    segment.add_argument("image", metavar="IMAGE")
-    segment.add_argument("--out", required=True, metavar="MASK.png")
-    segment.add_argument("--method", choices=SEGMENTATION_METHODS, default="auto")
+    segment.add_argument("image", metavar="IMAGE", help="DSA image (PNG, TIFF, JPEG, DICOM XA, .rad with its .raw)")
+    segment.add_argument("--out", required=True, metavar="MASK.png", help="where to write the 0/255 mask")
+    segment.add_argument("--method", choices=SEGMENTATION_METHODS, default="auto",
+                         help="auto: masks as they are, images by otsu; otsu: blur + Otsu threshold; "
+                              "vesselness: Sato/Frangi filter (default auto)")
     segment.add_argument("--frame", default=None, help="multi-frame DICOM: a frame number or 'minip'")
     segment.set_defaults(func=_segment)
 
     mesh = subparsers.add_parser("mesh", help="extract the vessel surface of a 3D volume")
     mesh.add_argument("volume", metavar="VOLUME", help="NIfTI, NRRD, DICOM (file or series folder), or .rad (+ .raw)")
-    mesh.add_argument("--out", required=True, metavar="MESH.obj")
+    mesh.add_argument("--out", required=True, metavar="MESH.obj", help="output mesh (OBJ, STL, PLY by suffix)")
     mesh.add_argument("--faces", type=int, default=None, help="face budget (default: the working budget)")
     mesh.set_defaults(func=_mesh)
 

@@ -6,28 +6,48 @@ import argparse
 import json
 from pathlib import Path
 
+from ..errors import DsaregInputError
 from ..io.case import load_case
 from ..pipeline import write_outputs
 from ..pose_file import load_pose
 from ..registration import CONFIGURATIONS, register
 from ..registration.options import parse_options
+from .errors import geometry_argument, input_file, json_argument, options_help
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("register", help="register a mesh to AP/LAT images; writes result.json and overlays")
+    parser = subparsers.add_parser(
+        "register", help="register a mesh to AP/LAT images on this machine; writes result.json and overlays",
+        description="Register a vessel mesh to a biplane pair (AP and LAT) without a server. Writes result.json, "
+                    "overlay_{ap,lat}.png, mask_{ap,lat}.png, loss.png (and animation.gif) into --out and prints a "
+                    "one-line summary.",
+        epilog="Exit status: 0 done (also when not converged: read the summary), 1 failed, 2 usage or input error.")
     model = parser.add_mutually_exclusive_group(required=True)
-    model.add_argument("--mesh", help="vessel mesh file")
-    model.add_argument("--volume", nargs="+", help="3D volume: one file, or every file of a DICOM series")
-    parser.add_argument("--ap", required=True, help="AP image or mask (PNG/TIFF/JPEG/DICOM XA)")
-    parser.add_argument("--lat", required=True, help="LAT image or mask")
-    parser.add_argument("--geometry", help="geometry JSON file or preset name; optional with DICOM XA inputs")
-    parser.add_argument("--config", default="simultaneous", choices=CONFIGURATIONS)
-    parser.add_argument("--initial", help='pose JSON overriding the geometry\'s initial pose')
-    parser.add_argument("--ground-truth", help="pose JSON of the true pose (adds error metrics)")
-    parser.add_argument("--options", help="registration options as JSON text (see RegistrationOptions)")
-    parser.add_argument("--animation", action="store_true", help="also write animation.gif")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--dicom-out", help="also write reg.dcm (Spatial Registration) and overlay_{ap,lat}.dcm here")
+    model.add_argument("--mesh", type=input_file, metavar="FILE",
+                       help="vessel surface mesh in mm (OBJ, STL, PLY, OFF, GLB)")
+    model.add_argument("--volume", nargs="+", metavar="FILE|DIR",
+                       help="3D angiography volume instead of a mesh: one file (NIfTI, NRRD, DICOM), "
+                            "every file of a DICOM series, or the series' folder")
+    parser.add_argument("--ap", required=True, type=input_file, metavar="FILE",
+                        help="AP DSA image or vessel mask (PNG, TIFF, JPEG, DICOM XA, .rad with its .raw)")
+    parser.add_argument("--lat", required=True, type=input_file, metavar="FILE", help="LAT image or mask (as --ap)")
+    parser.add_argument("--geometry", metavar="PRESET|FILE|JSON",
+                        help="C-arm geometry: a preset name (paper), a geometry JSON file, or JSON text; "
+                             "optional when both images are DICOM XA / .rad with geometry in their headers")
+    parser.add_argument("--configuration", "--config", dest="config", default="simultaneous", choices=CONFIGURATIONS,
+                        metavar="NAME",
+                        help=f"which views to use and in which order: {', '.join(CONFIGURATIONS)} (the paper's "
+                             "Table 1 rows; default simultaneous). "
+                             "Not a settings file: that is `dsareg serve --config`")
+    parser.add_argument("--initial", type=input_file, metavar="POSE.json",
+                        help='pose file {"mesh_to_world": 4x4} overriding the geometry\'s initial pose')
+    parser.add_argument("--ground-truth", type=input_file, metavar="POSE.json",
+                        help='pose file {"mesh_to_world": 4x4} of the true pose; adds error metrics (ADD, mTRE...)')
+    parser.add_argument("--options", metavar="JSON|FILE", help=options_help())
+    parser.add_argument("--animation", action="store_true", help="also write animation.gif of the optimization")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
+    parser.add_argument("--dicom-out", metavar="DIR",
+                        help="also write reg.dcm (Spatial Registration) and overlay_{ap,lat}.dcm (Secondary Capture) here")
     parser.set_defaults(func=run)
 
 
@@ -42,7 +62,9 @@ def _model_inputs(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    options = json.loads(args.options) if args.options else {}
+    options = json_argument(args.options, "--options") or {}
+    if not isinstance(options, dict):
+        raise DsaregInputError("must be a JSON object", field="--options", accepted='e.g. {"starts": 2}')
     options["configuration"] = args.config
     if args.initial:
         options["initial_mesh_to_world"] = load_pose(args.initial).tolist()
@@ -51,9 +73,7 @@ def run(args: argparse.Namespace) -> int:
     if args.animation:
         options["animation"] = True
     parsed = parse_options(options)
-    geometry = args.geometry
-    if geometry is not None and Path(geometry).is_file():
-        geometry = Path(geometry).read_text()
+    geometry = geometry_argument(args.geometry)
     model = _model_inputs(args)
     ap_bytes, lat_bytes = Path(args.ap).read_bytes(), Path(args.lat).read_bytes()
     case = load_case(
@@ -71,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     result = register(case.mesh, case.masks, case.rig, parsed, progress=show)
     print()
     out = Path(args.out)
-    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation)
+    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images)
     if args.dicom_out:
         from ..io.dicom_out import read_sources, write_dicom_outputs
 

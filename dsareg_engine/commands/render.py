@@ -8,18 +8,26 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import DsaregInputError
 from ..geometry_file import load_rig
 from ..overlay import write_png
 from ..pose_file import load_pose
 from ..render import Camera, render_hard_silhouette
+from .errors import geometry_argument, input_file
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("render", help="write ap.png / lat.png hard silhouettes of a mesh")
-    parser.add_argument("--mesh", help="mesh file (OBJ/STL/PLY/OFF/GLB); default: the built-in phantom")
-    parser.add_argument("--geometry", required=True, help="geometry JSON file or preset name (e.g. paper)")
-    parser.add_argument("--pose", help='pose JSON {"mesh_to_world": 4x4}; default: the geometry\'s initial pose')
-    parser.add_argument("--out", required=True, help="output directory")
+    parser = subparsers.add_parser(
+        "render", help="write ap.png / lat.png hard silhouettes of a mesh",
+        description="Render the hard silhouette of a mesh in each view of a geometry (synthetic masks for tests "
+                    "and studies).")
+    parser.add_argument("--mesh", type=input_file, metavar="FILE",
+                        help="mesh file (OBJ/STL/PLY/OFF/GLB); default: the built-in phantom")
+    parser.add_argument("--geometry", required=True, metavar="PRESET|FILE|JSON",
+                        help="geometry JSON file, JSON text or preset name (e.g. paper)")
+    parser.add_argument("--pose", type=input_file, metavar="POSE.json",
+                        help='pose file {"mesh_to_world": 4x4}; default: the geometry\'s initial pose')
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.set_defaults(func=run)
 
 
@@ -31,12 +39,15 @@ def load_mesh_argument(path: str | None):
         return make_vessel_phantom()
     from ..io.mesh_io import read_mesh
 
+    if not Path(path).is_file():
+        raise DsaregInputError(f"mesh file '{path}' not found", field="--mesh",
+                               accepted="a mesh file (OBJ/STL/PLY/OFF/GLB), or leave --mesh out for the built-in phantom")
     return read_mesh(Path(path).read_bytes(), Path(path).name)
 
 
 def run(args: argparse.Namespace) -> int:
     mesh = load_mesh_argument(args.mesh)
-    rig = load_rig(args.geometry)
+    rig = load_rig(geometry_argument(args.geometry))
     pose = load_pose(args.pose) if args.pose else rig.initial_mesh_to_world
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

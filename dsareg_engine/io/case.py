@@ -30,6 +30,8 @@ class Case:
         rig: the two views (resized to the images when needed) and the initial pose.
         warnings: things a person should know (decimation, frame chosen, resizing...).
         kinds: what each input was read as (``{"mesh": "stl", "ap": "dicom-xa", ...}``).
+        images: the images as read (``(H, W)`` float, before segmentation), shown under
+            the overlays' contours.
     """
 
     mesh: TriangleMesh
@@ -37,6 +39,7 @@ class Case:
     rig: Rig
     warnings: list[str] = field(default_factory=list)
     kinds: dict[str, str] = field(default_factory=dict)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def load_case(
@@ -131,7 +134,8 @@ def load_case(
         masks[name] = segment_vessels(image.pixels, method, field_name=name)
         views[name] = view
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world)
-    return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds)
+    return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
+                images={name: images[name].pixels for name in VIEW_NAMES})
 
 
 def _resolve_rig(geometry, images: dict[str, LoadedImage], warnings: list[str], kinds: dict[str, str]) -> Rig:

@@ -50,6 +50,8 @@ class RegistrationResult:
             starts agreeing, and ``ground_truth`` errors when a truth was given.
         loss_history: ``[(stage name, [loss per iteration])]`` of the kept start.
         pose_history: ``(N, 4, 4)`` poses of the kept start along the way (for animations).
+        frames: ``[(stage name, iteration, 4x4 pose)]`` from the initial pose on, one per
+            iteration of each stage's best start; recorded only with ``options.animation``.
     """
 
     mesh_to_world: np.ndarray
@@ -58,6 +60,7 @@ class RegistrationResult:
     metrics: dict
     loss_history: list[tuple[str, list[float]]] = field(default_factory=list, repr=False)
     pose_history: list[np.ndarray] = field(default_factory=list, repr=False)
+    frames: list[tuple[str, int, np.ndarray]] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
         return {

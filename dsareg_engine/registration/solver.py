@@ -26,6 +26,7 @@ from ..pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from .options import RegistrationOptions
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
+from .progress import ProgressPlan
 from .result import RegistrationResult, ViewResult
 from .schedule import Stage, build_schedule
 from .border import update_border_shift
@@ -287,15 +288,17 @@ def _register(
 
     starts = random_start_poses(initial, problem.centre, options.starts, options.start_spread_deg,
                                 options.start_spread_mm, options.seed)
-    total_budget = sum(stage.max_iterations for stage in stages)
-    done_before = {"count": 0}
+    plan = ProgressPlan(stages, options.starts)
+    current = {"index": 0, "snapshots": []}
     started = time.perf_counter()
 
     def report(stage: Stage, iteration: int, loss: float) -> None:
         if should_stop is not None and should_stop():
             raise RegistrationCanceled("registration canceled")
+        if options.animation:  # every start's pose at this iteration, for the animation
+            current["snapshots"].append((iteration, increment.poses(delta.detach())))
         if progress is not None and (iteration % 5 == 0 or iteration == 1):
-            fraction = min(0.99, (done_before["count"] + iteration) / max(total_budget, 1))
+            fraction = plan.fraction(current["index"], iteration)
             progress({"stage": stage.name, "iteration": iteration, "loss": loss, "fraction": fraction})
 
     poses = starts
@@ -303,6 +306,7 @@ def _register(
     seconds: dict[str, float] = {}
     loss_history: list[tuple[str, list[float]]] = []
     pose_history: list[np.ndarray] = [starts[0]]
+    frames: list[tuple[str, int, np.ndarray]] = [("initial", 0, initial)]
     starts_agreeing = 1
     outcome: _StageOutcome | None = None
     final_loss = float("nan")
@@ -322,8 +326,8 @@ def _register(
         increment = PoseIncrement(poses, problem.centre, problem.radius_mm)
         delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
         runner = _run_lbfgs if stage.optimizer == "lbfgs" else _run_adam
+        current["index"], current["snapshots"] = index, []
         outcome = runner(problem, stage, increment, delta, dtype, report)
-        done_before["count"] += stage.max_iterations
         poses = increment.poses(delta.detach())
         with torch.no_grad():
             per_start = problem.loss(torch.as_tensor(poses), stage, dtype)
@@ -333,6 +337,10 @@ def _register(
         seconds[stage.name] = round(outcome.seconds, 4)
         loss_history.append((stage.name, outcome.losses))
         pose_history.append(poses[best_index])
+        frames.extend((stage.name, it, snapshot[best_index]) for it, snapshot in current["snapshots"])
+        if progress is not None:
+            progress({"stage": stage.name, "iteration": outcome.iterations, "loss": final_loss,
+                      "fraction": plan.stage_done(index)})
         if index == len(stages) - 1 and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
     estimate = poses[0]
@@ -365,7 +373,7 @@ def _register(
         metrics["ground_truth"]["initial_mtre_mm"] = mean_distance_mm(
             initial, truth, mesh.vertices if target_points is None else target_points
         )
-    return RegistrationResult(estimate, initial, view_results, metrics, loss_history, pose_history)
+    return RegistrationResult(estimate, initial, view_results, metrics, loss_history, pose_history, frames)
 
 
 def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str, ...]) -> None:
