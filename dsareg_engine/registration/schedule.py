@@ -68,8 +68,11 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
     stages = []
     if len(scales) == 1 and not final:  # single level, no refinement: plain Adam at full size
         return [Stage(f"{label}:1/{round(1 / scales[0])}", scales[0], 0.5, 0.0, views, "adam", max_iterations, 0.1, True)]
-    if final:  # the finest level twice: blurred Adam to settle, then sharp L-BFGS to converge
+    if final and len(scales) == 1:  # one level: blurred Adam to settle, then sharp L-BFGS to converge
         scales = scales + [scales[-1]]
+    # With a pyramid, L-BFGS starts at full size from the half-size Adam result: a full-size
+    # Adam stage in between cost ~2 s (20+ iterations of 800² renders, blurred) on the paper's
+    # mesh and saved L-BFGS only 1–2 evaluations (measured: 9 → 10–11), accuracy unchanged.
     for index, scale in enumerate(scales):
         last = final and index == len(scales) - 1
         # Levels are set by their place in the ladder: the coarsest (~100 px) always gets
@@ -80,7 +83,9 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
                 name=f"{label}:1/{round(1 / scale)}" + (":refine" if last else ""),
                 scale=scale,
                 sigma_px=FINAL_SIGMA_PX if last else 0.5,
-                blur_px=0.0 if rank == 0 else (2.0 if index == 0 else 1.0),
+                # No blur at the level just below full size either: capture is settled by then, and
+                # blurring 400² renders (forward and backward) cost more than rendering them.
+                blur_px=0.0 if rank <= 1 and index > 0 else (2.0 if index == 0 else 1.0),
                 views=views,
                 optimizer="lbfgs" if last else "adam",
                 max_iterations=min(max_iterations, 60) if last else max_iterations,

@@ -335,6 +335,11 @@ def _register(
         pose_history.append(poses[best_index])
         if index == len(stages) - 1 and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
+        elif len(poses) > 1 and index + 1 < len(stages) and not stages[index + 1].add_initial_starts:
+            # Starts that all reached the same pose need not be carried on: keep the best.
+            agreeing = _agreeing(problem, poses, poses[best_index])
+            if agreeing == len(poses):
+                poses, starts_agreeing = poses[best_index][None], agreeing
     estimate = poses[0]
     total_seconds = time.perf_counter() - started
 
@@ -389,10 +394,12 @@ def _keep_best(problem: _Problem, stage: Stage, poses: np.ndarray) -> tuple[np.n
     with torch.no_grad():
         losses = problem.loss(torch.as_tensor(poses), stage, torch.float32)
     best = poses[int(torch.argmin(losses))]
-    agreeing = sum(
-        mean_distance_mm(pose, best, problem.mesh.vertices) < AGREEMENT_ADD_MM for pose in poses
-    )
-    return best[None], int(agreeing)
+    return best[None], _agreeing(problem, poses, best)
+
+
+def _agreeing(problem: _Problem, poses: np.ndarray, best: np.ndarray) -> int:
+    """How many of ``poses`` lie within AGREEMENT_ADD_MM (ADD) of ``best``."""
+    return int(sum(mean_distance_mm(pose, best, problem.mesh.vertices) < AGREEMENT_ADD_MM for pose in poses))
 
 
 def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) -> dict[str, ViewResult]:
