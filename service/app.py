@@ -37,6 +37,7 @@ from .models import EXAMPLE_ID, Health, JobList, JobStatus, job_status
 from .problems import PROBLEM_MEDIA_TYPE, Problem, ProblemDetails, problem_body, problem_responses
 from .settings import ServiceSettings
 from .store import STATUSES, ConflictError, InputFile, JobRecord, JobStore, SqlJobStore, decode_cursor, new_job_id
+from .track import install_track_route
 from .validation import ValidatorPool
 
 log = logging.getLogger("dsareg.service")
@@ -538,6 +539,8 @@ def _install_routes(app: FastAPI) -> None:
                           extra={"job_id": existing.id})
         return JSONResponse(job_status(existing).model_dump(mode="json"), status_code=200,
                             headers={"Location": f"/v1/registrations/{existing.id}"})
+
+    install_track_route(app, _submit, get_ctx, principal, owned_job, MAX_OPTIONS_BYTES)
 
     @app.get("/v1/registrations", response_model=JobList, tags=["registrations"], summary="List jobs (newest first)",
              responses=problem_responses(400, 401, 422))

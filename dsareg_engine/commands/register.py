@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from ..errors import DsaregInputError
 from ..io.case import load_case
 from ..pipeline import write_outputs
 from ..pose_file import load_pose
@@ -20,7 +21,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--lat", required=True, help="LAT image or mask")
     parser.add_argument("--geometry", help="geometry JSON file or preset name; optional with DICOM XA inputs")
     parser.add_argument("--config", default="simultaneous", choices=CONFIGURATIONS)
-    parser.add_argument("--initial", help='pose JSON overriding the geometry\'s initial pose')
+    parser.add_argument("--initial", help='pose JSON overriding the geometry\'s initial pose (a previous result.json works)')
+    parser.add_argument("--track", action="store_true",
+                        help='re-register after a small motion from --initial (options.mode "track": fast, one start)')
     parser.add_argument("--ground-truth", help="pose JSON of the true pose (adds error metrics)")
     parser.add_argument("--options", help="registration options as JSON text (see RegistrationOptions)")
     parser.add_argument("--animation", action="store_true", help="also write animation.gif")
@@ -37,6 +40,11 @@ def run(args: argparse.Namespace) -> int:
         options["ground_truth_mesh_to_world"] = load_pose(args.ground_truth).tolist()
     if args.animation:
         options["animation"] = True
+    if args.track:
+        if not args.initial:
+            raise DsaregInputError("--track re-registers from a previous pose: give it with --initial",
+                                   field="--initial", accepted="a pose JSON or a previous result.json")
+        options["mode"] = "track"
     parsed = parse_options(options)
     geometry = args.geometry
     if geometry is not None and Path(geometry).is_file():
@@ -61,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     dice_text = ", ".join(f"{name} dice {view.dice:.3f}" for name, view in result.views.items())
     print(f"{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
           f"{metrics['seconds']['total']:.1f} s -> {out / 'result.json'}")
+    if "motion" in metrics:
+        print(f"motion since --initial: {metrics['motion']['rotation_deg']:.3f} deg, {metrics['motion']['translation_mm']:.3f} mm")
     if "ground_truth" in metrics:
         gt = metrics["ground_truth"]
         print(f"rotation {gt['rotation_error_deg']:.4f} deg, translation {gt['translation_error_mm']:.4f} mm, ADD {gt['add_mm']:.4f} mm")

@@ -40,6 +40,7 @@ class Stage:
             directions one view cannot see).
         plateau_tolerance: Adam stops when the best loss improves by less than this
             fraction over the patience window.
+        float64: render in float64 with exact transcendentals (None: for L-BFGS stages only).
     """
 
     name: str
@@ -53,6 +54,7 @@ class Stage:
     all_starts: bool
     add_initial_starts: bool = False
     plateau_tolerance: float = PLATEAU_TOLERANCE
+    float64: bool | None = None
 
 
 def pyramid_scales(image_side_px: int) -> list[float]:

@@ -29,6 +29,7 @@ from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .result import RegistrationResult, ViewResult
 from .schedule import Stage, build_schedule
 from .border import update_border_shift
+from .track import build_track_schedule, motion_between
 from .targets import ViewTarget, gaussian_blur, level_target, signed_border_distance
 
 ProgressCallback = Callable[[dict], None]
@@ -277,15 +278,15 @@ def _register(
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
-    stages = [
-        Stage(**{**vars(stage), "scale": stage.scale * final_scale})
-        for stage in build_schedule(
-            options.configuration, round(shortest * final_scale), options.max_iterations,
-            options.coarse_to_fine, options.refine,
-        )
-    ]
+    tracking = options.mode == "track"
+    schedule = (
+        build_track_schedule(used_views, round(shortest * final_scale), options.max_iterations) if tracking
+        else build_schedule(options.configuration, round(shortest * final_scale), options.max_iterations,
+                            options.coarse_to_fine, options.refine)
+    )
+    stages = [Stage(**{**vars(stage), "scale": stage.scale * final_scale}) for stage in schedule]
 
-    starts = random_start_poses(initial, problem.centre, options.starts, options.start_spread_deg,
+    starts = random_start_poses(initial, problem.centre, 1 if tracking else options.starts, options.start_spread_deg,
                                 options.start_spread_mm, options.seed)
     total_budget = sum(stage.max_iterations for stage in stages)
     done_before = {"count": 0}
@@ -318,7 +319,7 @@ def _register(
             problem.update_border_shifts(pose_history[-1], stage.views)
         if not stage.all_starts and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
-        dtype = torch.float64 if stage.optimizer == "lbfgs" else torch.float32
+        dtype = torch.float64 if (stage.optimizer == "lbfgs" if stage.float64 is None else stage.float64) else torch.float32
         increment = PoseIncrement(poses, problem.centre, problem.radius_mm)
         delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
         runner = _run_lbfgs if stage.optimizer == "lbfgs" else _run_adam
@@ -352,10 +353,13 @@ def _register(
         "device": str(device),
         "converged": converged,
         "reason": reason,
-        "starts": options.starts,
+        "starts": len(starts),
         "starts_agreeing": starts_agreeing,
         "configuration": options.configuration,
     }
+    if tracking:
+        metrics["mode"] = "track"
+        metrics["motion"] = motion_between(initial, estimate, mesh.vertices if target_points is None else target_points)
     if options.border_correction:
         metrics["border_shift_px"] = {name: round(problem.border_shift_px[name], 4) for name in used_views}
     if len(used_views) == 1:
