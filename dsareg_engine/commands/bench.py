@@ -31,6 +31,7 @@ def add_parser(subparsers) -> None:
     render.add_argument("--repeats", type=int, default=20)
     render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"])
     render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
+    render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="auto: CUDA when available")
     render.set_defaults(func=bench_render)
     for name, func in (("table1", bench_table1), ("capture", bench_capture)):
         sub = which.add_parser(name)
@@ -42,6 +43,7 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
         sub.add_argument("--max-mtre", type=float, default=20.0)
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
+        sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
         sub.set_defaults(func=func)
     track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
     track.add_argument("--mesh")
@@ -54,6 +56,7 @@ def add_parser(subparsers) -> None:
     track.add_argument("--translation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
                        help="per-frame translation range (mm, random direction)")
     track.add_argument("--options", default="{}", help="extra registration options as JSON")
+    track.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
     track.set_defaults(func=bench_track)
     robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
     robust.add_argument("--mesh")
@@ -65,11 +68,19 @@ def add_parser(subparsers) -> None:
     robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS))
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
+    robust.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
     robust.set_defaults(func=bench_robustness)
 
 
-def _device() -> str:
-    return "cuda" if torch.cuda.is_available() else "cpu"
+def _device(requested: str = "auto") -> str:
+    if requested == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no GPU is available")
+    return requested if requested != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _options(args: argparse.Namespace) -> dict:
+    """``--options`` JSON plus ``--device``."""
+    return {"device": _device(getattr(args, "device", "auto")), **json.loads(args.options)}
 
 
 def bench_render(args: argparse.Namespace) -> int:
@@ -78,7 +89,7 @@ def bench_render(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.torch_threads)
     mesh = load_mesh_argument(args.mesh)
     rig = load_rig("paper")
-    device = _device()
+    device = _device(args.device)
     vertices, faces = mesh.torch(torch.float32, device)
     print(f"device {device}, torch threads {torch.get_num_threads()}, numba threads {numba.get_num_threads()}, "
           f"faces {mesh.n_faces}, batch {args.batch}, view paper/ap, median of {args.repeats}")
@@ -159,11 +170,11 @@ def bench_table1(args: argparse.Namespace) -> int:
     initials = [paper_start] + [_perturbation(mesh, np.eye(4), angle, shift, rng) for _ in range(args.starts)]
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {len(initials)} initial poses "
           f"({np.degrees(angle):.1f} deg, {shift:.1f} mm centre shift), {args.multistart} parallel starts each, "
-          f"device {_device()}, options {args.options}")
+          f"device {_device(args.device)}, options {args.options}")
     print("| configuration | rotation ° median / p90 | translation mm median / p90 | ADD mm median / p90 | success (ADD < 1 mm) | median s |")
     print("|---|---|---|---|---|---|")
     for config in args.configs:
-        rows = [_run(mesh, rig, masks, initial, config, args.multistart, args.seed + i, json.loads(args.options)) for i, initial in enumerate(initials)]
+        rows = [_run(mesh, rig, masks, initial, config, args.multistart, args.seed + i, _options(args)) for i, initial in enumerate(initials)]
         print(f"| {config} | {_summarise(rows)} |", flush=True)
     return 0
 
@@ -205,7 +216,7 @@ def bench_capture(args: argparse.Namespace) -> int:
     capture, contiguous = 0.0, True
     for low in np.arange(0.0, args.max_mtre, 1.0):
         rows = [
-            _run(mesh, rig, masks, _offset_with_mtre(mesh, rng.uniform(low, low + 1.0), 30.0, rng), "simultaneous", args.multistart, 0, json.loads(args.options))
+            _run(mesh, rig, masks, _offset_with_mtre(mesh, rng.uniform(low, low + 1.0), 30.0, rng), "simultaneous", args.multistart, 0, _options(args))
             for _ in range(args.starts)
         ]
         finals = np.array([row["mtre_mm"] for row in rows])
@@ -234,7 +245,7 @@ def bench_robustness(args: argparse.Namespace) -> int:
         for index, initial in enumerate(initials):
             rng = np.random.default_rng(args.seed + 1000 * index)
             masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
-            row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, json.loads(args.options))
+            row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, _options(args))
             rows.append({**row, "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
         add = np.array([row["add_mm"] for row in rows])
         print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
@@ -251,7 +262,7 @@ def bench_track(args: argparse.Namespace) -> int:
     rig = Rig(views, np.eye(4))
     vertices, faces = mesh.torch(torch.float64)
     rng = np.random.default_rng(args.seed)
-    extra = {"mode": "track", **json.loads(args.options)}
+    extra = {"mode": "track", **_options(args)}
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.sequences} sequences x {args.frames} motions of "
           f"{args.rotation[0]:g}-{args.rotation[1]:g} deg and {args.translation[0]:g}-{args.translation[1]:g} mm, "
           f"each registered from the previous estimate (the first from the true pose), options {extra}")

@@ -10,6 +10,7 @@ at finer levels, and L-BFGS at full resolution with a stop on pose change.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -58,6 +59,22 @@ def mean_projected_face_area_px(mesh: TriangleMesh, view, mesh_to_world: np.ndar
     a, b, c = (pixels[mesh.faces[:, k]] for k in range(3))
     e1, e2 = b - a, c - a
     return float(np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).mean() / 2.0)
+
+
+_LOD_CACHE: dict[tuple[str, int], TriangleMesh] = {}
+_LOD_CACHE_SIZE = 8
+
+
+def _decimated(mesh: TriangleMesh, faces: int) -> TriangleMesh:
+    """``decimate(mesh, faces)``, remembered across registrations of the same mesh (tracking
+    re-registers one model frame after frame; decimation cost ~35 ms per level of detail)."""
+    digest = hashlib.sha1(np.ascontiguousarray(mesh.vertices).tobytes() + np.ascontiguousarray(mesh.faces).tobytes()).hexdigest()
+    key = (digest, faces)
+    if key not in _LOD_CACHE:
+        if len(_LOD_CACHE) >= _LOD_CACHE_SIZE:
+            _LOD_CACHE.pop(next(iter(_LOD_CACHE)))
+        _LOD_CACHE[key] = decimate(mesh, faces)
+    return _LOD_CACHE[key]
 
 
 class RegistrationCanceled(Exception):
@@ -154,7 +171,7 @@ class _Problem:
             faces_wanted = level_of_detail_faces(self.mesh.n_faces, self.mean_face_area_px * stage.scale**2)
         key = (dtype, faces_wanted)
         if key not in self._mesh_tensors:
-            mesh = self.mesh if faces_wanted >= self.mesh.n_faces else decimate(self.mesh, faces_wanted)
+            mesh = self.mesh if faces_wanted >= self.mesh.n_faces else _decimated(self.mesh, faces_wanted)
             self._mesh_tensors[key] = mesh.torch(dtype, self.device)
         return self._mesh_tensors[key]
 
