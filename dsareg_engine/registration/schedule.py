@@ -45,6 +45,7 @@ class Stage:
         plateau_tolerance: Adam stops when the best loss improves by less than this
             fraction over the patience window.
         float64: render in float64 with exact transcendentals (None: for L-BFGS stages only).
+        pose_tolerance: L-BFGS stop on pose change (mm units; None: the solver's LBFGS_POSE_TOLERANCE).
     """
 
     name: str
@@ -59,6 +60,7 @@ class Stage:
     add_initial_starts: bool = False
     plateau_tolerance: float = PLATEAU_TOLERANCE
     float64: bool | None = None
+    pose_tolerance: float | None = None
 
 
 def pyramid_scales(image_side_px: int) -> list[float]:

@@ -282,7 +282,8 @@ def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
 def _run_lbfgs(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
     optimizer = torch.optim.LBFGS(
         [delta], lr=1.0, max_iter=stage.max_iterations, max_eval=stage.max_iterations,
-        tolerance_grad=1e-12, tolerance_change=LBFGS_POSE_TOLERANCE, history_size=10, line_search_fn="strong_wolfe",
+        tolerance_grad=1e-12, tolerance_change=LBFGS_POSE_TOLERANCE if stage.pose_tolerance is None else stage.pose_tolerance,
+        history_size=10, line_search_fn="strong_wolfe",
     )
     losses: list[float] = []
     start = time.perf_counter()
@@ -399,8 +400,8 @@ def _register(
         increment = PoseIncrement(poses, problem.centre, problem.radius_mm)
         delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
         runner = _run_lbfgs if stage.optimizer == "lbfgs" else _run_adam
-        # Fine levels (one start, sharp, no blur beyond the target's) evaluate the loss in a window.
-        windowed = stage.scale >= 0.5 * finest_scale and len(poses) == 1
+        # Fine levels with one start (every tracking stage) evaluate the loss in a window.
+        windowed = len(poses) == 1 and (tracking or stage.scale >= 0.5 * finest_scale)
         if windowed:
             problem.set_windows(stage, poses, dtype)
         outcome = runner(problem, stage, increment, delta, dtype, report)
