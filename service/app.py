@@ -39,6 +39,7 @@ from .problems import PROBLEM_MEDIA_TYPE, Problem, ProblemDetails, problem_body,
 from .schemas import document as document_payloads
 from .settings import ServiceSettings
 from .store import STATUSES, ConflictError, InputFile, JobRecord, JobStore, SqlJobStore, decode_cursor, new_job_id
+from .track import install_track_route
 from .validation import ValidatorPool
 
 log = logging.getLogger("dsareg.service")
@@ -557,6 +558,8 @@ def _install_routes(app: FastAPI) -> None:
                           extra={"job_id": existing.id})
         return JSONResponse(status_body(existing), status_code=200,
                             headers={"Location": f"/v1/registrations/{existing.id}"})
+
+    install_track_route(app, _submit, get_ctx, principal, owned_job, MAX_OPTIONS_BYTES)
 
     @app.get("/v1/registrations", response_model=JobList, tags=["registrations"], summary="List jobs (newest first)",
              responses=problem_responses(400, 401, 422))

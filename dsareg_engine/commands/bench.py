@@ -22,7 +22,7 @@ from .render import load_mesh_argument
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness)",
+        "bench", help="benchmarks (render, table1, capture, robustness, track)",
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
@@ -34,6 +34,7 @@ def add_parser(subparsers) -> None:
     render.add_argument("--repeats", type=int, default=20, help="timed runs (the median is printed)")
     render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"], help="rasterizer (default auto)")
     render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
+    render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="auto: CUDA when available")
     render.set_defaults(func=bench_render)
     for name, func in (("table1", bench_table1), ("capture", bench_capture)):
         sub = which.add_parser(name, help={"table1": "the paper's Table 1: accuracy per configuration",
@@ -46,7 +47,21 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
         sub.add_argument("--max-mtre", type=float, default=20.0, help="largest initial mTRE in mm")
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
+        sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
         sub.set_defaults(func=func)
+    track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
+    track.add_argument("--mesh")
+    track.add_argument("--sequences", type=int, default=5)
+    track.add_argument("--frames", type=int, default=6, help="motions per sequence")
+    track.add_argument("--seed", type=int, default=0)
+    track.add_argument("--size", type=int, default=800, help="image side in px")
+    track.add_argument("--rotation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
+                       help="per-frame rotation range (deg, random axis through the mesh centre)")
+    track.add_argument("--translation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
+                       help="per-frame translation range (mm, random direction)")
+    track.add_argument("--options", default="{}", help="extra registration options as JSON")
+    track.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
+    track.set_defaults(func=bench_track)
     robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
     robust.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
     robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
@@ -58,11 +73,19 @@ def add_parser(subparsers) -> None:
                         help="simulated segmentation errors to apply (default all)")
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
+    robust.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
     robust.set_defaults(func=bench_robustness)
 
 
-def _device() -> str:
-    return "cuda" if torch.cuda.is_available() else "cpu"
+def _device(requested: str = "auto") -> str:
+    if requested == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no GPU is available")
+    return requested if requested != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _options(args: argparse.Namespace) -> dict:
+    """``--options`` JSON plus ``--device``."""
+    return {"device": _device(getattr(args, "device", "auto")), **json.loads(args.options)}
 
 
 def bench_render(args: argparse.Namespace) -> int:
@@ -71,7 +94,7 @@ def bench_render(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.torch_threads)
     mesh = load_mesh_argument(args.mesh)
     rig = load_rig("paper")
-    device = _device()
+    device = _device(args.device)
     vertices, faces = mesh.torch(torch.float32, device)
     print(f"device {device}, torch threads {torch.get_num_threads()}, numba threads {numba.get_num_threads()}, "
           f"faces {mesh.n_faces}, batch {args.batch}, view paper/ap, median of {args.repeats}")
@@ -132,14 +155,17 @@ def _summarise(rows: list[dict]) -> str:
     success = np.mean([r["add_mm"] < 1.0 for r in rows]) * 100
     return (f"{stat('rotation_error_deg', 50):.4f} / {stat('rotation_error_deg', 90):.4f} | "
             f"{stat('translation_error_mm', 50):.4f} / {stat('translation_error_mm', 90):.4f} | "
-            f"{stat('add_mm', 50):.4f} / {stat('add_mm', 90):.4f} | {success:.0f} % | {np.median([r['seconds'] for r in rows]):.1f}")
+            f"{stat('add_mm', 50):.4f} / {stat('add_mm', 90):.4f} | {success:.0f} % | {np.median([r['seconds'] for r in rows]):.1f} | "
+            f"{np.median([r['cpu_seconds'] for r in rows]):.1f}")
 
 
 def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int, extra: dict) -> dict:
     options = RegistrationOptions(configuration=config, starts=multistart, seed=seed, **extra,
                                   initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist())
+    cpu = time.process_time()
     result = register(mesh, masks, rig, options)
-    return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"], "converged": result.metrics["converged"]}
+    return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"], "converged": result.metrics["converged"],
+            "cpu_seconds": time.process_time() - cpu}
 
 
 def bench_table1(args: argparse.Namespace) -> int:
@@ -152,11 +178,12 @@ def bench_table1(args: argparse.Namespace) -> int:
     initials = [paper_start] + [_perturbation(mesh, np.eye(4), angle, shift, rng) for _ in range(args.starts)]
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {len(initials)} initial poses "
           f"({np.degrees(angle):.1f} deg, {shift:.1f} mm centre shift), {args.multistart} parallel starts each, "
-          f"device {_device()}, options {args.options}")
-    print("| configuration | rotation ° median / p90 | translation mm median / p90 | ADD mm median / p90 | success (ADD < 1 mm) | median s |")
-    print("|---|---|---|---|---|---|")
+          f"device {_device(args.device)}, options {args.options}")
+    print("| configuration | rotation ° median / p90 | translation mm median / p90 | ADD mm median / p90 | success (ADD < 1 mm) | median s "
+          "| median CPU s (all threads) |")
+    print("|---|---|---|---|---|---|---|")
     for config in args.configs:
-        rows = [_run(mesh, rig, masks, initial, config, args.multistart, args.seed + i, json.loads(args.options)) for i, initial in enumerate(initials)]
+        rows = [_run(mesh, rig, masks, initial, config, args.multistart, args.seed + i, _options(args)) for i, initial in enumerate(initials)]
         print(f"| {config} | {_summarise(rows)} |", flush=True)
     return 0
 
@@ -198,7 +225,7 @@ def bench_capture(args: argparse.Namespace) -> int:
     capture, contiguous = 0.0, True
     for low in np.arange(0.0, args.max_mtre, 1.0):
         rows = [
-            _run(mesh, rig, masks, _offset_with_mtre(mesh, rng.uniform(low, low + 1.0), 30.0, rng), "simultaneous", args.multistart, 0, json.loads(args.options))
+            _run(mesh, rig, masks, _offset_with_mtre(mesh, rng.uniform(low, low + 1.0), 30.0, rng), "simultaneous", args.multistart, 0, _options(args))
             for _ in range(args.starts)
         ]
         finals = np.array([row["mtre_mm"] for row in rows])
@@ -227,10 +254,64 @@ def bench_robustness(args: argparse.Namespace) -> int:
         for index, initial in enumerate(initials):
             rng = np.random.default_rng(args.seed + 1000 * index)
             masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
-            row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, json.loads(args.options))
+            row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, _options(args))
             rows.append({**row, "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
         add = np.array([row["add_mm"] for row in rows])
         print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
               f"{np.median([row['rotation_error_deg'] for row in rows]):.3f} | {np.mean(add < 1.0) * 100:.0f} % | "
               f"{sum(not row['converged'] for row in rows)} | {np.median([row['seconds'] for row in rows]):.1f} |", flush=True)
+    return 0
+
+
+def bench_track(args: argparse.Namespace) -> int:
+    """Sequences of small motions, each frame re-registered from the previous frame's estimate."""
+    mesh = load_mesh_argument(args.mesh)
+    paper = load_rig("paper")
+    views = {name: view.resized(args.size, args.size) for name, view in paper.views.items()}
+    rig = Rig(views, np.eye(4))
+    vertices, faces = mesh.torch(torch.float64)
+    rng = np.random.default_rng(args.seed)
+    extra = {"mode": "track", **_options(args)}
+    print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.sequences} sequences x {args.frames} motions of "
+          f"{args.rotation[0]:g}-{args.rotation[1]:g} deg and {args.translation[0]:g}-{args.translation[1]:g} mm, "
+          f"each registered from the previous estimate (the first from the true pose), options {extra}")
+    # Warm-up (compiled kernels loaded, level-of-detail mesh made), as in a running tracker: not counted.
+    warm = {name: render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view)[None], Camera.from_view(view))[0].numpy()
+            for name, view in views.items()}
+    register(mesh, warm, rig, RegistrationOptions(configuration="simultaneous", **extra, initial_mesh_to_world=np.eye(4).tolist()))
+    rows = []
+    for sequence in range(args.sequences):
+        truth, estimate = np.eye(4), np.eye(4)
+        for frame in range(args.frames):
+            angle = np.radians(rng.uniform(*args.rotation))
+            truth = _perturbation(mesh, truth, angle, rng.uniform(*args.translation), rng)
+            masks = {
+                name: render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view @ truth)[None],
+                                             Camera.from_view(view))[0].numpy()
+                for name, view in views.items()
+            }
+            options = RegistrationOptions(configuration="simultaneous", **extra, initial_mesh_to_world=estimate.tolist(),
+                                          ground_truth_mesh_to_world=truth.tolist())
+            started, cpu = time.perf_counter(), time.process_time()
+            result = register(mesh, masks, rig, options)
+            wall, cpu = time.perf_counter() - started, time.process_time() - cpu
+            estimate = result.mesh_to_world
+            gt = result.metrics["ground_truth"]
+            motion = result.metrics.get("motion", {})
+            rows.append({**gt, "wall": wall, "cpu": cpu, "converged": result.metrics["converged"],
+                         "motion_mm": motion.get("translation_mm", float("nan")), "motion_deg": motion.get("rotation_deg", float("nan")),
+                         "iterations": sum(result.metrics["iterations"].values())})
+            print(f"sequence {sequence} frame {frame}: motion {rows[-1]['motion_deg']:.2f} deg / {rows[-1]['motion_mm']:.2f} mm, "
+                  f"ADD {gt['add_mm']:.4f} mm, rotation {gt['rotation_error_deg']:.4f} deg, {1e3 * wall:.0f} ms "
+                  f"(CPU {1e3 * cpu:.0f} ms), {rows[-1]['iterations']} iterations, converged {rows[-1]['converged']}", flush=True)
+    add = np.array([row["add_mm"] for row in rows])
+    wall = np.array([row["wall"] for row in rows]) * 1e3
+    cpu = np.array([row["cpu"] for row in rows]) * 1e3
+    print("| frames | success (ADD < 1 mm) | ADD mm median / p90 / max | rotation ° median | translation mm median | "
+          "ms per frame pair median / p90 | CPU ms median | converged |")
+    print("|---|---|---|---|---|---|---|---|")
+    print(f"| {len(rows)} | {np.mean(add < 1.0) * 100:.0f} % | {np.median(add):.4f} / {np.percentile(add, 90):.4f} / {add.max():.4f} | "
+          f"{np.median([r['rotation_error_deg'] for r in rows]):.4f} | {np.median([r['translation_error_mm'] for r in rows]):.4f} | "
+          f"{np.median(wall):.0f} / {np.percentile(wall, 90):.0f} | {np.median(cpu):.0f} | "
+          f"{sum(r['converged'] for r in rows)}/{len(rows)} |")
     return 0

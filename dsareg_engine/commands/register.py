@@ -40,7 +40,10 @@ def add_parser(subparsers) -> None:
                              "Table 1 rows; default simultaneous). "
                              "Not a settings file: that is `dsareg serve --config`")
     parser.add_argument("--initial", type=input_file, metavar="POSE.json",
-                        help='pose file {"mesh_to_world": 4x4} overriding the geometry\'s initial pose')
+                        help='pose file {"mesh_to_world": 4x4} overriding the geometry\'s initial pose '
+                             '(a previous result.json works)')
+    parser.add_argument("--track", action="store_true",
+                        help='re-register after a small motion from --initial (options.mode "track": fast, one start)')
     parser.add_argument("--ground-truth", type=input_file, metavar="POSE.json",
                         help='pose file {"mesh_to_world": 4x4} of the true pose; adds error metrics (ADD, mTRE...)')
     parser.add_argument("--options", metavar="JSON|FILE", help=options_help())
@@ -72,6 +75,11 @@ def run(args: argparse.Namespace) -> int:
         options["ground_truth_mesh_to_world"] = load_pose(args.ground_truth).tolist()
     if args.animation:
         options["animation"] = True
+    if args.track:
+        if not args.initial:
+            raise DsaregInputError("--track re-registers from a previous pose: give it with --initial",
+                                   field="--initial", accepted="a pose JSON or a previous result.json")
+        options["mode"] = "track"
     parsed = parse_options(options)
     geometry = geometry_argument(args.geometry)
     model = _model_inputs(args)
@@ -102,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
     dice_text = ", ".join(f"{name} dice {view.dice:.3f}" for name, view in result.views.items())
     print(f"{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
           f"{metrics['seconds']['total']:.1f} s -> {out / 'result.json'}")
+    if "motion" in metrics:
+        print(f"motion since --initial: {metrics['motion']['rotation_deg']:.3f} deg, {metrics['motion']['translation_mm']:.3f} mm")
     if "ground_truth" in metrics:
         gt = metrics["ground_truth"]
         print(f"rotation {gt['rotation_error_deg']:.4f} deg, translation {gt['translation_error_mm']:.4f} mm, ADD {gt['add_mm']:.4f} mm")

@@ -35,6 +35,12 @@ class RegistrationOptions(BaseModel):
     seed: int = Field(0, description="Seed for the extra starts; the same seed gives the same result.")
     coarse_to_fine: bool = Field(True, description="Image pyramid from ~100 px up (off: full size only).")
     refine: bool = Field(True, description="Final L-BFGS stage at full size with a pose-change stop rule.")
+    mode: Literal["full", "track"] = Field(
+        "full",
+        description="full: multi-start coarse-to-fine registration. track: re-registration after a small motion "
+        "(≤ ~3 mm / 3°) from the initial pose (the previous result): one start, a short blurred stage at ~200 px, "
+        "then L-BFGS at full size; metrics.motion reports the motion from the initial pose.",
+    )
     thin_vessel_weighting: bool = Field(
         False, description="Weight pixels so thin branches count as much as thick ones."
     )

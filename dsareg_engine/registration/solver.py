@@ -10,6 +10,7 @@ at finer levels, and L-BFGS at full resolution with a stop on pose change.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -30,6 +31,7 @@ from .progress import ProgressPlan
 from .result import RegistrationResult, ViewResult
 from .schedule import Stage, build_schedule
 from .border import update_border_shift
+from .track import build_track_schedule, motion_between
 from .targets import ViewTarget, gaussian_blur, level_target, signed_border_distance
 
 ProgressCallback = Callable[[dict], None]
@@ -39,6 +41,8 @@ AGREEMENT_ADD_MM = 2.0
 ADAM_PATIENCE = 8
 LBFGS_POSE_TOLERANCE = 1e-4
 """L-BFGS stops when a step changes every pose component by less than this (mm units)."""
+WINDOW_MARGIN_PX = 12.0
+"""Room (px of the stage's image) left around the mesh's footprint when a stage's loss is windowed."""
 MIN_CONVERGED_DICE = 0.5
 LOD_MIN_FACES = 1500
 LOD_FACE_AREA_PX = 2.0
@@ -56,6 +60,22 @@ def mean_projected_face_area_px(mesh: TriangleMesh, view, mesh_to_world: np.ndar
     a, b, c = (pixels[mesh.faces[:, k]] for k in range(3))
     e1, e2 = b - a, c - a
     return float(np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).mean() / 2.0)
+
+
+_LOD_CACHE: dict[tuple[str, int], TriangleMesh] = {}
+_LOD_CACHE_SIZE = 8
+
+
+def _decimated(mesh: TriangleMesh, faces: int) -> TriangleMesh:
+    """``decimate(mesh, faces)``, remembered across registrations of the same mesh (tracking
+    re-registers one model frame after frame; decimation cost ~35 ms per level of detail)."""
+    digest = hashlib.sha1(np.ascontiguousarray(mesh.vertices).tobytes() + np.ascontiguousarray(mesh.faces).tobytes()).hexdigest()
+    key = (digest, faces)
+    if key not in _LOD_CACHE:
+        if len(_LOD_CACHE) >= _LOD_CACHE_SIZE:
+            _LOD_CACHE.pop(next(iter(_LOD_CACHE)))
+        _LOD_CACHE[key] = decimate(mesh, faces)
+    return _LOD_CACHE[key]
 
 
 class RegistrationCanceled(Exception):
@@ -91,6 +111,53 @@ class _Problem:
         self.border_shift_px = {name: 0.0 for name in masks}
         self._signed_distance: dict[str, np.ndarray] = {}
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+        self.windows: dict[tuple[str, float], tuple[int, int, int, int]] = {}
+        """Per (view, scale): the pixel window ``(x0, y0, x1, y1)`` the loss is evaluated in (see set_windows)."""
+
+    def _footprint(self, view, poses: np.ndarray) -> np.ndarray:
+        """Pixel bounding box ``(u_min, v_min, u_max, v_max)`` of the mesh's vertices under all ``poses`` in ``view``."""
+        vertices = self.mesh.vertices
+        projected = np.concatenate([view.project(vertices @ pose[:3, :3].T + pose[:3, 3]) for pose in poses])
+        return np.concatenate([projected.min(axis=0), projected.max(axis=0)])
+
+    def set_windows(self, stage: Stage, poses: np.ndarray, dtype: torch.dtype) -> None:
+        """Restrict the stage's loss to the box around the target and the mesh at ``poses`` (plus a margin).
+
+        Outside the target's support (the mask, widened by the blur) and the silhouettes' support
+        (the projected mesh, widened by the edge cutoff) both images are exactly 0, so the sum of
+        squared errors over the window equals the one over the whole image; on the paper's mesh
+        the window is about half the image, and rendering, shading and the loss skip the rest.
+        The margin leaves room for the stage's own motion; :meth:`windows_hold` checks it after.
+        """
+        for name in stage.views:
+            target = self.target(name, stage, dtype)
+            height, width = target.target.shape
+            support = torch.nonzero(target.target.sum(dim=0) > 0).flatten(), torch.nonzero(target.target.sum(dim=1) > 0).flatten()
+            if len(support[0]) == 0:
+                self.windows.pop((name, stage.scale), None)
+                continue
+            box = self._footprint(target.view, poses)
+            pad = WINDOW_MARGIN_PX + SilhouetteSettings(sigma_px=stage.sigma_px).blur_radius_px + 3.0 * stage.blur_px
+            x0 = int(max(0, min(support[0][0].item(), np.floor(box[0] - pad))))
+            y0 = int(max(0, min(support[1][0].item(), np.floor(box[1] - pad))))
+            x1 = int(min(width, max(support[0][-1].item() + 1, np.ceil(box[2] + pad) + 1)))
+            y1 = int(min(height, max(support[1][-1].item() + 1, np.ceil(box[3] + pad) + 1)))
+            self.windows[(name, stage.scale)] = (x0, y0, x1, y1)
+
+    def windows_hold(self, stage: Stage, poses: np.ndarray, dtype: torch.dtype) -> bool:
+        """True when the mesh at ``poses`` still projects inside every window of the stage, with its edge cutoff."""
+        for name in stage.views:
+            window = self.windows.get((name, stage.scale))
+            if window is None:
+                continue
+            box = self._footprint(self.target(name, stage, dtype).view, poses)
+            pad = SilhouetteSettings(sigma_px=stage.sigma_px).blur_radius_px + 3.0 * stage.blur_px + 1.0
+            x0, y0, x1, y1 = window
+            height, width = self.target(name, stage, dtype).target.shape
+            if ((x0 > 0 and box[0] - pad < x0) or (y0 > 0 and box[1] - pad < y0)
+                    or (x1 < width and box[2] + pad > x1 - 1) or (y1 < height and box[3] + pad > y1 - 1)):
+                return False
+        return True
 
     def mesh_tensors(self, dtype: torch.dtype, stage: Stage | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Vertices and faces for rendering a stage: a decimated level of detail for Adam stages.
@@ -105,7 +172,7 @@ class _Problem:
             faces_wanted = level_of_detail_faces(self.mesh.n_faces, self.mean_face_area_px * stage.scale**2)
         key = (dtype, faces_wanted)
         if key not in self._mesh_tensors:
-            mesh = self.mesh if faces_wanted >= self.mesh.n_faces else decimate(self.mesh, faces_wanted)
+            mesh = self.mesh if faces_wanted >= self.mesh.n_faces else _decimated(self.mesh, faces_wanted)
             self._mesh_tensors[key] = mesh.torch(dtype, self.device)
         return self._mesh_tensors[key]
 
@@ -148,11 +215,20 @@ class _Problem:
             target = self.target(name, stage, dtype)
             world_to_view = torch.as_tensor(self.rig.views[name].world_to_view, dtype=torch.float64)
             mesh_to_view = (world_to_view @ mesh_to_world).to(dtype=dtype, device=self.device)
-            alpha = gaussian_blur(render_soft_silhouette(vertices, faces, mesh_to_view, target.camera, settings), target.blur_px)
-            error = (alpha - target.target) ** 2
-            if target.weight is not None:
-                error = error * target.weight
-            total = total + error.mean(dim=(1, 2))
+            camera, image, weight = target.camera, target.target, target.weight
+            pixels = image.numel()
+            window = self.windows.get((name, stage.scale))
+            if window is not None:
+                x0, y0, x1, y1 = window
+                camera = Camera(camera.focal_px, (camera.principal_point_px[0] - x0, camera.principal_point_px[1] - y0),
+                                x1 - x0, y1 - y0)
+                image = image[y0:y1, x0:x1]
+                weight = None if weight is None else weight[y0:y1, x0:x1]
+            alpha = gaussian_blur(render_soft_silhouette(vertices, faces, mesh_to_view, camera, settings), target.blur_px)
+            error = (alpha - image) ** 2
+            if weight is not None:
+                error = error * weight
+            total = total + error.sum(dim=(1, 2)) / pixels
         return total
 
 
@@ -207,7 +283,8 @@ def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
 def _run_lbfgs(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
     optimizer = torch.optim.LBFGS(
         [delta], lr=1.0, max_iter=stage.max_iterations, max_eval=stage.max_iterations,
-        tolerance_grad=1e-12, tolerance_change=LBFGS_POSE_TOLERANCE, history_size=10, line_search_fn="strong_wolfe",
+        tolerance_grad=1e-12, tolerance_change=LBFGS_POSE_TOLERANCE if stage.pose_tolerance is None else stage.pose_tolerance,
+        history_size=10, line_search_fn="strong_wolfe",
     )
     losses: list[float] = []
     start = time.perf_counter()
@@ -278,17 +355,17 @@ def _register(
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
-    stages = [
-        Stage(**{**vars(stage), "scale": stage.scale * final_scale})
-        for stage in build_schedule(
-            options.configuration, round(shortest * final_scale), options.max_iterations,
-            options.coarse_to_fine, options.refine,
-        )
-    ]
+    tracking = options.mode == "track"
+    schedule = (
+        build_track_schedule(used_views, round(shortest * final_scale), options.max_iterations) if tracking
+        else build_schedule(options.configuration, round(shortest * final_scale), options.max_iterations,
+                            options.coarse_to_fine, options.refine)
+    )
+    stages = [Stage(**{**vars(stage), "scale": stage.scale * final_scale}) for stage in schedule]
 
-    starts = random_start_poses(initial, problem.centre, options.starts, options.start_spread_deg,
+    starts = random_start_poses(initial, problem.centre, 1 if tracking else options.starts, options.start_spread_deg,
                                 options.start_spread_mm, options.seed)
-    plan = ProgressPlan(stages, options.starts)
+    plan = ProgressPlan(stages, 1 if tracking else options.starts)
     current = {"index": 0, "snapshots": []}
     started = time.perf_counter()
 
@@ -312,6 +389,7 @@ def _register(
     final_loss = float("nan")
     finest_scale = max(stage.scale for stage in stages)
     for index, stage in enumerate(stages):
+        problem.windows.clear()
         if stage.add_initial_starts:
             poses = np.concatenate([poses, starts])
         # Fine stages only, and not in the single-view phase of a sequential configuration: one
@@ -322,12 +400,22 @@ def _register(
             problem.update_border_shifts(pose_history[-1], stage.views)
         if not stage.all_starts and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
-        dtype = torch.float64 if stage.optimizer == "lbfgs" else torch.float32
+        dtype = torch.float64 if (stage.optimizer == "lbfgs" if stage.float64 is None else stage.float64) else torch.float32
         increment = PoseIncrement(poses, problem.centre, problem.radius_mm)
         delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
         runner = _run_lbfgs if stage.optimizer == "lbfgs" else _run_adam
+        # Fine levels with one start (every tracking stage) evaluate the loss in a window.
+        windowed = len(poses) == 1 and (tracking or stage.scale >= 0.5 * finest_scale)
+        if windowed:
+            problem.set_windows(stage, poses, dtype)
         current["index"], current["snapshots"] = index, []
         outcome = runner(problem, stage, increment, delta, dtype, report)
+        if windowed and not problem.windows_hold(stage, increment.poses(delta.detach()), dtype):
+            # The pose left its window (a large step): redo the stage on the whole image.
+            problem.windows.clear()
+            delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
+            current["snapshots"] = []
+            outcome = runner(problem, stage, increment, delta, dtype, report)
         poses = increment.poses(delta.detach())
         with torch.no_grad():
             per_start = problem.loss(torch.as_tensor(poses), stage, dtype)
@@ -343,6 +431,10 @@ def _register(
                       "fraction": plan.stage_done(index)})
         if index == len(stages) - 1 and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
+        elif len(poses) > 1 and index + 1 < len(stages) and not stages[index + 1].add_initial_starts:
+            # Starts that reached the same pose need not all be carried on: keep the best of each group.
+            poses, agreeing = _distinct(problem, poses, per_start.detach().cpu().numpy())
+            starts_agreeing = agreeing if len(poses) == 1 else starts_agreeing
     estimate = poses[0]
     total_seconds = time.perf_counter() - started
 
@@ -355,10 +447,13 @@ def _register(
         "device": str(device),
         "converged": converged,
         "reason": reason,
-        "starts": options.starts,
+        "starts": len(starts),
         "starts_agreeing": starts_agreeing,
         "configuration": options.configuration,
     }
+    if tracking:
+        metrics["mode"] = "track"
+        metrics["motion"] = motion_between(initial, estimate, mesh.vertices if target_points is None else target_points)
     if options.border_correction:
         metrics["border_shift_px"] = {name: round(problem.border_shift_px[name], 4) for name in used_views}
     if len(used_views) == 1:
@@ -397,10 +492,21 @@ def _keep_best(problem: _Problem, stage: Stage, poses: np.ndarray) -> tuple[np.n
     with torch.no_grad():
         losses = problem.loss(torch.as_tensor(poses), stage, torch.float32)
     best = poses[int(torch.argmin(losses))]
-    agreeing = sum(
-        mean_distance_mm(pose, best, problem.mesh.vertices) < AGREEMENT_ADD_MM for pose in poses
-    )
-    return best[None], int(agreeing)
+    return best[None], _agreeing(problem, poses, best)
+
+
+def _distinct(problem: _Problem, poses: np.ndarray, losses: np.ndarray) -> tuple[np.ndarray, int]:
+    """The poses, best first, less those within AGREEMENT_ADD_MM of a better one; and how many agree with the best."""
+    kept: list[np.ndarray] = []
+    for index in np.argsort(losses, kind="stable"):
+        if all(mean_distance_mm(poses[index], other, problem.mesh.vertices) >= AGREEMENT_ADD_MM for other in kept):
+            kept.append(poses[index])
+    return np.stack(kept), _agreeing(problem, poses, kept[0])
+
+
+def _agreeing(problem: _Problem, poses: np.ndarray, best: np.ndarray) -> int:
+    """How many of ``poses`` lie within AGREEMENT_ADD_MM (ADD) of ``best``."""
+    return int(sum(mean_distance_mm(pose, best, problem.mesh.vertices) < AGREEMENT_ADD_MM for pose in poses))
 
 
 def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) -> dict[str, ViewResult]:
