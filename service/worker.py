@@ -214,12 +214,24 @@ def warm_up() -> None:
         log.debug("warm-up skipped", exc_info=True)
 
 
-def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> None:
-    """Entry point of a worker process."""
+def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
+    """Entry point of a worker process.
+
+    ``link``: the read end of the server's :class:`~service.procwatch.WakeLink` (None for a
+    standalone ``dsareg worker --engine embedded``); its end-of-file, SIGTERM, or the death of
+    ``parent_pid`` stop the worker (a running job is handed back to the queue).
+    """
     import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through ``stop``
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    from .procwatch import WorkerControl, die_with_parent
+
+    control = WorkerControl()
+    signal.signal(signal.SIGINT, signal.SIG_IGN if link is not None else control.request_stop)
+    signal.signal(signal.SIGTERM, control.request_stop)
+    if parent_pid is not None:
+        die_with_parent(parent_pid)
+    if link is not None:
+        control.watch(link)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         from dsareg_engine.threads import default_cpu_threads, set_cpu_threads
@@ -228,6 +240,11 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
     except Exception:  # noqa: BLE001
         log.warning("could not set the worker's CPU threads")
     warm_up()
+    _claim_loop(settings, index, control)
+
+
+def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
+    """Claim and run jobs until stopped; idle, wait for a wake-up or ``poll_seconds``."""
     store = SqlJobStore(settings.effective_database_url, create_schema=False)
     from .dbblobs import make_blob_store
 
@@ -236,7 +253,7 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
     log.info("worker %s started", worker_id)
     last_seen = 0.0
     try:
-        while not stop.is_set():
+        while not control.stop.is_set():
             now = time.monotonic()
             if now - last_seen > max(1.0, settings.effective_heartbeat_seconds):
                 try:
@@ -250,11 +267,10 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
                 log.warning("worker %s: claim failed", worker_id)
                 job = None
             if job is None:
-                wake.wait(settings.poll_seconds)
-                wake.clear()
+                control.wait_for_work(settings.poll_seconds)
                 continue
             log.info("job %s: claimed by %s (attempt %d)", job.id, worker_id, job.attempts)
-            run_one(store, blobs, job, worker_id, settings, stop)
+            run_one(store, blobs, job, worker_id, settings, control.stop)
             last_seen = 0.0
     finally:
         store.dispose()
