@@ -28,15 +28,28 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, H
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from .blobs import BlobStore, safe_suffix
 from .dbblobs import make_blob_store
 from .executor import Executor, make_executor
+from .httpfaults import allowed_methods
+from .limits import check_job_cost, check_options, parse_json_part
 from .middleware import BodyLimitMiddleware, MetricsMiddleware
 from .models import EXAMPLE_ID, Health, JobList, JobStatus, job_status
 from .problems import PROBLEM_MEDIA_TYPE, Problem, ProblemDetails, problem_body, problem_responses
 from .settings import ServiceSettings
-from .store import STATUSES, ConflictError, InputFile, JobRecord, JobStore, SqlJobStore, decode_cursor, new_job_id
+from .store import (
+    STATUSES,
+    ConflictError,
+    InputFile,
+    JobRecord,
+    JobStore,
+    SqlJobStore,
+    decode_cursor,
+    new_job_id,
+    store_outage_errors,
+)
 from .validation import ValidatorPool
 
 log = logging.getLogger("dsareg.service")
@@ -46,6 +59,7 @@ MAX_GEOMETRY_BYTES = 1 << 20
 MAX_OPTIONS_BYTES = 1 << 20
 MAX_VOLUME_FILES = 4000
 RETRY_AFTER_QUEUED = "2"
+STORE_RETRY_AFTER = "5"
 DURATION_BUCKETS = (1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800, 3600)
 
 
@@ -86,6 +100,8 @@ class Sweeper:
         while not self._halt.wait(recovery_every):
             try:
                 self.sweep_once()
+            except store_outage_errors() as exc:
+                log.warning("sweep skipped: job store unavailable (%s)", type(exc).__name__)
             except Exception:
                 log.exception("sweep failed")
 
@@ -301,10 +317,12 @@ def _install_handlers(app: FastAPI) -> None:
         detail = exc.detail if isinstance(exc.detail, str) else None
         if exc.status_code == 404 and detail in (None, "Not Found"):
             detail = f"no such endpoint: {request.method} {request.url.path[:200]}; see /docs"
-        elif exc.status_code == 405:
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
             detail = f"{request.method} is not allowed on {request.url.path[:200]}; see /docs"
+            headers["Allow"] = allowed_methods(request.app.router.routes, request.scope) or headers.get("Allow", "")
         return _problem_response(exc.status_code, problem_body(exc.status_code, detail, instance=request.url.path),
-                                 dict(exc.headers or {}))
+                                 headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -317,12 +335,30 @@ def _install_handlers(app: FastAPI) -> None:
         return _problem_response(422, problem_body(422, detail, kind="invalid-parameter", instance=request.url.path,
                                                    field=field_name))
 
+    @app.exception_handler(ClientDisconnect)
+    async def _gone(request: Request, exc: ClientDisconnect) -> JSONResponse:
+        # the client went away mid-request (often mid-upload): nothing to answer, nothing broken here
+        log.info("client disconnected during %s %s", request.method, _route_template(request))
+        return _problem_response(400, problem_body(400, "the client disconnected before the request was complete",
+                                                   kind="client-disconnected", instance=request.url.path))
+
+    for outage in store_outage_errors():
+        app.add_exception_handler(outage, _store_unavailable)
+
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:
         log.error("internal error on %s %s: %s", request.method, _route_template(request), type(exc).__name__,
                   exc_info=exc)
         return _problem_response(500, problem_body(500, "an internal error occurred; it has been logged",
                                                    instance=request.url.path))
+
+
+async def _store_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """The job database is down or busy: a temporary condition (503 + Retry-After), not a bug (500)."""
+    log.warning("job store unavailable on %s %s: %s", request.method, _route_template(request), type(exc).__name__)
+    return _problem_response(503, problem_body(503, "the job database is temporarily unavailable; retry later",
+                                               kind="store-unavailable", instance=request.url.path),
+                             {"Retry-After": STORE_RETRY_AFTER})
 
 
 def _route_template(request: Request) -> str:
@@ -370,12 +406,7 @@ def _normalize_geometry(text: str | None) -> str | None:
     if not text.startswith("{"):
         raise Problem(422, f"'{text[:40]}' is not a known preset and not a JSON object", field="geometry",
                       accepted=f"a preset name {sorted(PRESETS)} or geometry JSON (text or file)")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise Problem(422, f"is not valid JSON ({exc.msg} at line {exc.lineno})", field="geometry") from None
-    if not isinstance(data, dict):
-        raise Problem(422, "must be a JSON object", field="geometry")
+    data = parse_json_part(text, "geometry")
     return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 
@@ -394,8 +425,10 @@ def _install_routes(app: FastAPI) -> None:
         openapi_extra={
             "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": MULTIPART_SCHEMA}}},
             "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
-                            "schema": {"type": "string", "maxLength": 255},
-                            "description": "Makes retries of the same submission safe."}],
+                            "schema": {"type": "string", "minLength": 1, "maxLength": 255, "pattern": r"\S"},
+                            "description": "Makes retries of the same submission safe. 1 to 255 characters, at "
+                                           "least one of them not white space; otherwise 400 (field "
+                                           "`Idempotency-Key`)."}],
         },
         responses={
             200: {"description": "Idempotent replay: the job created earlier with this key.", "model": JobStatus},
@@ -457,10 +490,12 @@ def _install_routes(app: FastAPI) -> None:
         from dsareg_engine.errors import DsaregInputError
         from dsareg_engine.registration.options import parse_options
 
+        options_data = parse_json_part(options_text, "options") if options_text and options_text.strip() else None
         try:
-            options = parse_options(options_text if options_text and options_text.strip() else None)
+            options = parse_options(options_data)
         except DsaregInputError as exc:
             raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+        check_options(options)
         options_json = options.model_dump(mode="json")
 
         # store the uploads (content-addressed) and fingerprint the request
@@ -497,6 +532,7 @@ def _install_routes(app: FastAPI) -> None:
             outcome = await ctx.validator.validate({
                 "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
                 "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
+                "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
             })
             if outcome.unavailable:
                 raise Problem(503, "the registration engine is not available on this server", kind="engine-unavailable",
@@ -504,6 +540,8 @@ def _install_routes(app: FastAPI) -> None:
             if not outcome.ok:
                 raise Problem(422, outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
             warnings = list((outcome.summary or {}).get("warnings", []))
+            views = (outcome.summary or {}).get("views") or {}
+            check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.max_job_cost)
 
         now = time.time()
         job = JobRecord(
@@ -546,7 +584,10 @@ def _install_routes(app: FastAPI) -> None:
         status: str | None = Query(None, description="Only jobs in this state.",
                                    json_schema_extra={"enum": list(STATUSES)}),
         limit: int = Query(20, ge=1, le=100, description="Page size."),
-        cursor: str | None = Query(None, max_length=200, description="next_cursor of the previous page."),
+        cursor: str | None = Query(
+            None, max_length=200,
+            description="Opaque paging token: exactly the `next_cursor` of the previous page (URL-safe base64 "
+                        "without padding, at most 200 characters). Any other value → 400 with field `cursor`."),
         who: str = Depends(principal),
     ) -> JobList:
         ctx = get_ctx(request)

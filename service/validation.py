@@ -49,11 +49,15 @@ def _set_memory_limit(extra_mb: int) -> None:
         pass
 
 
-def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
+def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
     """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
     import signal
 
+    from .procwatch import die_with_parent
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
+        die_with_parent(parent_pid, signal.SIGKILL)
     engine_ok = True
     try:
         import torch
@@ -85,6 +89,10 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
             except Exception:  # noqa: BLE001
                 conn.send({"ok": False, "unavailable": True})
                 continue
+        if request.get("require_cuda") and not _cuda_available():
+            conn.send({"ok": False, "message": "CUDA is not available on this server", "field": "options.device",
+                       "accepted": "auto or cpu"})
+            continue
         try:
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
@@ -97,6 +105,15 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
                        "accepted": "smaller inputs"})
         except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
             conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
+
+
+def _cuda_available() -> bool:
+    try:
+        import torch
+
+        return bool(torch.cuda.is_available())
+    except Exception:  # noqa: BLE001
+        return False
 
 
 @dataclass
@@ -122,7 +139,8 @@ class _Slot:
     def start(self) -> None:
         parent, child = self.ctx.Pipe(duplex=True)
         self.process = self.ctx.Process(
-            target=_validator_main, args=(child, self.memory_mb, self.threads), name="dsareg-validator", daemon=True
+            target=_validator_main, args=(child, self.memory_mb, self.threads, os.getpid()), name="dsareg-validator",
+            daemon=True
         )
         self.process.start()
         child.close()
@@ -186,7 +204,7 @@ class ValidatorPool:
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:

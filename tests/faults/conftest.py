@@ -12,8 +12,8 @@ for extra in (HERE, HERE.parent / "service", HERE.parent / "scaleout"):  # fault
     if str(extra) not in sys.path:
         sys.path.insert(0, str(extra))
 
-from scaleout_kit import PostgresServer, RedisServer  # noqa: E402
-from service_testkit import make_example_case  # noqa: E402
+from scaleout_kit import PostgresServer, RedisServer
+from service_testkit import make_example_case
 
 CASE_SIZE = 64
 
