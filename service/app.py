@@ -80,13 +80,19 @@ class ServiceContext:
 
 
 class Sweeper:
-    """Recovers expired leases (often) and enforces retention (every sweep interval)."""
+    """Recovers expired leases (often) and enforces retention (every sweep interval).
+
+    After the job store was unreachable, no lease is judged expired for one lease period: while
+    the database was down no worker could renew its lease, so an expired lease is no sign of a
+    dead worker, and requeuing would throw away a registration its worker is about to save.
+    """
 
     def __init__(self, ctx: ServiceContext):
         self.ctx = ctx
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sweeper", daemon=True)
         self.last_retention = 0.0
+        self.recover_after = 0.0  # monotonic time before which leases are not recovered (store outage grace)
 
     def start(self) -> None:
         self._thread.start()
@@ -99,15 +105,16 @@ class Sweeper:
         recovery_every = max(0.5, min(5.0, self.ctx.settings.lease_seconds / 3.0))
         while not self._halt.wait(recovery_every):
             try:
-                self.sweep_once()
+                self.sweep_once(recover=time.monotonic() >= self.recover_after)
             except store_outage_errors() as exc:
                 log.warning("sweep skipped: job store unavailable (%s)", type(exc).__name__)
+                self.recover_after = time.monotonic() + self.ctx.settings.lease_seconds
             except Exception:
                 log.exception("sweep failed")
 
-    def sweep_once(self, *, force_retention: bool = False) -> None:
+    def sweep_once(self, *, force_retention: bool = False, recover: bool = True) -> None:
         store, blobs, settings = self.ctx.store, self.ctx.blobs, self.ctx.settings
-        requeued, failed = store.recover_expired()
+        requeued, failed = store.recover_expired() if recover else ([], [])
         for job_id in requeued:
             log.warning("job %s: lease expired, requeued", job_id)
         for job_id in failed:

@@ -69,7 +69,7 @@ class ServiceSettings(BaseSettings):
     max_mesh_faces: int | None = Field(None, ge=1, description="Refuse meshes with more faces (engine default 500k).")
     max_image_pixels: int | None = Field(None, ge=1, description="Refuse larger images, from the header (engine default 64 MP).")
     max_image_bytes: int = Field(
-        128 * 1024 * 1024, ge=1024,
+        64 * 1024 * 1024, ge=1024,
         description="Refuse images whose decoded pixels (width × height × channels × bytes per sample × frames, "
                     "from the header) need more bytes: a small compressed file must not decode to gigabytes.")
     max_job_cost: float = Field(

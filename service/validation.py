@@ -101,10 +101,30 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
         except DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
         except MemoryError:
-            conn.send({"ok": False, "message": "decoding the inputs needs more memory than allowed", "field": None,
-                       "accepted": "smaller inputs"})
+            conn.send({"ok": False, "message": f"decoding needs more than the {memory_mb} MB this server allows "
+                                               "for parsing one submission", "field": _largest_input(request),
+                       "accepted": "smaller inputs", "recycle": True})
         except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
             conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
+
+
+def _largest_input(request: dict) -> str | None:
+    """The input that most likely exhausted the memory limit: the largest decoded image, else the largest file."""
+    from .blobs import BlobStore
+    from .limits import image_decoded_bytes
+
+    blobs = BlobStore(request["blob_root"])
+    best, best_size = None, -1
+    for item in request["inputs"]:
+        size = item["size"]
+        if item["role"] in ("ap", "lat"):
+            try:
+                size = image_decoded_bytes(blobs.read(item["sha256"])) or size
+            except Exception:  # noqa: BLE001 - informative only
+                pass
+        if size > best_size:
+            best, best_size = item["role"], size
+    return best
 
 
 def _cuda_available() -> bool:
@@ -182,7 +202,11 @@ class _Slot:
             self.conn.send(request)
             if not self.conn.poll(max(0.0, deadline - time.monotonic())):
                 raise TimeoutError
-            return self.conn.recv()
+            reply = self.conn.recv()
+            if reply.get("recycle"):  # memory the allocator keeps after a MemoryError: start afresh
+                self.kill()
+                self.start()
+            return reply
         except (TimeoutError, EOFError, OSError, BrokenPipeError):
             self.kill()
             self.start()

@@ -182,6 +182,7 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
+    log.info("job %s: runs on %s", job.id, _thread_budget())
     control.start()
     outcome = "lost"
     try:
@@ -210,6 +211,17 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     log.info("job %s: %s after %.2f s (attempt %d, %d input bytes)", job.id, outcome, time.monotonic() - started,
              job.attempts, job.input_bytes)
     return outcome
+
+
+def _thread_budget() -> str:
+    """The CPU threads torch and numba use *on this thread* (both settings are per thread)."""
+    try:
+        import numba
+        import torch
+
+        return f"{torch.get_num_threads()} torch / {numba.get_num_threads()} numba threads"
+    except Exception:  # noqa: BLE001 - informative only
+        return "unknown threads"
 
 
 def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher,

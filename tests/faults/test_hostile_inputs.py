@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import struct
+import threading
 import zlib
 from pathlib import Path
 
@@ -23,8 +24,9 @@ def _chunk(kind: bytes, payload: bytes) -> bytes:
 
 
 def png_bomb(width: int = 7900, height: int = 7900, bits: int = 16, color: int = 6) -> bytes:
-    """A small PNG that decodes to width × height × 4 channels × 2 bytes (≈ 476 MiB by default)."""
-    row = b"\x00" * (1 + width * 4 * bits // 8)
+    """A small PNG that decodes to width × height × channels × bytes (default RGBA16: ≈ 476 MiB)."""
+    channels = {0: 1, 2: 3, 4: 2, 6: 4}[color]
+    row = b"\x00" * (1 + width * channels * bits // 8)
     packer = zlib.compressobj(9)
     idat = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
     header = struct.pack(">IIBBBBB", width, height, bits, color, 0, 0, 0)
@@ -63,7 +65,9 @@ def _is_validator(pid: int) -> bool:
 @pytest.fixture(scope="module")
 def hostile_server(tmp_path_factory):
     srv = Server(tmp_path_factory.mktemp("hostile") / "data", workers=1,
-                 env={"DSAREG_MAX_UPLOAD_BYTES": str(8 * MiB), "DSAREG_VALIDATION_MEMORY_MB": "512"}).start()
+                 env={"DSAREG_MAX_UPLOAD_BYTES": str(8 * MiB), "DSAREG_VALIDATION_MEMORY_MB": "512",
+                      # above the default 64 MiB so that one image reaches the decoder and its memory cap
+                      "DSAREG_MAX_IMAGE_BYTES": str(256 * MiB)}).start()
     yield srv
     srv.stop()
 
@@ -98,6 +102,8 @@ def _corpus(case) -> list[tuple[str, dict, dict, str | None]]:
         ("options not an object", {}, {"options": "[]"}, "options"),
         ("OBJ face index 0", {"mesh": ("m.obj", obj_zero)}, {}, "mesh"),
         ("PNG memory bomb 7900² RGBA16", {"ap": ("a.png", png_bomb())}, {}, "ap"),
+        ("PNG 6000² RGB8: under the byte cap, over the memory cap", {"ap": ("a.png", png_bomb(6000, 6000, 8, 2))}, {},
+         "ap"),
         ("PNG truncated", {"lat": ("l.png", b"\x89PNG\r\n\x1a\nnot really")}, {}, "lat"),
         ("empty image", {"ap": ("a.png", b"")}, {}, "ap"),
         ("STL nonsense", {"mesh": ("m.stl", b"solid x\nnonsense")}, {}, "mesh"),
@@ -121,13 +127,33 @@ def _problem(response, field: str | None) -> dict:
     return body
 
 
+class PeakSampler(threading.Thread):
+    """Largest RSS of any validator process of the server, sampled every 20 ms (validators are
+    replaced after a MemoryError, so their own VmHWM is lost with them)."""
+
+    def __init__(self, srv: Server):
+        super().__init__(daemon=True)
+        self.srv, self.peak_kb, self.halt = srv, 0, threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.wait(0.02):
+            for pid in descendants(self.srv.process.pid):
+                try:
+                    if _is_validator(pid):
+                        self.peak_kb = max(self.peak_kb, _status_kb(pid, "VmRSS"))
+                except OSError:
+                    pass
+
+
 def test_hostile_corpus_never_5xx(hostile_server, case):
     srv = hostile_server
     with srv.client() as client:
         assert _post(client, case, {}, {}).status_code == 202  # warm: the validator has parsed once
         validator = _validator_pid(srv)
         api_rss = _status_kb(srv.process.pid, "VmRSS")
-        validator_base = _status_kb(validator, "VmRSS")
+        validator_base = _status_kb(validator, "VmHWM")
+        sampler = PeakSampler(srv)
+        sampler.start()
         tried = 0
         for name, files, data, field in _corpus(case):
             response = _post(client, case, files, data)
@@ -136,7 +162,9 @@ def test_hostile_corpus_never_5xx(hostile_server, case):
             assert client.get("/healthz", timeout=2).status_code == 200, name
             tried += 1
         tried += _protocol_cases(client, case)
-        validator_peak = _status_kb(validator, "VmHWM") if validator in descendants(srv.process.pid) else 0
+        sampler.halt.set()
+        sampler.join()
+        validator_peak = sampler.peak_kb
         api_growth = _status_kb(srv.process.pid, "VmRSS") - api_rss
         metrics = client.get("/metrics").text
     print(f"hostile corpus: {tried} inputs, 0 5xx; validator peak {validator_peak / 1024:.0f} MB "
