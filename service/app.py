@@ -707,10 +707,12 @@ def _install_routes(app: FastAPI) -> None:
             "store_writable": ctx.store.ping(),
             "workers_alive": ctx.executor.alive_workers(),
             "validator_alive": ctx.validator.alive() if ctx.validator else False,
+            "validator_ready": ctx.validator.ready() if ctx.validator else False,
         }
         data_ok = Path(ctx.settings.data_dir).is_dir()
         checks["data_dir"] = data_ok
-        ready = checks["store_writable"] and checks["workers_alive"] > 0 and data_ok
+        ready = (checks["store_writable"] and checks["workers_alive"] > 0 and data_ok
+                 and (ctx.validator is None or checks["validator_ready"]))
         body = Health(status="ok" if ready else "unavailable", checks=checks)
         return JSONResponse(body.model_dump(), status_code=200 if ready else 503,
                             headers=None if ready else {"Retry-After": "5"})

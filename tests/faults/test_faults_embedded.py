@@ -137,7 +137,7 @@ def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case)
     try:
         with second.client() as client:
             response, took = timed_post(client, case, {**FAST, "seed": 7})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS + 2.0  # first parse after a start
+            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
             ids.append(response.json()["id"])
         _assert_invariants(second, ids)
     finally:
