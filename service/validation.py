@@ -141,7 +141,7 @@ def _largest_input(request: dict) -> str | None:
         if item["role"] in ("ap", "lat"):
             try:
                 size = image_decoded_bytes(blobs.read(item["sha256"])) or size
-            except Exception:  # noqa: BLE001 - informative only
+            except Exception:  # noqa: BLE001, S110 - informative only
                 pass
         if size > best_size:
             best, best_size = item["role"], size

@@ -68,8 +68,9 @@ def _png_header_only(width: int, height: int, bits: int, color: int) -> bytes:
 
 
 def test_decoded_bytes_from_the_header():
-    from dsareg_engine.errors import DsaregInputError
     from PIL import Image
+
+    from dsareg_engine.errors import DsaregInputError
 
     assert image_decoded_bytes(_png_header_only(7900, 7900, 16, 6)) == 7900 * 7900 * 4 * 2
     assert image_decoded_bytes(_png_header_only(100, 50, 8, 0)) == 5000
@@ -108,27 +109,41 @@ def test_closing_the_wake_link_stops_the_child():
     assert child.exitcode == 0
 
 
+def _state(pid: int) -> str | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return None
+
+
+MIDDLE = """
+import multiprocessing as mp, os, sys, time
+sys.path.insert(0, {here!r})
+from test_service_limits import _sleeper
+from service.procwatch import WakeLink
+if __name__ == "__main__":
+    ctx = mp.get_context("spawn")
+    link = WakeLink(ctx)
+    p = ctx.Process(target=_sleeper, args=(link.child_end(), os.getpid()))
+    p.start()
+    link.started()
+    print(p.pid, flush=True)
+    time.sleep(600)
+"""
+
+
 def test_child_dies_with_a_sigkilled_parent(tmp_path):
     """A middle process starts a linked child and is SIGKILLed: the child must go too."""
     script = tmp_path / "middle.py"
-    script.write_text(
-        "import multiprocessing as mp, os, sys, time\n"
-        "sys.path.insert(0, %r)\n"
-        "from test_service_limits import _sleeper\n"
-        "from service.procwatch import WakeLink\n"
-        "if __name__ == '__main__':\n"
-        "    ctx = mp.get_context('spawn'); link = WakeLink(ctx)\n"
-        "    p = ctx.Process(target=_sleeper, args=(link.child_end(), os.getpid())); p.start(); link.started()\n"
-        "    print(p.pid, flush=True); time.sleep(600)\n" % os.path.dirname(__file__))
+    script.write_text(MIDDLE.format(here=os.path.dirname(__file__)))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")])}
     middle = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env, text=True)
     child_pid = int(middle.stdout.readline())
+    assert _state(child_pid) not in (None, "Z")
     middle.kill()
     middle.wait(10)
     deadline = time.monotonic() + 20
-    while time.monotonic() < deadline and os.path.exists(f"/proc/{child_pid}"):
-        with open(f"/proc/{child_pid}/stat") as f:
-            if f.read().rsplit(")", 1)[1].split()[0] == "Z":
-                break
+    while time.monotonic() < deadline and _state(child_pid) not in (None, "Z"):
         time.sleep(0.1)
-    assert not os.path.exists(f"/proc/{child_pid}") or open(f"/proc/{child_pid}/stat").read().rsplit(")", 1)[1].split()[0] == "Z"
+    assert _state(child_pid) in (None, "Z")
