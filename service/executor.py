@@ -89,9 +89,11 @@ class EmbeddedProcessExecutor(Executor):
         self._supervisor: threading.Thread | None = None
         self._halt = threading.Event()
         self._lock = threading.Lock()
+        self._links_lock = threading.Lock()
 
     def _spawn(self, index: int) -> None:
-        old = self.links[index]
+        with self._links_lock:  # no notify writes to the old pipe once it is closed (its fd number may be reused)
+            old, self.links[index] = self.links[index], None
         if old is not None:
             old.close()
         link = WakeLink(self.ctx)
@@ -101,7 +103,8 @@ class EmbeddedProcessExecutor(Executor):
         )
         process.start()
         link.started()
-        self.links[index] = link
+        with self._links_lock:
+            self.links[index] = link
         self.processes[index] = process
         log.info("worker process %d started (pid %s)", index, process.pid)
 
@@ -128,9 +131,10 @@ class EmbeddedProcessExecutor(Executor):
                     self._spawn(index)
 
     def notify(self) -> None:
-        for link in list(self.links):
-            if link is not None:
-                link.notify()
+        with self._links_lock:  # held only for non-blocking one-byte writes
+            for link in self.links:
+                if link is not None:
+                    link.notify()
 
     def alive_workers(self) -> int:
         return sum(1 for p in self.processes if p is not None and p.is_alive())
@@ -140,10 +144,11 @@ class EmbeddedProcessExecutor(Executor):
 
     def stop(self, timeout: float = 10.0) -> None:
         self._halt.set()
-        with self._lock:  # no restart after this point: the supervisor checks _halt under the lock
-            for link in self.links:
+        with self._lock, self._links_lock:  # no restart after this point: the supervisor checks _halt under _lock
+            for index, link in enumerate(self.links):
                 if link is not None:
                     link.close()
+                self.links[index] = None
         deadline = time.monotonic() + timeout
         for process in self.processes:
             if process is not None:

@@ -68,6 +68,12 @@ def hostile_server(tmp_path_factory):
     srv.stop()
 
 
+def _has_cuda() -> bool:
+    import torch
+
+    return bool(torch.cuda.is_available())
+
+
 def _corpus(case) -> list[tuple[str, dict, dict, str | None]]:
     """(name, files override, form data override, field expected in the problem)."""
     deep = "[" * 10_000 + "]" * 10_000
@@ -91,9 +97,10 @@ def _corpus(case) -> list[tuple[str, dict, dict, str | None]]:
          "options.initial_mesh_to_world"),
         ("options bad ground truth", {}, {"options": json.dumps({"ground_truth_mesh_to_world": rigid[:3]})},
          "options.ground_truth_mesh_to_world"),
-        ("options device cuda (no CUDA)", {}, {"options": '{"device": "cuda"}'}, "options.device"),
         ("options hour-long job", {}, {"options": json.dumps({"starts": 64, "working_size_px": 2000,
                                                                "coarse_to_fine": False})}, "options"),
+        *([] if _has_cuda() else [("options device cuda (no CUDA)", {}, {"options": '{"device": "cuda"}'},
+                                   "options.device")]),
         ("options unknown key", {}, {"options": '{"sneaky": 1}'}, "options.sneaky"),
         ("options not an object", {}, {"options": "[]"}, "options"),
         ("OBJ face index 0", {"mesh": ("m.obj", obj_zero)}, {}, "mesh"),
