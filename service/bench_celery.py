@@ -154,8 +154,10 @@ def main(argv: list[str] | None = None) -> int:
             jobs = [store.get(j) for j in ids]
             span = max(j.finished_at for j in jobs) - min(j.created_at for j in jobs)
             rows.append((count, args.jobs, span, args.jobs / span * 60.0))
-            print(f"{count} worker(s): {args.jobs} jobs in {span:.1f} s = {args.jobs / span * 60.0:.1f} jobs/min",
-                  flush=True)
+            run = statistics.median(j.finished_at - j.started_at for j in jobs)
+            load = os.getloadavg()[0]
+            print(f"{count} worker(s): {args.jobs} jobs in {span:.1f} s = {args.jobs / span * 60.0:.1f} jobs/min "
+                  f"(median run time per job {run:.2f} s; load average {load:.1f} on {os.cpu_count()} CPUs)", flush=True)
             if count == 1:
                 e2e, dispatch = _timings(store, _sequential(url, case, options, args.sequential))
                 overhead["celery"] = (statistics.median(e2e), statistics.median(dispatch))
