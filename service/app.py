@@ -28,17 +28,30 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, H
 from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from .blobs import BlobStore, safe_suffix
 from .dbblobs import make_blob_store
 from .docs_offline import install_docs
 from .executor import Executor, make_executor
+from .httpfaults import allowed_methods
+from .limits import check_job_cost, check_options, parse_json_part
 from .middleware import BodyLimitMiddleware, MetricsMiddleware
 from .models import EXAMPLE_ID, Health, JobList, JobStatus, status_body, summary_body
 from .problems import PROBLEM_MEDIA_TYPE, Problem, ProblemDetails, problem_body, problem_responses
 from .schemas import document as document_payloads
 from .settings import ServiceSettings
-from .store import STATUSES, ConflictError, InputFile, JobRecord, JobStore, SqlJobStore, decode_cursor, new_job_id
+from .store import (
+    STATUSES,
+    ConflictError,
+    InputFile,
+    JobRecord,
+    JobStore,
+    SqlJobStore,
+    decode_cursor,
+    new_job_id,
+    store_outage_errors,
+)
 from .track import install_track_route
 from .validation import ValidatorPool
 
@@ -49,6 +62,7 @@ MAX_GEOMETRY_BYTES = 1 << 20
 MAX_OPTIONS_BYTES = 1 << 20
 MAX_VOLUME_FILES = 4000
 RETRY_AFTER_QUEUED = "2"
+STORE_RETRY_AFTER = "5"
 DURATION_BUCKETS = (1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800, 3600)
 
 
@@ -69,13 +83,19 @@ class ServiceContext:
 
 
 class Sweeper:
-    """Recovers expired leases (often) and enforces retention (every sweep interval)."""
+    """Recovers expired leases (often) and enforces retention (every sweep interval).
+
+    After the job store was unreachable, no lease is judged expired for one lease period: while
+    the database was down no worker could renew its lease, so an expired lease is no sign of a
+    dead worker, and requeuing would throw away a registration its worker is about to save.
+    """
 
     def __init__(self, ctx: ServiceContext):
         self.ctx = ctx
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sweeper", daemon=True)
         self.last_retention = 0.0
+        self.recover_after = 0.0  # monotonic time before which leases are not recovered (store outage grace)
 
     def start(self) -> None:
         self._thread.start()
@@ -88,13 +108,16 @@ class Sweeper:
         recovery_every = max(0.5, min(5.0, self.ctx.settings.lease_seconds / 3.0))
         while not self._halt.wait(recovery_every):
             try:
-                self.sweep_once()
+                self.sweep_once(recover=time.monotonic() >= self.recover_after)
+            except store_outage_errors() as exc:
+                log.warning("sweep skipped: job store unavailable (%s)", type(exc).__name__)
+                self.recover_after = time.monotonic() + self.ctx.settings.lease_seconds
             except Exception:
                 log.exception("sweep failed")
 
-    def sweep_once(self, *, force_retention: bool = False) -> None:
+    def sweep_once(self, *, force_retention: bool = False, recover: bool = True) -> None:
         store, blobs, settings = self.ctx.store, self.ctx.blobs, self.ctx.settings
-        requeued, failed = store.recover_expired()
+        requeued, failed = store.recover_expired() if recover else ([], [])
         for job_id in requeued:
             log.warning("job %s: lease expired, requeued", job_id)
         for job_id in failed:
@@ -312,10 +335,12 @@ def _install_handlers(app: FastAPI) -> None:
         detail = exc.detail if isinstance(exc.detail, str) else None
         if exc.status_code == 404 and detail in (None, "Not Found"):
             detail = f"no such endpoint: {request.method} {request.url.path[:200]}; see /docs"
-        elif exc.status_code == 405:
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
             detail = f"{request.method} is not allowed on {request.url.path[:200]}; see /docs"
+            headers["Allow"] = allowed_methods(request.app.router.routes, request.scope) or headers.get("Allow", "")
         return _problem_response(exc.status_code, problem_body(exc.status_code, detail, instance=request.url.path),
-                                 dict(exc.headers or {}))
+                                 headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -328,6 +353,16 @@ def _install_handlers(app: FastAPI) -> None:
         return _problem_response(422, problem_body(422, detail, kind="invalid-parameter", instance=request.url.path,
                                                    field=field_name))
 
+    @app.exception_handler(ClientDisconnect)
+    async def _gone(request: Request, exc: ClientDisconnect) -> JSONResponse:
+        # the client went away mid-request (often mid-upload): nothing to answer, nothing broken here
+        log.info("client disconnected during %s %s", request.method, _route_template(request))
+        return _problem_response(400, problem_body(400, "the client disconnected before the request was complete",
+                                                   kind="client-disconnected", instance=request.url.path))
+
+    for outage in store_outage_errors():
+        app.add_exception_handler(outage, _store_unavailable)
+
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception) -> JSONResponse:
         log.error("internal error on %s %s: %s", request.method, _route_template(request), type(exc).__name__,
@@ -339,6 +374,14 @@ def _install_handlers(app: FastAPI) -> None:
 def _operation_id(route: Any) -> str:
     """operationId = the handler's name (``submit``, ``get_job``, ``list_jobs``...): what generated clients call."""
     return route.name
+
+
+async def _store_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """The job database is down or busy: a temporary condition (503 + Retry-After), not a bug (500)."""
+    log.warning("job store unavailable on %s %s: %s", request.method, _route_template(request), type(exc).__name__)
+    return _problem_response(503, problem_body(503, "the job database is temporarily unavailable; retry later",
+                                               kind="store-unavailable", instance=request.url.path),
+                             {"Retry-After": STORE_RETRY_AFTER})
 
 
 def _route_template(request: Request) -> str:
@@ -386,12 +429,7 @@ def _normalize_geometry(text: str | None) -> str | None:
     if not text.startswith("{"):
         raise Problem(422, f"'{text[:40]}' is not a known preset and not a JSON object", field="geometry",
                       accepted=f"a preset name {sorted(PRESETS)} or geometry JSON (text or file)")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise Problem(422, f"is not valid JSON ({exc.msg} at line {exc.lineno})", field="geometry") from None
-    if not isinstance(data, dict):
-        raise Problem(422, "must be a JSON object", field="geometry")
+    data = parse_json_part(text, "geometry")
     return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 
@@ -410,8 +448,10 @@ def _install_routes(app: FastAPI) -> None:
         openapi_extra={
             "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": MULTIPART_SCHEMA}}},
             "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
-                            "schema": {"type": "string", "maxLength": 255},
-                            "description": "Makes retries of the same submission safe."}],
+                            "schema": {"type": "string", "minLength": 1, "maxLength": 255, "pattern": r"\S"},
+                            "description": "Makes retries of the same submission safe. 1 to 255 characters, at "
+                                           "least one of them not white space; otherwise 400 (field "
+                                           "`Idempotency-Key`)."}],
         },
         responses={
             200: {"description": "Idempotent replay: the job created earlier with this key.", "model": JobStatus},
@@ -477,10 +517,12 @@ def _install_routes(app: FastAPI) -> None:
         from dsareg_engine.errors import DsaregInputError
         from dsareg_engine.registration.options import parse_options
 
+        options_data = parse_json_part(options_text, "options") if options_text and options_text.strip() else None
         try:
-            options = parse_options(options_text if options_text and options_text.strip() else None)
+            options = parse_options(options_data)
         except DsaregInputError as exc:
             raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+        check_options(options)
         options_json = options.model_dump(mode="json")
 
         # store the uploads (content-addressed) and fingerprint the request
@@ -517,6 +559,7 @@ def _install_routes(app: FastAPI) -> None:
             outcome = await ctx.validator.validate({
                 "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
                 "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
+                "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
             })
             if outcome.unavailable:
                 raise Problem(503, "the registration engine is not available on this server", kind="engine-unavailable",
@@ -524,6 +567,8 @@ def _install_routes(app: FastAPI) -> None:
             if not outcome.ok:
                 raise Problem(422, outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
             warnings = list((outcome.summary or {}).get("warnings", []))
+            views = (outcome.summary or {}).get("views") or {}
+            check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.max_job_cost)
 
         now = time.time()
         job = JobRecord(
@@ -568,7 +613,10 @@ def _install_routes(app: FastAPI) -> None:
         status: str | None = Query(None, description="Only jobs in this state.",
                                    json_schema_extra={"enum": list(STATUSES)}),
         limit: int = Query(20, ge=1, le=100, description="Page size."),
-        cursor: str | None = Query(None, max_length=200, description="next_cursor of the previous page."),
+        cursor: str | None = Query(
+            None, max_length=200,
+            description="Opaque paging token: exactly the `next_cursor` of the previous page (URL-safe base64 "
+                        "without padding, at most 200 characters). Any other value → 400 with field `cursor`."),
         who: str = Depends(principal),
     ) -> Response:
         ctx = get_ctx(request)
@@ -687,10 +735,12 @@ def _install_routes(app: FastAPI) -> None:
             "store_writable": ctx.store.ping(),
             "workers_alive": ctx.executor.alive_workers(),
             "validator_alive": ctx.validator.alive() if ctx.validator else False,
+            "validator_ready": ctx.validator.ready() if ctx.validator else False,
         }
         data_ok = Path(ctx.settings.data_dir).is_dir()
         checks["data_dir"] = data_ok
-        ready = checks["store_writable"] and checks["workers_alive"] > 0 and data_ok
+        ready = (checks["store_writable"] and checks["workers_alive"] > 0 and data_ok
+                 and (ctx.validator is None or checks["validator_ready"]))
         body = Health(status="ok" if ready else "unavailable", checks=checks)
         return JSONResponse(body.model_dump(), status_code=200 if ready else 503,
                             headers=None if ready else {"Retry-After": "5"})

@@ -147,6 +147,23 @@ def _state(settings: ServiceSettings) -> _WorkerState:
         return _STATE
 
 
+def apply_thread_budget(settings: ServiceSettings) -> int:
+    """Set torch's and numba's thread counts on *the calling thread*.
+
+    Both are per-thread settings (numba's ``set_num_threads`` and the OpenMP ICV behind
+    ``torch.set_num_threads`` belong to the thread that calls them); the ``threads`` pool runs
+    tasks on a pool thread, where the main thread's setting does not apply and numba would take
+    every core. Called at the start of every task, so it holds on whichever thread runs it.
+    """
+    try:
+        from dsareg_engine.threads import set_cpu_threads
+
+        return set_cpu_threads(settings.threads_per_worker or default_cpu_threads())
+    except Exception:  # noqa: BLE001 - run with the defaults rather than not at all
+        log.warning("could not set the task thread's CPU threads")
+        return 0
+
+
 def _run_job_task(self: Any, job_id: str) -> str:
     from sqlalchemy.exc import DBAPIError, OperationalError
 
@@ -154,6 +171,7 @@ def _run_job_task(self: Any, job_id: str) -> str:
 
     settings: ServiceSettings = self.app.dsareg_settings
     state = _state(settings)
+    apply_thread_budget(settings)
     try:
         job = state.store.claim_job(job_id, state.worker_id, settings.lease_seconds)
     except (OperationalError, DBAPIError) as exc:

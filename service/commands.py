@@ -115,14 +115,11 @@ def run_worker(args: argparse.Namespace) -> int:
 
         run_celery_worker(settings, pool=args.pool, hostname=args.hostname)
         return 0
-    import threading
-
     from .store import SqlJobStore
     from .worker import worker_main
 
     SqlJobStore(settings.effective_database_url).dispose()  # create the schema if this is the first process
-    stop, wake = threading.Event(), threading.Event()
-    worker_main(settings, 0, stop, wake)
+    worker_main(settings, 0)
     return 0
 
 

@@ -22,6 +22,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import ValidationError
 
 from .dicomweb import DicomwebRegistrationRequest, resolve_server
+from .limits import check_options, parse_json_part
 from .models import job_status
 from .problems import Problem, problem_responses
 from .store import ConflictError, InputFile, JobRecord, new_job_id
@@ -40,11 +41,8 @@ async def submit_by_reference(ctx, request: Request, who: str, key: str | None) 
     body = await request.body()
     if len(body) > MAX_REFERENCE_BYTES:
         raise Problem(413, f"a reference request is at most {MAX_REFERENCE_BYTES} bytes")
-    try:
-        data = json.loads(body)
-    except ValueError:
-        raise Problem(400, "the body is not JSON", accepted="application/json") from None
-    if not isinstance(data, dict) or "source" not in data:
+    data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
+    if "source" not in data:
         raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat, or application/json "
                            "with a DICOMweb reference {\"source\": {\"dicomweb\": ...}}",
                       accepted="multipart/form-data, application/json (source.dicomweb)")
@@ -69,6 +67,7 @@ async def submit_by_reference(ctx, request: Request, who: str, key: str | None) 
         options = parse_options(json.dumps(reference.options) if reference.options else None)
     except DsaregInputError as exc:
         raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+    check_options(options)
     options_json = options.model_dump(mode="json")
     stored_reference = reference.model_copy(update={"options": {}})
     stored_reference.source.dicomweb.url = server.url  # normalized

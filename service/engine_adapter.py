@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from .blobs import BlobStore
+from .limits import check_image_budget
 from .store import InputFile
 
 ROLE_NAMES = {"mesh": "mesh", "volume": "volume", "ap": "ap", "lat": "lat"}
@@ -34,7 +35,7 @@ def input_limits(limits: dict[str, int] | None) -> Any:
     """``InputLimits`` with the configured ceilings (engine defaults for the others)."""
     from dsareg_engine.io.limits import DEFAULT_LIMITS, InputLimits
 
-    chosen = {k: v for k, v in (limits or {}).items() if v}
+    chosen = {k: v for k, v in (limits or {}).items() if v and k in InputLimits.__dataclass_fields__}
     return InputLimits(**chosen) if chosen else DEFAULT_LIMITS
 
 
@@ -47,6 +48,7 @@ def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: s
     """
     from dsareg_engine.io.case import load_case
 
+    image_budget = (limits or {}).get("max_image_bytes")
     kwargs: dict[str, Any] = {"geometry": geometry_argument(geometry), "segmentation": segmentation,
                               "limits": input_limits(limits)}
     for role in ("mesh", "volume", "ap", "lat"):
@@ -57,6 +59,9 @@ def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: s
             kwargs[role] = read(items[0].sha256)
         else:
             kwargs[role] = [read(item.sha256) for item in items]
+        if image_budget and role in ("ap", "lat"):
+            for data in kwargs[role] if isinstance(kwargs[role], list) else [kwargs[role]]:
+                check_image_budget(data, role, image_budget)
         kwargs[f"{role}_name"] = role + items[0].suffix
     return load_case(**kwargs)
 

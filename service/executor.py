@@ -11,10 +11,12 @@ from __future__ import annotations
 import abc
 import logging
 import multiprocessing as mp
+import os
 import threading
 import time
 from typing import Any
 
+from .procwatch import WakeLink
 from .settings import ServiceSettings
 from .worker import worker_main
 
@@ -71,26 +73,38 @@ class NoExecutor(Executor):
 
 
 class EmbeddedProcessExecutor(Executor):
-    """N worker processes (``spawn`` context) supervised by a thread of the server."""
+    """N worker processes (``spawn`` context) supervised by a thread of the server.
+
+    Each worker has its own :class:`~service.procwatch.WakeLink` pipe (wake-up bytes; closing
+    it stops the worker) instead of process-shared events, whose internal lock a SIGKILLed
+    worker could leave held and so block every later notify."""
 
     def __init__(self, settings: ServiceSettings, workers: int | None = None):
         self.settings = settings
         self.count = settings.workers if workers is None else workers
         self.ctx = mp.get_context("spawn")
-        self.stop_event = self.ctx.Event()
-        self.wake = self.ctx.Event()
+        self.links: list[WakeLink | None] = [None] * self.count
         self.processes: list[Any] = [None] * self.count
         self.restarts = 0
         self._supervisor: threading.Thread | None = None
         self._halt = threading.Event()
         self._lock = threading.Lock()
+        self._links_lock = threading.Lock()
 
     def _spawn(self, index: int) -> None:
+        with self._links_lock:  # no notify writes to the old pipe once it is closed (its fd number may be reused)
+            old, self.links[index] = self.links[index], None
+        if old is not None:
+            old.close()
+        link = WakeLink(self.ctx)
         process = self.ctx.Process(
-            target=worker_main, args=(self.settings, index, self.stop_event, self.wake),
+            target=worker_main, args=(self.settings, index, link.child_end(), os.getpid()),
             name=f"dsareg-worker-{index}", daemon=False,
         )
         process.start()
+        link.started()
+        with self._links_lock:
+            self.links[index] = link
         self.processes[index] = process
         log.info("worker process %d started (pid %s)", index, process.pid)
 
@@ -117,7 +131,10 @@ class EmbeddedProcessExecutor(Executor):
                     self._spawn(index)
 
     def notify(self) -> None:
-        self.wake.set()
+        with self._links_lock:  # held only for non-blocking one-byte writes
+            for link in self.links:
+                if link is not None:
+                    link.notify()
 
     def alive_workers(self) -> int:
         return sum(1 for p in self.processes if p is not None and p.is_alive())
@@ -127,8 +144,11 @@ class EmbeddedProcessExecutor(Executor):
 
     def stop(self, timeout: float = 10.0) -> None:
         self._halt.set()
-        self.stop_event.set()
-        self.wake.set()
+        with self._lock, self._links_lock:  # no restart after this point: the supervisor checks _halt under _lock
+            for index, link in enumerate(self.links):
+                if link is not None:
+                    link.close()
+                self.links[index] = None
         deadline = time.monotonic() + timeout
         for process in self.processes:
             if process is not None:

@@ -103,17 +103,28 @@ class PostgresServer:
         run = dict(stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=120)  # noqa: C408
         subprocess.run(self._cmd(str(self.bindir / "initdb"), "-D", str(self.data), "-U", "postgres",
                                  "--auth=trust", "-E", "UTF8", "--no-sync"), check=True, **run)
-        options = (f"-p {self.port} -k {self.dir} -c listen_addresses=127.0.0.1 -c fsync=off "
-                   "-c synchronous_commit=off -c full_page_writes=off -c max_connections=200")
-        subprocess.run(self._cmd(str(self.bindir / "pg_ctl"), "-D", str(self.data), "-o", options,
-                                 "-l", str(self.dir / "pg.log"), "-w", "-t", "60", "start"), check=True, **run)
-        self.started = True
+        self.resume()
         import psycopg
 
         with psycopg.connect(host="127.0.0.1", port=self.port, user="postgres", dbname="postgres",
                              autocommit=True) as conn:
             conn.execute("CREATE DATABASE dsareg")
         return self
+
+    def resume(self) -> None:
+        """Start the server on the existing cluster (after :meth:`start` created it, or after :meth:`pause`)."""
+        options = (f"-p {self.port} -k {self.dir} -c listen_addresses=127.0.0.1 -c fsync=off "
+                   "-c synchronous_commit=off -c full_page_writes=off -c max_connections=200")
+        subprocess.run(self._cmd(str(self.bindir / "pg_ctl"), "-D", str(self.data), "-o", options,
+                                 "-l", str(self.dir / "pg.log"), "-w", "-t", "60", "start"), check=True,
+                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=120)
+        self.started = True
+
+    def pause(self) -> None:
+        """Stop the server, keeping its data (an outage: clients get connection refused until :meth:`resume`)."""
+        subprocess.run(self._cmd(str(self.bindir / "pg_ctl"), "-D", str(self.data), "-m", "fast", "-w", "stop"),
+                       check=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=120)
+        self.started = False
 
     def stop(self) -> None:
         if self.started:

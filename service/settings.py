@@ -64,10 +64,21 @@ class ServiceSettings(BaseSettings):
     queue_limit_per_key: int = Field(200, ge=1, description="Queued jobs of one API key at most; more → 429.")
     validation_timeout_seconds: float = Field(60.0, gt=0.0, description="Input parsing time at most before a 422.")
     validation_processes: int = Field(1, ge=1, le=16, description="Processes that parse inputs for the API.")
-    validation_memory_mb: int = Field(4096, ge=0, description="Extra address space for one input parse (0: unlimited).")
+    validation_memory_mb: int = Field(
+        512, ge=0, description="Extra address space for one input parse (RLIMIT_AS of the validator; 0: unlimited).")
     max_mesh_faces: int | None = Field(None, ge=1, description="Refuse meshes with more faces (engine default 500k).")
     max_image_pixels: int | None = Field(None, ge=1, description="Refuse larger images, from the header (engine default 64 MP).")
+    max_image_bytes: int = Field(
+        64 * 1024 * 1024, ge=1024,
+        description="Refuse images whose decoded pixels (width × height × channels × bytes per sample × frames, "
+                    "from the header) need more bytes: a small compressed file must not decode to gigabytes.")
+    max_job_cost: float = Field(
+        5e10, ge=0.0, description="Refuse jobs estimated above this many pixel-iterations "
+                                  "(starts × max_iterations × final-stage pixels of the views); 0: no limit.")
     max_volume_bytes: int | None = Field(None, ge=1, description="Refuse larger decoded volumes (engine default 1 GiB).")
+    result_save_seconds: float = Field(
+        120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
+                                   "(exponential backoff) before giving up the attempt.")
     job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
 
     # retention
@@ -146,7 +157,7 @@ class ServiceSettings(BaseSettings):
     def input_limits(self) -> dict[str, int]:
         """Keyword arguments of the engine's ``InputLimits`` (only those configured)."""
         chosen = {"max_faces": self.max_mesh_faces, "max_image_pixels": self.max_image_pixels,
-                  "max_volume_bytes": self.max_volume_bytes}
+                  "max_volume_bytes": self.max_volume_bytes, "max_image_bytes": self.max_image_bytes}
         return {k: v for k, v in chosen.items() if v}
 
     @property

@@ -134,7 +134,7 @@ class JobStore(abc.ABC):
 
     @abc.abstractmethod
     def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
-                 error: dict | None = None, artifacts: dict[str, str] | None = None) -> bool: ...
+                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool: ...
 
     @abc.abstractmethod
     def release(self, job_id: str, worker_id: str) -> bool:
@@ -442,14 +442,26 @@ class SqlJobStore(JobStore):
         return True, bool(cancel)
 
     def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
-                 error: dict | None = None, artifacts: dict[str, str] | None = None) -> bool:
+                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool:
+        """Finish the job if this worker still owns it.
+
+        With ``attempt``: also when its lease expired meanwhile (e.g. the database was down while
+        the job finished) and the sweeper put it back in the queue, as long as no worker claimed it
+        since (``status='queued' AND attempts=attempt``): the result is kept instead of running the
+        job again, and it still completes at most once.
+        """
         if status not in FINISHED:
             raise ValueError(status)
         now = time.time()
+        owned = sa.and_(jobs.c.worker_id == worker_id, jobs.c.status == "running")
+        if attempt is not None:
+            owned = sa.or_(owned, sa.and_(jobs.c.status == "queued", jobs.c.worker_id.is_(None),
+                                          jobs.c.attempts == attempt, jobs.c.cancel_requested.is_(False)))
         with self.writer.begin() as conn:
             done = conn.execute(
-                jobs.update().where(jobs.c.id == job_id, jobs.c.worker_id == worker_id, jobs.c.status == "running").values(
+                jobs.update().where(jobs.c.id == job_id, owned).values(
                     status=status, finished_at=now, updated_at=now, lease_expires_at=None, result=_dump(result),
+                    worker_id=worker_id,
                     error=_dump(error), artifacts=_dump(artifacts or {}),
                 )
             ).rowcount
@@ -500,8 +512,9 @@ class SqlJobStore(JobStore):
                 else:
                     error = {
                         "type": "https://dsareg.dev/problems/worker-lost", "title": "Worker lost", "status": 500,
-                        "detail": f"the job's worker stopped responding on each of {attempts} attempts; "
-                                  "the input may be too large for the workers' memory",
+                        "detail": f"no heartbeat from the job's worker within the lease on each of {attempts} attempts "
+                                  "(the worker crashed or was killed, e.g. out of memory, or could not reach the "
+                                  "job database)",
                         "instance": f"/v1/registrations/{job_id}",
                     }
                     n = conn.execute(jobs.update().where(*guard).values(
@@ -571,6 +584,12 @@ def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
     cur.execute("PRAGMA busy_timeout=30000")
     cur.execute("PRAGMA foreign_keys=ON")
     cur.close()
+
+
+def store_outage_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions meaning "the job database is unreachable or busy" (connection refused or lost, pool
+    timeout, SQLite locked): answered 503 by the API, retried by workers; not bugs."""
+    return (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutError)
 
 
 def open_store(url: str) -> JobStore:

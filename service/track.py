@@ -18,6 +18,7 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.responses import Response
 from starlette.datastructures import FormData, UploadFile
 
+from .limits import parse_json_part
 from .models import JobStatus
 from .problems import Problem, problem_responses
 
@@ -87,13 +88,7 @@ def install_track_route(app: FastAPI, submit: Submit, get_ctx, principal, owned_
                 if isinstance(text, UploadFile):
                     text = (await text.read()).decode("utf-8", errors="replace")
                 if text.strip():
-                    try:
-                        extra = json.loads(text)
-                    except json.JSONDecodeError as exc:
-                        raise Problem(422, f"options is not JSON: {exc.msg}", field="options") from None
-                    if not isinstance(extra, dict):
-                        raise Problem(422, "options must be a JSON object", field="options")
-                    options.update(extra)
+                    options.update(parse_json_part(text, "options"))
             options["mode"] = "track"
             options["initial_mesh_to_world"] = previous.result["mesh_to_world"]
             items: list[tuple[str, Any]] = []

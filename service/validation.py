@@ -25,6 +25,7 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -49,17 +50,22 @@ def _set_memory_limit(extra_mb: int) -> None:
         pass
 
 
-def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
+def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
     """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
     import signal
 
+    from .procwatch import die_with_parent
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
+        die_with_parent(parent_pid, signal.SIGKILL)
     engine_ok = True
     try:
         import torch
 
         torch.set_num_threads(max(1, threads or 1))
         import dsareg_engine.io.case
+        _warm_parsers()
     except Exception:  # noqa: BLE001
         engine_ok = False
     _set_memory_limit(memory_mb)
@@ -85,6 +91,10 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
             except Exception:  # noqa: BLE001
                 conn.send({"ok": False, "unavailable": True})
                 continue
+        if request.get("require_cuda") and not _cuda_available():
+            conn.send({"ok": False, "message": "CUDA is not available on this server", "field": "options.device",
+                       "accepted": "auto or cpu"})
+            continue
         try:
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
@@ -93,10 +103,58 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int) -> None:
         except DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
         except MemoryError:
-            conn.send({"ok": False, "message": "decoding the inputs needs more memory than allowed", "field": None,
-                       "accepted": "smaller inputs"})
+            conn.send({"ok": False, "message": f"decoding needs more than the {memory_mb} MB this server allows "
+                                               "for parsing one submission", "field": _largest_input(request),
+                       "accepted": "smaller inputs", "recycle": True})
         except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
             conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
+
+
+def _warm_parsers() -> None:
+    """Run the parsers once on tiny inputs before reporting ready: their lazily imported parts
+    (scikit-image's filters pull in scipy.stats, trimesh) cost ~2 s on the first submission
+    otherwise, and they then count in the baseline the memory limit is added to."""
+    import numpy as np
+
+    from dsareg_engine.errors import DsaregInputError
+    from dsareg_engine.io.mesh_io import read_mesh
+    from dsareg_engine.io.segmentation import segment_vessels
+
+    image = np.zeros((48, 48), np.float32)
+    image[20:28, 4:44] = 1.0
+    try:
+        segment_vessels(image, "auto")
+        read_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n", "warm.obj")
+    except DsaregInputError:
+        pass
+
+
+def _largest_input(request: dict) -> str | None:
+    """The input that most likely exhausted the memory limit: the largest decoded image, else the largest file."""
+    from .blobs import BlobStore
+    from .limits import image_decoded_bytes
+
+    blobs = BlobStore(request["blob_root"])
+    best, best_size = None, -1
+    for item in request["inputs"]:
+        size = item["size"]
+        if item["role"] in ("ap", "lat"):
+            try:
+                size = image_decoded_bytes(blobs.read(item["sha256"])) or size
+            except Exception:  # noqa: BLE001, S110 - informative only
+                pass
+        if size > best_size:
+            best, best_size = item["role"], size
+    return best
+
+
+def _cuda_available() -> bool:
+    try:
+        import torch
+
+        return bool(torch.cuda.is_available())
+    except Exception:  # noqa: BLE001
+        return False
 
 
 @dataclass
@@ -118,11 +176,13 @@ class _Slot:
         self.process: Any = None
         self.conn: Connection | None = None
         self.ready = False
+        self.lock = threading.Lock()  # the pipe is used by one request thread and by readiness checks
 
     def start(self) -> None:
         parent, child = self.ctx.Pipe(duplex=True)
         self.process = self.ctx.Process(
-            target=_validator_main, args=(child, self.memory_mb, self.threads), name="dsareg-validator", daemon=True
+            target=_validator_main, args=(child, self.memory_mb, self.threads, os.getpid()), name="dsareg-validator",
+            daemon=True
         )
         self.process.start()
         child.close()
@@ -151,7 +211,20 @@ class _Slot:
         self.conn = None
         self.ready = False
 
+    def check_ready(self) -> bool:
+        """Non-blocking: has the process finished its start-up (imports, warm-up)?"""
+        if self.ready or not self.lock.acquire(blocking=False):
+            return self.ready  # busy with a request: it was ready
+        try:
+            return self.conn is not None and self.wait_ready(0)
+        finally:
+            self.lock.release()
+
     def call(self, request: dict, timeout: float) -> dict | None:
+        with self.lock:
+            return self._call(request, timeout)
+
+    def _call(self, request: dict, timeout: float) -> dict | None:
         """Blocking; ``None`` on timeout or crash (the process is then replaced)."""
         deadline = time.monotonic() + timeout
         try:
@@ -164,7 +237,11 @@ class _Slot:
             self.conn.send(request)
             if not self.conn.poll(max(0.0, deadline - time.monotonic())):
                 raise TimeoutError
-            return self.conn.recv()
+            reply = self.conn.recv()
+            if reply.get("recycle"):  # memory the allocator keeps after a MemoryError: start afresh
+                self.kill()
+                self.start()
+            return reply
         except (TimeoutError, EOFError, OSError, BrokenPipeError):
             self.kill()
             self.start()
@@ -186,7 +263,7 @@ class ValidatorPool:
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:
@@ -236,6 +313,10 @@ class ValidatorPool:
             return ValidationOutcome(ok=False, internal=True, message="the inputs could not be read",
                                      accepted="well-formed mesh/volume and image files")
         return ValidationOutcome(ok=False, message=reply.get("message"), field=reply.get("field"), accepted=reply.get("accepted"))
+
+    def ready(self) -> bool:
+        """Every parser process started and warmed up (so a submission is not kept waiting on imports)."""
+        return all(slot.check_ready() for slot in self.slots)
 
     def alive(self) -> bool:
         return any(s.process is not None and s.process.is_alive() for s in self.slots)

@@ -23,7 +23,7 @@ from .dicomweb import PacsError
 from .engine_adapter import collect_artifacts
 from .problems import TYPE_BASE
 from .settings import ServiceSettings
-from .store import JobRecord, JobStore, SqlJobStore, random_token
+from .store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
 
 log = logging.getLogger("dsareg.service.worker")
 
@@ -125,6 +125,51 @@ def _problem(job_id: str, status: int, kind: str, title: str, detail: str, **ext
     return body
 
 
+def is_store_outage(exc: BaseException) -> bool:
+    """The job database is unreachable or busy (see :func:`service.store.store_outage_errors`)."""
+    return isinstance(exc, store_outage_errors())
+
+
+def with_store_retries(call: Any, settings: ServiceSettings, what: str, job_id: str) -> Any:
+    """``call()`` retried with exponential backoff while the store is out, for at most
+    ``result_save_seconds``: a short database outage must not throw away a finished registration."""
+    deadline = time.monotonic() + settings.result_save_seconds
+    delay = 0.25
+    while True:
+        try:
+            return call()
+        except Exception as exc:
+            if not is_store_outage(exc) or time.monotonic() + delay > deadline:
+                raise
+            log.warning("job %s: %s failed (%s); retrying in %.1f s", job_id, what, type(exc).__name__, delay)
+            time.sleep(delay)
+            delay = min(delay * 2.0, 5.0)
+
+
+class _Finisher:
+    """Guarded end-state writes of one claimed job, each with bounded retries on store outages."""
+
+    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings):
+        self.store, self.job, self.worker_id, self.settings = store, job, worker_id, settings
+
+    def complete(self, status: str, **values: Any) -> str:
+        """``status`` if written, ``'lost'`` if another worker owns the job or the store stayed out."""
+        def write() -> bool:
+            return self.store.complete(self.job.id, self.worker_id, status, attempt=self.job.attempts, **values)
+        try:
+            return status if with_store_retries(write, self.settings, f"saving '{status}'", self.job.id) else "lost"
+        except Exception as exc:  # noqa: BLE001 - the lease expires and the sweeper requeues the job
+            log.error("job %s: could not save '%s' (%s); the attempt is given up", self.job.id, status, type(exc).__name__)
+            return "lost"
+
+    def release(self) -> str:
+        try:
+            with_store_retries(lambda: self.store.release(self.job.id, self.worker_id), self.settings, "release", self.job.id)
+        except Exception as exc:  # noqa: BLE001 - the lease expires and the sweeper requeues the job
+            log.error("job %s: could not release (%s)", self.job.id, type(exc).__name__)
+        return "released"
+
+
 def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
             cancel_hint: Any = None) -> str:
     """Run a claimed job to an end state; returns what happened (for logs and tests).
@@ -132,62 +177,35 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     ``cancel_hint``: optional callable, true when the job was canceled by other means than
     the job table's flag (the Celery executor passes "this task was revoked")."""
     from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.pipeline import RegistrationCanceled, run_registration_case
-    from dsareg_engine.registration.options import parse_options
+    from dsareg_engine.pipeline import RegistrationCanceled
 
     control = _JobControl(store, job, worker_id, settings, stop, cancel_hint)
+    finish = _Finisher(store, job, worker_id, settings)
     out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
+    log.info("job %s: runs on %s", job.id, _thread_budget())
     control.start()
     outcome = "lost"
     try:
-        options = parse_options(job.options)
-        dicom_job = DicomJob(job, blobs.read, settings)  # inputs by DICOMweb reference; DICOM results
-        case = dicom_job.load_case(options.segmentation, settings.input_limits)
-        if control.should_stop():
-            raise RegistrationCanceled("stopped before start")
-        control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
-        result = run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop,
-                                       label=f"job {job.id}")
-        if control.lost:
-            return "lost"
-        result = json_safe(result if isinstance(result, dict) else {"value": result})
-        warnings = [str(w) for w in getattr(case, "warnings", []) or []]
-        if warnings and "warnings" not in result:
-            result["warnings"] = warnings
-        result = dicom_job.finish(result, out_dir)
-        artifacts = collect_artifacts(out_dir, blobs)
-        ok = store.complete(job.id, worker_id, "succeeded", result=result, artifacts=artifacts)
-        if ok:  # shared (identical) artifacts may have been removed by a concurrent delete before we referenced them
-            for name, digest in artifacts.items():
-                if not blobs.exists(digest):
-                    blobs.put_file(out_dir / name)
-        outcome = "succeeded" if ok else "lost"
+        outcome = _register(blobs, job, settings, control, finish, out_dir)
     except RegistrationCanceled:
-        if control.lost:
-            outcome = "lost"
-        elif control.cancel:
-            outcome = "canceled" if store.complete(job.id, worker_id, "canceled") else "lost"
-        elif control.timed_out:
-            err = _problem(job.id, 500, "job-timeout", "Job timed out",
-                           f"the registration did not finish within {settings.job_timeout_seconds:g} s; "
-                           "try fewer starts, fewer iterations or a smaller working_size_px")
-            outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
-        else:  # worker shutting down: hand the job back
-            store.release(job.id, worker_id)
-            outcome = "released"
+        outcome = _stopped(job, settings, control, finish)
     except PacsError as exc:
         err = _problem(job.id, 502, "pacs-error", "PACS error", str(exc), **pacs_problem(exc))
-        outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
+        outcome = finish.complete("failed", error=err)
     except DsaregInputError as exc:
         err = _problem(job.id, 422, "invalid-input", "Unprocessable input", str(exc), field=exc.field, accepted=exc.accepted)
-        outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
-    except Exception:
-        log.exception("job %s: internal error", job.id)
-        err = _problem(job.id, 500, "internal-error", "Internal error",
-                       f"the registration failed because of an internal error (logged under job {job.id})")
-        outcome = "failed" if store.complete(job.id, worker_id, "failed", error=err) else "lost"
+        outcome = finish.complete("failed", error=err)
+    except Exception as exc:
+        if is_store_outage(exc):  # not the job's fault: hand it back without using up an attempt
+            log.warning("job %s: the job store is out (%s); releasing the job", job.id, type(exc).__name__)
+            outcome = finish.release()
+        else:
+            log.exception("job %s: internal error", job.id)
+            err = _problem(job.id, 500, "internal-error", "Internal error",
+                           f"the registration failed because of an internal error (logged under job {job.id})")
+            outcome = finish.complete("failed", error=err)
     finally:
         control.finish()
         shutil.rmtree(out_dir, ignore_errors=True)
@@ -198,6 +216,61 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     log.info("job %s: %s after %.2f s (attempt %d, %d input bytes)", job.id, outcome, time.monotonic() - started,
              job.attempts, job.input_bytes)
     return outcome
+
+
+def _thread_budget() -> str:
+    """The CPU threads torch and numba use *on this thread* (both settings are per thread)."""
+    try:
+        import numba
+        import torch
+
+        return f"{torch.get_num_threads()} torch / {numba.get_num_threads()} numba threads"
+    except Exception:  # noqa: BLE001 - informative only
+        return "unknown threads"
+
+
+def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher,
+              out_dir: Any) -> str:
+    """Load, register, store artifacts and the result (the last two retried across store outages)."""
+    from dsareg_engine.pipeline import RegistrationCanceled, run_registration_case
+    from dsareg_engine.registration.options import parse_options
+
+    options = parse_options(job.options)
+    dicom_job = DicomJob(job, blobs.read, settings)  # inputs by DICOMweb reference; DICOM results
+    case = dicom_job.load_case(options.segmentation, settings.input_limits)
+    if control.should_stop():
+        raise RegistrationCanceled("stopped before start")
+    control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
+    result = run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop,
+                                   label=f"job {job.id}")
+    if control.lost:
+        return "lost"
+    result = json_safe(result if isinstance(result, dict) else {"value": result})
+    warnings = [str(w) for w in getattr(case, "warnings", []) or []]
+    if warnings and "warnings" not in result:
+        result["warnings"] = warnings
+    result = dicom_job.finish(result, out_dir)
+    artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
+    outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
+    if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete
+        for name, digest in artifacts.items():
+            if not blobs.exists(digest):
+                blobs.put_file(out_dir / name)
+    return outcome
+
+
+def _stopped(job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher) -> str:
+    """The engine stopped early: canceled, lost lease, timed out, or worker shutting down."""
+    if control.lost:
+        return "lost"
+    if control.cancel:
+        return finish.complete("canceled")
+    if control.timed_out:
+        err = _problem(job.id, 500, "job-timeout", "Job timed out",
+                       f"the registration did not finish within {settings.job_timeout_seconds:g} s; "
+                       "try fewer starts, fewer iterations or a smaller working_size_px")
+        return finish.complete("failed", error=err)
+    return finish.release()  # worker shutting down: hand the job back
 
 
 def warm_up() -> None:
@@ -222,12 +295,24 @@ def warm_up() -> None:
         log.debug("warm-up skipped", exc_info=True)
 
 
-def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> None:
-    """Entry point of a worker process."""
+def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
+    """Entry point of a worker process.
+
+    ``link``: the read end of the server's :class:`~service.procwatch.WakeLink` (None for a
+    standalone ``dsareg worker --engine embedded``); its end-of-file, SIGTERM, or the death of
+    ``parent_pid`` stop the worker (a running job is handed back to the queue).
+    """
     import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through ``stop``
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    from .procwatch import WorkerControl, die_with_parent
+
+    control = WorkerControl()
+    signal.signal(signal.SIGINT, signal.SIG_IGN if link is not None else control.request_stop)
+    signal.signal(signal.SIGTERM, control.request_stop)
+    if parent_pid is not None:
+        die_with_parent(parent_pid)
+    if link is not None:
+        control.watch(link)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         from dsareg_engine.threads import default_cpu_threads, set_cpu_threads
@@ -236,6 +321,11 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
     except Exception:  # noqa: BLE001
         log.warning("could not set the worker's CPU threads")
     warm_up()
+    _claim_loop(settings, index, control)
+
+
+def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
+    """Claim and run jobs until stopped; idle, wait for a wake-up or ``poll_seconds``."""
     store = SqlJobStore(settings.effective_database_url, create_schema=False)
     from .dbblobs import make_blob_store
 
@@ -244,7 +334,7 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
     log.info("worker %s started", worker_id)
     last_seen = 0.0
     try:
-        while not stop.is_set():
+        while not control.stop.is_set():
             now = time.monotonic()
             if now - last_seen > max(1.0, settings.effective_heartbeat_seconds):
                 try:
@@ -258,11 +348,10 @@ def worker_main(settings: ServiceSettings, index: int, stop: Any, wake: Any) -> 
                 log.warning("worker %s: claim failed", worker_id)
                 job = None
             if job is None:
-                wake.wait(settings.poll_seconds)
-                wake.clear()
+                control.wait_for_work(settings.poll_seconds)
                 continue
             log.info("job %s: claimed by %s (attempt %d)", job.id, worker_id, job.attempts)
-            run_one(store, blobs, job, worker_id, settings, stop)
+            run_one(store, blobs, job, worker_id, settings, control.stop)
             last_seen = 0.0
     finally:
         store.dispose()

@@ -149,6 +149,10 @@ def read_mesh_detailed(
     return MeshReadResult(mesh=mesh, format=fmt, original_faces=original, warnings=warnings)
 
 
+# an ``f`` line with a vertex reference ``0`` (``0``, ``0/…``): OBJ indices are 1-based
+_OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f(?:[ \t]+\S+)*?[ \t]+[+]?0+(?:/\S*)?(?=[ \t]*$|[ \t\r])")
+
+
 def _parse(data: bytes, fmt: str, field_name: str) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
@@ -161,6 +165,11 @@ def _parse(data: bytes, fmt: str, field_name: str) -> tuple[np.ndarray, np.ndarr
     if fmt == "obj":
         # Never follow material or texture references.
         data = re.sub(rb"(?m)^\s*(mtllib|usemtl)\b.*$", b"", data)
+        zero = _OBJ_ZERO_INDEX.search(data)
+        if zero is not None:  # trimesh would turn index 0 into -1, i.e. silently the last vertex
+            line = data.count(b"\n", 0, zero.start()) + 1
+            raise DsaregInputError(f"face on line {line} uses vertex index 0; OBJ indices start at 1",
+                                   field=field_name, accepted="OBJ faces with indices 1..n (or negative, relative)")
     try:
         with _warnings.catch_warnings():
             _warnings.simplefilter("ignore")

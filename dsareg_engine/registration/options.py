@@ -32,7 +32,7 @@ class RegistrationOptions(BaseModel):
     working_size_px: int = Field(
         0, ge=0, le=4096, description="Longest image side of the final stage in pixels; 0 = the images' own size."
     )
-    seed: int = Field(0, description="Seed for the extra starts; the same seed gives the same result.")
+    seed: int = Field(0, ge=0, le=2**63 - 1, description="Seed for the extra starts; the same seed gives the same result.")
     coarse_to_fine: bool = Field(True, description="Image pyramid from ~100 px up (off: full size only).")
     refine: bool = Field(True, description="Final L-BFGS stage at full size with a pose-change stop rule.")
     mode: Literal["full", "track"] = Field(

@@ -126,3 +126,14 @@ def test_binary_stl_whose_header_says_solid(phantom):
     data[:12] = b"solid vessel"
     result = read_mesh_detailed(bytes(data), "a.stl")
     assert result.format == "stl" and result.mesh.n_faces == phantom.n_faces
+
+
+@pytest.mark.parametrize("face", [b"f 0 1 2", b"f 1 2 0", b"f 0/1 2/2 3/3", b"  f 2 0 3\r"])
+def test_obj_vertex_index_zero_is_refused(face):
+    """OBJ indices are 1-based: trimesh would read 0 as -1, i.e. silently the last vertex."""
+    data = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n" + face + b"\n"
+    with pytest.raises(DsaregInputError, match="index 0") as caught:
+        read_mesh(data, "m.obj")
+    assert caught.value.field == "mesh"
+    mesh = read_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1/1 2/10 4/0\n", "m.obj")  # 0 in texture refs
+    assert mesh.n_faces == 2

@@ -1,0 +1,60 @@
+"""Fault-injection suite: real servers, real processes, real SIGKILLs (see faults_kit)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+for extra in (HERE, HERE.parent / "service", HERE.parent / "scaleout"):  # faults_kit, service_testkit, scaleout_kit
+    if str(extra) not in sys.path:
+        sys.path.insert(0, str(extra))
+
+from scaleout_kit import PostgresServer, RedisServer
+from service_testkit import make_example_case
+
+CASE_SIZE = 64
+
+
+@pytest.fixture(scope="session")
+def case(tmp_path_factory):
+    return make_example_case(tmp_path_factory.mktemp("case"), CASE_SIZE)
+
+
+def _clients_missing() -> bool:
+    try:
+        import celery  # noqa: F401
+        import psycopg  # noqa: F401
+    except ImportError:
+        return True
+    return False
+
+
+@pytest.fixture(scope="module")
+def redis_server():
+    """A private Redis per module: the tests restart it."""
+    if _clients_missing():
+        pytest.skip("celery[redis] / psycopg not installed")
+    try:
+        server = RedisServer().start()
+    except Exception as exc:  # noqa: BLE001
+        pytest.skip(f"cannot start redis-server ({exc})")
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def postgres_server():
+    """A private PostgreSQL cluster per module: the tests stop and start it."""
+    if _clients_missing():
+        pytest.skip("celery[redis] / psycopg not installed")
+    server = PostgresServer()
+    try:
+        server.start()
+    except Exception as exc:  # noqa: BLE001
+        server.stop()
+        pytest.skip(f"cannot start a PostgreSQL cluster ({exc})")
+    yield server
+    server.stop()
