@@ -50,10 +50,10 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
         sub.set_defaults(func=func)
     track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
-    track.add_argument("--mesh")
-    track.add_argument("--sequences", type=int, default=5)
+    track.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    track.add_argument("--sequences", type=int, default=5, help="independent motion sequences")
     track.add_argument("--frames", type=int, default=6, help="motions per sequence")
-    track.add_argument("--seed", type=int, default=0)
+    track.add_argument("--seed", type=int, default=0, help="random seed of the motions")
     track.add_argument("--size", type=int, default=800, help="image side in px")
     track.add_argument("--rotation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
                        help="per-frame rotation range (deg, random axis through the mesh centre)")
