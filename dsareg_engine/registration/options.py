@@ -45,6 +45,13 @@ class RegistrationOptions(BaseModel):
         "the border exactly on the model's surface); reported as metrics.border_shift_px.",
     )
     initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
+    initialization: Literal["auto", "given", "search"] = Field(
+        "auto",
+        description="Where the starts come from: 'given' = the initial pose (request, else geometry, else identity) "
+        "and random perturbations of it; 'search' = triangulate the masks' centroids for the position and search "
+        "all rotations for the best distinct starts; 'auto' = 'given' when an initial pose was given, else 'search'. "
+        "Reported as metrics.initialization.",
+    )
     ground_truth_mesh_to_world: Matrix4 | None = Field(
         None, description="Known pose (synthetic studies): adds error metrics to the result."
     )

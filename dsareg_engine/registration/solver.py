@@ -29,6 +29,7 @@ from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .result import RegistrationResult, ViewResult
 from .schedule import Stage, build_schedule
 from .border import update_border_shift
+from .initialization import GIVEN_INITIALIZATION, resolve_initialization, search_initial_poses
 from .targets import ViewTarget, gaussian_blur, level_target, signed_border_distance
 
 ProgressCallback = Callable[[dict], None]
@@ -273,6 +274,9 @@ def _register(
     initial = rig.initial_mesh_to_world
     if options.initial_mesh_to_world is not None:
         initial = validate_rigid(options.initial_mesh_to_world, field="options.initial_mesh_to_world", allow_mirror=False)
+    searched = _initialize(mesh, masks, rig, options)
+    if searched is not None:
+        initial = searched.poses[0]
     problem = _Problem(mesh, masks, rig, options, device, initial)
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
@@ -285,8 +289,8 @@ def _register(
         )
     ]
 
-    starts = random_start_poses(initial, problem.centre, options.starts, options.start_spread_deg,
-                                options.start_spread_mm, options.seed)
+    starts = searched.poses if searched is not None else random_start_poses(
+        initial, problem.centre, options.starts, options.start_spread_deg, options.start_spread_mm, options.seed)
     total_budget = sum(stage.max_iterations for stage in stages)
     done_before = {"count": 0}
     started = time.perf_counter()
@@ -347,8 +351,9 @@ def _register(
         "device": str(device),
         "converged": converged,
         "reason": reason,
-        "starts": options.starts,
+        "starts": len(starts),
         "starts_agreeing": starts_agreeing,
+        "initialization": searched.metrics() if searched is not None else GIVEN_INITIALIZATION,
         "configuration": options.configuration,
     }
     if options.border_correction:
@@ -366,6 +371,16 @@ def _register(
             initial, truth, mesh.vertices if target_points is None else target_points
         )
     return RegistrationResult(estimate, initial, view_results, metrics, loss_history, pose_history)
+
+
+def _initialize(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options: RegistrationOptions):
+    """The searched starts (:class:`~.initialization.Initialization`), or None to use the given pose."""
+    pose_given = rig.initial_pose_given or options.initial_mesh_to_world is not None
+    if resolve_initialization(options.initialization, pose_given) != "search":
+        return None
+    visible = {name: mask for name, mask in masks.items()
+               if name in rig.views and mask.shape == rig.views[name].image_size[::-1] and mask.any()}
+    return search_initial_poses(mesh, visible, rig, options.starts)
 
 
 def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str, ...]) -> None:
