@@ -51,6 +51,9 @@ def add_parser(subparsers) -> None:
     robust.add_argument("--offset", type=float, nargs=2, default=[10.0, 10.0], metavar=("DEG", "MM"),
                         help="initial rotation (deg) and translation (mm) offset")
     robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS))
+    robust.add_argument("--grey", nargs="*", default=["dsa", "otsu"], choices=["dsa", "otsu", "vesselness"],
+                        help="also register from grey-level DSA synthesized from the model (uneven background, noise, "
+                             "catheter), segmented by these methods ('dsa' is what 'auto' uses)")
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     robust.set_defaults(func=bench_robustness)
@@ -142,7 +145,8 @@ def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int, ext
     options = RegistrationOptions(configuration=config, starts=multistart, seed=seed, **extra,
                                   initial_mesh_to_world=initial.tolist(), ground_truth_mesh_to_world=np.eye(4).tolist())
     result = register(mesh, masks, rig, options)
-    return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"], "converged": result.metrics["converged"]}
+    return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"], "converged": result.metrics["converged"],
+            "verdict": result.metrics["confidence"]["verdict"], "signals": result.metrics["confidence"]["signals"]}
 
 
 def bench_table1(args: argparse.Namespace) -> int:
@@ -223,20 +227,33 @@ def bench_robustness(args: argparse.Namespace) -> int:
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.starts} initial poses "
           f"({degrees:g} deg, {millimetres:g} mm), {args.multistart} parallel starts each, simultaneous, options {args.options}")
     print("| corruption | mask px AP / LAT (clean: " + " / ".join(str(int(clean[v].sum())) for v in ("ap", "lat"))
-          + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s |")
-    print("|---|---|---|---|---|---|---|")
-    for name in args.corruptions:
+          + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s | verdicts |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in list(args.corruptions) + [f"grey_{method}" for method in args.grey]:
         rows = []
         for index, initial in enumerate(initials):
             rng = np.random.default_rng(args.seed + 1000 * index)
-            masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
+            if name.startswith("grey_"):
+                masks = _grey_masks(mesh, rig, name[len("grey_"):], args.seed + index)
+            else:
+                masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
             row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, json.loads(args.options))
             rows.append({**row, "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
         add = np.array([row["add_mm"] for row in rows])
         print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
               f"{np.median([row['rotation_error_deg'] for row in rows]):.3f} | {np.mean(add < 1.0) * 100:.0f} % | "
-              f"{sum(not row['converged'] for row in rows)} | {np.median([row['seconds'] for row in rows]):.1f} |", flush=True)
+              f"{sum(not row['converged'] for row in rows)} | {np.median([row['seconds'] for row in rows]):.1f} | "
+              f"{'/'.join(sorted(set(row['verdict'] for row in rows)))} |", flush=True)
     return 0
+
+
+def _grey_masks(mesh, rig, method: str, seed: int) -> dict:
+    """Masks segmented (``method``) from 16-bit DSA images synthesized from the model at the identity pose."""
+    from ..io.segmentation import segment_vessels
+    from ..synthetic_dsa import synthesize_dsa
+
+    images = synthesize_dsa(mesh, rig, np.eye(4), seed=seed)
+    return {view: segment_vessels(np.round(image * 65535).astype(np.uint16), method) for view, image in images.items()}
 
 
 def bench_autoinit(args: argparse.Namespace) -> int:

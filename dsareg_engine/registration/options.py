@@ -55,8 +55,9 @@ class RegistrationOptions(BaseModel):
     ground_truth_mesh_to_world: Matrix4 | None = Field(
         None, description="Known pose (synthetic studies): adds error metrics to the result."
     )
-    segmentation: Literal["auto", "otsu", "vesselness", "mask"] = Field(
-        "auto", description="How DSA images become vessel masks (inputs that are masks are used as they are)."
+    segmentation: Literal["auto", "dsa", "otsu", "vesselness", "mask"] = Field(
+        "auto", description="How DSA images become vessel masks (inputs that are masks are used as they are; "
+        "auto = 'dsa': flattened background, border at a fraction of the local vessel contrast)."
     )
     animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available.")
