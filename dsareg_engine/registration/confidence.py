@@ -46,7 +46,7 @@ class ConfidenceThresholds:
     """
 
     failed_dice: float = 0.5
-    check_dice: float = 0.8
+    check_dice: float = 0.7
     ambiguous_fit_gap: float = 0.05
     fit_tolerance_px: float = 3.0
     border_shift_px: float = 1.5
