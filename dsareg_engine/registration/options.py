@@ -49,7 +49,8 @@ class RegistrationOptions(BaseModel):
         "auto",
         description="Where the starts come from: 'given' = the initial pose (request, else geometry, else identity) "
         "and random perturbations of it; 'search' = triangulate the masks' centroids for the position and search "
-        "all rotations for the best distinct starts; 'auto' = 'given' when an initial pose was given, else 'search'. "
+        "all rotations for the best distinct starts (at least 8 of them); 'auto' = 'given' when an initial pose was "
+        "given, else 'search'. "
         "Reported as metrics.initialization.",
     )
     ground_truth_mesh_to_world: Matrix4 | None = Field(
