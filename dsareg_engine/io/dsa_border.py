@@ -18,7 +18,7 @@ faint vessels then come out narrow and thick ones too, by different amounts (mea
    ``(1/3)/√R`` of the peak. The law was measured against true silhouettes (README).
 
 5. **Catheter** (``REMOVE_CATHETER``): an unbranched, long, uniform-width branch entering from
-   the image border once and ending at a three-way fork or free inside is removed
+   the image border once and ending free or in a fork whose other branches stay inside is removed
    (:func:`catheter_pixels`). A real vessel leaving the field that looks just like that (no side
    branch over 8 % of the image, width constant within 12 % away from its forks) is removed too.
 
@@ -129,24 +129,25 @@ REMOVE_CATHETER = True
 """A catheter as long as a small vessel tree (1.4 mm wide, from the image border) otherwise
 dominates the masks and the pose search: measured on the phantom in a 512-px clinical rig with
 no initial pose, 7 of 9 grey-level cases failed with it kept. Two straight vessels crossing the
-field are protected by the crossing rule in :func:`catheter_pixels`."""
+field are protected by the crossing rule (:func:`_meets_a_crossing`)."""
 CATHETER_MIN_LENGTH = 0.08
 """A catheter branch runs at least this fraction of the image's longer side."""
 CATHETER_MAX_WIDTH_CV = 0.12
-"""... with a width this uniform (standard deviation / mean of the radius along it)."""
+"""... with a width this uniform (standard deviation of the radius along it ≤ this × its mean + 0.25 px)."""
 
 
-def _meets_a_crossing(branch: np.ndarray, forks: np.ndarray, branches: np.ndarray) -> bool:
-    """True when the branch ends at a fork where four or more branches meet (two vessels crossing);
-    a catheter ending in its parent vessel makes a three-way fork."""
+def _meets_a_crossing(branch: np.ndarray, forks: np.ndarray, branches: np.ndarray, edge: np.ndarray) -> bool:
+    """True when, at a fork the branch ends in, another branch also runs to the image border: a
+    vessel crossing the field (two straight vessels crossing), not a catheter ending in a tree."""
+    own = set(np.unique(branches[branch]))
     near = cv2.dilate(branch.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     # forks closer than ~8 px are one junction (a crossing often skeletonizes into two 3-way forks)
-    merged = cv2.dilate(forks.astype(np.uint8), np.ones((9, 9), np.uint8))
-    fork_labels, _ = ndimage.label(merged)
-    touching = set(np.unique(fork_labels[near & (fork_labels > 0)]))
-    for index in touching:
+    fork_labels, _ = ndimage.label(cv2.dilate(forks.astype(np.uint8), np.ones((9, 9), np.uint8)))
+    reaching_edge = set(np.unique(branches[edge & (branches > 0)]))
+    for index in set(np.unique(fork_labels[near & (fork_labels > 0)])):
         around = cv2.dilate((fork_labels == index).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        if len(np.unique(branches[around & (branches > 0)])) >= 4:
+        others = set(np.unique(branches[around & (branches > 0)])) - own
+        if others & reaching_edge:
             return True
     return False
 
@@ -178,8 +179,8 @@ def catheter_pixels(mask: np.ndarray, skeleton: np.ndarray, rows: np.ndarray, co
             continue
         if label(along & edge, connectivity=2).max() != 1:  # crosses the field: a vessel, not a catheter tip
             continue
-        if _meets_a_crossing(along, forks, branches):
+        if _meets_a_crossing(along, forks, branches, edge):
             continue
-        if widths.std() <= CATHETER_MAX_WIDTH_CV * widths.mean():
+        if widths.std() <= CATHETER_MAX_WIDTH_CV * widths.mean() + 0.25:  # + the distance map's pixel steps
             catheter |= along
     return mask & catheter[rows, cols]
