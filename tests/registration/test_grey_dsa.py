@@ -64,3 +64,20 @@ def test_no_catheter_no_noise_settings_are_accepted(phantom, synthetic_case):
     rig, _ = synthetic_case(phantom, 100, 0.0, 0.0)
     images = synthesize_dsa(phantom, rig, np.eye(4), settings=DsaSettings(catheter_mm=0.0, noise_sigma=0.0, blur_px=0.0))
     assert all(image.dtype == np.float32 and image.max() <= 1.0 for image in images.values())
+
+
+def test_catheter_is_removed_and_no_pose_grey_case_registers(phantom):
+    from dsareg_engine.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+
+    rig = clinical_biplane_rig(512)
+    truth = random_visible_pose(phantom, rig, np.random.default_rng(1), 60.0)
+    masks = render_masks(phantom, rig, truth)
+    images = synthesize_dsa(phantom, rig, truth, seed=1)
+    segmented = {name: segment_vessels(np.round(image * 65535).astype(np.uint16), "auto") for name, image in images.items()}
+    for name, mask in segmented.items():
+        far = ~cv2.dilate(masks[name].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        assert (mask & far).sum() < 0.02 * masks[name].sum()  # the catheter (~as long as the tree) is gone
+    result = register(phantom, segmented, rig, RegistrationOptions(ground_truth_mesh_to_world=truth.tolist()))
+    assert result.metrics["initialization"]["method"] == "search"
+    assert result.metrics["ground_truth"]["add_mm"] < 1.0
+    assert result.metrics["confidence"]["verdict"] in ("ok", "check")
