@@ -46,7 +46,9 @@ def add_parser(subparsers: Any) -> None:
     worker.add_argument("--log-level", help="debug, info, warning, error")
     worker.set_defaults(func=run_worker)
 
-    from dsareg_engine.commands.errors import input_file, options_help
+    from .engine_adapter import engine
+
+    input_file, options_help = engine.input_file, engine.options_help
 
     submit = subparsers.add_parser(
         "submit", help="submit a registration to a dsareg server (and wait for it)",
@@ -111,7 +113,7 @@ def run_worker(args: argparse.Namespace) -> int:
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     if args.engine == "celery":
-        from .celery_executor import run_worker as run_celery_worker
+        from .celery_worker import run_worker as run_celery_worker
 
         run_celery_worker(settings, pool=args.pool, hostname=args.hostname)
         return 0
@@ -151,11 +153,11 @@ def summary_line(final: dict[str, Any]) -> str:
 def run_submit(args: argparse.Namespace) -> int:
     import os
 
-    from dsareg_engine.commands.errors import CommandFailed, geometry_argument, json_argument
-    from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.pose_file import load_pose
-
     from .client import RegistrationClient
+    from .engine_adapter import engine
+
+    CommandFailed, DsaregInputError = engine.CommandFailed, engine.DsaregInputError
+    geometry_argument, json_argument, load_pose = engine.geometry_argument, engine.json_argument, engine.load_pose
 
     geometry = geometry_argument(args.geometry)
     options = json_argument(args.options, "--options")

@@ -6,6 +6,7 @@ from typing import Literal
 
 from fastapi.responses import FileResponse, JSONResponse, Response
 
+from ..engine_adapter import engine
 from ..problems import Problem, problem_responses
 from ..store import JobRecord
 from .deps import Ctx, OwnedJob, Principal, ServiceContext, owned_job
@@ -13,13 +14,12 @@ from .openapi import resource_router
 
 router = resource_router("results")
 
+# the engine names its output files (dsareg_engine.artifacts); these routes serve them
 ARTIFACTS = {
-    ("overlays", "ap"): ("overlay_ap.png", "image/png"),
-    ("overlays", "lat"): ("overlay_lat.png", "image/png"),
-    ("masks", "ap"): ("mask_ap.png", "image/png"),
-    ("masks", "lat"): ("mask_lat.png", "image/png"),
+    **{("overlays", view): (engine.overlay_png(view), engine.ARTIFACTS[engine.overlay_png(view)]) for view in ("ap", "lat")},
+    **{("masks", view): (engine.mask_png(view), engine.ARTIFACTS[engine.mask_png(view)]) for view in ("ap", "lat")},
 }
-DICOM_FILES = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm")
+DicomName = Literal[tuple(engine.DICOM_FILES)]  # reg.dcm, overlay_ap.dcm, overlay_lat.dcm, loss.dcm
 
 PNG_RESPONSE = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
                       "description": "The image."}}
@@ -74,13 +74,13 @@ def get_mask(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) 
                              "description": "Animated GIF (only with options.animation)."},
                        **problem_responses(401, 403, 404)})
 def get_animation(ctx: Ctx, job: OwnedJob) -> Response:
-    return artifact_file(ctx, job, "animation.gif", "image/gif")
+    return artifact_file(ctx, job, engine.ANIMATION_GIF, engine.ARTIFACTS[engine.ANIMATION_GIF])
 
 
 @router.get("/v1/registrations/{job_id}/loss.png", summary="Plot of the loss per iteration",
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404)})
 def get_loss_plot(ctx: Ctx, job: OwnedJob) -> Response:
-    return artifact_file(ctx, job, "loss.png", "image/png")
+    return artifact_file(ctx, job, engine.LOSS_PNG, engine.ARTIFACTS[engine.LOSS_PNG])
 
 
 @router.get("/v1/registrations/{job_id}/dicom/{name}",
@@ -89,6 +89,5 @@ def get_loss_plot(ctx: Ctx, job: OwnedJob) -> Response:
             responses={200: {"content": {"application/dicom": {"schema": {"type": "string", "format": "binary"}}},
                              "description": "A DICOM Part 10 file."},
                        **problem_responses(401, 403, 404, 422)})
-def get_dicom(ctx: Ctx, job_id: str, name: Literal["reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm"],
-              who: Principal) -> Response:
-    return artifact_file(ctx, owned_job(ctx, job_id, who), name, "application/dicom", filename=name)
+def get_dicom(ctx: Ctx, job_id: str, name: DicomName, who: Principal) -> Response:
+    return artifact_file(ctx, owned_job(ctx, job_id, who), name, engine.DICOM_FILES[name], filename=name)

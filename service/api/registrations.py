@@ -35,17 +35,17 @@ MULTIPART_SCHEMA = {
     },
 }
 
-SUBMIT_DOC = dict(
-    status_code=202,
-    response_model=JobStatus,
-    summary="Submit a registration job",
-    description=(
+SUBMIT_DOC = {
+    "status_code": 202,
+    "response_model": JobStatus,
+    "summary": "Submit a registration job",
+    "description": (
         "multipart/form-data with `mesh` (or `volume`), `ap`, `lat`, optional `geometry` and `options`. "
         "Inputs are fully parsed before the job is accepted. Answers 202 with `Location` of the job. "
         "With an `Idempotency-Key` header, repeating the same request returns the original job (200), "
         "while reusing the key with a different request is a 409."
     ),
-    openapi_extra={
+    "openapi_extra": {
         "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": MULTIPART_SCHEMA}}},
         "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
                         "schema": {"type": "string", "minLength": 1, "maxLength": 255, "pattern": r"\S"},
@@ -53,14 +53,14 @@ SUBMIT_DOC = dict(
                                        "least one of them not white space; otherwise 400 (field "
                                        "`Idempotency-Key`)."}],
     },
-    responses={
+    "responses": {
         200: {"description": "Idempotent replay: the job created earlier with this key.", "model": JobStatus},
         202: {"description": "Accepted; poll the Location.", "headers": {
             "Location": {"description": "The job's URL.", "schema": {"type": "string"}},
             "Retry-After": {"description": "Seconds before the first poll.", "schema": {"type": "integer"}}}},
         **problem_responses(400, 401, 409, 413, 415, 422, 429, 503),
     },
-)
+}
 
 
 @router.post("/v1/registrations", **SUBMIT_DOC)

@@ -19,7 +19,8 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ..blobs import safe_suffix
-from ..limits import check_job_cost, check_options, parse_json_part
+from ..engine_adapter import check_options, engine
+from ..limits import check_job_cost, parse_json_part
 from ..models import status_body
 from ..problems import Problem
 from ..store import ConflictError, InputFile, JobRecord, new_job_id
@@ -64,8 +65,7 @@ def normalize_geometry(text: str | None) -> str | None:
     """A preset name or compact JSON object text; anything else is refused (422)."""
     if text is None or not text.strip():
         return None
-    from dsareg_engine.geometry_file import PRESETS
-
+    PRESETS = engine.PRESETS
     text = text.strip()
     if text in PRESETS:
         return text
@@ -78,11 +78,9 @@ def normalize_geometry(text: str | None) -> str | None:
 
 def parse_options_json(data: Any) -> dict[str, Any]:
     """Options (a dict, JSON text or None) → the validated, complete options as JSON (422 if invalid)."""
-    from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.registration.options import parse_options
-
+    DsaregInputError = engine.DsaregInputError
     try:
-        options = parse_options(data)
+        options = engine.parse_options(data)
     except DsaregInputError as exc:
         raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
     check_options(options)

@@ -42,23 +42,23 @@ TRACK_SCHEMA = {
 INHERITED_OUT = ("ground_truth_mesh_to_world", "initial_mesh_to_world", "mode", "starts")
 """Options of the previous job that do not carry over: its truth, its start, its mode."""
 
-TRACK_DOC = dict(
-    status_code=202,
-    response_model=JobStatus,
-    summary="Re-register the job's model to a new AP/LAT pair (motion tracking)",
-    description=(
+TRACK_DOC = {
+    "status_code": 202,
+    "response_model": JobStatus,
+    "summary": "Re-register the job's model to a new AP/LAT pair (motion tracking)",
+    "description": (
         "multipart/form-data with `ap`, `lat` and optional `options`. The job must have succeeded; its model and "
         "geometry are re-used and its result pose is the starting pose. Answers 202 with the new job's "
         "`Location`; its result has the new `mesh_to_world` and `metrics.motion` (`rotation_deg`, "
         "`translation_mm`, `mean_displacement_mm`) since the previous pose."
     ),
-    openapi_extra={"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": TRACK_SCHEMA}}},
+    "openapi_extra": {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": TRACK_SCHEMA}}},
                    "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
                                    "schema": {"type": "string", "maxLength": 255}}]},
-    responses={202: {"description": "Accepted; poll the Location.", "headers": {
+    "responses": {202: {"description": "Accepted; poll the Location.", "headers": {
         "Location": {"description": "The new job's URL.", "schema": {"type": "string"}}}},
         **problem_responses(400, 401, 403, 404, 409, 413, 415, 422, 429, 503)},
-)
+}
 
 
 async def _options(previous: JobRecord, form: Any) -> str:

@@ -1,6 +1,6 @@
 """Celery scale-out benchmark on this machine (a command, not a test).
 
-    python -m service.bench_celery [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
+    python -m service.bench.celery [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
 
 Starts a throw-away Redis and PostgreSQL on loopback (or uses ``--broker-url`` /
 ``--database-url``), the API with ``DSAREG_EXECUTOR=celery`` and, for each worker count,
@@ -30,7 +30,8 @@ from typing import Any
 
 import httpx
 
-from .bench_load import _free_port, _make_case
+from .load import _make_case
+from .servers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -51,7 +52,7 @@ def _stop(process: subprocess.Popen, timeout: float = 30.0) -> None:
 
 
 def _serve(root: Path, env: dict[str, str], workers: int) -> tuple[subprocess.Popen, str]:
-    port = _free_port()
+    port = free_port()
     data = root / "api"
     process = _spawn(["serve", "--port", str(port), "--data-dir", str(data), "--workers", str(workers)], env,
                      root / f"api-{port}.log")
@@ -110,7 +111,7 @@ def _sequential(url: str, case: dict[str, Any], options: str, n: int) -> list[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service.bench_celery", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m service.bench.celery", description=__doc__.split("\n\n")[0])
     parser.add_argument("--workers", default="1,2,4", help="Celery worker process counts")
     parser.add_argument("--jobs", type=int, default=12, help="jobs per worker count")
     parser.add_argument("--size", type=int, default=64, help="image size of the phantom case (px)")
@@ -120,8 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--database-url", help="use this PostgreSQL instead of starting one")
     args = parser.parse_args(argv)
 
-    from .localservers import PostgresServer, RedisServer
-    from .store import SqlJobStore
+    from ..store import SqlJobStore
+    from .servers import PostgresServer, RedisServer
 
     root = Path(tempfile.mkdtemp(prefix="dsareg-bench-celery-"))
     redis = postgres = None

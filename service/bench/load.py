@@ -1,6 +1,6 @@
 """Bounded load benchmark of the service on loopback (a command, not a test).
 
-    python -m service.bench_load [--submissions 200] [--concurrency 20] [--workers 1,2]
+    python -m service.bench.load [--submissions 200] [--concurrency 20] [--workers 1,2]
 
 For each worker count it starts ``python -m service serve`` on a free loopback port
 with a fresh data dir, submits ``--submissions`` tiny registrations (the phantom seen
@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+
+from .servers import free_port
 
 
 def _make_case(tmp: Path, size: int) -> dict[str, Any]:
@@ -55,14 +57,6 @@ def _make_case(tmp: Path, size: int) -> dict[str, Any]:
                 "initial_mesh_to_world": rig.initial_mesh_to_world.tolist()}
     return {"mesh": (tmp / "phantom.obj").read_bytes(), "ap": images["ap"], "lat": images["lat"],
             "geometry": json.dumps(geometry)}
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -171,7 +165,7 @@ async def _run_load(url: str, case: dict, args: argparse.Namespace) -> dict[str,
 
 
 def run_for_workers(workers: int, case: dict, args: argparse.Namespace, root: Path) -> dict[str, Any]:
-    port = _free_port()
+    port = free_port()
     data = root / f"data-w{workers}"
     env = {**os.environ, "DSAREG_QUEUE_LIMIT": str(max(1000, args.submissions + 10)), "DSAREG_POLL_SECONDS": "0.2"}
     for key in ("DSAREG_API_KEYS", "DSAREG_API_KEY_HASHES"):
@@ -210,7 +204,7 @@ def run_for_workers(workers: int, case: dict, args: argparse.Namespace, root: Pa
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service.bench_load", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m service.bench.load", description=__doc__.split("\n\n")[0])
     parser.add_argument("--submissions", type=int, default=200)
     parser.add_argument("--concurrency", type=int, default=20)
     parser.add_argument("--workers", default="1,2", help="comma-separated worker counts to measure")
