@@ -1,4 +1,5 @@
-"""``dsareg serve`` and ``dsareg submit`` (plugged into :mod:`dsareg_engine.cli`)."""
+"""``dsareg serve``, ``dsareg worker`` and ``dsareg submit``, contributed to :mod:`dsareg_engine.cli`
+through the ``dsareg.commands`` entry-point group (``pyproject.toml``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,13 @@ from typing import Any
 
 
 def add_parser(subparsers: Any) -> None:
+    """The service's sub-commands (contributed to ``dsareg`` through the ``dsareg.commands`` entry point)."""
+    _add_serve(subparsers)
+    _add_worker(subparsers)
+    _add_submit(subparsers)
+
+
+def _add_serve(subparsers: Any) -> None:
     serve = subparsers.add_parser(
         "serve", help="run the HTTP registration service with embedded workers",
         description="Run the registration service. Settings come from DSAREG_* environment variables, "
@@ -28,6 +36,8 @@ def add_parser(subparsers: Any) -> None:
     serve.add_argument("--log-level", help="debug, info, warning, error")
     serve.set_defaults(func=run_serve)
 
+
+def _add_worker(subparsers: Any) -> None:
     worker = subparsers.add_parser(
         "worker", help="run a standalone worker (Celery, or a polling worker on the job store)",
         description="Run one worker process that claims jobs from the shared job store. --engine celery consumes "
@@ -46,6 +56,8 @@ def add_parser(subparsers: Any) -> None:
     worker.add_argument("--log-level", help="debug, info, warning, error")
     worker.set_defaults(func=run_worker)
 
+
+def _add_submit(subparsers: Any) -> None:
     from .engine_adapter import engine
 
     input_file, options_help = engine.input_file, engine.options_help
