@@ -162,13 +162,19 @@ class Rig:
     Attributes:
         views: ``{"ap": ViewGeometry, "lat": ViewGeometry}`` (one of them may be absent
             for single-view work).
-        initial_mesh_to_world: 4x4 starting estimate of the mesh pose (identity by default).
+        initial_mesh_to_world: 4x4 starting estimate of the mesh pose (identity when not given).
+        initial_pose_given: whether a pose was given (``None`` above means "unknown": the
+            registration then searches for one, see ``options.initialization``).
     """
 
     views: dict[str, ViewGeometry]
-    initial_mesh_to_world: np.ndarray = field(default_factory=lambda: np.eye(4), repr=False)
+    initial_mesh_to_world: np.ndarray | None = field(default=None, repr=False)
+    initial_pose_given: bool = field(init=False, default=False)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "initial_pose_given", self.initial_mesh_to_world is not None)
+        if self.initial_mesh_to_world is None:
+            object.__setattr__(self, "initial_mesh_to_world", np.eye(4))
         if not self.views:
             raise DsaregInputError("at least one view is required", field="views", accepted="'ap' and/or 'lat'")
         unknown = set(self.views) - set(VIEW_NAMES)
@@ -188,10 +194,10 @@ class Rig:
         return float(np.degrees(np.arccos(np.clip(np.dot(rays[0], rays[1]), -1.0, 1.0))))
 
     def to_dict(self) -> dict:
-        return {
-            "views": {name: view.to_dict() for name, view in self.views.items()},
-            "initial_mesh_to_world": self.initial_mesh_to_world.tolist(),
-        }
+        data: dict = {"views": {name: view.to_dict() for name, view in self.views.items()}}
+        if self.initial_pose_given:
+            data["initial_mesh_to_world"] = self.initial_mesh_to_world.tolist()
+        return data
 
 
 # ---- constructors from other descriptions -------------------------------------------
@@ -329,5 +335,5 @@ def biplane_rig(
     lat_view = rotated_view(ap_view, angle_deg, np.asarray(axis_world, dtype=np.float64), isocentre_world)
     return Rig(
         views={"ap": ap_view, "lat": lat_view},
-        initial_mesh_to_world=np.eye(4) if initial_mesh_to_world is None else initial_mesh_to_world,
+        initial_mesh_to_world=initial_mesh_to_world,
     )

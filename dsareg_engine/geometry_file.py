@@ -114,9 +114,8 @@ def rig_from_dict(data: Any) -> Rig:
             raise DsaregInputError("needs an 'ap' view and no 'lat' view", field="geometry.lat_from_ap")
         turn = spec.lat_from_ap
         views["lat"] = rotated_view(views["ap"], turn.angle_deg, np.array(turn.axis_world), np.array(turn.isocentre_world))
-    initial = np.eye(4) if spec.initial_mesh_to_world is None else spec.initial_mesh_to_world
     try:
-        return Rig(views=views, initial_mesh_to_world=initial)
+        return Rig(views=views, initial_mesh_to_world=spec.initial_mesh_to_world)
     except DsaregInputError as exc:
         raise exc.with_field_prefix("geometry") from None
 

@@ -59,32 +59,20 @@ def run_registration_case(
 
 
 def verdict_of(data: dict) -> tuple[str, bool | None]:
-    """Short verdict text and whether it is good, from a result dict.
+    """Short verdict text and whether it is good (True), bad (False) or to be checked (None).
 
-    Reads ``verdict`` when the engine gives one (a string, or an object with
-    ``status``/``label`` and optionally ``ok``), else ``metrics.converged``.
+    Reads the confidence verdict (``metrics.confidence.verdict``: ok / check / failed, see
+    :mod:`dsareg_engine.registration.confidence`); results without one fall back to
+    ``metrics.converged``.
     """
-    verdict = data.get("verdict", (data.get("metrics") or {}).get("verdict"))
-    if isinstance(verdict, dict):
-        text = str(verdict.get("status") or verdict.get("label") or verdict.get("verdict") or "")
-        ok = verdict.get("ok")
-        if text:
-            return text, ok if isinstance(ok, bool) else _good_word(text)
-    elif isinstance(verdict, str) and verdict:
-        return verdict, _good_word(verdict)
-    converged = (data.get("metrics") or {}).get("converged")
+    metrics = data.get("metrics") or {}
+    verdict = (metrics.get("confidence") or {}).get("verdict")
+    if isinstance(verdict, str) and verdict:
+        return verdict, {"ok": True, "failed": False}.get(verdict)
+    converged = metrics.get("converged")
     if converged is None:
         return "", None
     return ("converged" if converged else "NOT converged"), bool(converged)
-
-
-def _good_word(text: str) -> bool | None:
-    lowered = text.lower()
-    if any(word in lowered for word in ("not", "fail", "reject", "uncertain", "doubt", "poor", "wrong")):
-        return False
-    if any(word in lowered for word in ("ok", "good", "accept", "converged", "success", "pass", "confident")):
-        return True
-    return None
 
 
 def mm_per_pixel_at_mesh(view, mesh_to_view: np.ndarray, mesh=None) -> float | None:

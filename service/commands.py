@@ -141,10 +141,8 @@ def summary_line(final: dict[str, Any]) -> str:
     """One line like `dsareg register` prints: verdict, Dice per view, time, ground-truth errors."""
     result = final.get("result") or {}
     metrics = result.get("metrics") or {}
-    verdict = result.get("verdict") if isinstance(result.get("verdict"), str) else None
-    if isinstance(result.get("verdict"), dict):
-        verdict = result["verdict"].get("status") or result["verdict"].get("label")
-    state = verdict or ("converged" if metrics.get("converged") else "NOT converged")
+    verdict = (metrics.get("confidence") or {}).get("verdict")
+    state = (f"verdict {verdict}; " if verdict else "") + ("converged" if metrics.get("converged") else "NOT converged")
     reason = metrics.get("reason")
     views = result.get("views") or {}
     dice = ", ".join(f"{name} dice {view.get('dice', float('nan')):.3f}" for name, view in views.items()

@@ -79,7 +79,7 @@ class JobSummary(BaseModel):
         "id": EXAMPLE_ID, "status": "succeeded", "created_at": "2026-01-01T10:00:00Z",
         "started_at": "2026-01-01T10:00:01Z", "finished_at": "2026-01-01T10:00:09Z", "seconds": 8.2,
         "progress": {"stage": "ap+lat:1/1:refine", "iteration": 11, "loss": 0.0019, "fraction": 1.0},
-        "converged": True, "verdict": "converged", "dice": {"ap": 0.997, "lat": 0.998}, "error": None,
+        "converged": True, "verdict": "ok", "dice": {"ap": 0.997, "lat": 0.998}, "error": None,
         "links": {"self": f"/v1/registrations/{EXAMPLE_ID}", "result": f"/v1/registrations/{EXAMPLE_ID}/result"},
     }]})
 
@@ -91,8 +91,8 @@ class JobSummary(BaseModel):
     seconds: float | None = Field(None, description="Run time (started → finished), seconds.")
     progress: Progress | None = None
     converged: bool | None = Field(None, description="metrics.converged of the result (succeeded jobs).")
-    verdict: str | None = Field(None, description="The result's verdict when the engine gives one, else "
-                                                  "'converged' / 'NOT converged'.")
+    verdict: str | None = Field(None, description="metrics.confidence.verdict of the result: ok / check / failed "
+                                                  "(results without one: 'converged' / 'NOT converged').")
     dice: dict[str, float] | None = Field(None, description="Dice per view of the registered silhouette.")
     error: str | None = Field(None, description="Title and detail of the problem, for failed jobs.")
     links: JobLinks
@@ -188,9 +188,8 @@ def _drop_absent_links(body: dict[str, Any]) -> dict[str, Any]:
 
 
 def _verdict(result: dict[str, Any]) -> str | None:
-    verdict = result.get("verdict", (result.get("metrics") or {}).get("verdict"))
-    if isinstance(verdict, dict):
-        verdict = verdict.get("status") or verdict.get("label") or verdict.get("verdict")
+    """``metrics.confidence.verdict`` (ok / check / failed); older results: converged or not."""
+    verdict = ((result.get("metrics") or {}).get("confidence") or {}).get("verdict")
     if isinstance(verdict, str) and verdict:
         return verdict
     converged = (result.get("metrics") or {}).get("converged")

@@ -71,10 +71,23 @@ def add_parser(subparsers) -> None:
                         help="initial rotation (deg) and translation (mm) offset")
     robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS),
                         help="simulated segmentation errors to apply (default all)")
+    robust.add_argument("--grey", nargs="*", default=["dsa", "otsu"], choices=["dsa", "otsu", "vesselness"],
+                        help="also register from grey-level DSA synthesized from the model (uneven background, noise, "
+                             "catheter), segmented by these methods ('dsa' is what 'auto' uses)")
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     robust.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
     robust.set_defaults(func=bench_robustness)
+    auto = which.add_parser("autoinit", help="registration with no initial pose on a clinical-like rig (107°, mirrored LAT)")
+    auto.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    auto.add_argument("--cases", type=int, default=20, help="random poses (rotation uniform over SO(3))")
+    auto.add_argument("--seed", type=int, default=0, help="random seed of the poses")
+    auto.add_argument("--size", type=int, default=512, help="image side in px")
+    auto.add_argument("--radius", type=float, default=60.0, help="mesh centre within this distance of the isocentre (mm)")
+    auto.add_argument("--options", default="{}", help="extra registration options as JSON")
+    auto.add_argument("--grey", action="store_true",
+                      help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
+    auto.set_defaults(func=bench_autoinit)
 
 
 def _device(requested: str = "auto") -> str:
@@ -165,7 +178,8 @@ def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int, ext
     cpu = time.process_time()
     result = register(mesh, masks, rig, options)
     return {**result.metrics["ground_truth"], "seconds": result.metrics["seconds"]["total"], "converged": result.metrics["converged"],
-            "cpu_seconds": time.process_time() - cpu}
+            "cpu_seconds": time.process_time() - cpu,
+            "verdict": result.metrics["confidence"]["verdict"], "signals": result.metrics["confidence"]["signals"]}
 
 
 def bench_table1(args: argparse.Namespace) -> int:
@@ -247,19 +261,81 @@ def bench_robustness(args: argparse.Namespace) -> int:
     print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.starts} initial poses "
           f"({degrees:g} deg, {millimetres:g} mm), {args.multistart} parallel starts each, simultaneous, options {args.options}")
     print("| corruption | mask px AP / LAT (clean: " + " / ".join(str(int(clean[v].sum())) for v in ("ap", "lat"))
-          + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s |")
-    print("|---|---|---|---|---|---|---|")
-    for name in args.corruptions:
+          + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s | verdicts | fitted dice min / max abs border shift px / min runner-up fit gap |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in list(args.corruptions) + [f"grey_{method}" for method in args.grey]:
         rows = []
         for index, initial in enumerate(initials):
             rng = np.random.default_rng(args.seed + 1000 * index)
-            masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
+            if name.startswith("grey_"):
+                masks = _grey_masks(mesh, rig, name[len("grey_"):], args.seed + index)
+            else:
+                masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
             row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, _options(args))
             rows.append({**row, "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
         add = np.array([row["add_mm"] for row in rows])
         print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
               f"{np.median([row['rotation_error_deg'] for row in rows]):.3f} | {np.mean(add < 1.0) * 100:.0f} % | "
-              f"{sum(not row['converged'] for row in rows)} | {np.median([row['seconds'] for row in rows]):.1f} |", flush=True)
+              f"{sum(not row['converged'] for row in rows)} | {np.median([row['seconds'] for row in rows]):.1f} | "
+              f"{'/'.join(sorted(set(row['verdict'] for row in rows)))} | {_signal_summary([row['signals'] for row in rows])} |", flush=True)
+    return 0
+
+
+def _signal_summary(signals: list[dict]) -> str:
+    """Worst confidence signals over runs: lowest fitted Dice, largest |border shift|, smallest runner-up gap."""
+    lowest = min(min(s["dice"].values()) for s in signals)
+    shift = max(max(abs(v) for v in s["border_shift_px"].values()) for s in signals)
+    gaps = [s["runner_up"]["best_fit"] - s["runner_up"]["fit"] for s in signals if s.get("runner_up")]
+    return f"{lowest:.3f} / {shift:.2f} / {min(gaps):.3f}" if gaps else f"{lowest:.3f} / {shift:.2f} / none"
+
+
+def _grey_masks(mesh, rig, method: str, seed: int) -> dict:
+    """Masks segmented (``method``) from 16-bit DSA images synthesized from the model at the identity pose."""
+    from ..io.segmentation import segment_vessels
+    from ..synthetic_dsa import synthesize_dsa
+
+    images = synthesize_dsa(mesh, rig, np.eye(4), seed=seed)
+    return {view: segment_vessels(np.round(image * 65535).astype(np.uint16), method) for view, image in images.items()}
+
+
+def bench_autoinit(args: argparse.Namespace) -> int:
+    """No initial pose: uniform random rotations, positions anywhere the mesh stays in both views."""
+    from ..clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+
+    mesh = load_mesh_argument(args.mesh)
+    rig = clinical_biplane_rig(args.size)
+    rng = np.random.default_rng(args.seed)
+    extra = json.loads(args.options)
+    print(f"mesh {mesh.n_faces} faces, clinical rig {args.size}x{args.size} px ({rig.angle_between_views_deg():.0f}° apart, "
+          f"LAT mirrored, SID 1100 / 1200 mm), {args.cases} cases, no initial pose, "
+          f"{'grey-level DSA' if args.grey else 'true masks'}, options {extra}")
+    print("| case | ADD mm | rotation ° | search s | total s | verdict | fitted dice min / border shift / runner-up gap | dice AP / LAT |")
+    print("|---|---|---|---|---|---|---|---|")
+    rows = []
+    for case in range(args.cases):
+        truth = random_visible_pose(mesh, rig, rng, args.radius)
+        options = RegistrationOptions(seed=args.seed + case, **extra, ground_truth_mesh_to_world=truth.tolist())
+        masks = render_masks(mesh, rig, truth)
+        if args.grey:
+            from ..io.segmentation import segment_vessels
+            from ..synthetic_dsa import synthesize_dsa
+
+            images = synthesize_dsa(mesh, rig, truth, seed=args.seed + case)
+            masks = {view: segment_vessels(np.round(image * 65535).astype(np.uint16), "auto") for view, image in images.items()}
+        result = register(mesh, masks, rig, options)
+        metrics = result.metrics
+        row = {"add": metrics["ground_truth"]["add_mm"], "rotation": metrics["ground_truth"]["rotation_error_deg"],
+               "search": metrics["initialization"]["seconds"], "total": metrics["seconds"]["total"],
+               "verdict": metrics["confidence"]["verdict"]}
+        rows.append(row)
+        print(f"| {case} | {row['add']:.4f} | {row['rotation']:.3f} | {row['search']:.2f} | {row['total']:.1f} | {row['verdict']} | "
+              f"{_signal_summary([metrics['confidence']['signals']])} | {result.views['ap'].dice:.3f} / {result.views['lat'].dice:.3f} |", flush=True)
+    add = np.array([row["add"] for row in rows])
+    counts = ", ".join(f"{verdict} {sum(row['verdict'] == verdict for row in rows)}" for verdict in ("ok", "check", "failed"))
+    print(f"\nsuccess (ADD < 1 mm) {np.mean(add < 1.0) * 100:.0f} % | ADD median / p90 {np.median(add):.4f} / "
+          f"{np.percentile(add, 90):.4f} mm | verdicts {counts} | "
+          f"search s median {np.median([r['search'] for r in rows]):.2f} | "
+          f"total s median / p90 {np.median([r['total'] for r in rows]):.1f} / {np.percentile([r['total'] for r in rows], 90):.1f}")
     return 0
 
 

@@ -108,8 +108,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"DICOM: {', '.join(sorted(written))} -> {args.dicom_out}")
     metrics = result.metrics
     dice_text = ", ".join(f"{name} dice {view.dice:.3f}" for name, view in result.views.items())
-    print(f"{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
+    confidence = metrics.get("confidence") or {}
+    verdict = f"verdict {confidence['verdict']}; " if confidence.get("verdict") else ""
+    print(f"{verdict}{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
           f"{metrics['seconds']['total']:.1f} s -> {out / 'result.json'}")
+    if confidence.get("verdict") in ("check", "failed"):
+        print("why: " + "; ".join(str(reason) for reason in confidence.get("reasons", [])))
     if "motion" in metrics:
         print(f"motion since --initial: {metrics['motion']['rotation_deg']:.3f} deg, {metrics['motion']['translation_mm']:.3f} mm")
     if "ground_truth" in metrics:

@@ -133,7 +133,7 @@ def load_case(
         method = "mask" if image.is_mask and segmentation == "auto" else segmentation
         masks[name] = segment_vessels(image.pixels, method, field_name=name)
         views[name] = view
-    rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world)
+    rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES})
 

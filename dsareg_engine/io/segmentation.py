@@ -7,7 +7,10 @@ Methods:
 * ``"otsu"``: Gaussian blur, Otsu threshold, small objects removed (the seed paper).
 * ``"vesselness"``: Sato tubeness over several scales, hysteresis threshold around
   the response's Otsu level; keeps thin branches connected to thick ones.
-* ``"auto"``: ``"mask"`` when the image has at most two values, else ``"otsu"``.
+* ``"dsa"``: background flattening, hysteresis, and the border at a fixed fraction of the
+  local centreline contrast (:mod:`.dsa_border`): borders land where the vessel's outline
+  projects, for thin and thick vessels alike.
+* ``"auto"``: ``"mask"`` when the image has at most two values, else ``"dsa"``.
 
 Polarity is detected: DSA shows vessels dark on a bright background; exported masks
 show them bright on dark. The side that covers most of the image is the background.
@@ -20,7 +23,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..geometry import ViewGeometry
 
-SEGMENTATION_METHODS = ("auto", "otsu", "vesselness", "mask")
+SEGMENTATION_METHODS = ("auto", "dsa", "otsu", "vesselness", "mask")
 
 
 def vessels_are_dark(pixels: np.ndarray) -> bool:
@@ -71,11 +74,15 @@ def segment_vessels(
         raise DsaregInputError("is constant: no vessels to segment", field=field_name)
     n_values = len(np.unique(pixels[:: max(1, pixels.shape[0] // 256), :: max(1, pixels.shape[1] // 256)]))
     if method == "auto":
-        method = "mask" if n_values <= 2 and len(np.unique(pixels)) <= 2 else "otsu"
+        method = "mask" if n_values <= 2 and len(np.unique(pixels)) <= 2 else "dsa"
     bright = _bright_vessels(pixels)
     min_size = max(16, int(min_object_fraction * pixels.size))
     if method == "mask":
         mask = bright > 0.5
+    elif method == "dsa":
+        from .dsa_border import dsa_vessel_mask
+
+        mask = dsa_vessel_mask(bright, min_size)
     elif method == "otsu":
         smooth = gaussian(bright, sigma=blur_sigma_px, preserve_range=True)
         mask = smooth > threshold_otsu(smooth)

@@ -51,11 +51,20 @@ class RegistrationOptions(BaseModel):
         "the border exactly on the model's surface); reported as metrics.border_shift_px.",
     )
     initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
+    initialization: Literal["auto", "given", "search"] = Field(
+        "auto",
+        description="Where the starts come from: 'given' = the initial pose (request, else geometry, else identity) "
+        "and random perturbations of it; 'search' = triangulate the masks' centroids for the position and search "
+        "all rotations for the best distinct starts (at least 8 of them); 'auto' = 'given' when an initial pose was "
+        "given, else 'search'. "
+        "Reported as metrics.initialization.",
+    )
     ground_truth_mesh_to_world: Matrix4 | None = Field(
         None, description="Known pose (synthetic studies): adds error metrics to the result."
     )
-    segmentation: Literal["auto", "otsu", "vesselness", "mask"] = Field(
-        "auto", description="How DSA images become vessel masks (inputs that are masks are used as they are)."
+    segmentation: Literal["auto", "dsa", "otsu", "vesselness", "mask"] = Field(
+        "auto", description="How DSA images become vessel masks (inputs that are masks are used as they are; "
+        "auto = 'dsa': flattened background, border at a fraction of the local vessel contrast)."
     )
     animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available.")

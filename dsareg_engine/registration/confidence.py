@@ -1,0 +1,116 @@
+"""How sure is a registration? A plain verdict (``ok`` / ``check`` / ``failed``) with reasons.
+
+Signals, all measured by the solver (``metrics.confidence.signals``):
+
+* ``dice``: final hard silhouette vs the mask per view, the mask's border moved by the border
+  correction (the target actually fitted; a uniformly too wide mask is the border signal's
+  business, not a wrong pose). Low overlap means a wrong pose (or a mask of something else).
+* ``runner_up``: the best start that ended *elsewhere* (mean vertex distance from the kept
+  pose > 20 % of the mesh's RMS radius and > 2 mm) when the batched stages hand over, with
+  its fit and the kept start's (mean over the views of :func:`tolerant_f_score`, full-resolution hard silhouettes, 3 px
+  tolerance: the poses are not refined yet). A distinct pose explaining the images
+  almost as well (small gap) is an ambiguity the images cannot settle (a symmetric
+  vessel, a foreshortened view). Loss ratios were tried first and do not separate: at the
+  hand-over level the soft silhouettes leave a loss floor, so wrong minima read only 1.3–2×.
+* ``border_shift_px``: how far the border correction had to move each mask's outline; near
+  its clamp the mask's width does not match the model (wrong segmentation threshold,
+  different vessel calibre, a scaled mesh).
+* ``outside_fraction``: fraction of the model's vertices projecting outside each image;
+  what is outside is unconstrained.
+* ``reason``: the optimizer's stop (iteration limit = did not settle).
+
+Thresholds (:class:`ConfidenceThresholds`) were calibrated on the robustness studies; see the
+README's calibration table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import ViewGeometry
+from ..metrics import mean_distance_mm
+
+
+@dataclass(frozen=True)
+class ConfidenceThresholds:
+    """Where a signal turns the verdict (see the README's calibration table).
+
+    Attributes:
+        failed_dice: below this Dice in any view the pose is wrong.
+        check_dice: below this Dice in any view the pose needs a look.
+        ambiguous_fit_gap: a distinct solution whose fit (tolerant F-score) is within this of the kept one's.
+        border_shift_px: |border shift| at or above this (the correction's clamp is 2 px).
+        outside_fraction: more of the model than this projects outside an image.
+    """
+
+    failed_dice: float = 0.5
+    check_dice: float = 0.7
+    ambiguous_fit_gap: float = 0.05
+    fit_tolerance_px: float = 3.0
+    border_shift_px: float = 1.5
+    outside_fraction: float = 0.25
+
+
+def runner_up(poses: np.ndarray, losses: np.ndarray, points: np.ndarray, distinct_mm: float) -> tuple[int, float] | None:
+    """Index of the best of ``poses`` ``(B, 4, 4)`` (by ``losses`` ``(B,)``) farther than ``distinct_mm``
+    (mean ``points`` distance) from the best one, and that distance; None when every start agrees."""
+    order = np.argsort(losses)
+    for index in order[1:]:
+        distance = mean_distance_mm(poses[index], poses[order[0]], points)
+        if distance > distinct_mm:
+            return int(index), distance
+    return None
+
+
+def tolerant_f_score(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float) -> float:
+    """F-score of two ``(H, W)`` bool masks counting pixels within ``tolerance_px`` of the other as matched.
+
+    Unlike Dice it forgives the pixel-level misfit of a pose not yet refined, so a coarse
+    pose near the right answer reads near 1 and a wrong local minimum does not.
+    """
+    import cv2
+
+    def near(a: np.ndarray) -> np.ndarray:
+        return cv2.distanceTransform((~a).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= tolerance_px
+
+    if not silhouette.any() or not mask.any():
+        return 0.0
+    precision = float((silhouette & near(mask)).sum() / silhouette.sum())
+    recall = float((mask & near(silhouette)).sum() / mask.sum())
+    return 0.0 if precision + recall == 0 else 2.0 * precision * recall / (precision + recall)
+
+
+def outside_fraction(view: ViewGeometry, points_world: np.ndarray) -> float:
+    """Fraction of ``points_world`` ``(N, 3)`` projecting outside the view's image."""
+    pixels = view.project(points_world)
+    inside = np.all((pixels >= -0.5) & (pixels <= np.array(view.image_size) - 0.5), axis=1)
+    return float(1.0 - inside.mean())
+
+
+def assess(signals: dict, thresholds: ConfidenceThresholds = ConfidenceThresholds()) -> dict:
+    """``{"verdict", "reasons", "signals"}`` from ``signals`` = {dice: {view: float},
+    runner_up: dict | None, border_shift_px: {view: float}, outside_fraction: {view: float},
+    stopped_on_tolerance: bool}."""
+    failed, check = [], []
+    for name, value in signals["dice"].items():
+        if value < thresholds.failed_dice:
+            failed.append(f"{name}: the model's silhouette overlaps the vessels poorly (dice {value:.2f})")
+        elif value < thresholds.check_dice:
+            check.append(f"{name}: partial overlap (dice {value:.2f}); missing or extra vessels, or a wrong pose")
+    other = signals.get("runner_up")
+    if other is not None and other["best_fit"] - other["fit"] < thresholds.ambiguous_fit_gap:
+        check.append(f"ambiguous: a different pose {other['distance_mm']:.0f} mm away fits almost as well "
+                     f"({other['fit']:.2f} vs {other['best_fit']:.2f}); a symmetric or foreshortened vessel?")
+    for name, shift in (signals.get("border_shift_px") or {}).items():
+        if abs(shift) >= thresholds.border_shift_px:
+            check.append(f"{name}: vessel borders had to move {shift:+.1f} px to match the model "
+                         "(segmentation width or mesh scale differ)")
+    for name, fraction in signals["outside_fraction"].items():
+        if fraction > thresholds.outside_fraction:
+            check.append(f"{name}: {fraction:.0%} of the model projects outside the image and is unconstrained")
+    if not signals.get("stopped_on_tolerance", True):
+        check.append("the optimizer hit its iteration limit before the pose settled")
+    verdict = "failed" if failed else "check" if check else "ok"
+    return {"verdict": verdict, "reasons": failed + check, "signals": signals}

@@ -1,0 +1,303 @@
+"""Automatic initial poses: triangulated position + global rotation search over SO(3).
+
+Used when no initial pose is known (``options.initialization``: ``auto`` without a given
+pose, or ``search``). Steps:
+
+1. **Position.** Each view's mask centroid back-projects to a ray from its source; the point
+   nearest to both rays (least squares) is where the mesh centre goes.
+2. **Rotation.** A near-uniform grid of rotations over all of SO(3) (super-Fibonacci, see
+   :mod:`.rotation_grid`; the mesh's own axes, the identity, is scored too) is scored at low
+   resolution in every view: area-weighted surface points of the mesh are splatted into a
+   ~64-px window around the mask, the translation is re-centred per candidate so the splat's
+   centroid meets the mask's centroid in both views (linearized, one Gauss–Newton step), and
+   the score is ``1 − cosine similarity`` of the blurred splat and the blurred mask, averaged
+   over the views (0 = identical). The best candidates are refined by a local hill-climb.
+3. **Starts.** The best *distinct* candidates (rotations ≥ ``distinct_deg`` apart) become the
+   multi-start's starts.
+
+Array shapes: ``B`` candidates, ``N`` surface points, ``(H, W)`` the search window.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..geometry import Rig, ViewGeometry
+from ..mesh import TriangleMesh
+from . import search_kernels
+from .rotation_grid import angles_between_deg, axis_angle_matrices, grid_spacing_deg, rotation_grid
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """Knobs of the global search (defaults measured on the phantom and the paper's mesh).
+
+    Attributes:
+        rotations: size of the SO(3) grid (4096 → neighbours ~15° apart, any rotation within ~13°).
+        window_px: longest side of the scoring window around the mask.
+        margin: window margin around the mask's bounding box, as a fraction of its size.
+        points: surface points splatted per candidate.
+        blur_px: Gaussian blur of the mask in the window (px).
+        refine_top: candidates refined by the local hill-climb.
+        refine_steps_deg: rotation steps of the hill-climb, one round each.
+        distinct_deg: starts differ by at least this rotation.
+    """
+
+    rotations: int = 4096
+    window_px: int = 64
+    margin: float = 0.3
+    points: int = 2500
+    blur_px: float = 1.5
+    refine_top: int = 40
+    refine_steps_deg: tuple[float, ...] = (8.0, 4.0, 2.0)
+    distinct_deg: float = 30.0
+
+
+@dataclass
+class Initialization:
+    """Outcome of the search.
+
+    Attributes:
+        poses: ``(K, 4, 4)`` mesh_to_world starts, best first.
+        scores: ``(K,)`` their scores (0 = perfect overlap, 1 = none).
+        method: ``"search"``.
+        candidates_scored: rotations scored in all (grid + refinement).
+        seconds: wall time.
+    """
+
+    poses: np.ndarray
+    scores: np.ndarray
+    method: str
+    candidates_scored: int
+    seconds: float
+
+    def metrics(self) -> dict:
+        return {
+            "method": self.method,
+            "candidates_scored": int(self.candidates_scored),
+            "seconds": round(self.seconds, 3),
+            "best_score": round(float(self.scores[0]), 4),
+            "runner_up_score": round(float(self.scores[1]), 4) if len(self.scores) > 1 else None,
+        }
+
+
+GIVEN_INITIALIZATION = {"method": "given", "candidates_scored": 0, "seconds": 0.0, "best_score": None, "runner_up_score": None}
+"""``metrics.initialization`` when the starts came from a given pose."""
+
+
+def resolve_initialization(requested: str, pose_given: bool) -> str:
+    """``"given"`` or ``"search"``: ``auto`` searches only when no initial pose was given."""
+    if requested == "auto":
+        return "given" if pose_given else "search"
+    return requested
+
+
+# ---- position ---------------------------------------------------------------------------
+
+
+def mask_centroid_px(mask: np.ndarray) -> np.ndarray:
+    """``(u, v)`` centroid of a boolean mask ``(H, W)``."""
+    rows, cols = np.nonzero(mask)
+    return np.array([cols.mean(), rows.mean()])
+
+
+def pixel_ray_world(view: ViewGeometry, pixel_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Source position and unit direction (world) of the ray through pixel ``(u, v)``."""
+    fx, fy = view.focal_px
+    u0, v0 = view.principal_point_px
+    direction_view = np.array([(pixel_uv[0] - u0) / fx, (pixel_uv[1] - v0) / fy, 1.0])
+    direction = view.world_to_view[:3, :3].T @ direction_view  # orthonormal (det ±1): inverse = transpose
+    return view.source_position_world, direction / np.linalg.norm(direction)
+
+
+def triangulate(rays: list[tuple[np.ndarray, np.ndarray]], fallback: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares point nearest to the rays ``[(origin, unit direction)]``, world mm ``(3,)``.
+
+    One ray leaves depth free: the point nearest to ``fallback`` (default: the world origin,
+    usually the isocentre) along it is returned.
+    """
+    if len(rays) == 1:
+        origin, direction = rays[0]
+        anchor = np.zeros(3) if fallback is None else fallback
+        return origin + direction * float((anchor - origin) @ direction)
+    normal_matrix, right = np.zeros((3, 3)), np.zeros(3)
+    for origin, direction in rays:
+        projector = np.eye(3) - np.outer(direction, direction)
+        normal_matrix += projector
+        right += projector @ origin
+    return np.linalg.solve(normal_matrix, right)
+
+
+def triangulate_mask_centroids(masks: dict[str, np.ndarray], rig: Rig) -> np.ndarray:
+    """World point (mm) where the views' mask centroids triangulate."""
+    rays = [pixel_ray_world(rig.views[name], mask_centroid_px(mask)) for name, mask in masks.items()]
+    return triangulate(rays)
+
+
+# ---- scoring window per view ------------------------------------------------------------
+
+
+@dataclass
+class _Window:
+    """One view's scoring window: its geometry, blurred target ``(H, W)`` float32, its norm, and the
+    mask's area centroid ``(u, v)`` in window px."""
+
+    view: ViewGeometry
+    target: np.ndarray
+    target_norm: float
+    centroid_px: np.ndarray
+
+
+def _window(view: ViewGeometry, mask: np.ndarray, settings: SearchSettings) -> _Window:
+    rows, cols = np.nonzero(mask)
+    size = max(cols.max() - cols.min(), rows.max() - rows.min()) + 1.0
+    side = size * (1.0 + 2.0 * settings.margin)
+    scale = min(1.0, settings.window_px / side)
+    centre = np.array([(cols.max() + cols.min()) / 2.0, (rows.max() + rows.min()) / 2.0])
+    level = view.scaled(scale)
+    pixel_scale = level.width / view.width
+    window_side = int(round(side * pixel_scale))
+    corner = np.round(pixel_scale * (centre + 0.5) - 0.5 - window_side / 2.0)  # window origin in level px
+    u0, v0 = level.principal_point_px
+    window_view = ViewGeometry((window_side, window_side), level.pixel_spacing_mm, level.sid_mm,
+                               (u0 - corner[0], v0 - corner[1]), level.world_to_view)
+    coverage = cv2.resize(mask.astype(np.float32), level.image_size, interpolation=cv2.INTER_AREA)
+    padded = np.zeros((window_side, window_side), np.float32)
+    c0, r0 = int(corner[0]), int(corner[1])
+    src = coverage[max(r0, 0): r0 + window_side, max(c0, 0): c0 + window_side]
+    padded[max(-r0, 0): max(-r0, 0) + src.shape[0], max(-c0, 0): max(-c0, 0) + src.shape[1]] = src
+    occupied = (padded > 0.05).astype(np.float32)
+    target = np.ascontiguousarray(cv2.GaussianBlur(occupied, (0, 0), settings.blur_px, borderType=cv2.BORDER_CONSTANT))
+    rows, cols = np.indices(padded.shape)
+    centroid = np.array([(padded * cols).sum(), (padded * rows).sum()]) / padded.sum()
+    return _Window(window_view, target, float(np.linalg.norm(target)), centroid)
+
+
+# ---- splatting and scoring --------------------------------------------------------------
+
+
+def surface_points(mesh: TriangleMesh, count: int, seed: int = 0) -> np.ndarray:
+    """``(count, 3)`` points spread over the surface by area (mesh frame mm)."""
+    a, b, c = (mesh.vertices[mesh.faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(area), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    flip = r1 + r2 > 1.0
+    r1[flip], r2[flip] = 1.0 - r1[flip], 1.0 - r2[flip]
+    return a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
+
+
+def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kernel inputs: turns ``(B, 3, 3)``, offsets ``(B, 3)`` in the view frame and ``(fx, fy, u0, v0)``."""
+    view = window.view
+    turns = np.ascontiguousarray(view.world_to_view[:3, :3] @ rotations)
+    offsets = np.ascontiguousarray(centres @ view.world_to_view[:3, :3].T + view.world_to_view[:3, 3])
+    return turns, offsets, np.array([*view.focal_px, *view.principal_point_px])
+
+
+def _mean_pixels(window: _Window, rotations: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(B, 2)`` mean projected ``(u, v)`` of centred points ``(N, 3)`` turned by ``(B, 3, 3)``, placed at ``(B, 3)``."""
+    out = np.empty((len(rotations), 2))
+    search_kernels.mean_pixels(points, *_view_placement(window, rotations, centres), out)
+    return out
+
+
+def _overlap(window: _Window, rotations: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(B, 2)``: Σ blurred target over the pixels the points hit, and the number of those pixels."""
+    out = np.empty((len(rotations), 2))
+    search_kernels.splat_overlap(points, *_view_placement(window, rotations, centres), window.target, out)
+    return out
+
+
+def _translation_jacobian(windows: list[_Window], centre: np.ndarray) -> np.ndarray:
+    """``(2V, 3)`` pixels per mm of moving a point at ``centre`` (world), all views stacked."""
+    rows = []
+    for window in windows:
+        view = window.view
+        x, y, z = view.world_to_view[:3, :3] @ centre + view.world_to_view[:3, 3]
+        fx, fy = view.focal_px
+        rows.append(np.array([[fx / z, 0.0, -fx * x / z**2], [0.0, fy / z, -fy * y / z**2]]) @ view.world_to_view[:3, :3])
+    return np.concatenate(rows)
+
+
+def score_candidates(
+    windows: list[_Window], rotations: np.ndarray, centre: np.ndarray, points: np.ndarray, settings: SearchSettings
+) -> tuple[np.ndarray, np.ndarray]:
+    """Scores ``(B,)`` (0 best) and re-centred positions ``(B, 3)`` of rotations ``(B, 3, 3)``.
+
+    Re-centring moves each candidate so its projected surface points' mean meets the mask's
+    centroid in every view (one linearized least-squares step). The score is one minus the
+    cosine similarity of the candidate's splat ``S`` (binary) and the blurred mask ``T``,
+    ``Σ S·T / (‖S‖ ‖T‖)``, averaged over the views: only the target is blurred, so a
+    candidate costs one projection and one scatter per view.
+    """
+    solve = np.linalg.pinv(_translation_jacobian(windows, centre))
+    place = np.repeat(centre[None], len(rotations), axis=0)
+    shift = [window.centroid_px - _mean_pixels(window, rotations, place, points) for window in windows]
+    place = place + np.concatenate(shift, axis=1) @ solve.T
+    similarity = np.zeros(len(rotations))
+    for window in windows:
+        overlap, count = _overlap(window, rotations, place, points).T
+        similarity += overlap / (np.sqrt(np.maximum(count, 1.0)) * window.target_norm)
+    return 1.0 - similarity / len(windows), place
+
+
+def _local_moves(step_deg: float) -> np.ndarray:
+    """``(13, 3, 3)``: the identity and ±``step_deg`` about the axes and about 3 diagonals."""
+    axes = np.concatenate([np.eye(3), np.array([[1, 1, 1], [1, -1, 1], [1, 1, -1]]) / np.sqrt(3.0)])
+    vectors = np.radians(step_deg) * np.concatenate([axes, -axes])
+    return np.concatenate([np.eye(3)[None], axis_angle_matrices(vectors)])
+
+
+def _hill_climb(windows, rotations, centre, points, settings) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Refine rotations ``(M, 3, 3)`` by rounds of local moves; returns rotations, scores, centres, count scored."""
+    scored = 0
+    scores = centres = None
+    for step in settings.refine_steps_deg:
+        moves = _local_moves(step)  # world-frame turns applied on the left
+        trial = np.einsum("kij,mjl->mkil", moves, rotations).reshape(-1, 3, 3)
+        trial_scores, trial_centres = score_candidates(windows, trial, centre, points, settings)
+        scored += len(trial)
+        pick = np.arange(len(rotations)) * len(moves) + trial_scores.reshape(len(rotations), len(moves)).argmin(axis=1)
+        rotations, scores, centres = trial[pick], trial_scores[pick], trial_centres[pick]
+    return rotations, scores, centres, scored
+
+
+def _distinct(rotations: np.ndarray, scores: np.ndarray, count: int, min_deg: float) -> list[int]:
+    """Indices of the best ``count`` candidates at least ``min_deg`` apart in rotation."""
+    chosen: list[int] = []
+    for index in np.argsort(scores, kind="stable"):
+        if all(angles_between_deg(rotations[[index]], rotations[other])[0] >= min_deg for other in chosen):
+            chosen.append(int(index))
+            if len(chosen) == count:
+                break
+    return chosen
+
+
+def search_initial_poses(
+    mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, count: int, settings: SearchSettings = SearchSettings()
+) -> Initialization:
+    """``count`` distinct starting poses for ``mesh`` from the views' masks (no pose needed).
+
+    Args:
+        masks: ``{view: (H, W) bool}``, non-empty; every view given is used.
+        rig: calibrated views (their initial pose is ignored).
+    """
+    started = time.perf_counter()
+    centre = triangulate_mask_centroids(masks, rig)
+    windows = [_window(rig.views[name], mask, settings) for name, mask in masks.items()]
+    points = np.ascontiguousarray(surface_points(mesh, settings.points) - mesh.centroid)
+    grid = np.concatenate([np.eye(3)[None], rotation_grid(settings.rotations)])  # the mesh's own axes first
+    scores, _ = score_candidates(windows, grid, centre, points, settings)
+    top = _distinct(grid, scores, settings.refine_top, 0.75 * grid_spacing_deg(settings.rotations))
+    rotations, refined, centres, extra = _hill_climb(windows, grid[top], centre, points, settings)
+    chosen = _distinct(rotations, refined, max(count, 2), settings.distinct_deg)
+    poses = np.tile(np.eye(4), (len(chosen), 1, 1))
+    poses[:, :3, :3] = rotations[chosen]
+    poses[:, :3, 3] = centres[chosen] - rotations[chosen] @ mesh.centroid
+    return Initialization(poses[:count], refined[chosen], "search", len(grid) + extra, time.perf_counter() - started)
