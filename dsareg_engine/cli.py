@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import sys
+import tomllib
+from pathlib import Path
 
 from .commands.errors import run_guarded
 
@@ -19,8 +22,46 @@ COMMAND_MODULES = (
     "dsareg_engine.commands.inputs",
     "dsareg_engine.commands.register",
     "dsareg_engine.commands.bench",
-    "service.commands",
 )
+"""The engine's own sub-commands (modules with ``add_parser``)."""
+
+COMMAND_GROUP = "dsareg.commands"
+"""Entry-point group through which other packages contribute sub-commands: each entry point is a
+callable ``add_parser(subparsers)`` (the service's: ``service = "service.commands:add_parser"``)."""
+
+
+def contributed_commands() -> list[tuple[str, str]]:
+    """``(name, "module:function")`` of the sub-commands other installed packages contribute.
+
+    Read from the installed metadata; where it has no such group (an editable install made before
+    the group was declared, or a source tree on ``PYTHONPATH``), from the group in this checkout's
+    ``pyproject.toml``.
+    """
+    found = sorted((ep.name, ep.value) for ep in importlib.metadata.entry_points(group=COMMAND_GROUP))
+    return found or source_tree_commands()
+
+
+def source_tree_commands(pyproject: Path | None = None) -> list[tuple[str, str]]:
+    """The ``dsareg.commands`` entry points declared in the ``pyproject.toml`` next to this package."""
+    pyproject = pyproject or Path(__file__).resolve().parents[1] / "pyproject.toml"
+    try:
+        project = tomllib.loads(pyproject.read_text()).get("project", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        return []
+    if project.get("name") != "dsareg":
+        return []
+    return sorted(project.get("entry-points", {}).get(COMMAND_GROUP, {}).items())
+
+
+def _load(module_name: str, attribute: str = "add_parser"):
+    """``module.attribute``, or None when the module is not installed (an optional contributor)."""
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name is None or not (module_name == exc.name or module_name.startswith(exc.name + ".")):
+            raise  # a real import error inside the module: surface it
+        return None
+    return getattr(module, attribute)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -30,14 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit status: 0 done, 1 the work failed (server unreachable, job failed), 2 usage or input error.")
     parser.add_argument("--debug", action="store_true", help="show Python tracebacks of errors (for bug reports)")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name != name:  # a real import error inside the module: surface it
-                raise
-            continue
-        module.add_parser(subparsers)
+    adders = [_load(name) for name in COMMAND_MODULES]
+    for _, target in contributed_commands():
+        module_name, _, attribute = target.partition(":")
+        adders.append(_load(module_name.strip(), attribute.strip() or "add_parser"))
+    for add_parser in adders:
+        if add_parser is not None:
+            add_parser(subparsers)
     return parser
 
 

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import torch
 
+from . import artifacts
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
@@ -53,7 +54,7 @@ def run_registration_case(
     warnings = list(getattr(case, "warnings", []) or [])
     if warnings:
         data["warnings"] = warnings
-        (Path(out_dir) / "result.json").write_text(json.dumps(data, indent=2))
+        (Path(out_dir) / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
     return data
 
 
@@ -91,20 +92,20 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
     data = result.to_dict()
     if progress is not None:
         progress({"stage": "outputs", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE})
-    (out_dir / "result.json").write_text(json.dumps(data, indent=2))
+    (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
     verdict, ok = verdict_of(data)
     for name, view in result.views.items():
         scale = mm_per_pixel_at_mesh(rig.views[name], view.mesh_to_view, mesh) if rig is not None else None
         caption = Caption(view=name, dice=view.dice, verdict=verdict, ok=ok, job=label, mm_per_px=scale)
         background = (images or {}).get(name)
-        write_png(out_dir / f"overlay_{name}.png",
+        write_png(out_dir / artifacts.overlay_png(name),
                   overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption))
-        write_png(out_dir / f"mask_{name}.png", masks[name].astype(np.uint8) * 255)
-    write_png(out_dir / "loss.png", loss_figure(result.loss_history, title=f"Loss per iteration{' - ' + label if label else ''}"))
+        write_png(out_dir / artifacts.mask_png(name), masks[name].astype(np.uint8) * 255)
+    write_png(out_dir / artifacts.LOSS_PNG, loss_figure(result.loss_history, title=f"Loss per iteration{' - ' + label if label else ''}"))
     if animation and mesh is not None and rig is not None:
         if progress is not None:
             progress({"stage": "animation", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE + 0.01})
-        write_animation(out_dir / "animation.gif", result, masks, mesh, rig, images=images, label=label)
+        write_animation(out_dir / artifacts.ANIMATION_GIF, result, masks, mesh, rig, images=images, label=label)
     return data
 
 

@@ -7,13 +7,12 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dsareg_engine.cli import run_parsed
-
     from .commands import add_parser
+    from .engine_adapter import engine
 
     parser = argparse.ArgumentParser(prog="python -m service")
     add_parser(parser.add_subparsers(dest="command", required=True))
-    return run_parsed(parser.parse_args(argv))
+    return engine.run_parsed(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

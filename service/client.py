@@ -26,6 +26,13 @@ class ServiceError(Exception):
         message = f"HTTP {status}: {detail}" + (f" (field {field})" if field else "")
         super().__init__(message)
 
+    def cli_explanation(self) -> tuple[bool, str]:
+        """For the command line (:func:`dsareg_engine.commands.errors.explain`): (the caller's fault?, one line)."""
+        text = str(self)
+        if self.problem.get("accepted"):
+            text += f" (accepted: {self.problem['accepted']})"
+        return 400 <= self.status < 500 and self.status not in (408, 429), text
+
 
 def _raise_for(response: httpx.Response) -> None:
     if response.status_code < 400:

@@ -1,4 +1,5 @@
-"""``dsareg serve`` and ``dsareg submit`` (plugged into :mod:`dsareg_engine.cli`)."""
+"""``dsareg serve``, ``dsareg worker`` and ``dsareg submit``, contributed to :mod:`dsareg_engine.cli`
+through the ``dsareg.commands`` entry-point group (``pyproject.toml``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,13 @@ from typing import Any
 
 
 def add_parser(subparsers: Any) -> None:
+    """The service's sub-commands (contributed to ``dsareg`` through the ``dsareg.commands`` entry point)."""
+    _add_serve(subparsers)
+    _add_worker(subparsers)
+    _add_submit(subparsers)
+
+
+def _add_serve(subparsers: Any) -> None:
     serve = subparsers.add_parser(
         "serve", help="run the HTTP registration service with embedded workers",
         description="Run the registration service. Settings come from DSAREG_* environment variables, "
@@ -28,6 +36,8 @@ def add_parser(subparsers: Any) -> None:
     serve.add_argument("--log-level", help="debug, info, warning, error")
     serve.set_defaults(func=run_serve)
 
+
+def _add_worker(subparsers: Any) -> None:
     worker = subparsers.add_parser(
         "worker", help="run a standalone worker (Celery, or a polling worker on the job store)",
         description="Run one worker process that claims jobs from the shared job store. --engine celery consumes "
@@ -46,7 +56,11 @@ def add_parser(subparsers: Any) -> None:
     worker.add_argument("--log-level", help="debug, info, warning, error")
     worker.set_defaults(func=run_worker)
 
-    from dsareg_engine.commands.errors import input_file, options_help
+
+def _add_submit(subparsers: Any) -> None:
+    from .engine_adapter import engine
+
+    input_file, options_help = engine.input_file, engine.options_help
 
     submit = subparsers.add_parser(
         "submit", help="submit a registration to a dsareg server (and wait for it)",
@@ -111,7 +125,7 @@ def run_worker(args: argparse.Namespace) -> int:
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     if args.engine == "celery":
-        from .celery_executor import run_worker as run_celery_worker
+        from .celery_worker import run_worker as run_celery_worker
 
         run_celery_worker(settings, pool=args.pool, hostname=args.hostname)
         return 0
@@ -149,11 +163,11 @@ def summary_line(final: dict[str, Any]) -> str:
 def run_submit(args: argparse.Namespace) -> int:
     import os
 
-    from dsareg_engine.commands.errors import CommandFailed, geometry_argument, json_argument
-    from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.pose_file import load_pose
-
     from .client import RegistrationClient
+    from .engine_adapter import engine
+
+    CommandFailed, DsaregInputError = engine.CommandFailed, engine.DsaregInputError
+    geometry_argument, json_argument, load_pose = engine.geometry_argument, engine.json_argument, engine.load_pose
 
     geometry = geometry_argument(args.geometry)
     options = json_argument(args.options, "--options")

@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Any
 
 from .dicomweb import DicomwebClient, PacsError, fetch_inputs, parse_reference, resolve_server
-from .engine_adapter import input_limits, load_job_case
+from .engine_adapter import engine, input_limits, load_job_case
 
 log = logging.getLogger("dsareg.service.dicom")
 
 REFERENCE_ROLE = "dicomweb"
-STORED_FILES = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm")
+STORED_FILES = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))
 
 
 class DicomJob:
@@ -47,13 +47,10 @@ class DicomJob:
                               max_bytes=self.settings.max_upload_bytes)
 
     def load_case(self, segmentation: str, limits: dict | None):
-        from dsareg_engine.io.case import load_case
-        from dsareg_engine.io.dicom_out import read_sources
-
         if not self.by_reference:
             case = load_job_case(self.job.inputs, self.job.geometry, segmentation, self.read, limits)
             try:
-                self.sources = read_sources(*self._uploaded("ap"), *self._uploaded("lat"), *self._uploaded("volume", True))
+                self.sources = engine.read_sources(*self._uploaded("ap"), *self._uploaded("lat"), *self._uploaded("volume", True))
             except Exception:  # noqa: BLE001 - DICOM context is optional for uploads
                 log.warning("job %s: could not read DICOM headers of the uploads", self.job.id)
             return case
@@ -62,11 +59,11 @@ class DicomJob:
             fetched = fetch_inputs(client, source)
         self.info["source"] = {"server": client.server.url, "study_uid": source.study_uid,
                                "fetch_seconds": round(fetched.seconds, 3), "requests": fetched.calls}
-        case = load_case(volume=fetched.volume, volume_name="volume.dcm", ap=fetched.ap, ap_name="ap.dcm",
+        case = engine.load_case(volume=fetched.volume, volume_name="volume.dcm", ap=fetched.ap, ap_name="ap.dcm",
                          lat=fetched.lat, lat_name="lat.dcm", geometry=self.job.geometry, segmentation=segmentation,
                          limits=input_limits(limits), frame=source.frame)
         case.warnings = [*fetched.warnings, *case.warnings]
-        self.sources = read_sources(fetched.ap, fetched.lat, fetched.volume)
+        self.sources = engine.read_sources(fetched.ap, fetched.lat, fetched.volume)
         return case
 
     def _uploaded(self, role: str, many: bool = False) -> tuple:
@@ -79,11 +76,10 @@ class DicomJob:
 
     def finish(self, result: dict, out_dir: Path) -> dict:
         """Write the DICOM results into ``out_dir`` (and STOW them when asked); adds ``result['dicom']``."""
-        from dsareg_engine.io.dicom_out import DicomSources, write_dicom_outputs
-
         out_dir = Path(out_dir)
         try:
-            written = write_dicom_outputs(out_dir, result["mesh_to_world"], self.sources or DicomSources(), out_dir)
+            written = engine.write_dicom_outputs(out_dir, result["mesh_to_world"], self.sources or engine.DicomSources(),
+                                                out_dir)
         except Exception as exc:
             if self.by_reference:
                 raise

@@ -1,4 +1,6 @@
-"""The only module that calls the registration engine's entry points.
+"""The service's boundary with the registration engine: the only module in ``service/`` that
+imports :mod:`dsareg_engine`, and only its application API :mod:`dsareg_engine.api`
+(re-exported here as ``engine``; its heavy parts load on first use).
 
 Both the API's input validator (in its own processes) and the workers go through
 :func:`load_job_case`, so what the API accepted is exactly what the worker loads.
@@ -10,8 +12,11 @@ import json
 from pathlib import Path
 from typing import Any
 
+from dsareg_engine import api as engine
+
 from .blobs import BlobStore
-from .limits import check_image_budget
+from .limits import image_decoded_bytes
+from .problems import Problem
 from .store import InputFile
 
 ROLE_NAMES = {"mesh": "mesh", "volume": "volume", "ap": "ap", "lat": "lat"}
@@ -33,10 +38,29 @@ def geometry_argument(geometry: str | None) -> str | dict | None:
 
 def input_limits(limits: dict[str, int] | None) -> Any:
     """``InputLimits`` with the configured ceilings (engine defaults for the others)."""
-    from dsareg_engine.io.limits import DEFAULT_LIMITS, InputLimits
+    return engine.input_limits(limits)
 
-    chosen = {k: v for k, v in (limits or {}).items() if v and k in InputLimits.__dataclass_fields__}
-    return InputLimits(**chosen) if chosen else DEFAULT_LIMITS
+
+def check_options(options: Any) -> None:
+    """Refuse what the worker would refuse, naming the option (422)."""
+    for name in ("initial_mesh_to_world", "ground_truth_mesh_to_world"):
+        matrix = getattr(options, name, None)
+        if matrix is None:
+            continue
+        try:
+            engine.validate_rigid(matrix, field=f"options.{name}", allow_mirror=False)
+        except engine.DsaregInputError as exc:
+            raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+
+
+def check_image_budget(data: bytes, field: str, limit: int) -> None:
+    """Refuse an image whose decoded pixels would need more than ``limit`` bytes (before decoding)."""
+    size = image_decoded_bytes(data)
+    if size is not None and size > limit:
+        raise engine.DsaregInputError(
+            f"decodes to {size / 2**20:.0f} MiB of pixels (width × height × channels × bytes per sample), "
+            f"above this server's limit of {limit / 2**20:.0f} MiB",
+            field=field, accepted="a smaller image, fewer channels or fewer bits per sample")
 
 
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
@@ -46,8 +70,6 @@ def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: s
     Several files of one role (a DICOM series, a ``.rad`` + ``.raw`` pair) are passed as a
     list in the order they were uploaded; names are ``<role><sanitized suffix>``.
     """
-    from dsareg_engine.io.case import load_case
-
     image_budget = (limits or {}).get("max_image_bytes")
     kwargs: dict[str, Any] = {"geometry": geometry_argument(geometry), "segmentation": segmentation,
                               "limits": input_limits(limits)}
@@ -63,7 +85,7 @@ def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: s
             for data in kwargs[role] if isinstance(kwargs[role], list) else [kwargs[role]]:
                 check_image_budget(data, role, image_budget)
         kwargs[f"{role}_name"] = role + items[0].suffix
-    return load_case(**kwargs)
+    return engine.load_case(**kwargs)
 
 
 def case_summary(case: Any) -> dict[str, Any]:
@@ -80,20 +102,8 @@ def blob_reader(blobs: BlobStore):
     return blobs.read
 
 
-ARTIFACT_FILES = {
-    "result.json": "application/json",
-    "overlay_ap.png": "image/png",
-    "overlay_lat.png": "image/png",
-    "mask_ap.png": "image/png",
-    "mask_lat.png": "image/png",
-    "animation.gif": "image/gif",
-    "loss.png": "image/png",
-    # DICOM results (service/dicom_jobs.py)
-    "reg.dcm": "application/dicom",
-    "overlay_ap.dcm": "application/dicom",
-    "overlay_lat.dcm": "application/dicom",
-    "loss.dcm": "application/dicom",
-}
+ARTIFACT_FILES = engine.ARTIFACTS
+"""The engine's output files (registration and DICOM), ``{file name: media type}``."""
 
 
 def collect_artifacts(out_dir: Path, blobs: BlobStore) -> dict[str, str]:

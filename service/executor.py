@@ -161,11 +161,3 @@ class EmbeddedProcessExecutor(Executor):
                 if process.is_alive():
                     process.kill()
                     process.join(3)
-
-
-def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
-    if settings.executor == "celery":
-        from .celery_executor import CeleryExecutor
-
-        return CeleryExecutor(settings, store)
-    return EmbeddedProcessExecutor(settings) if settings.workers > 0 else NoExecutor()

@@ -9,7 +9,7 @@
   (:func:`check_options`, :func:`check_job_cost`) instead of failing later in a worker.
 * Images: :func:`image_decoded_bytes` reads only the header and gives pixels × channels ×
   bytes per sample, so a small file that decodes to gigabytes is refused before decoding
-  (see :func:`check_image_budget`, called by :func:`service.engine_adapter.load_job_case`).
+  (see :func:`service.engine_adapter.check_image_budget`, called by :func:`service.engine_adapter.load_job_case`).
 """
 
 from __future__ import annotations
@@ -71,21 +71,6 @@ def parse_json_part(text: str, field: str, *, want_object: bool = True) -> Any:
 
 
 # ---- options ------------------------------------------------------------------------------------
-
-
-def check_options(options: Any) -> None:
-    """Refuse what the worker would refuse, naming the option (422)."""
-    from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.pose import validate_rigid
-
-    for name in ("initial_mesh_to_world", "ground_truth_mesh_to_world"):
-        matrix = getattr(options, name, None)
-        if matrix is None:
-            continue
-        try:
-            validate_rigid(matrix, field=f"options.{name}", allow_mirror=False)
-        except DsaregInputError as exc:
-            raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
 
 
 def job_cost(options: Any, view_sizes: list[tuple[int, int]]) -> float:
@@ -165,15 +150,3 @@ def image_decoded_bytes(data: bytes) -> int | None:
     if data[128:132] == b"DICM":
         return _dicom_decoded_bytes(data)
     return None
-
-
-def check_image_budget(data: bytes, field: str, limit: int) -> None:
-    """Refuse an image whose decoded pixels would need more than ``limit`` bytes (before decoding)."""
-    from dsareg_engine.errors import DsaregInputError
-
-    size = image_decoded_bytes(data)
-    if size is not None and size > limit:
-        raise DsaregInputError(
-            f"decodes to {size / 2**20:.0f} MiB of pixels (width × height × channels × bytes per sample), "
-            f"above this server's limit of {limit / 2**20:.0f} MiB",
-            field=field, accepted="a smaller image, fewer channels or fewer bits per sample")

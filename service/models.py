@@ -7,6 +7,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from .engine_adapter import engine
 from .problems import ProblemDetails
 from .store import JobRecord
 
@@ -139,8 +140,9 @@ def job_links(job_id: str, job: JobRecord | None = None) -> JobLinks:
     return JobLinks(self=base, **links)
 
 
-LINKED_ARTIFACTS = {"overlay_ap": "overlay_ap.png", "overlay_lat": "overlay_lat.png", "mask_ap": "mask_ap.png",
-                    "mask_lat": "mask_lat.png", "loss_plot": "loss.png", "animation": "animation.gif"}
+LINKED_ARTIFACTS = {"overlay_ap": engine.overlay_png("ap"), "overlay_lat": engine.overlay_png("lat"),
+                    "mask_ap": engine.mask_png("ap"), "mask_lat": engine.mask_png("lat"), "loss_plot": engine.LOSS_PNG,
+                    "animation": engine.ANIMATION_GIF}
 
 
 def _final_progress(job: JobRecord) -> dict[str, Any]:

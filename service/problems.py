@@ -1,6 +1,6 @@
 """RFC 9457 problem details: the one error format of the API.
 
-Handlers raise :class:`Problem`; the exception handlers in :mod:`service.app` turn it
+Handlers raise :class:`Problem`; the exception handlers in :mod:`service.api.handlers` turn it
 (and FastAPI's validation errors, Starlette's HTTP errors and anything unexpected)
 into ``application/problem+json``. Nothing internal (tracebacks, paths, SQL) is ever
 put into a problem body.

@@ -167,9 +167,9 @@ def _components(*models: type[BaseModel]) -> dict[str, Any]:
 
 
 def options_model() -> type[BaseModel]:
-    from dsareg_engine.registration.options import RegistrationOptions
+    from .engine_adapter import engine
 
-    return RegistrationOptions
+    return engine.RegistrationOptions
 
 
 def multipart_schema(presets: list[str]) -> dict[str, Any]:
@@ -210,7 +210,9 @@ def multipart_schema(presets: list[str]) -> dict[str, Any]:
 
 def document(schema: dict[str, Any]) -> dict[str, Any]:
     """Add the payload schemas to an OpenAPI document (in place; returned for convenience)."""
-    from dsareg_engine.geometry_file import PRESETS
+    from .engine_adapter import engine
+
+    PRESETS = engine.PRESETS
 
     schemas = schema.setdefault("components", {}).setdefault("schemas", {})
     schemas.update(_components(options_model(), GeometryFile, RegistrationResult))

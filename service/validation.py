@@ -64,15 +64,15 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
         import torch
 
         torch.set_num_threads(max(1, threads or 1))
-        import dsareg_engine.io.case
-        _warm_parsers()
+        from .engine_adapter import engine
+
+        engine.preload_case_loading()
+        engine.warm_up_parsers()
     except Exception:  # noqa: BLE001
         engine_ok = False
     _set_memory_limit(memory_mb)
-    from dsareg_engine.errors import DsaregInputError
-
     from .blobs import BlobStore
-    from .engine_adapter import case_summary, load_job_case
+    from .engine_adapter import case_summary, engine, load_job_case
     from .store import InputFile
 
     conn.send({"ready": True, "engine": engine_ok})
@@ -85,8 +85,7 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
             return
         if not engine_ok:
             try:
-                import dsareg_engine.io.case  # noqa: F401
-
+                engine.preload_case_loading()
                 engine_ok = True
             except Exception:  # noqa: BLE001
                 conn.send({"ok": False, "unavailable": True})
@@ -100,7 +99,7 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
             inputs = [InputFile(**item) for item in request["inputs"]]
             case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"))
             conn.send({"ok": True, "summary": case_summary(case)})
-        except DsaregInputError as exc:
+        except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
         except MemoryError:
             conn.send({"ok": False, "message": f"decoding needs more than the {memory_mb} MB this server allows "
@@ -108,25 +107,6 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
                        "accepted": "smaller inputs", "recycle": True})
         except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
             conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
-
-
-def _warm_parsers() -> None:
-    """Run the parsers once on tiny inputs before reporting ready: their lazily imported parts
-    (scikit-image's filters pull in scipy.stats, trimesh) cost ~2 s on the first submission
-    otherwise, and they then count in the baseline the memory limit is added to."""
-    import numpy as np
-
-    from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.io.mesh_io import read_mesh
-    from dsareg_engine.io.segmentation import segment_vessels
-
-    image = np.zeros((48, 48), np.float32)
-    image[20:28, 4:44] = 1.0
-    try:
-        segment_vessels(image, "auto")
-        read_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n", "warm.obj")
-    except DsaregInputError:
-        pass
 
 
 def _largest_input(request: dict) -> str | None:

@@ -20,7 +20,7 @@ from typing import Any
 from .blobs import BlobStore
 from .dicom_jobs import DicomJob, pacs_problem
 from .dicomweb import PacsError
-from .engine_adapter import collect_artifacts
+from .engine_adapter import collect_artifacts, engine
 from .problems import TYPE_BASE
 from .settings import ServiceSettings
 from .store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
@@ -176,8 +176,7 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
 
     ``cancel_hint``: optional callable, true when the job was canceled by other means than
     the job table's flag (the Celery executor passes "this task was revoked")."""
-    from dsareg_engine.errors import DsaregInputError
-    from dsareg_engine.pipeline import RegistrationCanceled
+    DsaregInputError, RegistrationCanceled = engine.DsaregInputError, engine.RegistrationCanceled
 
     control = _JobControl(store, job, worker_id, settings, stop, cancel_hint)
     finish = _Finisher(store, job, worker_id, settings)
@@ -232,16 +231,13 @@ def _thread_budget() -> str:
 def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher,
               out_dir: Any) -> str:
     """Load, register, store artifacts and the result (the last two retried across store outages)."""
-    from dsareg_engine.pipeline import RegistrationCanceled, run_registration_case
-    from dsareg_engine.registration.options import parse_options
-
-    options = parse_options(job.options)
+    options = engine.parse_options(job.options)
     dicom_job = DicomJob(job, blobs.read, settings)  # inputs by DICOMweb reference; DICOM results
     case = dicom_job.load_case(options.segmentation, settings.input_limits)
     if control.should_stop():
-        raise RegistrationCanceled("stopped before start")
+        raise engine.RegistrationCanceled("stopped before start")
     control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
-    result = run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop,
+    result = engine.run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop,
                                    label=f"job {job.id}")
     if control.lost:
         return "lost"
@@ -276,21 +272,7 @@ def _stopped(job: JobRecord, settings: ServiceSettings, control: _JobControl, fi
 def warm_up() -> None:
     """Load the engine and its compiled kernels before the first job (best effort)."""
     try:
-        import numpy as np
-        import torch
-
-        import dsareg_engine.pipeline  # noqa: F401
-        from dsareg_engine.geometry import ViewGeometry
-        from dsareg_engine.render import Camera, render_hard_silhouette, render_soft_silhouette
-
-        view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
-                            principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
-        faces = torch.tensor([[0, 1, 2]])
-        for dtype in (torch.float32, torch.float64):  # Adam stages run in float32, the L-BFGS fit in float64
-            vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
-            pose = torch.eye(4, dtype=dtype)[None]
-            render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
-            render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
+        engine.warm_up_renderer()
     except Exception:
         log.debug("warm-up skipped", exc_info=True)
 
@@ -315,9 +297,7 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
         control.watch(link)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        from dsareg_engine.threads import default_cpu_threads, set_cpu_threads
-
-        set_cpu_threads(settings.threads_per_worker or default_cpu_threads(max(1, settings.workers)))
+        engine.set_cpu_threads(settings.threads_per_worker or engine.default_cpu_threads(max(1, settings.workers)))
     except Exception:  # noqa: BLE001
         log.warning("could not set the worker's CPU threads")
     warm_up()

@@ -98,7 +98,7 @@ def options_help(extra: str = "") -> str:
 
 
 def _http_error(exc: BaseException) -> tuple[int, str] | None:
-    """Messages for httpx errors and the service client's errors (imported lazily)."""
+    """Messages for httpx errors and for errors that explain themselves (``cli_explanation()``)."""
     try:
         import httpx
     except ImportError:  # pragma: no cover - httpx is a dependency
@@ -113,17 +113,10 @@ def _http_error(exc: BaseException) -> tuple[int, str] | None:
         return USAGE, f"--server: {exc} (accepted: a base URL such as http://127.0.0.1:8000)"
     if isinstance(exc, httpx.HTTPError):
         return FAILED, f"HTTP error talking to the server: {exc}"
-    try:
-        from service.client import ServiceError
-    except ImportError:  # the service package is optional for the engine CLI
-        return None
-    if isinstance(exc, ServiceError):
-        problem = exc.problem or {}
-        text = str(exc)
-        if problem.get("accepted"):
-            text += f" (accepted: {problem['accepted']})"
-        client_fault = 400 <= exc.status < 500 and exc.status not in (408, 429)
-        return (USAGE if client_fault else FAILED), text
+    explanation = getattr(exc, "cli_explanation", None)  # e.g. service.client.ServiceError (a contributed command's)
+    if callable(explanation):
+        usage_error, text = explanation()
+        return (USAGE if usage_error else FAILED), text
     return None
 
 

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import artifacts
+
 REG_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.66.1"
 SC_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.7"
 MANUFACTURER = "dsareg"
@@ -397,8 +399,8 @@ def to_bytes(ds) -> bytes:
     return buffer.getvalue()
 
 
-OUTPUT_FILES = {"reg.dcm": "registration", "overlay_ap.dcm": "overlay ap", "overlay_lat.dcm": "overlay lat",
-                "loss.dcm": "loss plot"}
+OUTPUT_FILES = {artifacts.REG_DCM: "registration", artifacts.overlay_dcm("ap"): "overlay ap",
+                artifacts.overlay_dcm("lat"): "overlay lat", artifacts.LOSS_DCM: "loss plot"}
 
 
 def write_dicom_outputs(
@@ -428,22 +430,22 @@ def write_dicom_outputs(
         written[name] = {"sop_class_uid": str(ds.SOPClassUID), "sop_instance_uid": str(ds.SOPInstanceUID),
                          "series_instance_uid": str(ds.SeriesInstanceUID), "study_instance_uid": study_uid}
 
-    save("reg.dcm", build_registration(mesh_to_world, sources, study_uid=study_uid, model_frame_uid=model_frame_uid))
+    save(artifacts.REG_DCM, build_registration(mesh_to_world, sources, study_uid=study_uid, model_frame_uid=model_frame_uid))
     series_uid = new_uid()
     number = 0
     for view in ("ap", "lat"):
-        png = out_dir / f"overlay_{view}.png"
+        png = out_dir / artifacts.overlay_png(view)
         if png.is_file():
             number += 1
             ds = build_secondary_capture(
                 _read_rgb(png), sources, study_uid=study_uid, series_uid=series_uid, instance_number=number,
                 derivation=f"dsareg overlay, {view.upper()} view: target vessel mask (grey), initial (orange) and "
                            "registered (green) model silhouette contours")
-            save(f"overlay_{view}.dcm", ds)
-    loss = out_dir / "loss.png"
+            save(artifacts.overlay_dcm(view), ds)
+    loss = out_dir / artifacts.LOSS_PNG
     if loss.is_file():
         number += 1
-        save("loss.dcm", build_secondary_capture(
+        save(artifacts.LOSS_DCM, build_secondary_capture(
             _read_rgb(loss), sources, study_uid=study_uid, series_uid=series_uid, instance_number=number,
             derivation="dsareg registration loss per iteration (log scale)"))
     return written

@@ -24,13 +24,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..mesh import TriangleMesh
+from ..mesh import (  # noqa: F401 - decimate and _cluster_decimate re-exported (their home is ..mesh)
+    MESH_FILES_ACCEPTED,
+    TriangleMesh,
+    _cluster_decimate,
+    decimate,
+    mesh_from_arrays,
+)
 from .limits import DEFAULT_LIMITS, InputLimits
 
 log = logging.getLogger(__name__)
 
 MESH_FORMATS = ("obj", "stl", "ply", "off", "glb")
-_ACCEPTED = "OBJ, STL (ASCII or binary), PLY, OFF or GLB"
+_ACCEPTED = MESH_FILES_ACCEPTED
 
 
 @dataclass
@@ -193,95 +199,4 @@ def validate_mesh_arrays(
     vertices: np.ndarray, faces: np.ndarray, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "mesh"
 ) -> TriangleMesh:
     """Check raw arrays and return a clean :class:`TriangleMesh` (duplicate vertices merged)."""
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces)
-    if faces.size == 0:
-        raise DsaregInputError(
-            "has no faces (a point cloud or an empty file?)", field=field_name, accepted="a triangle surface mesh"
-        )
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
-        raise DsaregInputError("has no vertices", field=field_name, accepted=_ACCEPTED)
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise DsaregInputError(f"faces have shape {list(faces.shape)}", field=field_name, accepted="triangles")
-    if len(faces) > limits.max_faces:
-        raise DsaregInputError(f"has {len(faces)} faces, above the limit of {limits.max_faces}", field=field_name)
-    if not np.all(np.isfinite(vertices)):
-        bad = int(np.count_nonzero(~np.isfinite(vertices).all(axis=1)))
-        raise DsaregInputError(
-            f"{bad} vertices have NaN or infinite coordinates", field=field_name, accepted="finite coordinates in mm"
-        )
-    if not np.issubdtype(faces.dtype, np.integer):
-        if not np.all(np.isfinite(faces)) or np.any(faces != np.round(faces)):
-            raise DsaregInputError("face indices are not integers", field=field_name)
-    faces = faces.astype(np.int64)
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise DsaregInputError(
-            f"face indices span [{faces.min()}, {faces.max()}] but there are {len(vertices)} vertices",
-            field=field_name,
-            accepted="indices in range",
-        )
-    if np.abs(vertices).max() > 1e6:
-        raise DsaregInputError("coordinates exceed 1 km; the mesh must be in millimetres", field=field_name)
-    # Merge coincident vertices (STL stores each triangle separately) and drop degenerate faces.
-    scale = max(float(np.ptp(vertices, axis=0).max()), 1e-9)
-    keys = np.round(vertices / (scale * 1e-9)).astype(np.int64)
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    vertices = vertices[first]
-    faces = inverse.reshape(-1)[faces]
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-    faces = faces[keep]
-    if len(faces) == 0:
-        raise DsaregInputError("every face is degenerate (zero area)", field=field_name)
-    used = np.unique(faces)
-    remap = np.full(len(vertices), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
-    return TriangleMesh(np.ascontiguousarray(vertices[used]), remap[faces])
-
-
-def decimate(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
-    """Reduce ``mesh`` to about ``target_faces`` faces, preserving thin tubes."""
-    if mesh.n_faces <= target_faces:
-        return mesh
-    try:
-        import fast_simplification
-
-        reduction = 1.0 - target_faces / mesh.n_faces
-        vertices, faces = fast_simplification.simplify(
-            mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32), target_reduction=reduction, agg=7
-        )
-        vertices = np.asarray(vertices, dtype=np.float64)
-        faces = np.asarray(faces, dtype=np.int64)
-        if len(faces) == 0:
-            raise RuntimeError("quadric decimation removed every face")
-        return validate_mesh_arrays(vertices, faces, InputLimits(max_faces=max(len(faces), 1)))
-    except ImportError:
-        log.info("fast-simplification not installed; decimating by vertex clustering")
-    return _cluster_decimate(mesh, target_faces)
-
-
-def _cluster_decimate(mesh: TriangleMesh, target_faces: int) -> TriangleMesh:
-    """Vertex clustering on the finest grid that reaches the budget (bisection on the cell size)."""
-    extent = float(np.ptp(mesh.vertices, axis=0).max())
-    lo, hi = extent * 1e-4, extent / 4
-    best = None
-    for _ in range(20):
-        cell = np.sqrt(lo * hi)
-        keys = np.floor(mesh.vertices / cell).astype(np.int64)
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-        inverse = inverse.reshape(-1)
-        sums = np.zeros((len(counts), 3))
-        np.add.at(sums, inverse, mesh.vertices)
-        faces = inverse[mesh.faces]
-        keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-        faces = np.unique(np.sort(faces[keep], axis=1), axis=0, return_index=True)[1]
-        faces = inverse[mesh.faces][keep][np.sort(faces)]
-        if len(faces) <= target_faces:
-            best = (sums / counts[:, None], faces)
-            hi = cell
-        else:
-            lo = cell
-        if best is not None and hi / lo < 1.05:
-            break
-    if best is None:
-        return mesh
-    return validate_mesh_arrays(best[0], best[1], InputLimits(max_faces=max(len(best[1]), 1)))
+    return mesh_from_arrays(vertices, faces, max_faces=limits.max_faces, field_name=field_name)

@@ -20,7 +20,7 @@ import torch
 
 from ..errors import DsaregInputError
 from ..geometry import Rig
-from ..io.mesh_io import decimate
+from ..mesh import decimate
 from ..mesh import TriangleMesh
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
 from ..pose import validate_rigid

@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 
 from dsareg_engine.io.dicom_out import read_registration_matrix
 from dsareg_engine.phantom_study import make_biplane_study
-from service.localservers import OrthancServer, free_port
+from service.bench.servers import OrthancServer, free_port
 
 OPTIONS = {"starts": 1}
 

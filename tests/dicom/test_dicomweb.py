@@ -1,7 +1,7 @@
 """DICOMweb in / DICOM out through the service, against a real PACS (Orthanc + DICOMweb plugin).
 
 Orthanc runs on a free loopback port with a temporary storage directory and its own config
-(``service.localservers.OrthancServer``); without the Debian packages orthanc and
+(``service.bench.servers.OrthancServer``); without the Debian packages orthanc and
 orthanc-dicomweb these tests skip.
 """
 
@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
 from service_testkit import Server, wait_for
 
 from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
+from service.bench.servers import OrthancServer, free_port
 from service.dicomweb import DicomwebClient, PacsServer
-from service.localservers import OrthancServer, free_port
 
 OPTIONS = {"starts": 1}
 

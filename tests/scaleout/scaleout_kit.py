@@ -1,4 +1,4 @@
-"""Real Redis / PostgreSQL (service.localservers) and Celery worker processes for the scale-out tests.
+"""Real Redis / PostgreSQL (service.bench.servers) and Celery worker processes for the scale-out tests.
 
 Environment overrides for CI machines that provide their own servers:
 ``DSAREG_TEST_REDIS_URL``, ``DSAREG_TEST_DATABASE_URL`` (tests that restart Redis then skip).
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from service_testkit import LoggedProcess
 
-from service.localservers import PostgresServer, RedisServer, free_port  # noqa: F401 - re-exported
+from service.bench.servers import PostgresServer, RedisServer, free_port  # noqa: F401 - re-exported
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from dsareg_engine.metrics import dice  # noqa: F401 - re-exported to the tests
-from service.localservers import free_port
+from service.bench.servers import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 CASE_SIZE = 128

@@ -14,9 +14,9 @@ import zlib
 
 import pytest
 
+from service.engine_adapter import check_image_budget
 from service.limits import (
     MAX_JSON_DEPTH,
-    check_image_budget,
     image_decoded_bytes,
     job_cost,
     json_depth,

@@ -1,6 +1,6 @@
 """Celery scale-out benchmark on this machine (a command, not a test).
 
-    python -m service.bench_celery [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
+    python -m service.bench.celery [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
 
 Starts a throw-away Redis and PostgreSQL on loopback (or uses ``--broker-url`` /
 ``--database-url``), the API with ``DSAREG_EXECUTOR=celery`` and, for each worker count,
@@ -30,7 +30,8 @@ from typing import Any
 
 import httpx
 
-from .bench_load import _free_port, _make_case
+from .load import _make_case
+from .servers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -51,7 +52,7 @@ def _stop(process: subprocess.Popen, timeout: float = 30.0) -> None:
 
 
 def _serve(root: Path, env: dict[str, str], workers: int) -> tuple[subprocess.Popen, str]:
-    port = _free_port()
+    port = free_port()
     data = root / "api"
     process = _spawn(["serve", "--port", str(port), "--data-dir", str(data), "--workers", str(workers)], env,
                      root / f"api-{port}.log")
@@ -110,7 +111,7 @@ def _sequential(url: str, case: dict[str, Any], options: str, n: int) -> list[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service.bench_celery", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m service.bench.celery", description=__doc__.split("\n\n")[0])
     parser.add_argument("--workers", default="1,2,4", help="Celery worker process counts")
     parser.add_argument("--jobs", type=int, default=12, help="jobs per worker count")
     parser.add_argument("--size", type=int, default=64, help="image size of the phantom case (px)")
@@ -120,8 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--database-url", help="use this PostgreSQL instead of starting one")
     args = parser.parse_args(argv)
 
-    from .localservers import PostgresServer, RedisServer
-    from .store import SqlJobStore
+    from .servers import PostgresServer, RedisServer
 
     root = Path(tempfile.mkdtemp(prefix="dsareg-bench-celery-"))
     redis = postgres = None
@@ -131,73 +131,10 @@ def main(argv: list[str] | None = None) -> int:
         database = args.database_url or (postgres := PostgresServer().start()).url
         case = _make_case(root, args.size)
         options = f'{{"starts": 1, "max_iterations": {args.iterations}}}'
-        env = {"DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": broker, "DSAREG_DATABASE_URL": database,
-               "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LOG_LEVEL": "warning",
-               "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.5"}
-        api, url = _serve(root, env, workers=0)
-        processes.append(api)
-        store = SqlJobStore(database, create_schema=False)
-        rows = []
         overhead: dict[str, tuple[float, float]] = {}
-        for count in [int(x) for x in args.workers.split(",") if x.strip()]:
-            began = time.time()
-            workers = [_spawn(["worker", "--engine", "celery", "--hostname", f"b{count}-{i}@%h",
-                               "--data-dir", str(root / f"w{count}-{i}")], env, root / f"w{count}-{i}.log")
-                       for i in range(count)]
-            processes.extend(workers)
-            while store.live_workers(began) < count:
-                time.sleep(0.2)
-            time.sleep(1.0)  # consumers connect after the worker registered itself
-            with httpx.Client(base_url=url, timeout=60) as client:
-                # concurrent submissions: the API must queue jobs faster than the workers run them,
-                # else jobs/min measures the submission rate (with ~1 s jobs it did)
-                with ThreadPoolExecutor(max_workers=min(8, args.jobs)) as pool:
-                    ids = list(pool.map(lambda _: _submit(client, case, options), range(args.jobs)))
-                for job_id in ids:
-                    _wait(client, job_id)
-            jobs = [store.get(j) for j in ids]
-            span = max(j.finished_at for j in jobs) - min(j.created_at for j in jobs)
-            rows.append((count, args.jobs, span, args.jobs / span * 60.0))
-            run = statistics.median(j.finished_at - j.started_at for j in jobs)
-            busy = max(j.finished_at for j in jobs) - min(j.started_at for j in jobs)
-            load = os.getloadavg()[0]
-            print(f"{count} worker(s): {args.jobs} jobs in {span:.1f} s = {args.jobs / span * 60.0:.1f} jobs/min "
-                  f"(first start → last finish {args.jobs / busy * 60.0:.1f} jobs/min; median run time per job "
-                  f"{run:.2f} s; load average {load:.1f} on {os.cpu_count()} CPUs)", flush=True)
-            if count == 1:
-                e2e, dispatch = _timings(store, _sequential(url, case, options, args.sequential))
-                overhead["celery"] = (statistics.median(e2e), statistics.median(dispatch))
-            for w in workers:
-                _stop(w)
-        store.dispose()
-        _stop(api)
-
-        emb_root = root / "embedded"
-        emb_root.mkdir()
-        emb, emb_url = _serve(emb_root, {"DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LOG_LEVEL": "warning",
-                                         "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.5"}, workers=1)
-        processes.append(emb)
-        emb_ids = _sequential(emb_url, case, options, args.sequential)
-        emb_store = SqlJobStore(f"sqlite:///{emb_root / 'api' / 'jobs.sqlite3'}", create_schema=False)
-        e2e, dispatch = _timings(emb_store, emb_ids)
-        overhead["embedded"] = (statistics.median(e2e), statistics.median(dispatch))
-        emb_store.dispose()
-        _stop(emb)
-
-        cpus = os.cpu_count()
-        print(f"\nCelery scale-out on this machine ({cpus} CPUs, 1 torch thread per worker, "
-              f"{args.size} px phantom, 1 start, {args.iterations} iterations)\n")
-        print("| Celery workers | jobs | wall (s) | jobs/min |\n|---:|---:|---:|---:|")
-        for count, n, span, rate in rows:
-            print(f"| {count} | {n} | {span:.1f} | {rate:.1f} |")
-        print(f"\nPer job, {args.sequential} sequential jobs on one idle worker (medians):\n")
-        print("| path | end-to-end (s) | queued→claimed (ms) |\n|---|---:|---:|")
-        for name in ("embedded", "celery"):
-            if name in overhead:
-                print(f"| {name} | {overhead[name][0]:.3f} | {overhead[name][1] * 1000:.1f} |")
-        if len(overhead) == 2:
-            print(f"\nCelery path overhead vs embedded: "
-                  f"{(overhead['celery'][0] - overhead['embedded'][0]) * 1000:+.0f} ms per job (end-to-end medians)")
+        rows = _celery_rounds(args, root, broker, database, case, options, processes, overhead)
+        overhead["embedded"] = _embedded_overhead(args, root, case, options, processes)
+        _report(args, rows, overhead)
         return 0
     finally:
         for process in processes:
@@ -208,6 +145,91 @@ def main(argv: list[str] | None = None) -> int:
             postgres.stop()
         print(f"(logs in {root})", file=sys.stderr)
 
+
+def _celery_rounds(args: argparse.Namespace, root: Path, broker: str, database: str, case: dict, options: str,
+                   processes: list[subprocess.Popen], overhead: dict[str, tuple[float, float]]) -> list[tuple]:
+    """One round per worker count: start the workers, submit concurrently, wait; (count, jobs, span, rate)."""
+    from ..store import SqlJobStore
+
+    env = {"DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": broker, "DSAREG_DATABASE_URL": database,
+           "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LOG_LEVEL": "warning",
+           "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.5"}
+    api, url = _serve(root, env, workers=0)
+    processes.append(api)
+    store = SqlJobStore(database, create_schema=False)
+    rows = []
+    for count in [int(x) for x in args.workers.split(",") if x.strip()]:
+        began = time.time()
+        workers = [_spawn(["worker", "--engine", "celery", "--hostname", f"b{count}-{i}@%h",
+                           "--data-dir", str(root / f"w{count}-{i}")], env, root / f"w{count}-{i}.log")
+                   for i in range(count)]
+        processes.extend(workers)
+        while store.live_workers(began) < count:
+            time.sleep(0.2)
+        time.sleep(1.0)  # consumers connect after the worker registered itself
+        rows.append(_round(args, store, url, case, options, count))
+        if count == 1:
+            e2e, dispatch = _timings(store, _sequential(url, case, options, args.sequential))
+            overhead["celery"] = (statistics.median(e2e), statistics.median(dispatch))
+        for w in workers:
+            _stop(w)
+    store.dispose()
+    _stop(api)
+    return rows
+
+
+def _round(args: argparse.Namespace, store: Any, url: str, case: dict, options: str, count: int) -> tuple:
+    with httpx.Client(base_url=url, timeout=60) as client:
+        # concurrent submissions: the API must queue jobs faster than the workers run them,
+        # else jobs/min measures the submission rate (with ~1 s jobs it did)
+        with ThreadPoolExecutor(max_workers=min(8, args.jobs)) as pool:
+            ids = list(pool.map(lambda _: _submit(client, case, options), range(args.jobs)))
+        for job_id in ids:
+            _wait(client, job_id)
+    jobs = [store.get(j) for j in ids]
+    span = max(j.finished_at for j in jobs) - min(j.created_at for j in jobs)
+    run = statistics.median(j.finished_at - j.started_at for j in jobs)
+    busy = max(j.finished_at for j in jobs) - min(j.started_at for j in jobs)
+    load = os.getloadavg()[0]
+    print(f"{count} worker(s): {args.jobs} jobs in {span:.1f} s = {args.jobs / span * 60.0:.1f} jobs/min "
+          f"(first start → last finish {args.jobs / busy * 60.0:.1f} jobs/min; median run time per job "
+          f"{run:.2f} s; load average {load:.1f} on {os.cpu_count()} CPUs)", flush=True)
+    return (count, args.jobs, span, args.jobs / span * 60.0)
+
+
+def _embedded_overhead(args: argparse.Namespace, root: Path, case: dict, options: str,
+                       processes: list[subprocess.Popen]) -> tuple[float, float]:
+    """Median end-to-end and queued→claimed times of sequential jobs on one embedded worker."""
+    from ..store import SqlJobStore
+
+    emb_root = root / "embedded"
+    emb_root.mkdir()
+    emb, emb_url = _serve(emb_root, {"DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LOG_LEVEL": "warning",
+                                     "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.5"}, workers=1)
+    processes.append(emb)
+    emb_ids = _sequential(emb_url, case, options, args.sequential)
+    emb_store = SqlJobStore(f"sqlite:///{emb_root / 'api' / 'jobs.sqlite3'}", create_schema=False)
+    e2e, dispatch = _timings(emb_store, emb_ids)
+    emb_store.dispose()
+    _stop(emb)
+    return statistics.median(e2e), statistics.median(dispatch)
+
+
+def _report(args: argparse.Namespace, rows: list[tuple], overhead: dict[str, tuple[float, float]]) -> None:
+    cpus = os.cpu_count()
+    print(f"\nCelery scale-out on this machine ({cpus} CPUs, 1 torch thread per worker, "
+          f"{args.size} px phantom, 1 start, {args.iterations} iterations)\n")
+    print("| Celery workers | jobs | wall (s) | jobs/min |\n|---:|---:|---:|---:|")
+    for count, n, span, rate in rows:
+        print(f"| {count} | {n} | {span:.1f} | {rate:.1f} |")
+    print(f"\nPer job, {args.sequential} sequential jobs on one idle worker (medians):\n")
+    print("| path | end-to-end (s) | queued→claimed (ms) |\n|---|---:|---:|")
+    for name in ("embedded", "celery"):
+        if name in overhead:
+            print(f"| {name} | {overhead[name][0]:.3f} | {overhead[name][1] * 1000:.1f} |")
+    if len(overhead) == 2:
+        print(f"\nCelery path overhead vs embedded: "
+              f"{(overhead['celery'][0] - overhead['embedded'][0]) * 1000:+.0f} ms per job (end-to-end medians)")
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,6 +1,6 @@
 """Bounded load benchmark of the service on loopback (a command, not a test).
 
-    python -m service.bench_load [--submissions 200] [--concurrency 20] [--workers 1,2]
+    python -m service.bench.load [--submissions 200] [--concurrency 20] [--workers 1,2]
 
 For each worker count it starts ``python -m service serve`` on a free loopback port
 with a fresh data dir, submits ``--submissions`` tiny registrations (the phantom seen
@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+
+from .servers import free_port
 
 
 def _make_case(tmp: Path, size: int) -> dict[str, Any]:
@@ -55,14 +57,6 @@ def _make_case(tmp: Path, size: int) -> dict[str, Any]:
                 "initial_mesh_to_world": rig.initial_mesh_to_world.tolist()}
     return {"mesh": (tmp / "phantom.obj").read_bytes(), "ap": images["ap"], "lat": images["lat"],
             "geometry": json.dumps(geometry)}
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -97,59 +91,76 @@ def _percentile(values: list[float], q: float) -> float:
 
 
 async def _run_load(url: str, case: dict, args: argparse.Namespace) -> dict[str, Any]:
+    limits = httpx.Limits(max_connections=args.concurrency + 4)
+    async with httpx.AsyncClient(base_url=url, timeout=120, limits=limits) as client:
+        started = time.perf_counter()
+        ids, rejected = await _submit_all(client, case, args)
+        submit_seconds = time.perf_counter() - started
+        latencies, finished = await _poll_until_done(client, ids, args.max_wait)
+    return _load_summary(ids, rejected, submit_seconds, latencies, finished)
+
+
+async def _submit_all(client: httpx.AsyncClient, case: dict, args: argparse.Namespace
+                      ) -> tuple[list[str], dict[int, int]]:
+    """``args.submissions`` submissions from ``args.concurrency`` concurrent submitters: accepted ids, rejections."""
     options = {"starts": 1, "max_iterations": args.iterations}
     ids: list[str] = []
     rejected: dict[int, int] = {}
     counter = iter(range(args.submissions))
-    limits = httpx.Limits(max_connections=args.concurrency + 4)
-    async with httpx.AsyncClient(base_url=url, timeout=120, limits=limits) as client:
 
-        async def submitter() -> None:
-            for n in counter:
-                files = [("mesh", ("m.obj", case["mesh"])), ("ap", ("a.png", case["ap"])), ("lat", ("l.png", case["lat"]))]
-                data = {"geometry": case["geometry"], "options": json.dumps({**options, "seed": n})}
-                r = await client.post("/v1/registrations", files=files, data=data)
-                if r.status_code == 202:
-                    ids.append(r.json()["id"])
-                else:
-                    rejected[r.status_code] = rejected.get(r.status_code, 0) + 1
+    async def submitter() -> None:
+        for n in counter:
+            files = [("mesh", ("m.obj", case["mesh"])), ("ap", ("a.png", case["ap"])), ("lat", ("l.png", case["lat"]))]
+            data = {"geometry": case["geometry"], "options": json.dumps({**options, "seed": n})}
+            r = await client.post("/v1/registrations", files=files, data=data)
+            if r.status_code == 202:
+                ids.append(r.json()["id"])
+            else:
+                rejected[r.status_code] = rejected.get(r.status_code, 0) + 1
 
-        started = time.perf_counter()
-        await asyncio.gather(*(submitter() for _ in range(args.concurrency)))
-        submit_seconds = time.perf_counter() - started
+    await asyncio.gather(*(submitter() for _ in range(args.concurrency)))
+    return ids, rejected
 
-        # status reads while the workers are busy, until all finished or max-wait
-        latencies: list[float] = []
-        finished: dict[str, dict] = {}
-        deadline = time.monotonic() + args.max_wait
 
-        async def reader() -> None:
-            while time.monotonic() < deadline and len(finished) < len(ids):
-                job_id = random.choice(ids)
-                t0 = time.perf_counter()
-                r = await client.get(f"/v1/registrations/{job_id}")
-                latencies.append(time.perf_counter() - t0)
-                body = r.json()
-                if body.get("status") in ("succeeded", "failed", "canceled"):
-                    finished[job_id] = body
-                await asyncio.sleep(0.02)
+async def _poll_until_done(client: httpx.AsyncClient, ids: list[str], max_wait: float
+                           ) -> tuple[list[float], dict[str, dict]]:
+    """Status reads while the workers are busy, until all finished or ``max_wait``: latencies, finished jobs."""
+    latencies: list[float] = []
+    finished: dict[str, dict] = {}
+    deadline = time.monotonic() + max_wait
 
-        async def sweeper() -> None:  # make sure every job gets looked at
-            while time.monotonic() < deadline and len(finished) < len(ids):
-                cursor = None
-                while True:
-                    params = {"limit": 100, **({"cursor": cursor} if cursor else {})}
-                    page = (await client.get("/v1/registrations", params=params)).json()
-                    for item in page["items"]:
-                        if item["status"] in ("succeeded", "failed", "canceled"):
-                            finished[item["id"]] = item
-                    cursor = page.get("next_cursor")
-                    if not cursor:
-                        break
-                await asyncio.sleep(1.0)
+    async def reader() -> None:
+        while time.monotonic() < deadline and len(finished) < len(ids):
+            job_id = random.choice(ids)
+            t0 = time.perf_counter()
+            r = await client.get(f"/v1/registrations/{job_id}")
+            latencies.append(time.perf_counter() - t0)
+            body = r.json()
+            if body.get("status") in ("succeeded", "failed", "canceled"):
+                finished[job_id] = body
+            await asyncio.sleep(0.02)
 
-        if ids:
-            await asyncio.gather(*(reader() for _ in range(4)), sweeper())
+    async def sweeper() -> None:  # make sure every job gets looked at
+        while time.monotonic() < deadline and len(finished) < len(ids):
+            cursor = None
+            while True:
+                params = {"limit": 100, **({"cursor": cursor} if cursor else {})}
+                page = (await client.get("/v1/registrations", params=params)).json()
+                for item in page["items"]:
+                    if item["status"] in ("succeeded", "failed", "canceled"):
+                        finished[item["id"]] = item
+                cursor = page.get("next_cursor")
+                if not cursor:
+                    break
+            await asyncio.sleep(1.0)
+
+    if ids:
+        await asyncio.gather(*(reader() for _ in range(4)), sweeper())
+    return latencies, finished
+
+
+def _load_summary(ids: list[str], rejected: dict[int, int], submit_seconds: float, latencies: list[float],
+                  finished: dict[str, dict]) -> dict[str, Any]:
     done = [b for b in finished.values() if b["status"] == "succeeded"]
     from datetime import datetime
 
@@ -171,7 +182,7 @@ async def _run_load(url: str, case: dict, args: argparse.Namespace) -> dict[str,
 
 
 def run_for_workers(workers: int, case: dict, args: argparse.Namespace, root: Path) -> dict[str, Any]:
-    port = _free_port()
+    port = free_port()
     data = root / f"data-w{workers}"
     env = {**os.environ, "DSAREG_QUEUE_LIMIT": str(max(1000, args.submissions + 10)), "DSAREG_POLL_SECONDS": "0.2"}
     for key in ("DSAREG_API_KEYS", "DSAREG_API_KEY_HASHES"):
@@ -210,7 +221,7 @@ def run_for_workers(workers: int, case: dict, args: argparse.Namespace, root: Pa
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service.bench_load", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m service.bench.load", description=__doc__.split("\n\n")[0])
     parser.add_argument("--submissions", type=int, default=200)
     parser.add_argument("--concurrency", type=int, default=20)
     parser.add_argument("--workers", default="1,2", help="comma-separated worker counts to measure")

@@ -1,0 +1,174 @@
+"""The engine as applications use it (the service goes through this module only).
+
+Importing it is cheap: the heavy parts (torch, the renderer, the readers) load on first use of a
+name, so an API process that only validates options never loads the renderer.
+
+* options: :class:`RegistrationOptions`, :func:`parse_options`, :func:`validate_rigid`, :data:`PRESETS`
+* a case: :func:`load_case` (inputs as bytes or paths), :class:`InputLimits`, :func:`input_limits`
+* running it: :func:`run_registration_case`, :class:`RegistrationCanceled`
+* outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
+  DICOM: :func:`read_sources`, :class:`DicomSources`, :func:`write_dicom_outputs`
+* process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
+  :func:`warm_up_parsers`, :func:`warm_up_renderer`
+* the command line: :func:`run_parsed`, and the helpers sub-commands use (:class:`CommandFailed`,
+  :func:`input_file`, :func:`options_help`, :func:`geometry_argument`, :func:`json_argument`, :func:`load_pose`)
+
+Errors in the inputs are :class:`DsaregInputError` (``message``, ``field``, ``accepted``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from .artifacts import (
+    ANIMATION_GIF,
+    ARTIFACTS,
+    DICOM_FILES,
+    LOSS_DCM,
+    LOSS_PNG,
+    REG_DCM,
+    REGISTRATION_FILES,
+    RESULT_JSON,
+    mask_png,
+    overlay_dcm,
+    overlay_png,
+)
+from .errors import DsaregInputError
+
+if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
+    from .cli import run_parsed
+    from .commands.errors import CommandFailed, geometry_argument, input_file, json_argument, options_help
+    from .geometry_file import PRESETS
+    from .io.case import load_case
+    from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+    from .io.limits import DEFAULT_LIMITS, InputLimits
+    from .pipeline import RegistrationCanceled, run_registration_case
+    from .pose import validate_rigid
+    from .pose_file import load_pose
+    from .registration.options import RegistrationOptions, parse_options
+    from .threads import default_cpu_threads, set_cpu_threads
+
+_LAZY = {
+    "RegistrationOptions": "dsareg_engine.registration.options",
+    "parse_options": "dsareg_engine.registration.options",
+    "validate_rigid": "dsareg_engine.pose",
+    "PRESETS": "dsareg_engine.geometry_file",
+    "InputLimits": "dsareg_engine.io.limits",
+    "DEFAULT_LIMITS": "dsareg_engine.io.limits",
+    "load_case": "dsareg_engine.io.case",
+    "run_registration_case": "dsareg_engine.pipeline",
+    "RegistrationCanceled": "dsareg_engine.pipeline",
+    "DicomSources": "dsareg_engine.io.dicom_out",
+    "read_sources": "dsareg_engine.io.dicom_out",
+    "write_dicom_outputs": "dsareg_engine.io.dicom_out",
+    "set_cpu_threads": "dsareg_engine.threads",
+    "default_cpu_threads": "dsareg_engine.threads",
+    "run_parsed": "dsareg_engine.cli",
+    "CommandFailed": "dsareg_engine.commands.errors",
+    "input_file": "dsareg_engine.commands.errors",
+    "options_help": "dsareg_engine.commands.errors",
+    "geometry_argument": "dsareg_engine.commands.errors",
+    "json_argument": "dsareg_engine.commands.errors",
+    "load_pose": "dsareg_engine.pose_file",
+}
+
+__all__ = [
+    "ANIMATION_GIF",
+    "ARTIFACTS",
+    "DEFAULT_LIMITS",
+    "DICOM_FILES",
+    "LOSS_DCM",
+    "LOSS_PNG",
+    "PRESETS",
+    "REGISTRATION_FILES",
+    "REG_DCM",
+    "RESULT_JSON",
+    "CommandFailed",
+    "DicomSources",
+    "DsaregInputError",
+    "InputLimits",
+    "RegistrationCanceled",
+    "RegistrationOptions",
+    "default_cpu_threads",
+    "geometry_argument",
+    "input_file",
+    "input_limits",
+    "json_argument",
+    "load_case",
+    "load_pose",
+    "mask_png",
+    "options_help",
+    "overlay_dcm",
+    "overlay_png",
+    "parse_options",
+    "preload_case_loading",
+    "read_sources",
+    "run_parsed",
+    "run_registration_case",
+    "set_cpu_threads",
+    "validate_rigid",
+    "warm_up_parsers",
+    "warm_up_renderer",
+    "write_dicom_outputs",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """The heavy names, imported on first use."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def input_limits(limits: dict[str, int] | None) -> Any:
+    """``InputLimits`` with the given ceilings (engine defaults for the others and for 0/None)."""
+    from .io.limits import DEFAULT_LIMITS, InputLimits
+
+    chosen = {k: v for k, v in (limits or {}).items() if v and k in InputLimits.__dataclass_fields__}
+    return InputLimits(**chosen) if chosen else DEFAULT_LIMITS
+
+
+def preload_case_loading() -> None:
+    """Import everything :func:`load_case` needs (raises if the engine cannot load here)."""
+    import dsareg_engine.io.case  # noqa: F401
+
+
+def warm_up_parsers() -> None:
+    """Run the parsers once on tiny inputs: their lazily imported parts (scikit-image's filters pull
+    in scipy.stats, trimesh) cost ~2 s on the first real input otherwise."""
+    import numpy as np
+
+    from .io.mesh_io import read_mesh
+    from .io.segmentation import segment_vessels
+
+    image = np.zeros((48, 48), np.float32)
+    image[20:28, 4:44] = 1.0
+    try:
+        segment_vessels(image, "auto")
+        read_mesh(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n", "warm.obj")
+    except DsaregInputError:
+        pass
+
+
+def warm_up_renderer() -> None:
+    """Load the pipeline and compile the renderer's kernels (both dtypes, forward and backward)."""
+    import numpy as np
+    import torch
+
+    import dsareg_engine.pipeline  # noqa: F401
+
+    from .geometry import ViewGeometry
+    from .render import Camera, render_hard_silhouette, render_soft_silhouette
+
+    view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
+                        principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
+    faces = torch.tensor([[0, 1, 2]])
+    for dtype in (torch.float32, torch.float64):  # Adam stages run in float32, the L-BFGS fit in float64
+        vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
+        pose = torch.eye(4, dtype=dtype)[None]
+        render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
+        render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()

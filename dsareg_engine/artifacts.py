@@ -1,0 +1,48 @@
+"""The files a registration writes into its output folder: names and media types (the one place they are spelled).
+
+:func:`dsareg_engine.pipeline.write_outputs` writes the registration's files,
+:func:`dsareg_engine.io.dicom_out.write_dicom_outputs` the DICOM ones; applications (the
+service) serve them by these names.
+"""
+
+from __future__ import annotations
+
+VIEWS = ("ap", "lat")
+
+RESULT_JSON = "result.json"
+LOSS_PNG = "loss.png"
+ANIMATION_GIF = "animation.gif"
+REG_DCM = "reg.dcm"
+LOSS_DCM = "loss.dcm"
+
+
+def overlay_png(view: str) -> str:
+    return f"overlay_{view}.png"
+
+
+def mask_png(view: str) -> str:
+    return f"mask_{view}.png"
+
+
+def overlay_dcm(view: str) -> str:
+    return f"overlay_{view}.dcm"
+
+
+REGISTRATION_FILES: dict[str, str] = {
+    RESULT_JSON: "application/json",
+    **{overlay_png(view): "image/png" for view in VIEWS},
+    **{mask_png(view): "image/png" for view in VIEWS},
+    ANIMATION_GIF: "image/gif",
+    LOSS_PNG: "image/png",
+}
+"""What :func:`~dsareg_engine.pipeline.write_outputs` may write: ``{file name: media type}``."""
+
+DICOM_FILES: dict[str, str] = {
+    REG_DCM: "application/dicom",
+    **{overlay_dcm(view): "application/dicom" for view in VIEWS},
+    LOSS_DCM: "application/dicom",
+}
+"""What :func:`~dsareg_engine.io.dicom_out.write_dicom_outputs` may write."""
+
+ARTIFACTS: dict[str, str] = {**REGISTRATION_FILES, **DICOM_FILES}
+"""Every output file of a registration, ``{file name: media type}``."""

@@ -1,0 +1,90 @@
+"""The service context and the typed dependencies of the routes.
+
+``Ctx`` is the running service (store, blobs, executor...), ``Principal`` the caller
+(``'anonymous'`` or ``'key:<hash prefix>'``) and ``OwnedJob`` the path's ``job_id`` looked up
+and checked to belong to the caller (404 / 403 otherwise).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Annotated, Any
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from prometheus_client import CollectorRegistry, Counter
+
+from ..blobs import BlobStore
+from ..executor import Executor
+from ..problems import Problem
+from ..settings import ServiceSettings
+from ..store import JobRecord, JobStore
+from ..validation import ValidatorPool
+
+if TYPE_CHECKING:
+    from .lifespan import Sweeper
+
+ANONYMOUS = "anonymous"
+
+
+@dataclass
+class ServiceContext:
+    settings: ServiceSettings
+    store: JobStore
+    blobs: BlobStore
+    validator: ValidatorPool | None
+    executor: Executor
+    registry: CollectorRegistry
+    uploads: Counter
+    sweeper: Sweeper | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+bearer = HTTPBearer(auto_error=False, description="API key: `Authorization: Bearer <key>`.")
+
+
+def get_ctx(request: Request) -> ServiceContext:
+    return request.app.state.ctx
+
+
+Ctx = Annotated[ServiceContext, Depends(get_ctx)]
+
+
+def principal(request: Request, credentials: HTTPAuthorizationCredentials | None = Depends(bearer)) -> str:  # noqa: B008
+    """The caller: ``'anonymous'`` without configured keys, else ``'key:<hash prefix>'``."""
+    ctx = get_ctx(request)
+    if not ctx.settings.auth_enabled:
+        return ANONYMOUS
+    if credentials is None or not credentials.credentials:
+        raise Problem(401, "send 'Authorization: Bearer <API key>'", headers={"WWW-Authenticate": "Bearer"})
+    digest = hashlib.sha256(credentials.credentials.strip().encode("utf-8")).hexdigest()
+    match = None
+    for known in ctx.settings.api_key_hashes:  # compare against all, in constant time each
+        if hmac.compare_digest(digest, known):
+            match = known
+    if match is None:
+        raise Problem(401, "the API key is not valid", headers={"WWW-Authenticate": 'Bearer error="invalid_token"'})
+    return "key:" + match[:16]
+
+
+Principal = Annotated[str, Depends(principal)]
+
+
+def owned_job(ctx: ServiceContext, job_id: str, who: str) -> JobRecord:
+    job = ctx.store.get(job_id) if len(job_id) <= 64 else None
+    if job is None:
+        raise Problem(404, f"no registration job with id '{job_id[:64]}'", kind="job-not-found")
+    if job.owner != who:
+        raise Problem(403, "this job belongs to another API key")
+    return job
+
+
+def _owned_job(job_id: str, ctx: Ctx, who: Principal) -> JobRecord:
+    return owned_job(ctx, job_id, who)
+
+
+OwnedJob = Annotated[JobRecord, Depends(_owned_job)]
+"""The path's ``job_id``, owned by the caller. Only for routes without other validated path
+parameters (a dependency runs before them, so it would turn their 422 into a 404)."""

@@ -1,0 +1,88 @@
+"""Exception handlers: every error is ``application/problem+json`` (RFC 9457)."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
+
+from ..httpfaults import allowed_methods
+from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
+from ..store import store_outage_errors
+
+log = logging.getLogger("dsareg.service")
+
+STORE_RETRY_AFTER = "5"
+
+
+def problem_response(status: int, body: dict[str, Any], headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse(body, status_code=status, media_type=PROBLEM_MEDIA_TYPE, headers=headers)
+
+
+def route_template(request: Request) -> str:
+    route = request.scope.get("route")
+    return getattr(route, "path", "unmatched")
+
+
+async def on_problem(request: Request, exc: Problem) -> JSONResponse:
+    return problem_response(exc.status, exc.body(request.url.path), exc.headers)
+
+
+async def on_http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    detail = exc.detail if isinstance(exc.detail, str) else None
+    if exc.status_code == 404 and detail in (None, "Not Found"):
+        detail = f"no such endpoint: {request.method} {request.url.path[:200]}; see /docs"
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        detail = f"{request.method} is not allowed on {request.url.path[:200]}; see /docs"
+        headers["Allow"] = allowed_methods(request.app.router.routes, request.scope) or headers.get("Allow", "")
+    return problem_response(exc.status_code, problem_body(exc.status_code, detail, instance=request.url.path),
+                            headers)
+
+
+async def on_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+    errors = exc.errors()
+    first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
+    loc = [str(p) for p in first.get("loc", ())]
+    field_name = ".".join(loc[1:]) if len(loc) > 1 else ".".join(loc) or None
+    where = loc[0] if loc else "request"
+    detail = f"{where} parameter '{field_name}': {first.get('msg')}" if field_name else str(first.get("msg"))
+    return problem_response(422, problem_body(422, detail, kind="invalid-parameter", instance=request.url.path,
+                                              field=field_name))
+
+
+async def on_disconnect(request: Request, exc: ClientDisconnect) -> JSONResponse:
+    # the client went away mid-request (often mid-upload): nothing to answer, nothing broken here
+    log.info("client disconnected during %s %s", request.method, route_template(request))
+    return problem_response(400, problem_body(400, "the client disconnected before the request was complete",
+                                              kind="client-disconnected", instance=request.url.path))
+
+
+async def on_store_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """The job database is down or busy: a temporary condition (503 + Retry-After), not a bug (500)."""
+    log.warning("job store unavailable on %s %s: %s", request.method, route_template(request), type(exc).__name__)
+    return problem_response(503, problem_body(503, "the job database is temporarily unavailable; retry later",
+                                              kind="store-unavailable", instance=request.url.path),
+                            {"Retry-After": STORE_RETRY_AFTER})
+
+
+async def on_internal(request: Request, exc: Exception) -> JSONResponse:
+    log.error("internal error on %s %s: %s", request.method, route_template(request), type(exc).__name__,
+              exc_info=exc)
+    return problem_response(500, problem_body(500, "an internal error occurred; it has been logged",
+                                              instance=request.url.path))
+
+
+def install_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(Problem, on_problem)  # type: ignore[arg-type]
+    app.add_exception_handler(StarletteHTTPException, on_http)  # type: ignore[arg-type]
+    app.add_exception_handler(RequestValidationError, on_validation)  # type: ignore[arg-type]
+    app.add_exception_handler(ClientDisconnect, on_disconnect)  # type: ignore[arg-type]
+    for outage in store_outage_errors():
+        app.add_exception_handler(outage, on_store_unavailable)
+    app.add_exception_handler(Exception, on_internal)
