@@ -37,7 +37,24 @@ def _wait_port(port: int, timeout: float, process: subprocess.Popen | None = Non
     return False
 
 
-class RedisServer:
+class _ChildServer:
+    """A server process of ours in a temporary directory: ``kill`` it (SIGKILL), ``stop`` = kill + remove the directory."""
+
+    process: subprocess.Popen | None
+    dir: Path
+
+    def kill(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(10)
+        self.process = None
+
+    def stop(self) -> None:
+        self.kill()
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+class RedisServer(_ChildServer):
     """``redis-server`` on loopback, no persistence (a restart loses every message)."""
 
     def __init__(self, port: int | None = None):
@@ -62,16 +79,6 @@ class RedisServer:
             self.stop()
             raise RuntimeError("redis-server did not start")
         return self
-
-    def kill(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
-        self.process = None
-
-    def stop(self) -> None:
-        self.kill()
-        shutil.rmtree(self.dir, ignore_errors=True)
 
 
 class PostgresServer:
@@ -134,7 +141,7 @@ class PostgresServer:
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
-class OrthancServer:
+class OrthancServer(_ChildServer):
     """Orthanc + its DICOMweb plugin on loopback (temp storage, own JSON config, HTTP basic auth).
 
     For the DICOMweb tests and ``examples/pacs``. ``lua`` (optional) is a Lua script installed
@@ -203,13 +210,3 @@ class OrthancServer:
             return (self.dir / "orthanc.log").read_text(errors="replace")
         except OSError:
             return ""
-
-    def kill(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
-        self.process = None
-
-    def stop(self) -> None:
-        self.kill()
-        shutil.rmtree(self.dir, ignore_errors=True)
