@@ -10,8 +10,8 @@ import time
 
 import pytest
 from faults_kit import NEXT_POST_SECONDS, descendants, settle, tally, timed_post, wait_gone
-from scaleout_kit import CeleryWorker, pid_of_worker_id
-from service_testkit import Server, needs_engine, submit, wait_for
+from scaleout_kit import CeleryTopology, pid_of_worker_id
+from service_testkit import needs_engine, submit, wait_for
 
 pytestmark = [needs_engine, pytest.mark.slow]
 
@@ -19,51 +19,13 @@ FAST = {"starts": 1, "max_iterations": 10}
 SLOW = {"starts": 2, "max_iterations": 400, "coarse_to_fine": False}
 
 
-class Topology:
-    def __init__(self, root, redis, postgres):
-        from service.store import SqlJobStore
-
-        self.root, self.redis, self.postgres = root, redis, postgres
-        self.env = {
-            "DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": redis.url, "DSAREG_DATABASE_URL": postgres.url,
-            "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LEASE_SECONDS": "4",
-            "DSAREG_REDISPATCH_AFTER_SECONDS": "3", "DSAREG_BROKER_VISIBILITY_TIMEOUT_SECONDS": "20",
-            "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2",
-        }
-        self.api = Server(root / "api", workers=0, env=self.env)
-        self.workers: list[CeleryWorker] = []
-        self.store = SqlJobStore(postgres.url, create_schema=True)
-
-    def add_worker(self) -> CeleryWorker:
-        name = f"w{len(self.workers) + 1}"
-        worker = CeleryWorker(name, self.root / name, self.env).start()
-        self.workers.append(worker)
-        return worker
-
-    def wait_workers(self, n: int, timeout: float = 90.0) -> None:
-        deadline = time.monotonic() + timeout
-        with self.api.client() as client:
-            while time.monotonic() < deadline:
-                response = client.get("/readyz")
-                if response.status_code == 200 and response.json().get("checks", {}).get("workers_alive", 0) >= n:
-                    return
-                time.sleep(0.3)
-        raise AssertionError(f"{n} workers not alive after {timeout} s")
-
-    def events_of(self, job_id: str) -> list[str]:
-        return [e["event"] for e in self.store.events(job_id)]
-
-    def status_of(self, job_id: str) -> str:
-        job = self.store.get(job_id)
-        return "missing" if job is None else job.status
+class Topology(CeleryTopology):
+    """The scale-out topology with the fault suite's invariants."""
 
     def assert_invariants(self, ids: list[str], timeout: float = 180) -> None:
         statuses = settle(self.events_of, self.status_of, ids, timeout)
         counts = tally(ids, statuses, self.events_of)
         assert counts == {"lost": 0, "stuck": 0, "duplicated": 0, "not_succeeded": 0}, (counts, statuses, self.logs())
-
-    def logs(self) -> str:
-        return "\n".join(w.logs()[-2500:] for w in self.workers) + "\n" + self.api.logs()[-3000:]
 
 
 @pytest.fixture(scope="module")
@@ -79,8 +41,7 @@ def topology(tmp_path_factory, redis_server, postgres_server, case):
     try:
         yield topo
     finally:
-        for worker in topo.workers:
-            worker.stop()
+        topo.stop_workers()
         topo.api.stop()
         topo.store.dispose()
 

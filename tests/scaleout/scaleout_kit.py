@@ -9,9 +9,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
-from service_testkit import LoggedProcess
+from service_testkit import LoggedProcess, Server
 
 from service.bench.servers import PostgresServer, RedisServer, free_port  # noqa: F401 - re-exported
 
@@ -47,3 +48,54 @@ class CeleryWorker(LoggedProcess):
 def pid_of_worker_id(worker_id: str) -> int:
     """``<host>-<pid>-w<index>-<token>`` (see service.worker.make_worker_id)."""
     return int(worker_id.rsplit("-", 3)[1])
+
+
+class CeleryTopology:
+    """The scale-out topology on loopback: the API (no embedded workers) + Celery workers, sharing
+    ``redis`` and ``postgres`` (blobs in the database, short leases so faults show quickly)."""
+
+    def __init__(self, root: Path, redis, postgres):
+        from service.store import SqlJobStore
+
+        self.root, self.redis, self.postgres = root, redis, postgres
+        self.env = {
+            "DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": redis.url, "DSAREG_DATABASE_URL": postgres.url,
+            "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LEASE_SECONDS": "4",
+            "DSAREG_REDISPATCH_AFTER_SECONDS": "3", "DSAREG_BROKER_VISIBILITY_TIMEOUT_SECONDS": "20",
+            "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2",
+        }
+        self.api = Server(root / "api", workers=0, env=self.env)
+        self.workers: list[CeleryWorker] = []
+        self.count = 0
+        self.store = SqlJobStore(postgres.url, create_schema=True)
+
+    def add_worker(self) -> CeleryWorker:
+        self.count += 1
+        worker = CeleryWorker(f"w{self.count}", self.root / f"w{self.count}", self.env).start()
+        self.workers.append(worker)
+        return worker
+
+    def wait_workers(self, n: int, timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        with self.api.client() as client:
+            while time.monotonic() < deadline:
+                response = client.get("/readyz")
+                if response.status_code == 200 and response.json().get("checks", {}).get("workers_alive", 0) >= n:
+                    return
+                time.sleep(0.3)
+        raise AssertionError(f"{n} workers not alive after {timeout} s")
+
+    def stop_workers(self) -> None:
+        for worker in self.workers:
+            worker.stop()
+        self.workers = []
+
+    def events_of(self, job_id: str) -> list[str]:
+        return [e["event"] for e in self.store.events(job_id)]
+
+    def status_of(self, job_id: str) -> str:
+        job = self.store.get(job_id)
+        return "missing" if job is None else job.status
+
+    def logs(self) -> str:
+        return "\n".join(w.logs()[-2500:] for w in self.workers) + "\n" + self.api.logs()[-3000:]

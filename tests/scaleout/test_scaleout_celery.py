@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from scaleout_kit import CeleryWorker, RedisServer, pid_of_worker_id
+from scaleout_kit import CeleryTopology, RedisServer, pid_of_worker_id
 from service_testkit import Server, make_example_case, needs_engine, submit, wait_for
 
 pytestmark = [needs_engine, pytest.mark.slow]
@@ -44,51 +44,9 @@ def reference(tmp_path_factory, case):
         server.stop()
 
 
-class Topology:
-    def __init__(self, root, redis, postgres):
-        self.root = root
-        self.redis = redis
-        self.postgres = postgres
-        self.env = {
-            "DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": redis.url, "DSAREG_DATABASE_URL": postgres.url,
-            "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LEASE_SECONDS": "4",
-            "DSAREG_REDISPATCH_AFTER_SECONDS": "3", "DSAREG_BROKER_VISIBILITY_TIMEOUT_SECONDS": "20",
-            "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2",
-        }
-        self.api = Server(root / "api", workers=0, env=self.env)
-        self.workers: list[CeleryWorker] = []
-        self.count = 0
-        from service.store import SqlJobStore
-
-        self.store = SqlJobStore(postgres.url, create_schema=True)
-
-    def add_worker(self) -> CeleryWorker:
-        self.count += 1
-        worker = CeleryWorker(f"w{self.count}", self.root / f"w{self.count}", self.env).start()
-        self.workers.append(worker)
-        return worker
-
-    def wait_workers(self, n: int, timeout: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout
-        with self.api.client() as client:
-            while time.monotonic() < deadline:
-                if client.get("/readyz").json().get("checks", {}).get("workers_alive", 0) >= n:
-                    return
-                time.sleep(0.3)
-        raise AssertionError(f"{n} workers not alive after {timeout} s")
-
-    def stop_workers(self) -> None:
-        for worker in self.workers:
-            worker.stop()
-        self.workers = []
-
-    def logs(self) -> str:
-        return "\n".join(w.logs()[-2000:] for w in self.workers) + "\n" + self.api.logs()[-3000:]
-
-
 @pytest.fixture(scope="module")
 def topology(tmp_path_factory, redis_server, postgres_server):
-    topo = Topology(tmp_path_factory.mktemp("topology"), redis_server, postgres_server)
+    topo = CeleryTopology(tmp_path_factory.mktemp("topology"), redis_server, postgres_server)
     topo.api.start()
     try:
         yield topo
