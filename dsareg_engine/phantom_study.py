@@ -50,18 +50,9 @@ def _to_bytes(ds) -> bytes:
 
 
 def _dataset(sop_class: str, study_uid: str, series_uid: str, modality: str, series_number: int, number: int):
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian
+    from .io.dicom_out import new_instance
 
-    uid = new_uid()
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = sop_class
-    meta.MediaStorageSOPInstanceUID = uid
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SpecificCharacterSet = "ISO_IR 100"
-    ds.SOPClassUID, ds.SOPInstanceUID = sop_class, uid
+    ds = new_instance(sop_class, new_uid(), charset="ISO_IR 100")
     ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = PATIENT_NAME, PATIENT_ID, "", "O"
     today = _dt.date.today().strftime("%Y%m%d")
     ds.StudyInstanceUID, ds.StudyDate, ds.StudyTime, ds.StudyID = study_uid, today, "120000", "DSAREG1"

@@ -152,7 +152,8 @@ def _copy(src, dst, keywords) -> None:
                 setattr(dst, keyword, copy.deepcopy(value))
 
 
-def _base(sop_class: str, sop_instance: str, sources: DicomSources, study_uid: str):
+def new_instance(sop_class: str, sop_instance: str, charset: str = "ISO_IR 192"):
+    """An empty explicit-VR little-endian instance: file meta, character set and SOP UIDs."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian
 
@@ -163,9 +164,14 @@ def _base(sop_class: str, sop_instance: str, sources: DicomSources, study_uid: s
     meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
     ds = Dataset()
     ds.file_meta = meta
-    ds.SpecificCharacterSet = "ISO_IR 192"
+    ds.SpecificCharacterSet = charset
     ds.SOPClassUID = sop_class
     ds.SOPInstanceUID = sop_instance
+    return ds
+
+
+def _base(sop_class: str, sop_instance: str, sources: DicomSources, study_uid: str):
+    ds = new_instance(sop_class, sop_instance)
     date, time = _now()
     ds.InstanceCreationDate, ds.InstanceCreationTime = date, time
     # Patient + General Study: copied from the inputs (XA first), never invented
