@@ -4,8 +4,11 @@ Importing it is cheap: the heavy parts (torch, the renderer, the readers) load o
 name, so an API process that only validates options never loads the renderer.
 
 * options: :class:`RegistrationOptions`, :func:`parse_options`, :func:`validate_rigid`, :data:`PRESETS`
-* a case: :func:`load_case` (inputs as bytes or paths), :class:`InputLimits`, :func:`input_limits`
-* running it: :func:`run_registration_case`, :class:`RegistrationCanceled`
+* geometry: :func:`parse_geometry` (the one place a preset name, JSON or a file is told apart) →
+  :class:`GeometrySpec`, stored as its canonical JSON (``to_json`` / ``from_json``, :func:`is_canonical_geometry`)
+* a case: :class:`CaseFiles` (inputs as bytes), :func:`load_case_files` / :func:`load_case`, :class:`InputLimits`, :func:`input_limits`
+* running it: :func:`run_case` (files in, every output written, in one call), :func:`run_registration_case`
+  (from a loaded case), :class:`RegistrationCanceled`
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
   DICOM: :func:`read_sources`, :class:`DicomSources`, :func:`write_dicom_outputs`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
@@ -40,10 +43,11 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .cli import run_parsed
     from .commands.errors import CommandFailed, geometry_argument, input_file, json_argument, options_help
     from .geometry_file import PRESETS
-    from .io.case import load_case
+    from .geometry_spec import GeometrySpec, is_canonical_geometry, parse_geometry
+    from .io.case import CaseFiles, load_case, load_case_files
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
     from .io.limits import DEFAULT_LIMITS, InputLimits
-    from .pipeline import RegistrationCanceled, run_registration_case
+    from .pipeline import RegistrationCanceled, run_case, run_registration_case
     from .pose import validate_rigid
     from .pose_file import load_pose
     from .registration.options import RegistrationOptions, parse_options
@@ -54,10 +58,16 @@ _LAZY = {
     "parse_options": "dsareg_engine.registration.options",
     "validate_rigid": "dsareg_engine.pose",
     "PRESETS": "dsareg_engine.geometry_file",
+    "GeometrySpec": "dsareg_engine.geometry_spec",
+    "parse_geometry": "dsareg_engine.geometry_spec",
+    "is_canonical_geometry": "dsareg_engine.geometry_spec",
+    "CaseFiles": "dsareg_engine.io.case",
+    "load_case_files": "dsareg_engine.io.case",
     "InputLimits": "dsareg_engine.io.limits",
     "DEFAULT_LIMITS": "dsareg_engine.io.limits",
     "load_case": "dsareg_engine.io.case",
     "run_registration_case": "dsareg_engine.pipeline",
+    "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
     "DicomSources": "dsareg_engine.io.dicom_out",
     "read_sources": "dsareg_engine.io.dicom_out",
@@ -84,9 +94,11 @@ __all__ = [
     "REGISTRATION_FILES",
     "REG_DCM",
     "RESULT_JSON",
+    "CaseFiles",
     "CommandFailed",
     "DicomSources",
     "DsaregInputError",
+    "GeometrySpec",
     "InputLimits",
     "RegistrationCanceled",
     "RegistrationOptions",
@@ -94,16 +106,20 @@ __all__ = [
     "geometry_argument",
     "input_file",
     "input_limits",
+    "is_canonical_geometry",
     "json_argument",
     "load_case",
+    "load_case_files",
     "load_pose",
     "mask_png",
     "options_help",
     "overlay_dcm",
     "overlay_png",
+    "parse_geometry",
     "parse_options",
     "preload_case_loading",
     "read_sources",
+    "run_case",
     "run_parsed",
     "run_registration_case",
     "set_cpu_threads",

@@ -12,7 +12,8 @@ Each view gives either ``sid_mm`` + ``world_to_view`` (``principal_point_px`` de
 to the image centre) or a 3x4 ``projection_matrix`` in pixels. Instead of a second
 view, ``"lat_from_ap": {"angle_deg": 90, "axis_world": [0, 1, 0], "isocentre_world": [0, 0, 0]}``
 turns the AP chain about an axis through the isocentre. Validation errors name the
-field at fault.
+field at fault. What a geometry *argument* is (preset, JSON, file) is decided in one place,
+:func:`dsareg_engine.geometry_spec.parse_geometry`, which also writes the canonical stored form.
 """
 
 from __future__ import annotations
@@ -123,29 +124,8 @@ def rig_from_dict(data: Any) -> Rig:
 _ACCEPTED = "a JSON object {'views': {'ap': {...}, 'lat': {...}}, 'initial_mesh_to_world': 4x4} or a preset name"
 
 
-def load_rig(source: str | Path | dict) -> Rig:
-    """A rig from a preset name, a JSON file path, JSON text, or an already-parsed dict."""
-    if isinstance(source, dict):
-        return rig_from_dict(source)
-    text = str(source)
-    if text in PRESETS:
-        return PRESETS[text]()
-    if not text.lstrip().startswith("{"):
-        path = Path(text)
-        if not path.is_file():
-            raise DsaregInputError(
-                f"'{text}' is neither a preset nor a readable file", field="geometry",
-                accepted=f"presets {sorted(PRESETS)}, a JSON file, or JSON text",
-            )
-        text = path.read_text(encoding="utf-8", errors="replace")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DsaregInputError(f"is not valid JSON ({exc.msg} at line {exc.lineno})", field="geometry") from None
-    return rig_from_dict(data)
-
-
 def save_rig(rig: Rig, path: str | Path) -> None:
+    """Write ``rig`` as an explicit geometry file (``load_rig`` in :mod:`dsareg_engine.geometry_spec` reads it)."""
     Path(path).write_text(json.dumps(rig.to_dict(), indent=2))
 
 

@@ -1,5 +1,8 @@
 """One registration job end to end: case in, result files out (used by the CLI and the service).
 
+:func:`run_case` is the whole job in one call (files → case → registration → outputs, DICOM
+included; the service's workers call it); :func:`run_registration_case` starts from a loaded case.
+
 Writes into ``out_dir``: ``result.json``, ``overlay_{ap,lat}.png``, ``mask_{ap,lat}.png``
 (the masks actually registered, 0/255), ``loss.png`` (loss per iteration) and, when
 asked, ``animation.gif``. Overlays show the DSA image (or the mask) with the initial and
@@ -11,26 +14,88 @@ frame's stage and iteration.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 import torch
 
 from . import artifacts
+from .io.case import Case, CaseFiles, load_case_files
+from .io.limits import DEFAULT_LIMITS, InputLimits
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
 from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
+from .registration.options import parse_options
 from .registration.progress import REGISTRATION_SHARE
 from .render import Camera, render_hard_silhouette
 
-__all__ = ["RegistrationCanceled", "run_registration_case", "write_outputs"]
+__all__ = ["RegistrationCanceled", "run_case", "run_registration_case", "write_outputs"]
+
+log = logging.getLogger(__name__)
+
+
+DicomOutputs = Literal["off", "best_effort", "required"]
+"""DICOM results of :func:`run_case`: none; written when possible (a failure becomes a warning); or
+required (a failure raises: the caller stores them in a PACS)."""
+
+
+def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_dir: Path, *,
+             limits: InputLimits = DEFAULT_LIMITS, progress: Callable[[dict], None] | None = None,
+             should_stop: Callable[[], bool] | None = None, label: str | None = None,
+             dicom: DicomOutputs = "best_effort") -> dict:
+    """Files in, files out: read the case, register it, write every output into ``out_dir``.
+
+    The one call an application makes for a whole job (the service's workers do). Writes what
+    :func:`run_registration_case` writes, and with ``dicom`` the DICOM results
+    (:func:`dsareg_engine.io.dicom_out.write_dicom_outputs`, listed in ``result["dicom"]["instances"]``).
+
+    Returns:
+        The result dict, with the case's warnings (``files.warnings`` first) under ``"warnings"``.
+
+    Raises:
+        DsaregInputError: the inputs or options cannot be used (``field`` names which).
+        RegistrationCanceled: ``should_stop()`` returned True.
+    """
+    options = options if isinstance(options, RegistrationOptions) else parse_options(options)
+    case = load_case_files(files, options.segmentation, limits)
+    if should_stop is not None and should_stop():
+        raise RegistrationCanceled("stopped before start")
+    if progress is not None:
+        progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
+    data = run_registration_case(case, options, out_dir, progress=progress, should_stop=should_stop, label=label)
+    if dicom != "off":
+        _write_dicom(files, data, Path(out_dir), required=dicom == "required")
+    return data
+
+
+def _write_dicom(files: CaseFiles, data: dict, out_dir: Path, *, required: bool) -> None:
+    """DICOM results next to the PNGs; the DICOM inputs' patient and study when there are any."""
+    from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+
+    single = [part if isinstance(part, bytes) else None for part in (files.ap, files.lat)]
+    try:
+        sources = read_sources(*single, files.volume)
+    except Exception:
+        if required:
+            raise
+        log.warning("the DICOM headers of the inputs could not be read; DICOM results start a new study")
+        sources = DicomSources()
+    try:
+        data["dicom"] = {"instances": write_dicom_outputs(out_dir, data["mesh_to_world"], sources, out_dir)}
+    except Exception as exc:
+        if required:
+            raise
+        log.warning("DICOM outputs not written (%s)", exc)
+        data.setdefault("warnings", []).append("DICOM outputs could not be written")
 
 
 def run_registration_case(
-    case,
+    case: Case,
     options: RegistrationOptions,
     out_dir: Path,
     progress: Callable[[dict], None] | None = None,
@@ -43,19 +108,15 @@ def run_registration_case(
         label: shown in the overlays' captions (the service passes ``"job <id>"``).
 
     Returns:
-        The JSON-ready result dict (also written as ``result.json``).
+        The JSON-ready result dict (also written as ``result.json``), with the case's warnings
+        under ``"warnings"`` when there are any (the one place they join the result).
 
     Raises:
         RegistrationCanceled: ``should_stop()`` returned True.
     """
     result = register(case.mesh, case.masks, case.rig, options, progress=progress, should_stop=should_stop)
-    data = write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
-                         images=getattr(case, "images", None), label=label, progress=progress)
-    warnings = list(getattr(case, "warnings", []) or [])
-    if warnings:
-        data["warnings"] = warnings
-        (Path(out_dir) / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
-    return data
+    return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
+                         images=case.images, label=label, progress=progress, warnings=case.warnings)
 
 
 def verdict_of(data: dict) -> tuple[str, bool | None]:
@@ -86,10 +147,13 @@ def mm_per_pixel_at_mesh(view, mesh_to_view: np.ndarray, mesh=None) -> float | N
 
 def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_dir: Path, mesh=None, rig=None,
                   animation: bool = False, *, images: dict[str, np.ndarray] | None = None, label: str | None = None,
-                  progress: Callable[[dict], None] | None = None) -> dict:
-    """Write result.json, overlays, masks and the loss plot (and the animation) for a finished registration."""
+                  progress: Callable[[dict], None] | None = None, warnings: list[str] | None = None) -> dict:
+    """Write result.json (with ``warnings`` when any), overlays, masks and the loss plot (and the
+    animation) for a finished registration."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = result.to_dict()
+    if warnings:
+        data["warnings"] = [str(warning) for warning in warnings]
     if progress is not None:
         progress({"stage": "outputs", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE})
     (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))

@@ -12,7 +12,8 @@ from dsareg_engine.geometry import (
     view_from_detector_pose,
     view_from_projection_matrix,
 )
-from dsareg_engine.geometry_file import load_rig, paper_focal_px
+from dsareg_engine.geometry_file import paper_focal_px
+from dsareg_engine.geometry_spec import load_rig
 from dsareg_engine.pose import make_transform, rotation_about_axis
 
 

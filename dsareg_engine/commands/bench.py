@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..geometry import Rig
-from ..geometry_file import load_rig
+from ..geometry_spec import load_rig
 from ..metrics import mean_distance_mm
 from ..pose import so3_log
 from ..registration import CONFIGURATIONS, RegistrationOptions, register

@@ -20,9 +20,12 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import DsaregInputError
+
+if TYPE_CHECKING:
+    from ..geometry_spec import GeometrySpec
 
 USAGE = 2
 FAILED = 1
@@ -44,23 +47,11 @@ def input_file(value: str) -> Path:
     return path
 
 
-def geometry_argument(value: str | None, option: str = "--geometry") -> str | None:
-    """A preset name, JSON text, or the text of a geometry JSON file, for ``load_case``/``load_rig``."""
-    from ..geometry_file import PRESETS
+def geometry_argument(value: str | None, option: str = "--geometry") -> GeometrySpec | None:
+    """A preset name, JSON text, or a geometry JSON file, parsed once (``None`` stays ``None``)."""
+    from ..geometry_spec import parse_geometry
 
-    if value is None:
-        return None
-    text = value.strip()
-    if text in PRESETS or text.startswith("{"):
-        return text
-    path = Path(text).expanduser()
-    if path.is_file():
-        return path.read_text(encoding="utf-8", errors="replace")
-    if path.exists():
-        raise DsaregInputError(f"'{value}' is a folder, not a geometry file", field=option,
-                               accepted=f"a preset name {sorted(PRESETS)}, a geometry JSON file, or JSON text")
-    raise DsaregInputError(f"geometry file '{value}' not found", field=option,
-                           accepted=f"a preset name {sorted(PRESETS)}, a geometry JSON file, or JSON text")
+    return None if value is None else parse_geometry(value, field=option, files=True)
 
 
 def json_argument(value: str | None, option: str) -> Any:

@@ -79,7 +79,7 @@ def _frame(value: str | None):
 
 def describe(path: Path) -> list[str]:
     """Lines describing one input file (what ``dsareg inspect`` prints)."""
-    from ..geometry_file import load_rig
+    from ..geometry_spec import parse_geometry
     from ..io import rad
     from ..io.image_io import detect_image_format, read_image
     from ..io.mesh_io import detect_mesh_format, read_mesh_detailed
@@ -120,7 +120,7 @@ def describe(path: Path) -> list[str]:
         except DsaregInputError:
             kind = "image"
     if kind == "geometry":
-        rig = load_rig(first.decode("utf-8", errors="replace"))
+        rig = parse_geometry(first, field=field_name).rig
         lines.append("  kind: geometry")
         for name, view in rig.views.items():
             lines.append(f"  {name}: {_view_text(view)}")

@@ -9,7 +9,6 @@ import numpy as np
 import torch
 
 from ..errors import DsaregInputError
-from ..geometry_file import load_rig
 from ..overlay import write_png
 from ..pose_file import load_pose
 from ..render import Camera, render_hard_silhouette
@@ -47,7 +46,7 @@ def load_mesh_argument(path: str | None):
 
 def run(args: argparse.Namespace) -> int:
     mesh = load_mesh_argument(args.mesh)
-    rig = load_rig(geometry_argument(args.geometry))
+    rig = geometry_argument(args.geometry).rig
     pose = load_pose(args.pose) if args.pose else rig.initial_mesh_to_world
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..geometry import VIEW_NAMES, Rig, ViewGeometry
-from ..geometry_file import PRESETS, load_rig
+from ..geometry_spec import GeometrySpec
 from ..mesh import TriangleMesh
 from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
@@ -42,6 +42,42 @@ class Case:
     images: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class CaseFiles:
+    """The inputs of one case as given, before reading: what :func:`load_case` takes, as one value.
+
+    Attributes:
+        ap, lat: each image file's bytes, or ``[.rad bytes, .raw bytes]``.
+        mesh / volume: exactly one: a mesh file, or a volume (one file, a DICOM series as a list of
+            files, or a ``.rad`` + ``.raw`` pair as a list).
+        ap_name, lat_name, mesh_name, volume_name: file names (their suffix helps tell formats), or None.
+        geometry: the parsed geometry, or ``None`` to take it from the image headers.
+        frame: multi-frame DICOM: a frame number, ``"minip"``, or ``None`` (maximum opacification).
+        warnings: notes from getting the files (e.g. a DICOMweb fetch), reported before the case's own.
+    """
+
+    ap: bytes | list[bytes] | None
+    lat: bytes | list[bytes] | None
+    mesh: bytes | None = None
+    volume: bytes | list[bytes] | None = None
+    ap_name: str | None = None
+    lat_name: str | None = None
+    mesh_name: str | None = None
+    volume_name: str | None = None
+    geometry: GeometrySpec | None = None
+    frame: int | str | None = None
+    warnings: tuple[str, ...] = ()
+
+
+def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS) -> Case:
+    """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's."""
+    case = load_case(mesh=files.mesh, mesh_name=files.mesh_name, volume=files.volume, volume_name=files.volume_name,
+                     ap=files.ap, ap_name=files.ap_name, lat=files.lat, lat_name=files.lat_name,
+                     geometry=files.geometry, segmentation=segmentation, limits=limits, frame=files.frame)
+    case.warnings[:0] = list(files.warnings)
+    return case
+
+
 def load_case(
     *,
     mesh: bytes | None = None,
@@ -52,7 +88,7 @@ def load_case(
     ap_name: str | None = None,
     lat: bytes | list[bytes] | None = None,
     lat_name: str | None = None,
-    geometry: str | dict | None = None,
+    geometry: GeometrySpec | None = None,
     segmentation: str = "auto",
     limits: InputLimits = DEFAULT_LIMITS,
     frame: int | str | None = None,
@@ -63,9 +99,9 @@ def load_case(
         mesh / volume: exactly one: a surface mesh file's bytes, or a volume (one file,
             a DICOM series as a list of files, or a ``.rad`` + ``.raw`` pair as a list).
         ap, lat: each image file's bytes, or ``[.rad bytes, .raw bytes]``.
-        geometry: a preset name (``"paper"``), JSON text, a parsed dict, or ``None``
-            to take the geometry from the images (DICOM XA tags or ``.rad`` headers).
-            File paths are not accepted here (read the file and pass its text).
+        geometry: the parsed geometry (:func:`dsareg_engine.geometry_spec.parse_geometry`, or
+            :meth:`GeometrySpec.from_json` for a stored one), or ``None`` to take it from the
+            images (DICOM XA tags or ``.rad`` headers).
         segmentation: ``"auto"``, ``"otsu"``, ``"vesselness"`` or ``"mask"``.
         frame: for multi-frame DICOM: a frame number, ``"minip"``, or ``None``
             (maximum opacification).
@@ -138,39 +174,16 @@ def load_case(
                 images={name: images[name].pixels for name in VIEW_NAMES})
 
 
-def _resolve_rig(geometry, images: dict[str, LoadedImage], warnings: list[str], kinds: dict[str, str]) -> Rig:
+def _resolve_rig(geometry: GeometrySpec | None, images: dict[str, LoadedImage], warnings: list[str],
+                 kinds: dict[str, str]) -> Rig:
+    """The given geometry, else the one the image headers carry (DICOM XA tags, ``.rad``)."""
     if geometry is not None:
-        if isinstance(geometry, (bytes, bytearray)):
-            geometry = geometry.decode("utf-8", errors="replace")
-        if isinstance(geometry, str):
-            text = geometry.strip()
-            if not text:
-                raise DsaregInputError("is empty", field="geometry")
-            if text not in PRESETS and not text.startswith("{"):
-                raise DsaregInputError(
-                    f"'{text[:60]}' is neither a preset nor JSON",
-                    field="geometry",
-                    accepted=f"presets {sorted(PRESETS)} or a JSON geometry",
-                )
-            geometry = text
-            kinds["geometry"] = "preset" if text in PRESETS else "json"
-        elif isinstance(geometry, dict):
-            kinds["geometry"] = "json"
-        else:
-            raise DsaregInputError(
-                f"has type {type(geometry).__name__}",
-                field="geometry",
-                accepted="a preset name, JSON text or an object",
-            )
-        try:
-            rig = load_rig(geometry)
-        except DsaregInputError as exc:
-            if exc.field is None or not exc.field.startswith("geometry"):
-                raise exc.with_field_prefix("geometry") from None
-            raise
+        if not isinstance(geometry, GeometrySpec):
+            raise TypeError(f"load_case takes geometry as a GeometrySpec (see parse_geometry), not {type(geometry).__name__}")
+        kinds["geometry"] = geometry.source
         if any(image.geometry is not None for image in images.values()):
             warnings.append("geometry: the explicit geometry was used; the geometry in the image headers was ignored")
-        return rig
+        return geometry.rig
     missing = [name for name in VIEW_NAMES if images[name].geometry is None]
     if missing:
         raise DsaregInputError(

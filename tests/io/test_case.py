@@ -7,6 +7,7 @@ import trimesh
 
 from dsareg_engine.errors import DsaregInputError
 from dsareg_engine.geometry_file import paper_rig
+from dsareg_engine.geometry_spec import parse_geometry
 from dsareg_engine.io import Case, load_case
 from dsareg_engine.io.rad import format_rad_header
 from dsareg_engine.io.volume_io import RAS_TO_LPS
@@ -43,7 +44,7 @@ def test_mesh_pngs_and_preset(mesh_bytes, images):
         ap_name="ap.png",
         lat=images,
         lat_name="lat.png",
-        geometry="paper",
+        geometry=parse_geometry("paper"),
     )
     assert isinstance(case, Case)
     assert case.kinds == {"mesh": "stl", "ap": "png", "lat": "png", "geometry": "preset"}
@@ -65,7 +66,7 @@ def test_geometry_as_json_text_and_dict(mesh_bytes, images):
             ap_name=None,
             lat=images,
             lat_name=None,
-            geometry=geometry,
+            geometry=parse_geometry(geometry),
             segmentation="otsu",
         )
         assert case.rig.views["ap"].image_size == (100, 100) and not any("rescaled" in w for w in case.warnings)
@@ -79,7 +80,7 @@ def test_aspect_mismatch_is_an_error(mesh_bytes, images):
             ap_name="ap.png",
             lat=images,
             lat_name="lat.png",
-            geometry=geometry_json((120, 100)),
+            geometry=parse_geometry(geometry_json((120, 100))),
         )
     assert info.value.field == "ap"
 
@@ -103,10 +104,12 @@ def test_dicom_without_geometry_needs_explicit_geometry(mesh_bytes, build):
     with pytest.raises(DsaregInputError, match="carry none") as info:
         load_case(mesh=mesh_bytes, ap=bare, ap_name="ap.dcm", lat=bare, lat_name="lat.dcm")
     assert info.value.field == "geometry" and "preset" in info.value.accepted
-    case = load_case(mesh=mesh_bytes, ap=bare, ap_name="ap.dcm", lat=bare, lat_name="lat.dcm", geometry=geometry_json())
+    case = load_case(mesh=mesh_bytes, ap=bare, ap_name="ap.dcm", lat=bare, lat_name="lat.dcm",
+                     geometry=parse_geometry(geometry_json()))
     assert case.kinds["geometry"] == "json"
     with_tags = build.xa(image.astype(np.uint16))
-    case = load_case(mesh=mesh_bytes, ap=with_tags, ap_name=None, lat=with_tags, lat_name=None, geometry="paper")
+    case = load_case(mesh=mesh_bytes, ap=with_tags, ap_name=None, lat=with_tags, lat_name=None,
+                     geometry=parse_geometry("paper"))
     assert any("ignored" in w for w in case.warnings)
 
 
@@ -131,10 +134,7 @@ def test_rad_pairs_carry_geometry(mesh_bytes):
         ({}, "mesh", "exactly one"),
         ({"mesh": b"x", "volume": b"y"}, "mesh", "both"),
         ({"mesh": b"", "mesh_name": "t.stl"}, "mesh", "empty"),
-        ({"mesh": "MESH", "geometry": "/etc/hosts"}, "geometry", "neither a preset nor JSON"),
-        ({"mesh": "MESH", "geometry": "{not json"}, "geometry", "JSON"),
         ({"mesh": "MESH", "geometry": "paper", "segmentation": "magic"}, "segmentation", "unknown"),
-        ({"mesh": "MESH", "geometry": "GEOM_SCALED"}, "geometry", "orthonormal"),
         ({"mesh": "MESH", "geometry": "paper", "ap": b""}, "ap", "missing or empty"),
         ({"mesh": "MESH", "geometry": "paper", "lat": None}, "lat", "missing or empty"),
         ({"mesh": "MESH", "geometry": "paper", "lat": []}, "lat", "missing or empty"),
@@ -146,10 +146,26 @@ def test_errors_name_the_field(mesh_bytes, images, kwargs, field, match):
     arguments.update(kwargs)
     if arguments.get("mesh") == "MESH":
         arguments["mesh"] = mesh_bytes
-    if arguments.get("geometry") == "GEOM_SCALED":
-        scaled = np.diag([1.02, 1.0, 1.0, 1.0])  # not orthonormal: a scale sneaked into the pose
-        scaled[2, 3] = 150.0
-        arguments["geometry"] = geometry_json(world_to_view=scaled.tolist())
+    if arguments.get("geometry") == "paper":
+        arguments["geometry"] = parse_geometry("paper")
     with pytest.raises(DsaregInputError, match=match) as info:
         load_case(**arguments)
     assert info.value.field is not None and info.value.field.startswith(field)
+
+
+def test_load_case_takes_only_the_parsed_geometry(mesh_bytes, images):
+    """Text is told apart once, by parse_geometry; load_case never guesses what a string is."""
+    with pytest.raises(TypeError, match="GeometrySpec"):
+        load_case(mesh=mesh_bytes, ap=images, ap_name="ap.png", lat=images, lat_name="lat.png", geometry="paper")
+
+
+@pytest.mark.parametrize("geometry, match", [("/etc/hosts", "neither a preset nor JSON"), ("{not json", "JSON"),
+                                             ("GEOM_SCALED", "orthonormal")])
+def test_geometry_errors_name_the_field(geometry, match):
+    if geometry == "GEOM_SCALED":
+        scaled = np.diag([1.02, 1.0, 1.0, 1.0])  # not orthonormal: a scale sneaked into the pose
+        scaled[2, 3] = 150.0
+        geometry = geometry_json(world_to_view=scaled.tolist())
+    with pytest.raises(DsaregInputError, match=match) as info:
+        parse_geometry(geometry)
+    assert info.value.field.startswith("geometry")

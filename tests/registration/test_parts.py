@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.geometry_file import load_rig
+from dsareg_engine.geometry_spec import load_rig
 from dsareg_engine.metrics import dice, ground_truth_errors, iou, mean_distance_mm, source_position_error_mm
 from dsareg_engine.pose import make_transform, rotation_about_axis
 from dsareg_engine.registration.options import parse_options
