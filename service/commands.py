@@ -169,7 +169,8 @@ def run_submit(args: argparse.Namespace) -> int:
     CommandFailed, DsaregInputError = engine.CommandFailed, engine.DsaregInputError
     geometry_argument, json_argument, load_pose = engine.geometry_argument, engine.json_argument, engine.load_pose
 
-    geometry = geometry_argument(args.geometry)
+    spec = geometry_argument(args.geometry)  # parsed here: errors before any upload
+    geometry = None if spec is None else spec.as_input()
     options = json_argument(args.options, "--options")
     if options is not None and not isinstance(options, dict):
         raise DsaregInputError("must be a JSON object", field="--options", accepted='e.g. {"starts": 2}')

@@ -2,38 +2,73 @@
 imports :mod:`dsareg_engine`, and only its application API :mod:`dsareg_engine.api`
 (re-exported here as ``engine``; its heavy parts load on first use).
 
-Both the API's input validator (in its own processes) and the workers go through
-:func:`load_job_case`, so what the API accepted is exactly what the worker loads.
+* geometry: :func:`submitted_geometry` parses a submission's ``geometry`` part once
+  (``engine.parse_geometry``) and returns the canonical JSON the job stores;
+  :func:`job_geometry` reads a stored one back (see there for rows written before the canonical form).
+* inputs: :func:`stored_case_files` (the job's blobs → ``engine.CaseFiles``), shared by the API's
+  input validator (:func:`load_job_case`, in its own processes) and the workers, so what the API
+  accepted is exactly what a worker loads; :func:`fetched_case_files` for a DICOMweb fetch.
+* running: :func:`run_job`, a worker's one call into the engine (``engine.run_case``).
+* outputs: :func:`collect_artifacts` (the engine's artifact table into the blob store).
 """
 
 from __future__ import annotations
 
-import json
+import math
 from pathlib import Path
 from typing import Any
 
 from dsareg_engine import api as engine
 
 from .blobs import BlobStore
-from .limits import image_decoded_bytes
+from .limits import image_decoded_bytes, parse_json_part
 from .problems import Problem
 from .store import InputFile
 
-ROLE_NAMES = {"mesh": "mesh", "volume": "volume", "ap": "ap", "lat": "lat"}
+ROLES = ("mesh", "volume", "ap", "lat")
 
 
-def geometry_argument(geometry: str | None) -> str | dict | None:
-    """Stored geometry text → what ``load_case`` takes (a preset name or a parsed dict).
+# ---- geometry ----------------------------------------------------------------------------------
 
-    The API only stores preset names or JSON object text, so a file path can never reach
-    ``load_rig`` (which would otherwise read a server-side file).
+
+def submitted_geometry(text: str | None) -> str | None:
+    """A submission's ``geometry`` part → the canonical JSON to store; blank or absent → ``None``.
+
+    Parsed once here (a preset name or a JSON object; never a file path, so a client cannot make
+    the server read its own files), with the service's bounded JSON parser; 422 naming the field.
     """
-    if geometry is None:
+    if text is None or not text.strip():
         return None
-    text = geometry.strip()
-    if text.startswith("{"):
-        return json.loads(text)
-    return text
+    try:
+        spec = engine.parse_geometry(text, loads=lambda part: parse_json_part(part, "geometry"))
+    except engine.DsaregInputError as exc:
+        raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+    return spec.to_json()
+
+
+def job_geometry(stored: str | None) -> Any:
+    """A job's stored geometry as the engine's ``GeometrySpec`` (``None``: from the image headers).
+
+    Rows hold the canonical JSON (``GeometrySpec.to_json``), read back without deciding anything.
+    Rows written before the canonical form (service versions up to the layout change) hold what
+    those versions stored: a preset name or the submitted JSON object, compacted. They are parsed
+    with ``engine.parse_geometry`` (which accepts exactly those two forms, never a path), so a
+    service restarted on an older database runs its queued jobs, and tracks its finished ones, unchanged.
+    """
+    if stored is None:
+        return None
+    if engine.is_canonical_geometry(stored):
+        return engine.GeometrySpec.from_json(stored)
+    return engine.parse_geometry(stored)  # a row from before the canonical form
+
+
+def canonical_geometry(stored: str | None) -> str | None:
+    """A stored geometry (either row format) as canonical JSON (``/track`` copies the job's)."""
+    spec = job_geometry(stored)
+    return None if spec is None else spec.to_json()
+
+
+# ---- inputs ------------------------------------------------------------------------------------
 
 
 def input_limits(limits: dict[str, int] | None) -> Any:
@@ -63,29 +98,39 @@ def check_image_budget(data: bytes, field: str, limit: int) -> None:
             field=field, accepted="a smaller image, fewer channels or fewer bits per sample")
 
 
-def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
-                  limits: dict[str, int] | None = None) -> Any:
-    """Call ``dsareg_engine.io.case.load_case`` for stored inputs; ``read(sha256) -> bytes``.
+def stored_case_files(inputs: list[InputFile], geometry: str | None, read: Any,
+                      limits: dict[str, int] | None = None) -> Any:
+    """A job's stored inputs as ``engine.CaseFiles``; ``read(sha256) -> bytes``.
 
     Several files of one role (a DICOM series, a ``.rad`` + ``.raw`` pair) are passed as a
-    list in the order they were uploaded; names are ``<role><sanitized suffix>``.
+    list in the order they were uploaded; names are ``<role><sanitized suffix>``. Images
+    whose decoded size exceeds ``max_image_bytes`` are refused before decoding.
     """
     image_budget = (limits or {}).get("max_image_bytes")
-    kwargs: dict[str, Any] = {"geometry": geometry_argument(geometry), "segmentation": segmentation,
-                              "limits": input_limits(limits)}
-    for role in ("mesh", "volume", "ap", "lat"):
+    parts: dict[str, Any] = {"ap": None, "lat": None}
+    for role in ROLES:
         items = [f for f in inputs if f.role == role]
         if not items:
             continue
-        if role == "mesh" or len(items) == 1:
-            kwargs[role] = read(items[0].sha256)
-        else:
-            kwargs[role] = [read(item.sha256) for item in items]
+        data = read(items[0].sha256) if role == "mesh" or len(items) == 1 else [read(item.sha256) for item in items]
         if image_budget and role in ("ap", "lat"):
-            for data in kwargs[role] if isinstance(kwargs[role], list) else [kwargs[role]]:
-                check_image_budget(data, role, image_budget)
-        kwargs[f"{role}_name"] = role + items[0].suffix
-    return engine.load_case(**kwargs)
+            for part in data if isinstance(data, list) else [data]:
+                check_image_budget(part, role, image_budget)
+        parts[role], parts[f"{role}_name"] = data, role + items[0].suffix
+    return engine.CaseFiles(**parts, geometry=job_geometry(geometry))
+
+
+def fetched_case_files(ap: bytes, lat: bytes, volume: list[bytes], frame: Any, warnings: list[str]) -> Any:
+    """Inputs fetched from a PACS as ``engine.CaseFiles`` (the geometry comes from the XA headers)."""
+    return engine.CaseFiles(ap=ap, ap_name="ap.dcm", lat=lat, lat_name="lat.dcm", volume=volume,
+                            volume_name="volume.dcm", frame=frame, warnings=tuple(warnings))
+
+
+def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
+                  limits: dict[str, int] | None = None) -> Any:
+    """Read a job's stored inputs as the worker will (the API's validator calls this)."""
+    files = stored_case_files(inputs, geometry, read, limits)
+    return engine.load_case_files(files, segmentation, input_limits(limits))
 
 
 def case_summary(case: Any) -> dict[str, Any]:
@@ -98,8 +143,35 @@ def case_summary(case: Any) -> dict[str, Any]:
     return summary
 
 
-def blob_reader(blobs: BlobStore):
-    return blobs.read
+# ---- running and outputs -----------------------------------------------------------------------
+
+
+def run_job(files: Any, options: dict[str, Any], out_dir: Path, *, limits: dict[str, int] | None, control: Any,
+            label: str, dicom: str) -> dict[str, Any]:
+    """A worker's one call into the engine: ``engine.run_case`` (read, register, write every output).
+
+    ``control`` gives ``progress(update)`` and ``should_stop()``; ``dicom``: ``"best_effort"`` or
+    ``"required"`` (a job by DICOMweb reference stores them in its PACS). Returns the result as
+    strict JSON (no NaN, no numpy types), warnings included.
+    """
+    result = engine.run_case(files, options, out_dir, limits=input_limits(limits), progress=control.progress,
+                             should_stop=control.should_stop, label=label, dicom=dicom)
+    return json_safe(result)
+
+
+def json_safe(value: Any) -> Any:
+    """Plain JSON: numpy scalars/arrays to Python, NaN/inf to None (strict JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return json_safe(value.tolist())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (str, int, bool)) or value is None:
+        return value
+    return str(value)
 
 
 ARTIFACT_FILES = engine.ARTIFACTS

@@ -15,12 +15,13 @@ import shutil
 import socket
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from .blobs import BlobStore
-from .dicom_jobs import DicomJob, pacs_problem
+from .dicom_jobs import pacs_job, pacs_problem
 from .dicomweb import PacsError
-from .engine_adapter import collect_artifacts, engine
+from .engine_adapter import collect_artifacts, engine, run_job, stored_case_files
 from .problems import TYPE_BASE
 from .settings import ServiceSettings
 from .store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
@@ -99,23 +100,6 @@ class _JobControl:
         if not self.cancel and self.cancel_hint is not None and self.cancel_hint():
             self.cancel = True
         return self.cancel or self.lost or self.timed_out or self.stop_event.is_set()
-
-
-def json_safe(value: Any) -> Any:
-    """Plain JSON: numpy scalars/arrays to Python, NaN/inf to None (strict JSON has no NaN)."""
-    import math
-
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
-        return json_safe(value.tolist())
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, (str, int, bool)) or value is None:
-        return value
-    return str(value)
 
 
 def _problem(job_id: str, status: int, kind: str, title: str, detail: str, **extra: Any) -> dict[str, Any]:
@@ -229,23 +213,19 @@ def _thread_budget() -> str:
 
 
 def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher,
-              out_dir: Any) -> str:
-    """Load, register, store artifacts and the result (the last two retried across store outages)."""
-    options = engine.parse_options(job.options)
-    dicom_job = DicomJob(job, blobs.read, settings)  # inputs by DICOMweb reference; DICOM results
-    case = dicom_job.load_case(options.segmentation, settings.input_limits)
-    if control.should_stop():
-        raise engine.RegistrationCanceled("stopped before start")
-    control.progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
-    result = engine.run_registration_case(case, options, out_dir, progress=control.progress, should_stop=control.should_stop,
-                                   label=f"job {job.id}")
+              out_dir: Path) -> str:
+    """Inputs → one engine call → artifacts and result into the store (both retried across store outages)."""
+    pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
+    if pacs is None:
+        files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.input_limits)
+    else:
+        files = pacs.fetch()
+    result = run_job(files, job.options, out_dir, limits=settings.input_limits, control=control,
+                     label=f"job {job.id}", dicom="best_effort" if pacs is None else "required")
     if control.lost:
         return "lost"
-    result = json_safe(result if isinstance(result, dict) else {"value": result})
-    warnings = [str(w) for w in getattr(case, "warnings", []) or []]
-    if warnings and "warnings" not in result:
-        result["warnings"] = warnings
-    result = dicom_job.finish(result, out_dir)
+    if pacs is not None:
+        result = pacs.store_back(result, out_dir)
     artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
     outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
     if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete

@@ -21,9 +21,8 @@ from pydantic import ValidationError
 
 from ..dicomweb import DicomwebRegistrationRequest, resolve_server
 from ..limits import parse_json_part
-from ..models import job_status
 from ..problems import Problem
-from ..store import InputFile, JobRecord
+from ..store import InputFile
 from .deps import ServiceContext
 from .submission import accepted, check_queue, create_job, find_replay, fingerprint, new_job, parse_options_json
 
@@ -34,10 +33,6 @@ MAX_REFERENCE_BYTES = 64 * 1024
 
 def _field(loc) -> str:
     return ".".join(str(part) for part in loc)
-
-
-def _body(job: JobRecord) -> dict:
-    return job_status(job).model_dump(mode="json")
 
 
 async def parse_reference(request: Request) -> DicomwebRegistrationRequest:
@@ -74,19 +69,19 @@ async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, k
     digest, size = await asyncio.to_thread(ctx.blobs.put_bytes, text)
     inputs = [InputFile(role="dicomweb", sha256=digest, size=size, suffix=".json")]
     request_hash = fingerprint(inputs, None, options_json)
-    if (previous := await find_replay(ctx, who, key, request_hash, _body)) is not None:
+    if (previous := await find_replay(ctx, who, key, request_hash)) is not None:
         return previous
     await check_queue(ctx, who)
     job = new_job(ctx, who, key, options_json=options_json, geometry=None, inputs=inputs, warnings=[],
                   request_hash=request_hash, input_bytes=size)
-    stored, answer = await create_job(ctx, job, _body)
+    stored, answer = await create_job(ctx, job)
     if stored is None:
         return answer  # type: ignore[return-value]
     if not ctx.blobs.exists(digest):
         await asyncio.to_thread(ctx.blobs.put_bytes, text)
     await asyncio.to_thread(ctx.executor.submit, stored.id)
     log.info("job %s: queued by DICOMweb reference", stored.id)
-    return accepted(stored, _body)
+    return accepted(stored)
 
 
 def _inline_schema(model) -> dict:

@@ -11,7 +11,6 @@ import hashlib
 import json
 import logging
 import time
-from collections.abc import Callable
 from typing import Any
 
 from fastapi import Request
@@ -19,7 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ..blobs import safe_suffix
-from ..engine_adapter import check_options, engine
+from ..engine_adapter import check_options, engine, submitted_geometry
 from ..limits import check_job_cost, parse_json_part
 from ..models import status_body
 from ..problems import Problem
@@ -59,21 +58,6 @@ def read_text_field(value: Any, name: str, limit: int) -> str:
         return data.decode("utf-8")
     except UnicodeDecodeError:
         raise Problem(422, "is not UTF-8 text", field=name, accepted="UTF-8 JSON text") from None
-
-
-def normalize_geometry(text: str | None) -> str | None:
-    """A preset name or compact JSON object text; anything else is refused (422)."""
-    if text is None or not text.strip():
-        return None
-    PRESETS = engine.PRESETS
-    text = text.strip()
-    if text in PRESETS:
-        return text
-    if not text.startswith("{"):
-        raise Problem(422, f"'{text[:40]}' is not a known preset and not a JSON object", field="geometry",
-                      accepted=f"a preset name {sorted(PRESETS)} or geometry JSON (text or file)")
-    data = parse_json_part(text, "geometry")
-    return json.dumps(data, sort_keys=True, separators=(",", ":"))
 
 
 def parse_options_json(data: Any) -> dict[str, Any]:
@@ -117,13 +101,13 @@ def form_files(form: Any) -> dict[str, list[UploadFile]]:
 
 
 def form_geometry_and_options(form: Any) -> tuple[str | None, Any]:
-    """The normalized geometry text and the parsed options of a form."""
+    """The geometry of a form, parsed once into its canonical JSON, and the parsed options."""
     geometry_values = form.getlist("geometry")
     options_values = form.getlist("options")
     if len(geometry_values) > 1 or len(options_values) > 1:
         raise Problem(422, "give geometry and options at most once",
                       field="geometry" if len(geometry_values) > 1 else "options")
-    geometry = normalize_geometry(
+    geometry = submitted_geometry(
         read_text_field(geometry_values[0], "geometry", MAX_GEOMETRY_BYTES) if geometry_values else None)
     options_text = read_text_field(options_values[0], "options", MAX_OPTIONS_BYTES) if options_values else None
     options_data = parse_json_part(options_text, "options") if options_text and options_text.strip() else None
@@ -194,37 +178,35 @@ def new_job(ctx: ServiceContext, who: str, key: str | None, *, options_json: dic
     )
 
 
-def replay(existing: JobRecord, request_hash: str, body: Callable[[JobRecord], dict[str, Any]] = status_body
-           ) -> Response:
+def replay(existing: JobRecord, request_hash: str) -> Response:
     """The job created earlier with this Idempotency-Key (200), or 409 if the request differs."""
     if existing.request_hash != request_hash:
         raise Problem(409, "this Idempotency-Key was already used with a different request; use a new key",
                       kind="idempotency-conflict", field="Idempotency-Key", extra={"job_id": existing.id})
-    return JSONResponse(body(existing), status_code=200, headers={"Location": f"/v1/registrations/{existing.id}"})
+    return JSONResponse(status_body(existing), status_code=200, headers={"Location": f"/v1/registrations/{existing.id}"})
 
 
-async def find_replay(ctx: ServiceContext, who: str, key: str | None, request_hash: str,
-                      body: Callable[[JobRecord], dict[str, Any]] = status_body) -> Response | None:
+async def find_replay(ctx: ServiceContext, who: str, key: str | None, request_hash: str) -> Response | None:
     if key is None:
         return None
     existing = await asyncio.to_thread(ctx.store.find_idempotent, who, key)
-    return None if existing is None else replay(existing, request_hash, body)
+    return None if existing is None else replay(existing, request_hash)
 
 
-async def create_job(ctx: ServiceContext, job: JobRecord,
-                     body: Callable[[JobRecord], dict[str, Any]] = status_body) -> tuple[JobRecord | None, Response | None]:
+async def create_job(ctx: ServiceContext, job: JobRecord) -> tuple[JobRecord | None, Response | None]:
     """Insert the job; ``(stored, None)`` when created, ``(None, replay)`` when an equal request won."""
     try:
         stored, created = await asyncio.to_thread(ctx.store.create, job)
     except ConflictError as exc:
-        return None, replay(exc.existing, job.request_hash, body)
+        return None, replay(exc.existing, job.request_hash)
     if not created:
-        return None, replay(stored, job.request_hash, body)
+        return None, replay(stored, job.request_hash)
     return stored, None
 
 
-def accepted(stored: JobRecord, body: Callable[[JobRecord], dict[str, Any]] = status_body) -> JSONResponse:
-    return JSONResponse(body(stored), status_code=202,
+def accepted(stored: JobRecord) -> JSONResponse:
+    """202 with the job as every submission answers it (only the links that lead somewhere now)."""
+    return JSONResponse(status_body(stored), status_code=202,
                         headers={"Location": f"/v1/registrations/{stored.id}", "Retry-After": RETRY_AFTER_QUEUED})
 
 
@@ -232,6 +214,12 @@ async def submit_form(ctx: ServiceContext, form: Any, who: str, key: str | None)
     """A parsed multipart form → 202 with the new job (or 200/409 for an Idempotency-Key replay)."""
     files = form_files(form)
     geometry, options = form_geometry_and_options(form)
+    return await submit_files(ctx, files, geometry, options, who, key)
+
+
+async def submit_files(ctx: ServiceContext, files: dict[str, list[UploadFile]], geometry: str | None, options: Any,
+                       who: str, key: str | None) -> Response:
+    """Checked file parts, canonical geometry JSON and parsed options → 202 with the new job (or a replay)."""
     options_json = options.model_dump(mode="json")
     inputs, sources = await store_uploads(ctx, files)
     request_hash = fingerprint(inputs, geometry, options_json)

@@ -11,20 +11,20 @@ engine), so status, result, overlays, cancel and delete work as for any job.
 from __future__ import annotations
 
 import io
-import json
 from typing import Any
 
 from fastapi import Request
 from fastapi.responses import Response
 from starlette.datastructures import FormData, UploadFile
 
+from ..engine_adapter import canonical_geometry
 from ..limits import parse_json_part
 from ..models import JobStatus
 from ..problems import Problem, problem_responses
 from ..store import JobRecord
 from .deps import Ctx, OwnedJob, Principal, ServiceContext
 from .openapi import resource_router
-from .submission import MAX_OPTIONS_BYTES, idempotency_key, submit_form
+from .submission import MAX_OPTIONS_BYTES, form_files, idempotency_key, parse_options_json, submit_files
 
 router = resource_router("registrations")
 
@@ -61,7 +61,7 @@ TRACK_DOC = {
 }
 
 
-async def _options(previous: JobRecord, form: Any) -> str:
+async def _options(previous: JobRecord, form: Any) -> Any:
     """The new job's options: the previous job's (less INHERITED_OUT), the form's, mode track, its pose."""
     options = {k: v for k, v in previous.options.items() if k not in INHERITED_OUT}
     options_values = form.getlist("options")
@@ -75,7 +75,7 @@ async def _options(previous: JobRecord, form: Any) -> str:
             options.update(parse_json_part(text, "options"))
     options["mode"] = "track"
     options["initial_mesh_to_world"] = previous.result["mesh_to_world"]
-    return json.dumps(options)
+    return parse_options_json(options)
 
 
 def _model_parts(ctx: ServiceContext, previous: JobRecord) -> list[tuple[str, UploadFile]]:
@@ -107,10 +107,8 @@ async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) 
         model_files = _model_parts(ctx, previous)
         items: list[tuple[str, Any]] = list(model_files)
         items += [(name, value) for name in ("ap", "lat") for value in form.getlist(name)]
-        if previous.geometry is not None:
-            items.append(("geometry", previous.geometry))
-        items.append(("options", options))
-        response = await submit_form(ctx, FormData(items), who, key)
+        geometry = canonical_geometry(previous.geometry)  # the job's, as stored (parsed once at its submission)
+        response = await submit_files(ctx, form_files(FormData(items)), geometry, options, who, key)
         if response.status_code in (200, 202):
             response.headers["Link"] = f'</v1/registrations/{previous.id}>; rel="previous"'
         return response

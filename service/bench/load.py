@@ -38,7 +38,7 @@ def _make_case(tmp: Path, size: int) -> dict[str, Any]:
     import torch
     from PIL import Image
 
-    from dsareg_engine.geometry_file import load_rig
+    from dsareg_engine.geometry_spec import load_rig
     from dsareg_engine.phantom import make_vessel_phantom
     from dsareg_engine.render import Camera, render_hard_silhouette
 

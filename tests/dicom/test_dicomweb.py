@@ -148,8 +148,15 @@ def test_register_by_reference_stores_reg_and_overlays_in_the_pacs(service, orth
     with service.client() as client:
         response = client.post("/v1/registrations", json=reference(study, orthanc.dicomweb_url + "/"))
         assert response.status_code == 202, response.text
-        job = wait_for(client, response.json()["id"], timeout=300)
+        job_id = response.json()["id"]
+        # the same links as a file submission: only those that lead somewhere now, never null
+        assert response.json()["links"] == {"self": f"/v1/registrations/{job_id}",
+                                            "cancel": f"/v1/registrations/{job_id}/cancel"}
+        job = wait_for(client, job_id, timeout=300)
         assert job["status"] == "succeeded", job
+        assert set(job["links"]) == {"self", "result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot"}
+        for link in job["links"].values():
+            assert client.get(link).status_code == 200, link
         result = job["result"]
         dicom = result["dicom"]
         assert dicom["stored"]["confirmed"] and dicom["stored"]["study_uid"] == study.study_uid
@@ -198,6 +205,7 @@ def test_url_not_configured_is_refused_at_submission(service, uploaded):
         again = client.post("/v1/registrations", json=reference(uploaded, service.closed_url),
                             headers={"Idempotency-Key": "study-1"})
         assert (first.status_code, again.status_code) == (202, 200) and first.json()["id"] == again.json()["id"]
+        assert None not in again.json()["links"].values()  # a replay answers like a file submission's too
         wait_for(client, first.json()["id"], timeout=60)
         # credentials in the request are not accepted (extra fields are refused)
         sneaky = reference(uploaded, service.closed_url)

@@ -68,7 +68,7 @@ def render_mask(vertices: np.ndarray, faces: np.ndarray, view, mesh_to_world: np
 
 
 def small_views(size: int = CASE_SIZE) -> dict:
-    from dsareg_engine.geometry_file import load_rig
+    from dsareg_engine.geometry_spec import load_rig
 
     rig = load_rig("paper")
     return {name: view.resized(size, size) for name, view in rig.views.items()}, rig
