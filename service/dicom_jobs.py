@@ -10,17 +10,21 @@ written by the engine for every job (``engine.run_case``).
 
 from __future__ import annotations
 
-import logging
 import time
 from pathlib import Path
 from typing import Any
 
-from .dicomweb import DicomwebClient, DicomwebRegistrationRequest, PacsError, fetch_inputs, parse_reference, resolve_server
+from .dicomweb import (
+    DicomwebClient,
+    DicomwebRegistrationRequest,
+    PacsError,
+    fetch_inputs,
+    parse_reference,
+    resolve_server,
+)
 from .engine_adapter import engine, fetched_case_files
 from .settings import ServiceSettings
 from .store import JobRecord
-
-log = logging.getLogger("dsareg.service.dicom")
 
 REFERENCE_ROLE = "dicomweb"
 STORED_FILES = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))

@@ -9,7 +9,7 @@
   (:func:`check_options`, :func:`check_job_cost`) instead of failing later in a worker.
 * Images: :func:`image_decoded_bytes` reads only the header and gives pixels × channels ×
   bytes per sample, so a small file that decodes to gigabytes is refused before decoding
-  (see :func:`service.engine_adapter.check_image_budget`, called by :func:`service.engine_adapter.load_job_case`).
+  (see :func:`service.engine_adapter.check_image_budget`, called by :func:`service.engine_adapter.stored_case_files`).
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ Why not validate in the API process: readers of meshes, DICOM and volumes are la
 C-backed libraries; a hostile or broken file can take seconds of CPU, gigabytes of
 memory, or crash the interpreter. So the API hands *stored blob paths* (never the
 bytes) to a small pool of long-lived ``spawn`` processes that run exactly the loader
-the worker will run (:func:`service.engine_adapter.load_job_case`), each with
+the worker will run (:func:`service.engine_adapter.load_job_case`: the same
+``stored_case_files`` and the engine's ``load_case_files``), each with
 
 * a wall-clock limit (``validation_timeout_seconds``): past it the process is killed
   and replaced, and the request gets a 422 naming the time limit;

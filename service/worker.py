@@ -1,5 +1,10 @@
 """A worker: claims jobs from the store and runs them (one at a time).
 
+One job is one straight path (:func:`_register`): its inputs (the stored blobs, or a DICOMweb
+fetch) → :func:`service.engine_adapter.run_job`, the one call into the engine (read, register,
+write every output, warnings joined there) → the artifacts and the result into the store
+(STOW-RS first for a job by reference that asked for it).
+
 Runs in its own process (started by an executor with the ``spawn`` context). See
 :mod:`service.store` for the lease protocol. A background thread renews the lease
 every ``heartbeat`` seconds even when the engine reports no progress (loading,
@@ -160,8 +165,6 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
 
     ``cancel_hint``: optional callable, true when the job was canceled by other means than
     the job table's flag (the Celery executor passes "this task was revoked")."""
-    DsaregInputError, RegistrationCanceled = engine.DsaregInputError, engine.RegistrationCanceled
-
     control = _JobControl(store, job, worker_id, settings, stop, cancel_hint)
     finish = _Finisher(store, job, worker_id, settings)
     out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
@@ -169,26 +172,10 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     started = time.monotonic()
     log.info("job %s: runs on %s", job.id, _thread_budget())
     control.start()
-    outcome = "lost"
     try:
         outcome = _register(blobs, job, settings, control, finish, out_dir)
-    except RegistrationCanceled:
-        outcome = _stopped(job, settings, control, finish)
-    except PacsError as exc:
-        err = _problem(job.id, 502, "pacs-error", "PACS error", str(exc), **pacs_problem(exc))
-        outcome = finish.complete("failed", error=err)
-    except DsaregInputError as exc:
-        err = _problem(job.id, 422, "invalid-input", "Unprocessable input", str(exc), field=exc.field, accepted=exc.accepted)
-        outcome = finish.complete("failed", error=err)
-    except Exception as exc:
-        if is_store_outage(exc):  # not the job's fault: hand it back without using up an attempt
-            log.warning("job %s: the job store is out (%s); releasing the job", job.id, type(exc).__name__)
-            outcome = finish.release()
-        else:
-            log.exception("job %s: internal error", job.id)
-            err = _problem(job.id, 500, "internal-error", "Internal error",
-                           f"the registration failed because of an internal error (logged under job {job.id})")
-            outcome = finish.complete("failed", error=err)
+    except Exception as exc:  # noqa: BLE001 - every failure ends the job in a state
+        outcome = _ended_early(exc, job, settings, control, finish)
     finally:
         control.finish()
         shutil.rmtree(out_dir, ignore_errors=True)
@@ -199,6 +186,26 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     log.info("job %s: %s after %.2f s (attempt %d, %d input bytes)", job.id, outcome, time.monotonic() - started,
              job.attempts, job.input_bytes)
     return outcome
+
+
+def _ended_early(exc: Exception, job: JobRecord, settings: ServiceSettings, control: _JobControl,
+                 finish: _Finisher) -> str:
+    """The end state of a job whose run raised ``exc``."""
+    if isinstance(exc, engine.RegistrationCanceled):
+        return _stopped(job, settings, control, finish)
+    if isinstance(exc, PacsError):
+        return finish.complete("failed", error=_problem(job.id, 502, "pacs-error", "PACS error", str(exc),
+                                                        **pacs_problem(exc)))
+    if isinstance(exc, engine.DsaregInputError):
+        return finish.complete("failed", error=_problem(job.id, 422, "invalid-input", "Unprocessable input", str(exc),
+                                                        field=exc.field, accepted=exc.accepted))
+    if is_store_outage(exc):  # not the job's fault: hand it back without using up an attempt
+        log.warning("job %s: the job store is out (%s); releasing the job", job.id, type(exc).__name__)
+        return finish.release()
+    log.error("job %s: internal error", job.id, exc_info=exc)
+    return finish.complete("failed", error=_problem(
+        job.id, 500, "internal-error", "Internal error",
+        f"the registration failed because of an internal error (logged under job {job.id})"))
 
 
 def _thread_budget() -> str:

@@ -98,8 +98,8 @@ def test_a_geometry_file_is_read_only_when_files_are_allowed(tmp_path):
     (42, "geometry", "has type int", "JSON object"),
     ("{not json", "geometry", "is not valid JSON", "JSON object"),
     ("{}", "geometry.views", "Field required", "preset name"),
-    ('{"views": {"ap": {"image_size": [10, 10], "pixel_spacing_mm": [1, 1], "sid_mm": -5, "world_to_view": '
-     '[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}}}', "geometry.views.ap.sid_mm", "greater than 0", "preset name"),
+    (('{"views": {"ap": {"image_size": [10, 10], "pixel_spacing_mm": [1, 1], "sid_mm": -5, "world_to_view": '
+      '[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}}}'), "geometry.views.ap.sid_mm", "greater than 0", "preset name"),
     ('{"views": {"ap": {"image_size": [10, 10], "pixel_spacing_mm": [1, 1]}}}', "geometry.views.ap",
      "needs sid_mm and world_to_view", "preset name"),
     ('{"views": {"front": ' + json.dumps(_explicit()["views"]["ap"]) + '}}', "geometry.views", "unknown view",
