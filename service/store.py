@@ -67,7 +67,7 @@ class JobRecord:
     lease_expires_at: float | None = None
     cancel_requested: bool = False
     options: dict[str, Any] = field(default_factory=dict)
-    geometry: str | None = None
+    geometry: str | None = None  # canonical geometry JSON; older rows: a preset name or compact JSON (engine_adapter.job_geometry)
     inputs: list[InputFile] = field(default_factory=list)
     progress: dict[str, Any] | None = None
     result: dict[str, Any] | None = None
