@@ -37,8 +37,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _spawn(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
+    """``python -m service ARGS`` in its own process group (for ``killpg``) but in the benchmark's session:
+    with the kernel's autogroup scheduling every session shares the cores as one, so a new session per
+    process gave 2 workers two shares of a busy machine and 1 worker one (a flattering ratio)."""
     return subprocess.Popen([sys.executable, "-m", "service", *args], cwd=REPO, env={**os.environ, **env},
-                            stdout=open(log, "ab"), stderr=subprocess.STDOUT, start_new_session=True)
+                            stdout=open(log, "ab"), stderr=subprocess.STDOUT, process_group=0)
 
 
 def _stop(process: subprocess.Popen, timeout: float = 30.0) -> None:
