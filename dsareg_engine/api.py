@@ -110,8 +110,8 @@ __all__ = [
     "run_registration_case",
     "set_cpu_threads",
     "validate_rigid",
-    "warm_up_parsers",
     "warm_up_job",
+    "warm_up_parsers",
     "warm_up_renderer",
     "write_dicom_outputs",
 ]

@@ -9,8 +9,7 @@ from dsareg_engine.geometry_file import load_rig
 from dsareg_engine.phantom import make_vessel_phantom
 from dsareg_engine.pose import make_transform, rotation_about_axis
 from dsareg_engine.registration import initialization
-from dsareg_engine.render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
-from dsareg_engine.render import silhouette
+from dsareg_engine.render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette, silhouette
 from dsareg_engine.render.serial_kernels import KernelPair
 
 
