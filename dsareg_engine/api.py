@@ -12,7 +12,7 @@ name, so an API process that only validates options never loads the renderer.
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
   DICOM: :func:`read_sources`, :class:`DicomSources`, :func:`write_dicom_outputs`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
-  :func:`warm_up_parsers`, :func:`warm_up_renderer`
+  :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_job` (a worker's first job's set-up)
 * the command line: :func:`run_parsed`, and the helpers sub-commands use (:class:`CommandFailed`,
   :func:`input_file`, :func:`options_help`, :func:`geometry_argument`, :func:`json_argument`, :func:`load_pose`)
 
@@ -52,6 +52,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .pose_file import load_pose
     from .registration.options import RegistrationOptions, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
+    from .warmup import warm_up_job
 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
@@ -81,6 +82,7 @@ _LAZY = {
     "geometry_argument": "dsareg_engine.commands.errors",
     "json_argument": "dsareg_engine.commands.errors",
     "load_pose": "dsareg_engine.pose_file",
+    "warm_up_job": "dsareg_engine.warmup",
 }
 
 __all__ = [
@@ -124,6 +126,7 @@ __all__ = [
     "run_registration_case",
     "set_cpu_threads",
     "validate_rigid",
+    "warm_up_job",
     "warm_up_parsers",
     "warm_up_renderer",
     "write_dicom_outputs",

@@ -11,11 +11,14 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from .errors import DsaregInputError
+
+if TYPE_CHECKING:  # torch is imported where it is used: parsing inputs (the API's validator) needs none
+    import torch
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +41,12 @@ class TriangleMesh:
         """Mean of the vertices, mm ``(3,)``: the centre registration rotates about."""
         return self.vertices.mean(axis=0)
 
-    def torch(self, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-        """``(vertices (V, 3), faces (F, 3) int64)`` as tensors."""
+    def torch(self, dtype: torch.dtype | None = None, device: str | torch.device = "cpu"
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(vertices (V, 3), faces (F, 3) int64)`` as tensors (``dtype`` float32 unless given)."""
+        import torch
+
+        dtype = torch.float32 if dtype is None else dtype
         return (
             torch.as_tensor(self.vertices, dtype=dtype, device=device),
             torch.as_tensor(self.faces, dtype=torch.int64, device=device),

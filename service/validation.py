@@ -61,10 +61,10 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
         die_with_parent(parent_pid, signal.SIGKILL)
     engine_ok = True
+    # parsing needs no torch (the engine imports it only to register); should a parser import it,
+    # its thread pool reads this at start-up
+    os.environ["OMP_NUM_THREADS"] = str(max(1, threads or 1))
     try:
-        import torch
-
-        torch.set_num_threads(max(1, threads or 1))
         from .engine_adapter import engine
 
         engine.preload_case_loading()

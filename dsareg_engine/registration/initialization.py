@@ -24,10 +24,12 @@ import time
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from ..geometry import Rig, ViewGeometry
 from ..mesh import TriangleMesh
+from ..render.serial_kernels import KernelPair
 from . import search_kernels
 from .rotation_grid import angles_between_deg, axis_angle_matrices, grid_spacing_deg, rotation_grid
 
@@ -192,6 +194,10 @@ def surface_points(mesh: TriangleMesh, count: int, seed: int = 0) -> np.ndarray:
     return a[face] + r1[:, None] * (b[face] - a[face]) + r2[:, None] * (c[face] - a[face])
 
 
+_SEARCH_KERNELS = {name: KernelPair(getattr(search_kernels, name)) for name in ("mean_pixels", "splat_overlap")}
+"""The search kernels and their serial twins (used on a 1-thread budget, see :mod:`..render.serial_kernels`)."""
+
+
 def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Kernel inputs: turns ``(B, 3, 3)``, offsets ``(B, 3)`` in the view frame and ``(fx, fy, u0, v0)``."""
     view = window.view
@@ -203,14 +209,15 @@ def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray)
 def _mean_pixels(window: _Window, rotations: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(B, 2)`` mean projected ``(u, v)`` of centred points ``(N, 3)`` turned by ``(B, 3, 3)``, placed at ``(B, 3)``."""
     out = np.empty((len(rotations), 2))
-    search_kernels.mean_pixels(points, *_view_placement(window, rotations, centres), out)
+    _SEARCH_KERNELS["mean_pixels"].pick(numba.get_num_threads())(points, *_view_placement(window, rotations, centres), out)
     return out
 
 
 def _overlap(window: _Window, rotations: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(B, 2)``: Σ blurred target over the pixels the points hit, and the number of those pixels."""
     out = np.empty((len(rotations), 2))
-    search_kernels.splat_overlap(points, *_view_placement(window, rotations, centres), window.target, out)
+    _SEARCH_KERNELS["splat_overlap"].pick(numba.get_num_threads())(points, *_view_placement(window, rotations, centres),
+                                                                   window.target, out)
     return out
 
 

@@ -17,8 +17,11 @@ from .shade import alpha_from_log_keep, hard_from_fragments, soft_log_keep_from_
 
 try:  # numba is a hard dependency, but a broken install must not break rendering
     from . import kernels_numba as _numba
+    from .serial_kernels import KernelPair
 
     _SOFTPLUS_TABLE, _SIGMOID_TABLE = _numba.make_tables()
+    _KERNELS = {name: KernelPair(getattr(_numba, name)) for name in
+                ("gather_faces", "scatter_to_vertices", "soft_log_keep", "soft_log_keep_backward", "coverage")}
 except Exception:  # pragma: no cover - exercised only on broken installs
     _numba = None
 
@@ -27,6 +30,12 @@ def _threads() -> int:
     import numba
 
     return numba.get_num_threads()
+
+
+def _kernel(name: str) -> tuple:
+    """(the numba kernel ``name`` for this thread's budget: its serial twin on 1 thread, the thread count)."""
+    n_threads = _threads()
+    return _KERNELS[name].pick(n_threads), n_threads
 
 
 def numba_available() -> bool:
@@ -52,7 +61,7 @@ def _gather_faces(pixels: torch.Tensor, vertex_ok: torch.Tensor, faces: torch.Te
     triangles = np.empty((batch, n_faces, 3, 2), dtype=pixels_np.dtype)
     boxes = np.empty((batch, n_faces, 4), dtype=np.int32)
     faces_np = faces.contiguous().numpy()
-    _numba.gather_faces(pixels_np, vertex_ok.contiguous().numpy(), faces_np, width, height, float(radius), triangles, boxes)
+    _kernel("gather_faces")[0](pixels_np, vertex_ok.contiguous().numpy(), faces_np, width, height, float(radius), triangles, boxes)
     return triangles, boxes, faces_np
 
 
@@ -68,7 +77,8 @@ class _SoftLogKeepNumba(torch.autograd.Function):
         triangles, boxes, faces_np = _gather_faces(pixels, vertex_ok, faces, width, height, radius)
         out = torch.zeros((pixels.shape[0], height, width), dtype=pixels.dtype)
         exact = pixels.dtype == torch.float64  # tables (~2e-6) suffice for float32 work
-        _numba.soft_log_keep(triangles, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, _threads(), out.numpy())
+        kernel, n_threads = _kernel("soft_log_keep")
+        kernel(triangles, boxes, height, width, float(sigma), float(radius), exact, _SOFTPLUS_TABLE, n_threads, out.numpy())
         ctx.triangles, ctx.boxes, ctx.faces = triangles, boxes, faces_np
         ctx.sigma, ctx.radius, ctx.n_vertices = sigma, radius, pixels.shape[1]
         return out
@@ -77,12 +87,11 @@ class _SoftLogKeepNumba(torch.autograd.Function):
     def backward(ctx, grad_out):  # type: ignore[override]
         triangles = ctx.triangles
         grad_triangles = np.zeros_like(triangles)
-        _numba.soft_log_keep_backward(
-            triangles, ctx.boxes, float(ctx.sigma), float(ctx.radius), triangles.dtype == np.float64,
-            _SIGMOID_TABLE, _threads(), grad_out.contiguous().numpy(), grad_triangles,
-        )
+        kernel, n_threads = _kernel("soft_log_keep_backward")
+        kernel(triangles, ctx.boxes, float(ctx.sigma), float(ctx.radius), triangles.dtype == np.float64,
+               _SIGMOID_TABLE, n_threads, grad_out.contiguous().numpy(), grad_triangles)
         grad_pixels = torch.zeros((triangles.shape[0], ctx.n_vertices, 2), dtype=grad_out.dtype)
-        _numba.scatter_to_vertices(grad_triangles, ctx.faces, grad_pixels.numpy())
+        _kernel("scatter_to_vertices")[0](grad_triangles, ctx.faces, grad_pixels.numpy())
         return grad_pixels, None, None, None, None, None, None
 
 
@@ -133,7 +142,8 @@ def render_hard_silhouette(
             pixels, vertex_ok = project_points(vertices_view, camera, settings.near_mm)
             triangles, boxes, _ = _gather_faces(pixels, vertex_ok, faces, camera.width, camera.height, 0.0)
             out = torch.zeros((pixels.shape[0], camera.height, camera.width), dtype=torch.bool)
-            _numba.coverage(triangles, boxes, camera.height, camera.width, _threads(), out.numpy())
+            kernel, n_threads = _kernel("coverage")
+            kernel(triangles, boxes, camera.height, camera.width, n_threads, out.numpy())
             return out
         triangles, valid = project_triangles(vertices_view, faces, camera, settings.near_mm)
         return hard_from_fragments(rasterize_fragments(triangles, valid, camera.width, camera.height, 1e-9))

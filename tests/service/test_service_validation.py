@@ -45,3 +45,28 @@ def test_timeout_kills_the_parser_and_the_pool_recovers(tmp_path):
         assert asyncio.run(pool.validate(request)) is outcome  # cached by content
     finally:
         pool.stop()
+
+
+@pytest.mark.skipif(not _loader_present(), reason="dsareg_engine.io.case not present yet")
+def test_validator_parses_without_loading_torch(tmp_path):
+    """Parsing needs no torch: the validator process never maps libtorch (it did through
+    ``dsareg_engine/mesh.py``: ~330 MB warmed-up, ~0.7 GB peak on a large upload)."""
+    case = make_example_case(tmp_path)
+    blobs = BlobStore(tmp_path / "data")
+    inputs = []
+    for role, data, suffix in (("mesh", case.mesh_obj, ".obj"), ("ap", case.ap_png, ".png"), ("lat", case.lat_png, ".png")):
+        digest, size = blobs.put_bytes(data)
+        inputs.append(vars(InputFile(role, digest, size, suffix)))
+    request = {"inputs": inputs, "geometry": "paper", "segmentation": "auto", "blob_root": str(blobs.root), "limits": {}}
+    pool = ValidatorPool(1, timeout_seconds=120, memory_mb=4096)
+    pool.start()
+    try:
+        outcome = asyncio.run(pool.validate(request))
+        assert outcome.ok, outcome
+        pid = pool.slots[0].process.pid
+        with open(f"/proc/{pid}/maps") as maps:
+            mapped = maps.read()
+        assert "libtorch" not in mapped
+        assert "libopenblas" in mapped or "numpy" in mapped  # the process is the parser, alive and loaded
+    finally:
+        pool.stop()
