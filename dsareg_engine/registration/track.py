@@ -48,7 +48,9 @@ def build_track_schedule(views: tuple[str, ...], image_side_px: int, max_iterati
     # Under the 1-px blur the edge softness hardly matters; the Jacobian kernel's cost grows with σ
     # (more face–pixel pairs), Adam's schedule was tuned at 0.5.
     coarse_sigma_px = ADAM_SIGMA_PX if jacobian else 0.5
-    if scale < 1.0:
+    # Gauss–Newton steps on sharp silhouettes are about σ long: small images (no smaller level) get the
+    # blurred stage at full size. L-BFGS's line search covers that distance by itself.
+    if scale < 1.0 or jacobian:
         stages.append(Stage(
             name=f"track:{label}:1/{round(1 / scale)}", scale=scale, sigma_px=coarse_sigma_px, blur_px=1.0, views=views,
             optimizer="gauss_newton" if jacobian else "adam", max_iterations=min(max_iterations, 60), learning_rate=0.2,
