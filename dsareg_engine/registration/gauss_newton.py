@@ -13,13 +13,14 @@ from __future__ import annotations
 
 from typing import Callable
 
+import cv2
 import numpy as np
 import torch
 
 from ..render import SilhouetteSettings
 from ..render.jacobian import soft_log_keep_tangents
 from .parameterization import PoseIncrement
-from .targets import gaussian_blur
+from .targets import gaussian_kernel
 
 DAMPING_START = 1e-3
 """Initial Marquardt damping μ (relative to diag JᵀJ): near Gauss–Newton, trusted from the first step."""
@@ -60,25 +61,29 @@ def normal_equations(problem, stage, pose: np.ndarray, dtype: torch.dtype) -> tu
 
 
 def _blurred_sums(log_keep: np.ndarray, log_keep_tangents: np.ndarray, image: torch.Tensor, weight, blur_px: float):
-    """Sums of a blurred level (blur is linear: blur the render and each Jacobian column). Returns (Σ w r², Jᵀwr, JᵀwJ)."""
-    keep = torch.from_numpy(np.exp(log_keep))
-    alpha = gaussian_blur((1.0 - keep)[None], blur_px)[0]
-    jacobian = gaussian_blur((torch.from_numpy(log_keep_tangents) * -keep[..., None]).permute(2, 0, 1), blur_px)
-    residual = alpha - image
-    weighted = residual if weight is None else residual * weight
-    columns = jacobian.reshape(jacobian.shape[0], -1).double()
-    weighted_columns = columns if weight is None else columns * weight.reshape(1, -1).double()
-    return (float((residual * weighted).sum()), (columns @ weighted.reshape(-1).double()).numpy(),
-            (weighted_columns @ columns.T).numpy())
+    """Sums of a blurred level (blur is linear: blur the render and each Jacobian column). Returns (Σ w r², Jᵀwr, JᵀwJ).
+
+    The blur is :func:`~.targets.gaussian_blur`'s (same kernel, zero padding), by OpenCV: 7 channels.
+    """
+    keep = np.exp(log_keep)
+    kernel = gaussian_kernel(blur_px)
+    channels = np.concatenate([(1.0 - keep)[None], np.moveaxis(log_keep_tangents * -keep[..., None], -1, 0)])
+    blurred = np.stack([cv2.sepFilter2D(channel, -1, kernel, kernel, borderType=cv2.BORDER_CONSTANT) for channel in channels])
+    residual = blurred[0].astype(np.float64) - image.numpy()
+    columns = blurred[1:].reshape(blurred.shape[0] - 1, -1).astype(np.float64)
+    weighted = residual if weight is None else residual * weight.numpy()
+    weighted_columns = columns if weight is None else columns * weight.numpy().reshape(1, -1)
+    return float((residual * weighted).sum()), columns @ weighted.reshape(-1), weighted_columns @ columns.T
 
 
 def levenberg_marquardt(
     problem, stage, pose: np.ndarray, dtype: torch.dtype, pose_tolerance: float, report: Callable[[int, float], None],
-) -> tuple[np.ndarray, list[float], bool]:
+) -> tuple[np.ndarray, float, list[float], bool]:
     """Minimize the stage's loss from ``pose`` ``(4, 4)``; each evaluation is one render with its Jacobian.
 
     Stops when the next step would change every increment component by less than ``pose_tolerance``
-    (mm units; that step is taken) or after ``stage.max_iterations`` evaluations. Returns (pose, loss per evaluation, stopped on the tolerance).
+    (mm units; that step is taken) or after ``stage.max_iterations`` evaluations. Returns (pose, its loss
+    — before the last, unchecked step if it ended on one —, loss per evaluation, stopped on the tolerance).
     """
     loss, gradient, hessian = normal_equations(problem, stage, pose, dtype)
     losses = [loss]
@@ -90,7 +95,7 @@ def levenberg_marquardt(
         if float(np.abs(step).max()) < pose_tolerance:
             # Converged: the model's step is below the tolerance. Taking it unchecked is safe at this
             # size (the quadratic model is exact to first order) and saves an evaluation.
-            return candidate, losses, True
+            return candidate, loss, losses, True
         candidate_loss, candidate_gradient, candidate_hessian = normal_equations(problem, stage, candidate, dtype)
         losses.append(candidate_loss)
         report(len(losses), candidate_loss)
@@ -99,4 +104,4 @@ def levenberg_marquardt(
             damping = max(damping * DAMPING_DOWN, DAMPING_MIN)
         else:
             damping *= DAMPING_UP
-    return pose, losses, False
+    return pose, loss, losses, False

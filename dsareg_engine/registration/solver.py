@@ -102,6 +102,8 @@ class _StageOutcome:
     seconds: float
     stopped_by: str  # "tolerance" | "iterations"
     losses: list[float]
+    final_loss: float | None = None
+    """The one start's loss at the end, when the runner knows it (Gauss–Newton); else it is re-evaluated."""
 
 
 class _Problem:
@@ -332,11 +334,12 @@ def _run_gauss_newton(problem, stage, increment, delta, dtype, report) -> _Stage
     start = time.perf_counter()
     pose = increment.poses(delta.detach())[0]
     tolerance = LBFGS_POSE_TOLERANCE if stage.pose_tolerance is None else stage.pose_tolerance
-    pose, losses, converged = levenberg_marquardt(
+    pose, final_loss, losses, converged = levenberg_marquardt(
         problem, stage, pose, dtype, tolerance, lambda iteration, loss: report(stage, iteration, loss))
     with torch.no_grad():
         delta.copy_(torch.as_tensor(increment.delta_of(pose[None])))
-    return _StageOutcome(len(losses), time.perf_counter() - start, "tolerance" if converged else "iterations", losses)
+    return _StageOutcome(len(losses), time.perf_counter() - start, "tolerance" if converged else "iterations", losses,
+                         final_loss)
 
 
 _RUNNERS = {"adam": _run_adam, "lbfgs": _run_lbfgs, "gauss_newton": _run_gauss_newton}
@@ -460,8 +463,11 @@ def _register(
             current["snapshots"] = []
             outcome = runner(problem, stage, increment, delta, dtype, report)
         poses = increment.poses(delta.detach())
-        with torch.no_grad():
-            per_start = problem.loss(torch.as_tensor(poses), stage, dtype)
+        if outcome.final_loss is not None and len(poses) == 1:
+            per_start = torch.tensor([outcome.final_loss])
+        else:
+            with torch.no_grad():
+                per_start = problem.loss(torch.as_tensor(poses), stage, dtype)
         best_index = int(torch.argmin(per_start))
         final_loss = float(per_start[best_index])
         iterations[stage.name] = outcome.iterations

@@ -85,10 +85,11 @@ def soft_log_keep_tangents(
 
 def render_soft_silhouette_jacobian(
     vertices: torch.Tensor, faces: torch.Tensor, mesh_to_view: torch.Tensor, mesh_to_view_tangents: torch.Tensor,
-    camera: Camera, settings: SilhouetteSettings = SilhouetteSettings(),
+    camera: Camera, settings: SilhouetteSettings = SilhouetteSettings(), min_log_keep: float = MIN_LOG_KEEP,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Soft silhouettes ``(B, H, W)`` and their Jacobians ``(B, H, W, K)`` (no autograd graph); arguments as
     :func:`soft_log_keep_tangents`."""
-    log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, mesh_to_view, mesh_to_view_tangents, camera, settings)
+    log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, mesh_to_view, mesh_to_view_tangents, camera,
+                                                         settings, min_log_keep)
     keep = torch.from_numpy(np.exp(log_keep))
     return torch.from_numpy(-np.expm1(log_keep)), torch.from_numpy(log_keep_tangents) * -keep[..., None]
