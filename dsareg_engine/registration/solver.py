@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -60,12 +61,19 @@ BORDER_RECHECK_PX = 0.2
 MIN_CONVERGED_DICE = 0.5
 LOD_MIN_FACES = 1500
 LOD_FACE_AREA_PX = 2.0
+LOD_STEPS_PER_DOUBLING = 8
 
 
 def level_of_detail_faces(n_faces: int, mean_face_area_px: float) -> int:
-    """Faces to keep so the mean projected face covers about ``LOD_FACE_AREA_PX`` px² (≥ LOD_MIN_FACES)."""
-    wanted = n_faces * mean_face_area_px / LOD_FACE_AREA_PX
-    return int(min(n_faces, max(LOD_MIN_FACES, round(wanted))))
+    """Faces to keep so the mean projected face covers about ``LOD_FACE_AREA_PX`` px² (≥ LOD_MIN_FACES).
+
+    Rounded to steps of 2^(1/8) (~9 %) above LOD_MIN_FACES, so registrations of one mesh at nearby
+    poses (tracking: every frame) ask for the same level of detail and find it remembered (measured:
+    2845, 2888 and 2896 faces on three consecutive frames, each a ~15 ms decimation).
+    """
+    wanted = max(LOD_MIN_FACES, n_faces * mean_face_area_px / LOD_FACE_AREA_PX)
+    steps = round(LOD_STEPS_PER_DOUBLING * math.log2(wanted / LOD_MIN_FACES))
+    return int(min(n_faces, round(LOD_MIN_FACES * 2 ** (steps / LOD_STEPS_PER_DOUBLING))))
 
 
 def mean_projected_face_area_px(mesh: TriangleMesh, view, mesh_to_world: np.ndarray) -> float:

@@ -61,7 +61,7 @@ def soft_log_keep_tangents(
     """
     from . import jacobian_numba
     from .kernels_numba import soft_log_keep
-    from .silhouette import _SIGMOID_TABLE, _SOFTPLUS_TABLE, _gather_faces, _threads
+    from .silhouette import _SIGMOID_TABLE, _SOFTPLUS_TABLE, _threads
 
     if not jacobian_available(vertices.device) or mesh_to_view_tangents.shape[1] != jacobian_numba.PARAMETERS:
         raise RuntimeError("the silhouette Jacobian needs the numba renderer (CPU tensors) and 6 parameters")
@@ -69,10 +69,14 @@ def soft_log_keep_tangents(
         pixels, vertex_ok = project_points(transform_points(vertices, mesh_to_view), camera, settings.near_mm)
         tangents = pixel_tangents(vertices, mesh_to_view, mesh_to_view_tangents, camera).to(pixels.dtype)
     radius = settings.blur_radius_px
-    triangles, boxes, faces_np = _gather_faces(pixels, vertex_ok, faces, camera.width, camera.height, radius)
-    batch, n_params = pixels.shape[0], tangents.shape[-1]
-    corner_tangents = np.empty((batch, faces_np.shape[0], 6, n_params), dtype=triangles.dtype)
-    jacobian_numba.gather_corner_tangents(tangents.numpy(), faces_np, corner_tangents)
+    batch, n_params, n_faces = pixels.shape[0], tangents.shape[-1], faces.shape[0]
+    faces_np = faces.contiguous().numpy()
+    pixels_np = pixels.contiguous().numpy()
+    triangles = np.empty((batch, n_faces, 3, 2), dtype=pixels_np.dtype)
+    boxes = np.empty((batch, n_faces, 4), dtype=np.int32)
+    corner_tangents = np.empty((batch, n_faces, 6, n_params), dtype=pixels_np.dtype)
+    jacobian_numba.gather_faces_with_tangents(pixels_np, vertex_ok.contiguous().numpy(), tangents.numpy(), faces_np,
+                                              camera.width, camera.height, float(radius), triangles, boxes, corner_tangents)
     exact = triangles.dtype == np.float64
     log_keep = np.zeros((batch, camera.height, camera.width), dtype=triangles.dtype)
     soft_log_keep(triangles, boxes, camera.height, camera.width, float(settings.sigma_px), float(radius), exact,

@@ -19,7 +19,7 @@ from numba import njit, prange
 PARAMETERS = 6
 """K: the kernels are written for the six parameters of a rigid pose increment."""
 
-from .kernels_numba import BANDS_PER_THREAD, _band, _face_setup, _near_columns, _pixel_distance, _sigmoid
+from .kernels_numba import BANDS_PER_THREAD, gather_face, _band, _face_setup, _near_columns, _pixel_distance, _sigmoid
 
 
 @njit(inline="always")
@@ -132,18 +132,22 @@ def _add_chunk(s, tangents, pixel_u, pixel_v, n, radius, inv_sigma, exact, sigmo
             pixel[k] += slopes[k, j]
 
 
-@njit(parallel=True, cache=True)
-def gather_corner_tangents(vertex_tangents, faces, corner_tangents):
-    """corner_tangents ``(B, F, 6, K)`` from vertex_tangents ``(B, V, 2, K)`` (∂(u, v)/∂θ_k per vertex)."""
-    batch, n_faces, n_params = corner_tangents.shape[0], faces.shape[0], corner_tangents.shape[3]
-    for job in prange(batch * n_faces):
-        b = job // n_faces
-        f = job % n_faces
-        for c in range(3):
-            vertex = faces[f, c]
-            for k in range(n_params):
-                corner_tangents[b, f, 2 * c, k] = vertex_tangents[b, vertex, 0, k]
-                corner_tangents[b, f, 2 * c + 1, k] = vertex_tangents[b, vertex, 1, k]
+@njit(cache=True)
+def gather_faces_with_tangents(pixels, vertex_ok, vertex_tangents, faces, width, height, radius, triangles, boxes,
+                               corner_tangents):
+    """:func:`.kernels_numba.gather_faces` plus corner_tangents ``(B, F, 6, 6)`` from vertex_tangents ``(B, V, 2, 6)``.
+
+    Serial: the work is a few microseconds per thousand faces, less than waking a second thread
+    (which, on a loaded machine, cost up to 2–3 ms per call in the parallel version).
+    """
+    for b in range(corner_tangents.shape[0]):
+        for f in range(faces.shape[0]):
+            gather_face(pixels, vertex_ok, faces, width, height, radius, triangles, boxes, b, f)
+            for c in range(3):
+                vertex = faces[f, c]
+                for k in range(PARAMETERS):
+                    corner_tangents[b, f, 2 * c, k] = vertex_tangents[b, vertex, 0, k]
+                    corner_tangents[b, f, 2 * c + 1, k] = vertex_tangents[b, vertex, 1, k]
 
 
 @njit(parallel=True, cache=True)
@@ -162,20 +166,27 @@ def normal_equations(log_keep, log_keep_tangents, target, weight, n_threads, hes
     partial_loss = np.zeros(n_threads)
     for thread in prange(n_threads):
         jac = np.empty(n_params)
+        h = np.zeros((n_params, n_params))  # per-thread sums, written back once (no false sharing)
+        g = np.zeros(n_params)
+        loss = 0.0
         for v in range(thread, height, n_threads):
             for u in range(width):
-                keep = math.exp(log_keep[v, u])
                 w = weight[v, u] if weighted else 1.0
-                r = (1.0 - keep) - target[v, u]
-                partial_loss[thread] += w * r * r
-                if keep == 1.0:
+                if log_keep[v, u] == 0.0:  # no face near: alpha = 0, no Jacobian
+                    loss += w * target[v, u] * target[v, u]
                     continue
+                keep = math.exp(log_keep[v, u])
+                r = (1.0 - keep) - target[v, u]
+                loss += w * r * r
                 for k in range(n_params):
                     jac[k] = -keep * log_keep_tangents[v, u, k]
                 for k in range(n_params):
-                    partial_g[thread, k] += w * jac[k] * r
+                    g[k] += w * jac[k] * r
                     for m in range(k + 1):
-                        partial_h[thread, k, m] += w * jac[k] * jac[m]
+                        h[k, m] += w * jac[k] * jac[m]
+        partial_h[thread] = h
+        partial_g[thread] = g
+        partial_loss[thread] = loss
     for thread in range(n_threads):
         for k in range(n_params):
             gradient[k] += partial_g[thread, k]
