@@ -86,3 +86,18 @@ def test_border_update_is_the_same_for_a_small_tree_in_a_large_image():
     for shift in (0.0, -0.7, 1.3):
         assert update_border_shift(large_mask, large_silhouette, shift) == pytest.approx(
             update_border_shift(mask, silhouette, shift), abs=1e-6)  # float32 sums in another order
+
+
+def test_outline_length_is_skimage_perimeter():
+    import cv2
+    from skimage.measure import perimeter
+
+    from dsareg_engine.registration.border import outline_length_px
+
+    rng = np.random.default_rng(0)
+    blobs = cv2.GaussianBlur(rng.random((120, 160)), (0, 0), 4) > 0.5
+    blobs[0, :40] = True  # touching the image border
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for image in (blobs, _bar(), np.zeros((10, 10), bool)):
+        boundary = image & (cv2.erode(image.astype(np.uint8), cross, borderValue=0) == 0)
+        assert outline_length_px(boundary) == pytest.approx(perimeter(image), abs=1e-9)

@@ -23,7 +23,11 @@ def problem(phantom, synthetic_case):
 
 
 @pytest.mark.parametrize("blur_px", [0.0, 1.0])
-def test_normal_equations_match_the_loss_and_its_gradient(problem, blur_px):
+@pytest.mark.parametrize("thin_vessel_weighting", [False, True])
+def test_normal_equations_match_the_loss_and_its_gradient(phantom, synthetic_case, blur_px, thin_vessel_weighting):
+    rig, masks = synthetic_case(phantom, 200, 0.0, 0.0)
+    problem = _Problem(phantom, masks, rig, RegistrationOptions(thin_vessel_weighting=thin_vessel_weighting),
+                       torch.device("cpu"), np.eye(4))
     stage = _stage(blur_px)
     pose = random_start_poses(np.eye(4), problem.centre, 2, 1.0, 1.0, seed=3)[1]
     loss, gradient, hessian = normal_equations(problem, stage, pose, torch.float64)
