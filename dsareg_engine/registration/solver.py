@@ -488,12 +488,12 @@ def _register(
                       "fraction": plan.stage_done(min(index, planned_stages - 1))})
         if index == len(stages) - 1 and len(poses) > 1:
             poses, starts_agreeing = _keep_best(problem, stage, poses)
-        if index == planned_stages - 1 and not tracking and _border_moved(problem, options, stage, used_views, poses[0]):
-            stages.append(Stage(**{**vars(stage), "name": f"{stage.name}:again"}))
         elif len(poses) > 1 and index + 1 < len(stages) and not stages[index + 1].add_initial_starts:
             # Starts that reached the same pose need not all be carried on: keep the best of each group.
             poses, agreeing = _distinct(problem, poses, per_start.detach().cpu().numpy())
             starts_agreeing = agreeing if len(poses) == 1 else starts_agreeing
+        if index == planned_stages - 1 and not tracking and _border_moved(problem, options, stage, used_views, poses[0]):
+            stages.append(Stage(**{**vars(stage), "name": f"{stage.name}:again"}))
     estimate = poses[0]
     total_seconds = time.perf_counter() - started
 
