@@ -191,3 +191,24 @@ def warm_up_renderer() -> None:
         pose = torch.eye(4, dtype=dtype)[None]
         render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
         render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
+    _warm_up_tracking(view, faces)
+
+
+def _warm_up_tracking(view, faces) -> None:
+    """Compile tracking's kernels (the silhouette Jacobian and the normal equations, float32)."""
+    import numpy as np
+    import torch
+
+    from .render import Camera
+    from .render.jacobian import jacobian_available, soft_log_keep_tangents
+    from .render.jacobian_numba import normal_equations
+    from .render.silhouette import _threads
+
+    if not jacobian_available(torch.device("cpu")):
+        return
+    vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=torch.float32)
+    tangents = torch.zeros((1, 6, 4, 4), dtype=torch.float32)
+    log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, torch.eye(4)[None], tangents, Camera.from_view(view))
+    target = np.zeros((log_keep.shape[1], log_keep.shape[2] + 1), np.float32)[:, 1:]  # a window: not C-contiguous
+    for weight in (np.zeros((0, 0), np.float32), target):
+        normal_equations(log_keep[0], log_keep_tangents[0], target, weight, _threads(), np.zeros((6, 6)), np.zeros(6))

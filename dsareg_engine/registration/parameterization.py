@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..pose import so3_exp
+from ..pose import so3_exp, so3_log
 
 
 class PoseIncrement:
@@ -38,6 +38,27 @@ class PoseIncrement:
         top = torch.cat([rotation, translation[..., None]], dim=-1)
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(delta.shape[0], 1, 4)
         return torch.cat([top, bottom], dim=1) @ self.base
+
+    def tangents(self) -> np.ndarray:
+        """∂mesh_to_world/∂δ_k at δ = 0: ``(B, 6, 4, 4)`` (ω about the centre scaled by 1/L, then τ)."""
+        generators = np.zeros((len(self.base), 6, 4, 4))
+        centre = self.centre_world[:, :3].numpy()
+        for k in range(3):
+            axis = np.zeros(3)
+            axis[k] = 1.0 / self.radius_mm
+            hat = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+            generators[:, k, :3, :3] = hat
+            generators[:, k, :3, 3] = -centre @ hat.T
+            generators[:, k + 3, k, 3] = 1.0
+        return generators @ self.base.numpy()[:, None]
+
+    def delta_of(self, mesh_to_world: np.ndarray) -> np.ndarray:
+        """The increments ``(B, 6)`` that give ``mesh_to_world`` ``(B, 4, 4)`` (inverse of ``poses``)."""
+        relative = mesh_to_world @ np.linalg.inv(self.base.numpy())
+        centre = self.centre_world[:, :3].numpy()
+        omega = np.stack([so3_log(rotation) for rotation in relative[:, :3, :3]]) * self.radius_mm
+        tau = relative[:, :3, 3] - centre + np.einsum("bij,bj->bi", relative[:, :3, :3], centre)
+        return np.concatenate([omega, tau], axis=1)
 
     def poses(self, delta: torch.Tensor) -> np.ndarray:
         """Detached ``(B, 4, 4)`` numpy poses."""

@@ -19,6 +19,8 @@ from collections.abc import Sequence
 REGISTRATION_SHARE = 0.92
 EXPECTED_ADAM_ITERATIONS = 40
 EXPECTED_LBFGS_EVALUATIONS = 20
+EXPECTED_GAUSS_NEWTON_ITERATIONS = 5
+EXPECTED = {"adam": EXPECTED_ADAM_ITERATIONS, "lbfgs": EXPECTED_LBFGS_EVALUATIONS, "gauss_newton": EXPECTED_GAUSS_NEWTON_ITERATIONS}
 PER_ITERATION_OVERHEAD = 0.15
 """Work per iteration that does not shrink with the image (faces, optimizer, bookkeeping),
 relative to one full-size view."""
@@ -29,8 +31,7 @@ class ProgressPlan:
 
     def __init__(self, stages: Sequence, starts: int, share: float = REGISTRATION_SHARE):
         self.expected = [
-            max(1, min(stage.max_iterations,
-                       EXPECTED_LBFGS_EVALUATIONS if stage.optimizer == "lbfgs" else EXPECTED_ADAM_ITERATIONS))
+            max(1, min(stage.max_iterations, EXPECTED[stage.optimizer]))
             for stage in stages
         ]
         costs = []

@@ -35,7 +35,9 @@ class Stage:
         sigma_px: silhouette edge softness at this level (px of the level's image).
         blur_px: Gaussian blur of the target at this level (px), widening capture.
         views: active views (λ = 1), the others have λ = 0.
-        optimizer: ``"adam"`` (robust, batched over starts) or ``"lbfgs"`` (tight final fit).
+        optimizer: ``"adam"`` (robust, batched over starts), ``"lbfgs"`` (tight final fit) or
+            ``"gauss_newton"`` (Levenberg–Marquardt on one start from per-pixel Jacobians, CPU).
+        level_of_detail: render a decimated mesh (None: Adam stages only).
         max_iterations: iteration cap (Adam steps, or L-BFGS evaluations).
         learning_rate: Adam step in mm (pose increments are scaled to mm).
         all_starts: optimize every start (True) or only the best so far.
@@ -61,6 +63,7 @@ class Stage:
     plateau_tolerance: float = PLATEAU_TOLERANCE
     float64: bool | None = None
     pose_tolerance: float | None = None
+    level_of_detail: bool | None = None
 
 
 def pyramid_scales(image_side_px: int) -> list[float]:

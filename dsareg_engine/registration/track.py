@@ -2,30 +2,36 @@
 
 During an intervention the patient moves by a few millimetres and degrees between biplane
 pairs. Starting from the previous result there is no capture range to buy: one start, no
-coarse pyramid, one short blurred Adam stage at a moderate resolution (it absorbs a motion of
-up to ~15 px at full size, which sharp full-size silhouettes of thin vessels would not), then
-L-BFGS at full size with the usual pose-change stop rule, in float32 (table-interpolated
-transcendentals): on the paper's mesh this gave the same ADD to 4 decimals as float64 at ~60 %
-of the cost per evaluation. ``options.mode = "track"`` selects it. Ending at half size instead
-(``working_size_px``) halves the time again at ADD ~0.007–0.013 mm (measured at 800 → 400 px).
+coarse pyramid, one short blurred stage at a moderate resolution (it absorbs a motion of up to
+~15 px at full size, which sharp full-size silhouettes of thin vessels would not), then the
+sharp fit at full size in float32 (table-interpolated transcendentals; the same ADD to 4
+decimals as float64). Both stages are Levenberg–Marquardt on the six pose increments
+(:mod:`.gauss_newton`, per-pixel Jacobians from the numba kernel): 4–7 iterations at ~200 px and
+3 at 800 px on the paper's mesh, where Adam took 13–20 and L-BFGS 10–17 evaluations. Where that
+kernel is missing (CUDA, no numba) the stages are blurred Adam and L-BFGS as before.
+``options.mode = "track"`` selects it.
 """
-
 from __future__ import annotations
 
 import numpy as np
 
 from ..pose import so3_log
-from .schedule import FINAL_SIGMA_PX, Stage
+from .schedule import ADAM_SIGMA_PX, FINAL_SIGMA_PX, Stage
 
 TRACK_SIDE_PX = 200
-"""Side of the Adam stage's image (the pyramid level nearest to it): ~4 px of motion per 15 px at 800."""
+"""Side of the blurred stage's image (the pyramid level nearest to it): ~4 px of motion per 15 px at 800."""
 TRACK_PLATEAU_TOLERANCE = 1e-2
-"""The Adam stage only has to bring the pose into L-BFGS's basin; it stops at a 1 % plateau."""
-TRACK_LBFGS_EVALUATIONS = 40
+"""Without the Jacobian kernel the blurred stage is Adam, which only has to bring the pose into L-BFGS's
+basin: it stops at a 1 % plateau."""
+TRACK_COARSE_POSE_TOLERANCE = 0.03
+"""Gauss–Newton stop (mm) of the ~200-px stage: it only hands a pose to the full-size fit, whose first steps
+move it by ~0.05 mm anyway (the coarse optimum's offset); 0.03 instead of 0.01 saved 1–2 of its 5–8 iterations
+and cost the full-size stage nothing (4–5 iterations either way)."""
+TRACK_REFINE_EVALUATIONS = 40
 TRACK_POSE_TOLERANCE = 1e-3
-"""L-BFGS stop on pose change (mm) when tracking: 10× the full registration's. Measured on the paper's
-mesh: 10–17 instead of 13–29 evaluations, ADD unchanged (0.0016–0.0038 mm); the full registration
-keeps 1e-4 (at 1e-3 its median rotation error rose from 0.0007° to 0.0008°)."""
+"""Stop of the full-size fit on pose change (mm) when tracking: 10× the full registration's. Measured on
+the paper's mesh with L-BFGS: 10–17 instead of 13–29 evaluations, ADD unchanged (0.0016–0.0038 mm); the
+full registration keeps 1e-4 (at 1e-3 its median rotation error rose from 0.0007° to 0.0008°)."""
 
 
 def track_scale(image_side_px: int) -> float:
@@ -36,21 +42,29 @@ def track_scale(image_side_px: int) -> float:
     return scale
 
 
-def build_track_schedule(views: tuple[str, ...], image_side_px: int, max_iterations: int) -> list[Stage]:
-    """Stages of a re-registration from the previous pose: blurred Adam at ~200 px, then L-BFGS at full size."""
+def build_track_schedule(views: tuple[str, ...], image_side_px: int, max_iterations: int, jacobian: bool = True) -> list[Stage]:
+    """Stages of a re-registration from the previous pose: blurred at ~200 px (at full size on smaller
+    images), then sharp at full size; Levenberg–Marquardt with the Jacobian kernel (``jacobian``), else
+    Adam then L-BFGS (no blurred stage on small images: L-BFGS's line search covers the distance)."""
     label = "+".join(views)
     scale = track_scale(image_side_px)
     stages = []
-    if scale < 1.0:
+    # Under the 1-px blur the edge softness hardly matters; the Jacobian kernel's cost grows with σ
+    # (more face–pixel pairs), Adam's schedule was tuned at 0.5.
+    coarse_sigma_px = ADAM_SIGMA_PX if jacobian else 0.5
+    # Gauss–Newton steps on sharp silhouettes are about σ long: small images (no smaller level) get the
+    # blurred stage at full size. L-BFGS's line search covers that distance by itself.
+    if scale < 1.0 or jacobian:
         stages.append(Stage(
-            name=f"track:{label}:1/{round(1 / scale)}", scale=scale, sigma_px=0.5, blur_px=1.0, views=views,
-            optimizer="adam", max_iterations=min(max_iterations, 60), learning_rate=0.2, all_starts=True,
-            plateau_tolerance=TRACK_PLATEAU_TOLERANCE,
+            name=f"track:{label}:1/{round(1 / scale)}", scale=scale, sigma_px=coarse_sigma_px, blur_px=1.0, views=views,
+            optimizer="gauss_newton" if jacobian else "adam", max_iterations=min(max_iterations, 60), learning_rate=0.2,
+            all_starts=True, plateau_tolerance=TRACK_PLATEAU_TOLERANCE, pose_tolerance=TRACK_COARSE_POSE_TOLERANCE,
+            float64=False, level_of_detail=True,
         ))
     stages.append(Stage(
         name=f"track:{label}:1/1:refine", scale=1.0, sigma_px=FINAL_SIGMA_PX, blur_px=0.0, views=views,
-        optimizer="lbfgs", max_iterations=min(max_iterations, TRACK_LBFGS_EVALUATIONS), learning_rate=0.05,
-        all_starts=True, float64=False, pose_tolerance=TRACK_POSE_TOLERANCE,
+        optimizer="gauss_newton" if jacobian else "lbfgs", max_iterations=min(max_iterations, TRACK_REFINE_EVALUATIONS),
+        learning_rate=0.05, all_starts=True, float64=False, pose_tolerance=TRACK_POSE_TOLERANCE, level_of_detail=False,
     ))
     return stages
 

@@ -196,31 +196,35 @@ def gather_faces(pixels, vertex_ok, faces, width, height, radius, triangles, box
     """
     batch, n_faces = triangles.shape[0], triangles.shape[1]
     for job in prange(batch * n_faces):
-        b = job // n_faces
-        f = job % n_faces
-        ok = True
-        u_min = v_min = np.inf
-        u_max = v_max = -np.inf
-        for c in range(3):
-            vertex = faces[f, c]
-            u = pixels[b, vertex, 0]
-            v = pixels[b, vertex, 1]
-            triangles[b, f, c, 0] = u
-            triangles[b, f, c, 1] = v
-            ok = ok and vertex_ok[b, vertex] and np.isfinite(u) and np.isfinite(v)
-            u_min = min(u_min, u)
-            u_max = max(u_max, u)
-            v_min = min(v_min, v)
-            v_max = max(v_max, v)
-        # Clamp in float first so huge coordinates cannot overflow the integer cast.
-        x0 = max(min(math.ceil(u_min - radius), width), 0.0)
-        x1 = min(max(math.floor(u_max + radius), -1.0), width - 1.0)
-        y0 = max(min(math.ceil(v_min - radius), height), 0.0)
-        y1 = min(max(math.floor(v_max + radius), -1.0), height - 1.0)
-        if not ok or x0 > x1 or y0 > y1:
-            boxes[b, f, 0], boxes[b, f, 1], boxes[b, f, 2], boxes[b, f, 3] = 1, 0, 1, 0
-        else:
-            boxes[b, f, 0], boxes[b, f, 1], boxes[b, f, 2], boxes[b, f, 3] = int(x0), int(x1), int(y0), int(y1)
+        gather_face(pixels, vertex_ok, faces, width, height, radius, triangles, boxes, job // n_faces, job % n_faces)
+
+
+@njit(inline="always")
+def gather_face(pixels, vertex_ok, faces, width, height, radius, triangles, boxes, b, f):
+    """Corners and pixel box of face f under pose b (one job of :func:`gather_faces`)."""
+    ok = True
+    u_min = v_min = np.inf
+    u_max = v_max = -np.inf
+    for c in range(3):
+        vertex = faces[f, c]
+        u = pixels[b, vertex, 0]
+        v = pixels[b, vertex, 1]
+        triangles[b, f, c, 0] = u
+        triangles[b, f, c, 1] = v
+        ok = ok and vertex_ok[b, vertex] and np.isfinite(u) and np.isfinite(v)
+        u_min = min(u_min, u)
+        u_max = max(u_max, u)
+        v_min = min(v_min, v)
+        v_max = max(v_max, v)
+    # Clamp in float first so huge coordinates cannot overflow the integer cast.
+    x0 = max(min(math.ceil(u_min - radius), width), 0.0)
+    x1 = min(max(math.floor(u_max + radius), -1.0), width - 1.0)
+    y0 = max(min(math.ceil(v_min - radius), height), 0.0)
+    y1 = min(max(math.floor(v_max + radius), -1.0), height - 1.0)
+    if not ok or x0 > x1 or y0 > y1:
+        boxes[b, f, 0], boxes[b, f, 1], boxes[b, f, 2], boxes[b, f, 3] = 1, 0, 1, 0
+    else:
+        boxes[b, f, 0], boxes[b, f, 1], boxes[b, f, 2], boxes[b, f, 3] = int(x0), int(x1), int(y0), int(y1)
 
 
 @njit(parallel=True, cache=True)

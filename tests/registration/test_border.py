@@ -59,3 +59,45 @@ def test_border_correction_removes_the_bias_of_a_too_wide_segmentation(phantom, 
     assert errors[True] < 0.05, errors
     shifts = result.metrics["border_shift_px"]
     assert set(shifts) == {"ap", "lat"} and all(-1.4 < value < -0.6 for value in shifts.values()), shifts
+
+
+def test_signed_distance_in_the_mask_box_equals_the_whole_image_one():
+    import cv2
+
+    from dsareg_engine.registration.targets import SIGNED_DISTANCE_REACH_PX, signed_border_distance
+
+    mask = np.zeros((300, 400), bool)
+    mask[100:140, 150:160] = True
+    mask[120:125, 150:260] = True
+    pixels = mask.astype(np.uint8)
+    whole = np.where(mask, 0.5 - cv2.distanceTransform(pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE),
+                     cv2.distanceTransform(1 - pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) - 0.5)
+    signed = signed_border_distance(mask)
+    near = whole <= SIGNED_DISTANCE_REACH_PX - 0.5
+    assert near.sum() > mask.sum() and np.allclose(signed[near], whole[near], atol=1e-5)
+    assert np.all(signed[~near] >= SIGNED_DISTANCE_REACH_PX - 0.5)
+
+
+def test_border_update_is_the_same_for_a_small_tree_in_a_large_image():
+    silhouette = _bar()
+    mask = grow_border(silhouette)
+    mask[5:8, 100:150] = True  # a catheter-like extra away from the vessel
+    large_mask, large_silhouette = (np.pad(image, ((300, 200), (250, 350))) for image in (mask, silhouette))
+    for shift in (0.0, -0.7, 1.3):
+        assert update_border_shift(large_mask, large_silhouette, shift) == pytest.approx(
+            update_border_shift(mask, silhouette, shift), abs=1e-6)  # float32 sums in another order
+
+
+def test_outline_length_is_skimage_perimeter():
+    import cv2
+    from skimage.measure import perimeter
+
+    from dsareg_engine.registration.border import outline_length_px
+
+    rng = np.random.default_rng(0)
+    blobs = cv2.GaussianBlur(rng.random((120, 160)), (0, 0), 4) > 0.5
+    blobs[0, :40] = True  # touching the image border
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for image in (blobs, _bar(), np.zeros((10, 10), bool)):
+        boundary = image & (cv2.erode(image.astype(np.uint8), cross, borderValue=0) == 0)
+        assert outline_length_px(boundary) == pytest.approx(perimeter(image), abs=1e-9)

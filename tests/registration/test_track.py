@@ -17,9 +17,14 @@ from dsareg_engine.registration.track import build_track_schedule, motion_betwee
 def test_track_schedule_and_motion():
     assert track_scale(800) == 0.25 and track_scale(400) == 0.5 and track_scale(128) == 1.0
     stages = build_track_schedule(("ap", "lat"), 800, 300)
-    assert [stage.optimizer for stage in stages] == ["adam", "lbfgs"]
+    assert [stage.optimizer for stage in stages] == ["gauss_newton", "gauss_newton"]
     assert stages[0].scale == 0.25 and stages[0].blur_px > 0 and stages[-1].scale == 1.0 and stages[-1].blur_px == 0
-    assert [stage.optimizer for stage in build_track_schedule(("ap", "lat"), 128, 300)] == ["lbfgs"]
+    assert stages[0].level_of_detail and not stages[-1].level_of_detail  # the final fit renders the full mesh
+    small = build_track_schedule(("ap", "lat"), 128, 300)  # no smaller level: the blurred stage runs at full size
+    assert [(stage.optimizer, stage.scale, stage.blur_px > 0) for stage in small] == [
+        ("gauss_newton", 1.0, True), ("gauss_newton", 1.0, False)]
+    # without the Jacobian kernel (CUDA): Adam, then L-BFGS
+    assert [stage.optimizer for stage in build_track_schedule(("ap", "lat"), 800, 300, jacobian=False)] == ["adam", "lbfgs"]
     points = np.random.default_rng(0).normal(size=(50, 3)) * 10 + 5
     previous = random_start_poses(np.eye(4), points.mean(axis=0), 2, 10.0, 4.0, seed=1)[1]
     step = random_start_poses(np.eye(4), previous[:3, :3] @ points.mean(axis=0) + previous[:3, 3], 2, 2.5, 1.5, seed=2)[1]
