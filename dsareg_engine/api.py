@@ -200,9 +200,7 @@ def _warm_up_tracking(view, faces) -> None:
     import torch
 
     from .render import Camera
-    from .render.jacobian import jacobian_available, soft_log_keep_tangents
-    from .render.jacobian_numba import normal_equations
-    from .render.silhouette import _threads
+    from .render.jacobian import jacobian_available, jacobian_kernel, soft_log_keep_tangents
 
     if not jacobian_available(torch.device("cpu")):
         return
@@ -210,5 +208,6 @@ def _warm_up_tracking(view, faces) -> None:
     tangents = torch.zeros((1, 6, 4, 4), dtype=torch.float32)
     log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, torch.eye(4)[None], tangents, Camera.from_view(view))
     target = np.zeros((log_keep.shape[1], log_keep.shape[2] + 1), np.float32)[:, 1:]  # a window: not C-contiguous
+    normal_equations, n_threads = jacobian_kernel("normal_equations")
     for weight in (np.zeros((0, 0), np.float32), target):
-        normal_equations(log_keep[0], log_keep_tangents[0], target, weight, _threads(), np.zeros((6, 6)), np.zeros(6))
+        normal_equations(log_keep[0], log_keep_tangents[0], target, weight, n_threads, np.zeros((6, 6)), np.zeros(6))

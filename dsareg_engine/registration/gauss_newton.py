@@ -34,8 +34,9 @@ def normal_equations(problem, stage, pose: np.ndarray, dtype: torch.dtype) -> tu
 
     The loss equals ``problem.loss`` at that pose (its gradient is 2·Jᵀr).
     """
-    from ..render.jacobian_numba import normal_equations as sums
-    from ..render.silhouette import _threads
+    from ..render.jacobian import jacobian_kernel
+
+    sums, n_threads = jacobian_kernel("normal_equations")
 
     tangents_world = PoseIncrement(pose[None], problem.centre, problem.radius_mm).tangents()[0]  # (6, 4, 4)
     vertices, faces = problem.mesh_tensors(dtype, stage)
@@ -53,7 +54,7 @@ def normal_equations(problem, stage, pose: np.ndarray, dtype: torch.dtype) -> tu
             view_gradient, view_hessian = np.zeros(6), np.zeros((6, 6))
             no_weight = np.zeros((0, 0), dtype=log_keep.dtype)
             view_loss = sums(log_keep[0], log_keep_tangents[0], image.numpy(),
-                             no_weight if weight is None else weight.numpy(), _threads(), view_hessian, view_gradient)
+                             no_weight if weight is None else weight.numpy(), n_threads, view_hessian, view_gradient)
         loss += view_loss / pixels
         gradient += view_gradient / pixels
         hessian += view_hessian / pixels

@@ -18,6 +18,22 @@ MIN_LOG_KEEP = -12.0
 bounded slope, negligible there; skipping them skips the faces inside the silhouette."""
 
 
+_KERNEL_PAIRS: dict = {}
+
+
+def jacobian_kernel(name: str) -> tuple:
+    """(the :mod:`.jacobian_numba` kernel ``name`` for this thread's budget: its serial twin on 1 thread
+    (see :mod:`.serial_kernels`), the thread count)."""
+    from . import jacobian_numba
+    from .serial_kernels import KernelPair
+    from .silhouette import _threads
+
+    if name not in _KERNEL_PAIRS:
+        _KERNEL_PAIRS[name] = KernelPair(getattr(jacobian_numba, name))
+    n_threads = _threads()
+    return _KERNEL_PAIRS[name].pick(n_threads), n_threads
+
+
 def jacobian_available(device: torch.device) -> bool:
     """The Jacobian kernel runs where the numba renderer does: CPU tensors with numba importable."""
     from .silhouette import numba_available
@@ -60,8 +76,7 @@ def soft_log_keep_tangents(
         RuntimeError: off the CPU or without numba (see :func:`jacobian_available`).
     """
     from . import jacobian_numba
-    from .kernels_numba import soft_log_keep
-    from .silhouette import _SIGMOID_TABLE, _SOFTPLUS_TABLE, _threads
+    from .silhouette import _SIGMOID_TABLE, _SOFTPLUS_TABLE, _kernel
 
     if not jacobian_available(vertices.device) or mesh_to_view_tangents.shape[1] != jacobian_numba.PARAMETERS:
         raise RuntimeError("the silhouette Jacobian needs the numba renderer (CPU tensors) and 6 parameters")
@@ -79,11 +94,13 @@ def soft_log_keep_tangents(
                                               camera.width, camera.height, float(radius), triangles, boxes, corner_tangents)
     exact = triangles.dtype == np.float64
     log_keep = np.zeros((batch, camera.height, camera.width), dtype=triangles.dtype)
+    soft_log_keep, n_threads = _kernel("soft_log_keep")
     soft_log_keep(triangles, boxes, camera.height, camera.width, float(settings.sigma_px), float(radius), exact,
-                  _SOFTPLUS_TABLE, _threads(), log_keep)
+                  _SOFTPLUS_TABLE, n_threads, log_keep)
     log_keep_tangents = np.zeros((batch, camera.height, camera.width, n_params), dtype=triangles.dtype)
-    jacobian_numba.soft_log_keep_tangents(triangles, corner_tangents, boxes, float(settings.sigma_px), float(radius), exact,
-                                          _SIGMOID_TABLE, log_keep, float(min_log_keep), _threads(), log_keep_tangents)
+    tangents_kernel, n_threads = jacobian_kernel("soft_log_keep_tangents")
+    tangents_kernel(triangles, corner_tangents, boxes, float(settings.sigma_px), float(radius), exact,
+                    _SIGMOID_TABLE, log_keep, float(min_log_keep), n_threads, log_keep_tangents)
     return log_keep, log_keep_tangents
 
 

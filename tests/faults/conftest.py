@@ -16,11 +16,19 @@ from scaleout_kit import PostgresServer, RedisServer
 from service_testkit import make_example_case
 
 CASE_SIZE = 64
+SLOW_CASE_SIZE = 256
 
 
 @pytest.fixture(scope="session")
 def case(tmp_path_factory):
     return make_example_case(tmp_path_factory.mktemp("case"), CASE_SIZE)
+
+
+@pytest.fixture(scope="session")
+def slow_case(tmp_path_factory):
+    """The same case at 256 px: a SLOW job on it runs ~4 s on one quiet thread (on the 64-px case it
+    plateaus in < 1 s, and a kill aimed at it could land after it finished)."""
+    return make_example_case(tmp_path_factory.mktemp("slow_case"), SLOW_CASE_SIZE)
 
 
 def _clients_missing() -> bool:

@@ -16,7 +16,7 @@ from service_testkit import needs_engine, submit, wait_for
 pytestmark = [needs_engine, pytest.mark.slow]
 
 FAST = {"starts": 1, "max_iterations": 10}
-SLOW = {"starts": 2, "max_iterations": 400, "coarse_to_fine": False}
+SLOW = {"starts": 8, "max_iterations": 400, "coarse_to_fine": False}  # on slow_case
 
 
 class Topology(CeleryTopology):
@@ -59,9 +59,9 @@ def test_celery_tasks_honour_the_thread_budget(topology):
     assert "numba threads" in logs and "/ 2 numba threads" not in logs
 
 
-def test_celery_kill_busy_worker(topology, case):
+def test_celery_kill_busy_worker(topology, case, slow_case):
     with topology.api.client() as client:
-        ids = [submit(client, case, {**SLOW, "seed": 11}).json()["id"]]
+        ids = [submit(client, slow_case, {**SLOW, "seed": 11}).json()["id"]]
         victim_pid = _running_job_pid(topology, ids[0], client)
         victim = next(w for w in topology.workers if w.pid == victim_pid)
         victim.kill()  # SIGKILL: the message stays unacked, the lease expires
@@ -74,11 +74,11 @@ def test_celery_kill_busy_worker(topology, case):
     assert topology.store.get(ids[0]).attempts == 2
 
 
-def test_celery_postgres_outage(topology, case):
+def test_celery_postgres_outage(topology, case, slow_case):
     """Database down while a job runs: the API answers 503 + Retry-After (not 500); the job's
     finished result is saved once the database is back (attempt 1, no 'worker stopped responding')."""
     with topology.api.client() as client:
-        job_id = submit(client, case, {**SLOW, "seed": 21}).json()["id"]
+        job_id = submit(client, slow_case, {**SLOW, "seed": 21}).json()["id"]
         pid = _running_job_pid(topology, job_id, client)
         worker = next(w for w in topology.workers if w.pid == pid)
         topology.postgres.pause()

@@ -28,7 +28,7 @@ from service_testkit import Server, needs_engine, submit, wait_for
 pytestmark = [needs_engine, pytest.mark.slow]
 
 FAST = {"starts": 1, "max_iterations": 10}
-SLOW = {"starts": 2, "max_iterations": 400, "coarse_to_fine": False}
+SLOW = {"starts": 8, "max_iterations": 400, "coarse_to_fine": False}  # on slow_case
 
 
 def _rows(data_dir, query, args=()):
@@ -88,7 +88,7 @@ def _assert_invariants(srv: Server, ids: list[str], timeout: float = 240) -> Non
                                                                                     srv.logs()[-4000:])
 
 
-def test_sigkill_idle_worker_then_busy_worker(tmp_path, case):
+def test_sigkill_idle_worker_then_busy_worker(tmp_path, case, slow_case):
     """Killing an idle worker used to leave the shared wake-up lock held: every later POST hung."""
     srv = Server(tmp_path / "data", workers=2).start()
     try:
@@ -102,7 +102,7 @@ def test_sigkill_idle_worker_then_busy_worker(tmp_path, case):
             response, took = timed_post(client, case, {**FAST, "seed": 1})
             assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
             ids.append(response.json()["id"])
-            busy = submit(client, case, {**SLOW, "seed": 2}).json()["id"]
+            busy = submit(client, slow_case, {**SLOW, "seed": 2}).json()["id"]
             ids.append(busy)
             body = wait_for(client, busy, statuses=("running",), timeout=60,
                             predicate=lambda b: (b.get("progress") or {}).get("iteration", 0) > 0)
@@ -119,12 +119,12 @@ def test_sigkill_idle_worker_then_busy_worker(tmp_path, case):
             assert _terminate(srv) == set(), "processes left after SIGTERM"
 
 
-def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case):
+def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case, slow_case):
     """A SIGKILLed server (only its own pid) takes its workers with it; the next server runs every job once."""
     data = tmp_path / "data"
     first = Server(data, workers=1).start()
     with first.client() as client:
-        ids = [submit(client, case, {**SLOW, "seed": n}).json()["id"] for n in range(2)]
+        ids = [submit(client, slow_case, {**SLOW, "seed": n}).json()["id"] for n in range(2)]
         wait_for(client, ids[0], statuses=("running",), timeout=60)
     tree = descendants(first.process.pid)
     assert tree, "the server has no child processes"

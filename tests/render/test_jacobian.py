@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from dsareg_engine.geometry_file import load_rig
+from dsareg_engine.geometry_spec import load_rig
 from dsareg_engine.phantom import make_vessel_phantom
 from dsareg_engine.registration.parameterization import PoseIncrement
 from dsareg_engine.render import Camera, SilhouetteSettings, render_soft_silhouette
@@ -80,3 +80,39 @@ def test_pose_tangents_and_inverse_increment():
     forward = torch.func.jacfwd(increment)(torch.zeros((2, 6), dtype=torch.float64))  # (2, 4, 4, 2, 6)
     expected = np.stack([forward[b, :, :, b, :].permute(2, 0, 1).numpy() for b in range(2)])
     assert np.allclose(increment.tangents(), expected, atol=1e-14)
+
+
+def test_one_thread_budget_uses_serial_twins_that_match_the_parallel_kernels(case, monkeypatch):
+    """A service worker tracks with a 1-thread budget: the Jacobian kernels run their serial twins
+    (no numba pool hand-off, see serial_kernels) and give the parallel kernels' numbers."""
+    import numba
+
+    from dsareg_engine.render import jacobian
+    from dsareg_engine.render.jacobian_numba import normal_equations
+
+    phantom, view, increment, tangents = case
+    vertices, faces = phantom.torch(torch.float64)
+    pose = _mesh_to_view(view, increment, torch.zeros((1, 6), dtype=torch.float64))
+    camera = Camera.from_view(view)
+
+    def run(n_threads: int):
+        before = numba.get_num_threads()
+        numba.set_num_threads(n_threads)
+        try:
+            kernel, used = jacobian.jacobian_kernel("normal_equations")
+            alpha, jac = render_soft_silhouette_jacobian(vertices, faces, pose, tangents, camera, SilhouetteSettings(sigma_px=0.5))
+            hessian, gradient = np.zeros((6, 6)), np.zeros(6)
+            target = np.zeros(alpha.shape[1:], dtype=np.float64)
+            log_keep = np.log(np.clip(1.0 - alpha[0].numpy(), 1e-300, None))
+            loss = kernel(log_keep, -jac[0].numpy() / np.exp(log_keep)[..., None], target, np.zeros((0, 0)), used,
+                          hessian, gradient)
+            return kernel, alpha.numpy(), jac.numpy(), loss, hessian, gradient
+        finally:
+            numba.set_num_threads(before)
+
+    serial, parallel = run(1), run(2) if numba.config.NUMBA_NUM_THREADS >= 2 else run(1)
+    assert serial[0] is jacobian._KERNEL_PAIRS["normal_equations"].serial
+    assert serial[0] is not normal_equations and not serial[0].targetoptions.get("parallel")
+    assert np.abs(serial[2]).max() > 0
+    for ours, theirs in zip(serial[1:], parallel[1:]):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-12)
