@@ -77,8 +77,18 @@ def build_parser() -> argparse.ArgumentParser:
         adders.append(_load(module_name.strip(), attribute.strip() or "add_parser"))
     for add_parser in adders:
         if add_parser is not None:
-            add_parser(subparsers)
+            _add_commands(add_parser, subparsers)
     return parser
+
+
+def _add_commands(add_parser, subparsers) -> None:
+    """Let a contributor add its sub-commands; one whose own dependencies are missing is left out with a
+    one-line note (the engine's commands keep working: e.g. the service's without SQLAlchemy)."""
+    try:
+        add_parser(subparsers)
+    except ModuleNotFoundError as exc:
+        owner = getattr(add_parser, "__module__", "?")
+        print(f"dsareg: the commands of {owner} are unavailable: missing module {exc.name!r}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:

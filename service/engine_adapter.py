@@ -16,14 +16,16 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dsareg_engine import api as engine
 
 from .blobs import BlobStore
 from .limits import image_decoded_bytes, parse_json_part
 from .problems import Problem
-from .store import InputFile
+
+if TYPE_CHECKING:  # the job store (SQLAlchemy) is not needed to parse the CLI or call the engine
+    from .store import InputFile
 
 ROLES = ("mesh", "volume", "ap", "lat")
 

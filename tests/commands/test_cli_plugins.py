@@ -57,3 +57,31 @@ def test_installed_metadata_declares_the_group():
     if not list(points):
         pytest.skip("the installed dsareg metadata predates the dsareg.commands group: reinstall (pip install -e .)")
     assert "service.commands:add_parser" in {p.value for p in points}
+
+
+def test_a_contributor_missing_its_dependencies_leaves_the_engine_commands_working():
+    """Without SQLAlchemy (a GPU box with only the engine's packages) `dsareg bench ...` still runs;
+    building the service's `submit` parser must not import the job store."""
+    import subprocess
+
+    code = ("import sys; sys.modules['sqlalchemy'] = None\n"
+            "from dsareg_engine.cli import build_parser\n"
+            "action = next(a for a in build_parser()._actions if a.dest == 'command')\n"
+            "print(sorted(action.choices))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert {"bench", "register", "submit"} <= set(eval(done.stdout.strip()))
+
+
+def test_a_contributor_that_cannot_import_a_module_is_left_out_with_a_note(monkeypatch, capsys):
+    module = types.ModuleType("dsareg_test_broken")
+
+    def add(subparsers):
+        raise ModuleNotFoundError("No module named 'notinstalled'", name="notinstalled")
+
+    module.add = add
+    monkeypatch.setitem(sys.modules, "dsareg_test_broken", module)
+    monkeypatch.setattr(cli, "contributed_commands", lambda: [("broken", "dsareg_test_broken:add")])
+    commands = _commands(cli.build_parser())
+    assert "register" in commands
+    assert "missing module 'notinstalled'" in capsys.readouterr().err
