@@ -38,7 +38,7 @@ def level_target(
     mask: np.ndarray, view: ViewGeometry, scale: float, blur_px: float, thin_vessel_weighting: bool, dtype: torch.dtype,
     border_shift_px: float = 0.0, signed: np.ndarray | None = None,
 ) -> ViewTarget:
-    """Resample a full-resolution mask ``(H, W)`` bool to ``scale`` and build the level's target.
+    """Resample a full-resolution mask ``(H, W)`` (bool, or float coverage in [0, 1]) to ``scale`` and build the level's target.
 
     ``border_shift_px`` (full-resolution px) moves the mask's border outward (negative: inward)
     first, see :func:`shifted_mask` (``signed``: the mask's signed border distance, if known).
@@ -54,16 +54,33 @@ def level_target(
     return ViewTarget(level_view, Camera.from_view(level_view), target, weight, blur_px)
 
 
+def is_coverage(target: np.ndarray) -> bool:
+    """True for a soft target (float vessel coverage in [0, 1]); false for a binary mask (bool)."""
+    return np.issubdtype(np.asarray(target).dtype, np.floating)
+
+
+def binary_mask(target: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: a mask unchanged, a coverage map where it covers at least half a pixel."""
+    return target >= 0.5 if is_coverage(target) else np.asarray(target, bool)
+
+
 def signed_border_distance(mask: np.ndarray) -> np.ndarray:
     """Signed distance (px) from each pixel centre to the mask's border, negative inside: ``(H, W)`` float32.
 
     The border is taken half a pixel beyond the outermost pixel centres, so the pixels just
-    inside read −0.5 and those just outside +0.5.
+    inside read −0.5 and those just outside +0.5. A coverage map (float in [0, 1]) is read
+    as that 1-px ramp: a partly covered pixel c lies ``0.5 − c`` from the border (sub-pixel);
+    the others take the distance of its half-covered binary mask.
     """
-    pixels = mask.astype(np.uint8)
+    binary = binary_mask(mask)
+    pixels = binary.astype(np.uint8)
     inside = cv2.distanceTransform(pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     outside = cv2.distanceTransform(1 - pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return np.where(mask, 0.5 - inside, outside - 0.5).astype(np.float32)
+    signed = np.where(binary, 0.5 - inside, outside - 0.5).astype(np.float32)
+    if is_coverage(mask):
+        partial = (mask > 0.0) & (mask < 1.0)
+        signed[partial] = 0.5 - mask[partial]
+    return signed
 
 
 def shifted_mask(mask: np.ndarray, shift_px: float, signed: np.ndarray | None = None) -> np.ndarray:
@@ -71,7 +88,8 @@ def shifted_mask(mask: np.ndarray, shift_px: float, signed: np.ndarray | None = 
 
     Each pixel's coverage is a 1-px linear ramp across the moved border, evaluated at its
     centre's signed distance (``signed``: :func:`signed_border_distance` of the mask, computed
-    when not given). A shift of 0 returns the mask itself; negative shifts move it inward.
+    when not given). A shift of 0 returns the mask itself (a coverage map unchanged); negative
+    shifts move it inward.
     """
     if shift_px == 0.0:
         return mask.astype(np.float32)
