@@ -43,6 +43,20 @@ def _bright_vessels(pixels: np.ndarray) -> np.ndarray:
     return 1.0 - normalized if vessels_are_dark(pixels) else normalized
 
 
+def _checked(pixels: np.ndarray, method: str, field_name: str) -> np.ndarray:
+    """``pixels`` as an array, after checking the method, the shape and the values."""
+    if method not in SEGMENTATION_METHODS:
+        raise DsaregInputError(
+            f"unknown segmentation '{method}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
+        )
+    pixels = np.asarray(pixels)
+    if pixels.ndim != 2:
+        raise DsaregInputError(f"needs a 2D image, got shape {list(pixels.shape)}", field=field_name)
+    if not np.all(np.isfinite(pixels)):
+        raise DsaregInputError("contains NaN or infinite pixels", field=field_name)
+    return pixels
+
+
 def segment_vessels(
     pixels: np.ndarray,
     method: str = "auto",
@@ -59,15 +73,7 @@ def segment_vessels(
     from skimage.filters import apply_hysteresis_threshold, gaussian, sato, threshold_otsu
     from skimage.morphology import remove_small_objects
 
-    if method not in SEGMENTATION_METHODS:
-        raise DsaregInputError(
-            f"unknown segmentation '{method}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
-        )
-    pixels = np.asarray(pixels)
-    if pixels.ndim != 2:
-        raise DsaregInputError(f"needs a 2D image, got shape {list(pixels.shape)}", field=field_name)
-    if not np.all(np.isfinite(pixels)):
-        raise DsaregInputError("contains NaN or infinite pixels", field=field_name)
+    pixels = _checked(pixels, method, field_name)
     if pixels.dtype == bool:
         mask = pixels.copy()
         if mask.mean() > 0.5:
@@ -119,12 +125,12 @@ def vessel_coverage(
     Raises:
         DsaregInputError: as :func:`segment_vessels`.
     """
-    mask = segment_vessels(pixels, method, min_object_fraction=min_object_fraction, field_name=field_name)
-    if resolved_method(pixels, method) != "dsa":
-        return mask
+    pixels = _checked(pixels, method, field_name)
+    if pixels.dtype == bool or resolved_method(pixels, method) != "dsa" or float(pixels.max()) <= float(pixels.min()):
+        return segment_vessels(pixels, method, min_object_fraction=min_object_fraction, field_name=field_name)
     from .dsa_coverage import dsa_vessel_coverage
 
-    coverage = dsa_vessel_coverage(_bright_vessels(np.asarray(pixels)), max(16, int(min_object_fraction * mask.size)))
+    coverage = dsa_vessel_coverage(_bright_vessels(pixels), max(16, int(min_object_fraction * pixels.size)))
     _non_empty(coverage >= 0.5, field_name)
     return coverage
 
