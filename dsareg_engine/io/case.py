@@ -10,10 +10,10 @@ from ..errors import DsaregInputError
 from ..geometry import VIEW_NAMES, Rig, ViewGeometry
 from ..geometry_file import PRESETS, load_rig
 from ..mesh import TriangleMesh
+from ..vessel_target import binary_mask
 from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
-from ..registration.targets import binary_mask
 from .segmentation import SEGMENTATION_METHODS, vessel_coverage
 from .volume_io import read_volume, volume_to_mesh
 

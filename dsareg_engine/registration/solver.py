@@ -25,6 +25,7 @@ from ..mesh import TriangleMesh
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
 from ..pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
+from ..vessel_target import binary_mask, is_coverage
 from .options import RegistrationOptions
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .progress import ProgressPlan
@@ -34,7 +35,7 @@ from .border import update_border_shift
 from .track import build_track_schedule, motion_between
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .initialization import GIVEN_INITIALIZATION, resolve_initialization, search_initial_poses
-from .targets import ViewTarget, binary_mask, gaussian_blur, is_coverage, level_target, shifted_mask, signed_border_distance
+from .targets import ViewTarget, gaussian_blur, level_target, shifted_mask, signed_border_distance
 
 ProgressCallback = Callable[[dict], None]
 

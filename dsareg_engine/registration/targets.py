@@ -13,6 +13,7 @@ from scipy import ndimage
 
 from ..geometry import ViewGeometry
 from ..render import Camera
+from ..vessel_target import binary_mask, is_coverage
 
 
 @dataclass
@@ -52,16 +53,6 @@ def level_target(
         weight = torch.as_tensor(thin_vessel_weights(image > 0.5), dtype=dtype)
     target = gaussian_blur(torch.as_tensor(image, dtype=dtype)[None], blur_px)[0]
     return ViewTarget(level_view, Camera.from_view(level_view), target, weight, blur_px)
-
-
-def is_coverage(target: np.ndarray) -> bool:
-    """True for a soft target (float vessel coverage in [0, 1]); false for a binary mask (bool)."""
-    return np.issubdtype(np.asarray(target).dtype, np.floating)
-
-
-def binary_mask(target: np.ndarray) -> np.ndarray:
-    """``(H, W)`` bool: a mask unchanged, a coverage map where it covers at least half a pixel."""
-    return target >= 0.5 if is_coverage(target) else np.asarray(target, bool)
 
 
 def signed_border_distance(mask: np.ndarray) -> np.ndarray:
