@@ -13,9 +13,10 @@ in thin layers (``c = f(t)``, ``f(0) = 0``), so near the outline ``c ∝ √s`` 
     ``s = c / (2 |∇c|)``
 
 is the pixel centre's distance to the outline, whatever the vessel's radius, peak or law (deeper
-inside the estimate only grows, and the coverage is clipped to 1). The pixel's coverage is the
-1-px ramp ``clip(0.5 + s − EDGE_BIAS_PX, 0, 1)``; the bias absorbs the detector blur and the
-smoothing that make the onset soft. Which pixels can be vessel at all (detection, catheter
+inside the estimate only grows, and the coverage is clipped to 1). The image's blur softens the
+onset; it is measured on the edges of wide vessels and undone through the blurred onset's table
+(:mod:`.vessel_onset`). The pixel's coverage is the 1-px ramp ``clip(0.5 + s, 0, 1)``, 0 where the
+(1-px smoothed) contrast is below 3 noise σ. Which pixels can be vessel at all (detection, catheter
 removal, small objects) is the binary mask's decision, dilated by two pixels.
 """
 
