@@ -114,7 +114,7 @@ def run_registration_case(
     Raises:
         RegistrationCanceled: ``should_stop()`` returned True.
     """
-    result = register(case.mesh, case.masks, case.rig, options, progress=progress, should_stop=should_stop)
+    result = register(case.mesh, case.fitted, case.rig, options, progress=progress, should_stop=should_stop)
     return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
                          images=case.images, label=label, progress=progress, warnings=case.warnings)
 

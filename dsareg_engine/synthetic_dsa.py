@@ -28,6 +28,8 @@ class DsaSettings:
         attenuation_per_mm: μ of contrast-filled vessel (iodine mixture), 1/mm.
         background: mean background level (full scale = 1).
         background_variation: peak-to-peak amplitude of the smooth background field.
+        background_cells: the field is a bicubic interpolation of this many random values per side
+            (4: it varies over about a third of the image; more: finer structure).
         noise_sigma: Gaussian noise, full-scale units.
         blur_px: detector / focal-spot blur (Gaussian σ, px).
         supersample: thickness rendered at this factor per side.
@@ -38,6 +40,7 @@ class DsaSettings:
     attenuation_per_mm: float = 0.12
     background: float = 0.8
     background_variation: float = 0.25
+    background_cells: int = 4
     noise_sigma: float = 0.01
     blur_px: float = 0.5
     supersample: int = 3
@@ -93,9 +96,9 @@ def vessel_thickness_mm(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: n
     return cv2.resize(np.abs(out), view.image_size, interpolation=cv2.INTER_AREA)
 
 
-def _smooth_field(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
-    """A smooth random field in [−0.5, 0.5] varying over about a third of the image."""
-    coarse = rng.normal(size=(4, 4)).astype(np.float32)
+def _smooth_field(shape: tuple[int, int], rng: np.random.Generator, cells: int = 4) -> np.ndarray:
+    """A smooth random field in [−0.5, 0.5] varying over about ``1 / (cells − 1)`` of the image."""
+    coarse = rng.normal(size=(cells, cells)).astype(np.float32)
     field = cv2.resize(coarse, shape[::-1], interpolation=cv2.INTER_CUBIC)
     return (field - field.min()) / max(float(np.ptp(field)), 1e-9) - 0.5
 
@@ -128,7 +131,7 @@ def synthesize_dsa(mesh: TriangleMesh, rig: Rig, mesh_to_world: np.ndarray, seed
         thickness = vessel_thickness_mm(mesh, view, mesh_to_world, settings.supersample)
         if settings.catheter_mm > 0:
             thickness = thickness + _catheter_mm(view, thickness, settings.catheter_mm, rng)
-        background = settings.background * (1.0 + settings.background_variation * _smooth_field(thickness.shape, rng))
+        background = settings.background * (1.0 + settings.background_variation * _smooth_field(thickness.shape, rng, settings.background_cells))
         image = background * np.exp(-settings.attenuation_per_mm * thickness)
         if settings.blur_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), settings.blur_px)

@@ -71,9 +71,12 @@ def add_parser(subparsers) -> None:
                         help="initial rotation (deg) and translation (mm) offset")
     robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS),
                         help="simulated segmentation errors to apply (default all)")
-    robust.add_argument("--grey", nargs="*", default=["dsa", "otsu"], choices=["dsa", "otsu", "vesselness"],
+    robust.add_argument("--grey", nargs="*", default=["dsa", "dsa_binary", "otsu"], choices=["dsa", "dsa_binary", "otsu", "vesselness"],
                         help="also register from grey-level DSA synthesized from the model (uneven background, noise, "
-                             "catheter), segmented by these methods ('dsa' is what 'auto' uses)")
+                             "catheter), segmented by these methods ('dsa' is what 'auto' fits: sub-pixel vessel coverage; "
+                             "'dsa_binary': its binary mask as before)")
+    robust.add_argument("--grey-variants", nargs="+", default=["default"], choices=list(GREY_VARIANTS),
+                        help="image formation of the grey-level rows (noise, background, contrast law, blur, bit depth)")
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     robust.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
@@ -263,16 +266,18 @@ def bench_robustness(args: argparse.Namespace) -> int:
     print("| corruption | mask px AP / LAT (clean: " + " / ".join(str(int(clean[v].sum())) for v in ("ap", "lat"))
           + ") | ADD mm median / max | rotation ° median | success (ADD < 1 mm) | flagged not converged | median s | verdicts | fitted dice min / max abs border shift px / min runner-up fit gap |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for name in list(args.corruptions) + [f"grey_{method}" for method in args.grey]:
+    grey = [f"grey_{method}@{variant}" for variant in args.grey_variants for method in args.grey]
+    for name in list(args.corruptions) + grey:
         rows = []
         for index, initial in enumerate(initials):
             rng = np.random.default_rng(args.seed + 1000 * index)
             if name.startswith("grey_"):
-                masks = _grey_masks(mesh, rig, name[len("grey_"):], args.seed + index)
+                method, variant = name[len("grey_"):].split("@")
+                masks = _grey_masks(mesh, rig, method, args.seed + index, variant)
             else:
                 masks = {view: corrupt(mask, name, rng) for view, mask in clean.items()}
             row = _run(mesh, rig, masks, initial, "simultaneous", args.multistart, args.seed + index, _options(args))
-            rows.append({**row, "pixels": [int(masks[v].sum()) for v in ("ap", "lat")]})
+            rows.append({**row, "pixels": [int(round(float(masks[v].sum()))) for v in ("ap", "lat")]})
         add = np.array([row["add_mm"] for row in rows])
         print(f"| {name} | {rows[0]['pixels'][0]} / {rows[0]['pixels'][1]} | {np.median(add):.3f} / {add.max():.3f} | "
               f"{np.median([row['rotation_error_deg'] for row in rows]):.3f} | {np.mean(add < 1.0) * 100:.0f} % | "
@@ -289,13 +294,35 @@ def _signal_summary(signals: list[dict]) -> str:
     return f"{lowest:.3f} / {shift:.2f} / {min(gaps):.3f}" if gaps else f"{lowest:.3f} / {shift:.2f} / none"
 
 
-def _grey_masks(mesh, rig, method: str, seed: int) -> dict:
-    """Masks segmented (``method``) from 16-bit DSA images synthesized from the model at the identity pose."""
-    from ..io.segmentation import segment_vessels
-    from ..synthetic_dsa import synthesize_dsa
+GREY_VARIANTS = {
+    "default": ({}, 16),
+    "noise2x": ({"noise_sigma": 0.02}, 16),
+    "background2x": ({"background_variation": 0.5}, 16),
+    "background_fine": ({"background_cells": 10}, 16),
+    "saturating": ({"attenuation_per_mm": 0.3}, 16),
+    "faint": ({"attenuation_per_mm": 0.05}, 16),
+    "blur1px": ({"blur_px": 1.0}, 16),
+    "8bit": ({}, 8),
+    "noisefree": ({"noise_sigma": 0.0}, 16),
+}
+"""Grey-level image formations (:class:`~dsareg_engine.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
 
-    images = synthesize_dsa(mesh, rig, np.eye(4), seed=seed)
-    return {view: segment_vessels(np.round(image * 65535).astype(np.uint16), method) for view, image in images.items()}
+
+def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", truth: np.ndarray | None = None) -> dict:
+    """Targets segmented (``method``; ``dsa``: the coverage registration fits, ``dsa_binary``: its former
+    binary mask) from DSA images synthesized from the model at ``truth`` (default identity)."""
+    from ..io.segmentation import segment_vessels, vessel_coverage
+    from ..synthetic_dsa import DsaSettings, synthesize_dsa
+
+    changes, bits = GREY_VARIANTS[variant]
+    images = synthesize_dsa(mesh, rig, np.eye(4) if truth is None else truth, seed=seed, settings=DsaSettings(**changes))
+    full_scale, dtype = (65535, np.uint16) if bits == 16 else (255, np.uint8)
+    quantized = {view: np.round(image * full_scale).astype(dtype) for view, image in images.items()}
+    if method == "dsa_binary":
+        return {view: segment_vessels(image, "dsa") for view, image in quantized.items()}
+    if method == "dsa":
+        return {view: vessel_coverage(image, "dsa") for view, image in quantized.items()}
+    return {view: segment_vessels(image, method) for view, image in quantized.items()}
 
 
 def bench_autoinit(args: argparse.Namespace) -> int:
@@ -317,11 +344,7 @@ def bench_autoinit(args: argparse.Namespace) -> int:
         options = RegistrationOptions(seed=args.seed + case, **extra, ground_truth_mesh_to_world=truth.tolist())
         masks = render_masks(mesh, rig, truth)
         if args.grey:
-            from ..io.segmentation import segment_vessels
-            from ..synthetic_dsa import synthesize_dsa
-
-            images = synthesize_dsa(mesh, rig, truth, seed=args.seed + case)
-            masks = {view: segment_vessels(np.round(image * 65535).astype(np.uint16), "auto") for view, image in images.items()}
+            masks = _grey_masks(mesh, rig, "dsa", args.seed + case, truth=truth)
         result = register(mesh, masks, rig, options)
         metrics = result.metrics
         row = {"add": metrics["ground_truth"]["add_mm"], "rotation": metrics["ground_truth"]["rotation_error_deg"],

@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     def show(event: dict) -> None:
         print(f"\r{event['stage']:>14} it {event['iteration']:4d} loss {event['loss']:.5f}", end="", flush=True)
 
-    result = register(case.mesh, case.masks, case.rig, parsed, progress=show)
+    result = register(case.mesh, case.fitted, case.rig, parsed, progress=show)
     print()
     out = Path(args.out)
     write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images)

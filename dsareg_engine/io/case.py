@@ -10,10 +10,11 @@ from ..errors import DsaregInputError
 from ..geometry import VIEW_NAMES, Rig, ViewGeometry
 from ..geometry_spec import GeometrySpec
 from ..mesh import TriangleMesh
+from ..vessel_target import binary_mask
 from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
-from .segmentation import SEGMENTATION_METHODS, segment_vessels
+from .segmentation import SEGMENTATION_METHODS, vessel_coverage
 from .volume_io import read_volume, volume_to_mesh
 
 ASPECT_TOLERANCE = 0.01
@@ -27,6 +28,9 @@ class Case:
         mesh: the vessel surface (mm; for a volume input, in world LPS mm).
         masks: ``{"ap": bool (H, W), "lat": bool (H, W)}``, each matching its view's
             ``image_size`` ``(W, H)`` exactly.
+        targets: what registration fits, per view: the mask itself, or for grey-level DSA
+            segmented by ``dsa`` its vessel coverage (float in [0, 1], sub-pixel borders;
+            the mask is where it is ≥ 0.5). Empty: fit the masks.
         rig: the two views (resized to the images when needed) and the initial pose.
         warnings: things a person should know (decimation, frame chosen, resizing...).
         kinds: what each input was read as (``{"mesh": "stl", "ap": "dicom-xa", ...}``).
@@ -40,6 +44,12 @@ class Case:
     warnings: list[str] = field(default_factory=list)
     kinds: dict[str, str] = field(default_factory=dict)
     images: dict[str, np.ndarray] = field(default_factory=dict)
+    targets: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def fitted(self) -> dict[str, np.ndarray]:
+        """The per-view registration targets (``targets`` when set, else ``masks``)."""
+        return self.targets or self.masks
 
 
 @dataclass(frozen=True)
@@ -148,6 +158,7 @@ def load_case(
     rig = _resolve_rig(geometry, images, warnings, kinds)
 
     masks: dict[str, np.ndarray] = {}
+    targets: dict[str, np.ndarray] = {}
     views: dict[str, ViewGeometry] = {}
     for name in VIEW_NAMES:
         image = images[name]
@@ -167,11 +178,12 @@ def load_case(
             warnings.append(f"{name}: geometry {view.width}x{view.height} rescaled to the image's {width}x{height}")
             view = view.resized(width, height)
         method = "mask" if image.is_mask and segmentation == "auto" else segmentation
-        masks[name] = segment_vessels(image.pixels, method, field_name=name)
+        targets[name] = vessel_coverage(image.pixels, method, field_name=name)
+        masks[name] = binary_mask(targets[name])
         views[name] = view
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
-                images={name: images[name].pixels for name in VIEW_NAMES})
+                images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets)
 
 
 def _resolve_rig(geometry: GeometrySpec | None, images: dict[str, LoadedImage], warnings: list[str],

@@ -12,6 +12,9 @@ Methods:
   projects, for thin and thick vessels alike.
 * ``"auto"``: ``"mask"`` when the image has at most two values, else ``"dsa"``.
 
+:func:`vessel_coverage` is what registration fits: for ``"dsa"`` a per-pixel vessel coverage in
+[0, 1] with sub-pixel borders (:mod:`.dsa_coverage`), for every other method the binary mask.
+
 Polarity is detected: DSA shows vessels dark on a bright background; exported masks
 show them bright on dark. The side that covers most of the image is the background.
 """
@@ -40,6 +43,20 @@ def _bright_vessels(pixels: np.ndarray) -> np.ndarray:
     return 1.0 - normalized if vessels_are_dark(pixels) else normalized
 
 
+def _checked(pixels: np.ndarray, method: str, field_name: str) -> np.ndarray:
+    """``pixels`` as an array, after checking the method, the shape and the values."""
+    if method not in SEGMENTATION_METHODS:
+        raise DsaregInputError(
+            f"unknown segmentation '{method}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
+        )
+    pixels = np.asarray(pixels)
+    if pixels.ndim != 2:
+        raise DsaregInputError(f"needs a 2D image, got shape {list(pixels.shape)}", field=field_name)
+    if not np.all(np.isfinite(pixels)):
+        raise DsaregInputError("contains NaN or infinite pixels", field=field_name)
+    return pixels
+
+
 def segment_vessels(
     pixels: np.ndarray,
     method: str = "auto",
@@ -56,15 +73,7 @@ def segment_vessels(
     from skimage.filters import apply_hysteresis_threshold, gaussian, sato, threshold_otsu
     from skimage.morphology import remove_small_objects
 
-    if method not in SEGMENTATION_METHODS:
-        raise DsaregInputError(
-            f"unknown segmentation '{method}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
-        )
-    pixels = np.asarray(pixels)
-    if pixels.ndim != 2:
-        raise DsaregInputError(f"needs a 2D image, got shape {list(pixels.shape)}", field=field_name)
-    if not np.all(np.isfinite(pixels)):
-        raise DsaregInputError("contains NaN or infinite pixels", field=field_name)
+    pixels = _checked(pixels, method, field_name)
     if pixels.dtype == bool:
         mask = pixels.copy()
         if mask.mean() > 0.5:
@@ -93,6 +102,37 @@ def segment_vessels(
         mask = apply_hysteresis_threshold(response, 0.5 * high, high)
         mask = remove_small_objects(mask, max_size=min_size)
     return _non_empty(mask, field_name)
+
+
+def resolved_method(pixels: np.ndarray, method: str) -> str:
+    """The method ``segment_vessels`` applies: ``"auto"`` → ``"mask"`` for at most two values, else ``"dsa"``."""
+    if method != "auto":
+        return method
+    pixels = np.asarray(pixels)
+    if pixels.dtype == bool:
+        return "mask"
+    sample = pixels[:: max(1, pixels.shape[0] // 256), :: max(1, pixels.shape[1] // 256)]
+    return "mask" if len(np.unique(sample)) <= 2 and len(np.unique(pixels)) <= 2 else "dsa"
+
+
+def vessel_coverage(
+    pixels: np.ndarray, method: str = "auto", *, min_object_fraction: float = 2e-4, field_name: str = "image",
+) -> np.ndarray:
+    """The registration target ``(H, W)``: float32 vessel coverage in [0, 1] where the method resolves
+    to ``"dsa"`` (sub-pixel borders, :func:`~.dsa_coverage.dsa_vessel_coverage`), else the bool mask
+    of :func:`segment_vessels`, unchanged.
+
+    Raises:
+        DsaregInputError: as :func:`segment_vessels`.
+    """
+    pixels = _checked(pixels, method, field_name)
+    if pixels.dtype == bool or resolved_method(pixels, method) != "dsa" or float(pixels.max()) <= float(pixels.min()):
+        return segment_vessels(pixels, method, min_object_fraction=min_object_fraction, field_name=field_name)
+    from .dsa_coverage import dsa_vessel_coverage
+
+    coverage = dsa_vessel_coverage(_bright_vessels(pixels), max(16, int(min_object_fraction * pixels.size)))
+    _non_empty(coverage >= 0.5, field_name)
+    return coverage
 
 
 def _non_empty(mask: np.ndarray, field_name: str) -> np.ndarray:

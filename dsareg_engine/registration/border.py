@@ -47,7 +47,7 @@ def update_border_shift(mask: np.ndarray, silhouette: np.ndarray, shift_px: floa
     lacks (or the reverse), catheters and speckle away from the model are not border errors.
 
     Args:
-        mask: ``(H, W)`` bool target mask at full resolution.
+        mask: ``(H, W)`` target at full resolution: bool mask, or float coverage in [0, 1].
         silhouette: ``(H, W)`` bool hard silhouette of the model at the current pose, same size.
         shift_px: the shift in use (0 at first).
         signed: :func:`~.targets.signed_border_distance` of ``mask`` (computed when not given).

@@ -26,6 +26,7 @@ from ..mesh import TriangleMesh
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
 from ..pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
+from ..vessel_target import binary_mask, is_coverage
 from .options import RegistrationOptions
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .progress import ProgressPlan
@@ -122,7 +123,10 @@ class _Problem:
         device: torch.device, initial_mesh_to_world: np.ndarray,
     ):
         self.mesh = mesh
-        self.masks = masks
+        self.targets = masks
+        """Per view what the loss fits: a mask (bool) or a vessel coverage map (float in [0, 1])."""
+        self.masks = {name: binary_mask(target) for name, target in masks.items()}
+        """Per view the binary mask (Dice, fit scores)."""
         self.rig = rig
         self.options = options
         self.device = device
@@ -205,7 +209,7 @@ class _Problem:
         key = (view_name, stage.scale, stage.blur_px, dtype, shift)
         if key not in self._targets:
             target = level_target(
-                self.masks[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
+                self.targets[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
                 self.options.thin_vessel_weighting, dtype, shift, self.signed_distance(view_name) if shift else None,
             )
             target.target = target.target.to(self.device)
@@ -215,9 +219,9 @@ class _Problem:
         return self._targets[key]
 
     def signed_distance(self, view_name: str) -> np.ndarray:
-        """The view's mask as a signed border distance (px), computed once."""
+        """The view's target as a signed border distance (px, sub-pixel for a coverage map), computed once."""
         if view_name not in self._signed_distance:
-            self._signed_distance[view_name] = signed_border_distance(self.masks[view_name])
+            self._signed_distance[view_name] = signed_border_distance(self.targets[view_name])
         return self._signed_distance[view_name]
 
     def update_border_shifts(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> None:
@@ -228,7 +232,7 @@ class _Problem:
             pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
             silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
             self.border_shift_px[name] = update_border_shift(
-                self.masks[name], silhouette, self.border_shift_px[name], self.signed_distance(name))
+                self.targets[name], silhouette, self.border_shift_px[name], self.signed_distance(name))
 
     def view_inputs(self, name: str, stage: Stage, dtype: torch.dtype) -> tuple[Camera, torch.Tensor, torch.Tensor | None, int]:
         """The stage's camera, target ``(h, w)`` and weight ``(h, w)`` or None, cut to its window if it has
@@ -366,7 +370,9 @@ def register(
 
     Args:
         mesh: vessel surface, mesh-frame mm.
-        masks: ``{"ap": (H, W) bool, "lat": (H, W) bool}``, each the size of its view.
+        masks: ``{"ap": (H, W), "lat": (H, W)}``, each the size of its view: bool vessel masks, or
+            float vessel coverage in [0, 1] per pixel (sub-pixel borders, e.g. from grey-level DSA,
+            :func:`~dsareg_engine.io.segmentation.vessel_coverage`), fitted as they are.
         rig: view geometry and the initial pose.
         options: see :class:`RegistrationOptions`.
         progress: called with ``{"stage", "iteration", "loss", "fraction"}`` every few iterations.
@@ -397,10 +403,11 @@ def _register(
     initial = rig.initial_mesh_to_world
     if options.initial_mesh_to_world is not None:
         initial = validate_rigid(options.initial_mesh_to_world, field="options.initial_mesh_to_world", allow_mirror=False)
+    targets, masks = masks, {name: binary_mask(target) for name, target in masks.items()}
     searched = _initialize(mesh, masks, rig, options)
     if searched is not None:
         initial = searched.poses[0]
-    problem = _Problem(mesh, masks, rig, options, device, initial)
+    problem = _Problem(mesh, targets, rig, options, device, initial)
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -585,7 +592,9 @@ def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str,
                 f"mask is {masks[name].shape[1]}x{masks[name].shape[0]} px but the geometry says "
                 f"{expected[1]}x{expected[0]}", field=name, accepted="images of the size given in the geometry",
             )
-        if not masks[name].any():
+        if is_coverage(masks[name]) and not (np.all(np.isfinite(masks[name])) and masks[name].min() >= 0.0 and masks[name].max() <= 1.0):
+            raise DsaregInputError("a vessel coverage map must lie in [0, 1]", field=name, accepted="a bool mask or coverage in [0, 1]")
+        if not (masks[name] >= 0.5).any():
             raise DsaregInputError("the vessel mask is empty: nothing to register to", field=name)
 
 
@@ -635,7 +644,7 @@ def _runner_up(problem: _Problem, stage: Stage, poses: np.ndarray) -> dict | Non
 def _confidence(problem, estimate, views, other, outcome, used_views) -> dict:
     world = problem.mesh.vertices @ estimate[:3, :3].T + estimate[:3, 3]
     fitted = {  # Dice against the target actually fitted: the mask with its border moved by the correction
-        name: dice(views[name].silhouette, shifted_mask(problem.masks[name], problem.border_shift_px[name],
+        name: dice(views[name].silhouette, shifted_mask(problem.targets[name], problem.border_shift_px[name],
                                                         problem.signed_distance(name)) >= 0.5)
         for name in used_views
     }

@@ -13,6 +13,7 @@ from scipy import ndimage
 
 from ..geometry import ViewGeometry
 from ..render import Camera
+from ..vessel_target import binary_mask, is_coverage
 
 
 @dataclass
@@ -38,7 +39,7 @@ def level_target(
     mask: np.ndarray, view: ViewGeometry, scale: float, blur_px: float, thin_vessel_weighting: bool, dtype: torch.dtype,
     border_shift_px: float = 0.0, signed: np.ndarray | None = None,
 ) -> ViewTarget:
-    """Resample a full-resolution mask ``(H, W)`` bool to ``scale`` and build the level's target.
+    """Resample a full-resolution mask ``(H, W)`` (bool, or float coverage in [0, 1]) to ``scale`` and build the level's target.
 
     ``border_shift_px`` (full-resolution px) moves the mask's border outward (negative: inward)
     first, see :func:`shifted_mask` (``signed``: the mask's signed border distance, if known).
@@ -75,20 +76,27 @@ def signed_border_distance(mask: np.ndarray) -> np.ndarray:
     """Signed distance (px) from each pixel centre to the mask's border, negative inside: ``(H, W)`` float32.
 
     The border is taken half a pixel beyond the outermost pixel centres, so the pixels just
-    inside read −0.5 and those just outside +0.5. Exact inside the mask's box grown by
-    SIGNED_DISTANCE_REACH_PX (every mask pixel and all background within that reach), +inf beyond.
+    inside read −0.5 and those just outside +0.5. A coverage map (float in [0, 1]) is read
+    as that 1-px ramp: a partly covered pixel c lies ``0.5 − c`` from the border (sub-pixel);
+    the others take the distance of its half-covered binary mask. Exact inside the mask's box
+    grown by SIGNED_DISTANCE_REACH_PX (every mask pixel and all background within that reach),
+    +inf beyond.
     """
+    binary = binary_mask(mask)
     signed = np.full(mask.shape, np.inf, dtype=np.float32)
-    box = mask_box((mask,), SIGNED_DISTANCE_REACH_PX)
+    box = mask_box((binary,), SIGNED_DISTANCE_REACH_PX)
     if box is None:
         return signed
     # In the box the distances are those of the whole image: every mask pixel is in it, and the
     # background pixel nearest a mask pixel is never outside it (clamping it to the box, whose
     # margin is background, comes no farther).
-    pixels = mask[box].astype(np.uint8)
+    pixels = binary[box].astype(np.uint8)
     inside = cv2.distanceTransform(pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     outside = cv2.distanceTransform(1 - pixels, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    signed[box] = np.where(mask[box], 0.5 - inside, outside - 0.5)
+    signed[box] = np.where(binary[box], 0.5 - inside, outside - 0.5)
+    if is_coverage(mask):
+        partial = (mask > 0.0) & (mask < 1.0)
+        signed[partial] = 0.5 - mask[partial]
     return signed
 
 
@@ -97,7 +105,8 @@ def shifted_mask(mask: np.ndarray, shift_px: float, signed: np.ndarray | None = 
 
     Each pixel's coverage is a 1-px linear ramp across the moved border, evaluated at its
     centre's signed distance (``signed``: :func:`signed_border_distance` of the mask, computed
-    when not given). A shift of 0 returns the mask itself; negative shifts move it inward.
+    when not given). A shift of 0 returns the mask itself (a coverage map unchanged); negative
+    shifts move it inward.
     """
     if shift_px == 0.0:
         return mask.astype(np.float32)
