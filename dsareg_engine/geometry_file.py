@@ -51,7 +51,7 @@ class ViewSpec(BaseModel):
     projection_matrix: Matrix | None = Field(None, description="3x4 world mm → pixels, instead of sid/world_to_view")
 
     @model_validator(mode="after")
-    def _one_description(self) -> "ViewSpec":
+    def _one_description(self) -> ViewSpec:
         explicit = self.sid_mm is not None or self.world_to_view is not None
         if self.projection_matrix is not None and explicit:
             raise ValueError("give either projection_matrix or sid_mm + world_to_view, not both")

@@ -52,7 +52,7 @@ class TriangleMesh:
             torch.as_tensor(self.faces, dtype=torch.int64, device=device),
         )
 
-    def transformed(self, transform: np.ndarray) -> "TriangleMesh":
+    def transformed(self, transform: np.ndarray) -> TriangleMesh:
         """The mesh with a 4x4 transform applied to its vertices."""
         vertices = self.vertices @ transform[:3, :3].T + transform[:3, 3]
         return TriangleMesh(vertices, self.faces)

@@ -7,7 +7,7 @@ for a :class:`CaseFiles`) is the single entry point used by the CLI and the HTTP
 
 from .limits import DEFAULT_LIMITS, InputLimits
 
-__all__ = ["DEFAULT_LIMITS", "InputLimits", "load_case", "load_case_files", "Case", "CaseFiles"]
+__all__ = ["DEFAULT_LIMITS", "Case", "CaseFiles", "InputLimits", "load_case", "load_case_files"]
 
 
 def __getattr__(name: str):  # lazy: keep ``import dsareg_engine.io`` cheap

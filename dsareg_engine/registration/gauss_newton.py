@@ -11,7 +11,7 @@ loss is undone and the damping raised.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import cv2
 import numpy as np

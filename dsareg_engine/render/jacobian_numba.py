@@ -19,7 +19,7 @@ from numba import njit, prange
 PARAMETERS = 6
 """K: the kernels are written for the six parameters of a rigid pose increment."""
 
-from .kernels_numba import BANDS_PER_THREAD, gather_face, _band, _face_setup, _near_columns, _pixel_distance, _sigmoid
+from .kernels_numba import BANDS_PER_THREAD, _band, _face_setup, _near_columns, _pixel_distance, _sigmoid, gather_face
 
 
 @njit(inline="always")

@@ -11,7 +11,11 @@ from dsareg_engine.pose import make_transform, rotation_about_axis
 from dsareg_engine.registration.options import parse_options
 from dsareg_engine.registration.parameterization import PoseIncrement, random_start_poses
 from dsareg_engine.registration.schedule import (
-    INTERMEDIATE_TOLERANCE, PLATEAU_TOLERANCE, SWITCH_TOLERANCE, build_schedule, pyramid_scales,
+    INTERMEDIATE_TOLERANCE,
+    PLATEAU_TOLERANCE,
+    SWITCH_TOLERANCE,
+    build_schedule,
+    pyramid_scales,
 )
 from dsareg_engine.registration.targets import thin_vessel_weights
 

@@ -88,3 +88,15 @@ def test_cli_track_from_a_previous_result(phantom, synthetic_case, tmp_path, cap
     assert np.allclose(result["initial_mesh_to_world"], previous)
     assert result["metrics"]["ground_truth"]["add_mm"] < 0.1
     assert result["metrics"]["motion"]["translation_mm"] > 1.0
+
+
+def test_auto_device_tracks_on_the_cpu_where_cuda_would_do_the_full_registration(monkeypatch):
+    """Tracking's Levenberg–Marquardt runs on the CPU kernels (faster than CUDA's Adam + L-BFGS there)."""
+    import torch
+
+    from dsareg_engine.registration import solver
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert solver._resolve_device("auto", "track").type == "cpu"
+    assert solver._resolve_device("auto", "full").type == "cuda"
+    assert solver._resolve_device("cuda", "track").type == "cuda"

@@ -20,8 +20,8 @@ def _loader_present() -> bool:
     return True
 
 
-@pytest.mark.skipif(not _loader_present(), reason="dsareg_engine.io.case not present yet")
-def test_timeout_kills_the_parser_and_the_pool_recovers(tmp_path):
+def _stored_example(tmp_path):
+    """(blob store, stored input records, a validation request) for the example case."""
     case = make_example_case(tmp_path)
     blobs = BlobStore(tmp_path / "data")
     inputs = []
@@ -29,6 +29,12 @@ def test_timeout_kills_the_parser_and_the_pool_recovers(tmp_path):
         digest, size = blobs.put_bytes(data)
         inputs.append(vars(InputFile(role, digest, size, suffix)))
     request = {"inputs": inputs, "geometry": "paper", "segmentation": "auto", "blob_root": str(blobs.root), "limits": {}}
+    return blobs, inputs, request
+
+
+@pytest.mark.skipif(not _loader_present(), reason="dsareg_engine.io.case not present yet")
+def test_timeout_kills_the_parser_and_the_pool_recovers(tmp_path):
+    blobs, inputs, request = _stored_example(tmp_path)
     pool = ValidatorPool(1, timeout_seconds=0.001, memory_mb=4096)
     pool.start()
     try:
@@ -51,13 +57,7 @@ def test_timeout_kills_the_parser_and_the_pool_recovers(tmp_path):
 def test_validator_parses_without_loading_torch(tmp_path):
     """Parsing needs no torch: the validator process never maps libtorch (it did through
     ``dsareg_engine/mesh.py``: ~330 MB warmed-up, ~0.7 GB peak on a large upload)."""
-    case = make_example_case(tmp_path)
-    blobs = BlobStore(tmp_path / "data")
-    inputs = []
-    for role, data, suffix in (("mesh", case.mesh_obj, ".obj"), ("ap", case.ap_png, ".png"), ("lat", case.lat_png, ".png")):
-        digest, size = blobs.put_bytes(data)
-        inputs.append(vars(InputFile(role, digest, size, suffix)))
-    request = {"inputs": inputs, "geometry": "paper", "segmentation": "auto", "blob_root": str(blobs.root), "limits": {}}
+    _, _, request = _stored_example(tmp_path)
     pool = ValidatorPool(1, timeout_seconds=120, memory_mb=4096)
     pool.start()
     try:
