@@ -17,7 +17,9 @@ from service_testkit import Server, make_example_case, needs_engine, submit, wai
 pytestmark = [needs_engine, pytest.mark.slow]
 
 SIZE = 64
-OPTIONS = {"starts": 1, "max_iterations": 10}
+# ~1.3 s per job on one quiet core: a job must still be running when the test looks for one to kill
+# (10 iterations at 64 px end in ~0.1 s once the workers are warmed up, between two progress writes)
+OPTIONS = {"starts": 4, "max_iterations": 300, "coarse_to_fine": False, "working_size_px": 192}
 # ~15 s on one core (the engine's stop rules end small cases early): long enough to act on it mid-run
 LONG_OPTIONS = {"starts": 64, "max_iterations": 5000, "seed": 1, "start_spread_deg": 30, "coarse_to_fine": False,
                 "working_size_px": 256}
