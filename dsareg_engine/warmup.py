@@ -17,7 +17,7 @@ WARM_UP_SIZE_PX = 32
 WARM_UP_ITERATIONS = 2
 
 
-def warm_up_case_files(work_dir: Path, size_px: int = WARM_UP_SIZE_PX) -> dict[str, bytes | str]:
+def phantom_case_files(work_dir: Path, size_px: int = WARM_UP_SIZE_PX) -> dict[str, bytes | str]:
     """The phantom seen by the paper rig shrunk to ``size_px``: ``{"mesh", "ap", "lat"}`` file bytes
     (OBJ, PNG masks) and ``"geometry"`` (JSON text), as a client would upload them."""
     import numpy as np
@@ -52,11 +52,11 @@ def warm_up_job(work_dir: Path) -> dict:
     from .pipeline import run_case
 
     work_dir = Path(work_dir)
-    files = warm_up_case_files(work_dir)
+    files = phantom_case_files(work_dir)
     case_files = CaseFiles(mesh=files["mesh"], mesh_name="mesh.obj", ap=files["ap"], ap_name="ap.png",
                            lat=files["lat"], lat_name="lat.png", geometry=parse_geometry(files["geometry"]))
     return run_case(case_files, {"starts": 1, "max_iterations": WARM_UP_ITERATIONS}, work_dir, label="warm-up",
                     dicom="required")
 
 
-__all__ = ["WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "warm_up_case_files", "warm_up_job"]
+__all__ = ["WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "phantom_case_files", "warm_up_job"]

@@ -28,11 +28,11 @@ def test_service_warm_up_loads_what_the_first_job_would_load(tmp_path):
         from pathlib import Path
         from service.engine_adapter import engine
         from service.worker import warm_up
-        from dsareg_engine.warmup import warm_up_case_files
+        from dsareg_engine.warmup import phantom_case_files
         engine.set_cpu_threads(1)
         warm_up()
         loaded = [m for m in ("torch._dynamo", "matplotlib.backends.backend_agg", "pydicom") if m in sys.modules]
-        files = warm_up_case_files(Path({str(tmp_path)!r}), 48)
+        files = phantom_case_files(Path({str(tmp_path)!r}), 48)
         def cpu():
             r = resource.getrusage(resource.RUSAGE_SELF)
             return r.ru_utime + r.ru_stime

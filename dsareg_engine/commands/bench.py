@@ -27,19 +27,19 @@ def add_parser(subparsers) -> None:
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
     render = which.add_parser("render", help="ms per forward and forward+backward")
-    render.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    _add_mesh(render)
     render.add_argument("--size", type=int, nargs="+", default=[256, 400, 800], help="image sides in px")
     render.add_argument("--sigma", type=float, nargs="+", default=[0.5, 1.0], help="silhouette edge softness in px")
     render.add_argument("--batch", type=int, default=1, help="poses rendered at once")
     render.add_argument("--repeats", type=int, default=20, help="timed runs (the median is printed)")
     render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"], help="rasterizer (default auto)")
     render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
-    render.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="auto: CUDA when available")
+    _add_device(render)
     render.set_defaults(func=bench_render)
     for name, func in (("table1", bench_table1), ("capture", bench_capture)):
         sub = which.add_parser(name, help={"table1": "the paper's Table 1: accuracy per configuration",
                                            "capture": "capture range: success per initial mTRE bin"}[name])
-        sub.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+        _add_mesh(sub)
         sub.add_argument("--starts", type=int, default=20, help="random initial poses (table1) / per bin (capture)")
         sub.add_argument("--seed", type=int, default=0, help="random seed of the initial poses")
         sub.add_argument("--size", type=int, default=800, help="image side in px")
@@ -47,10 +47,10 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
         sub.add_argument("--max-mtre", type=float, default=20.0, help="largest initial mTRE in mm")
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
-        sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
+        _add_device(sub)
         sub.set_defaults(func=func)
     track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
-    track.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    _add_mesh(track)
     track.add_argument("--sequences", type=int, default=5, help="independent motion sequences")
     track.add_argument("--frames", type=int, default=6, help="motions per sequence")
     track.add_argument("--seed", type=int, default=0, help="random seed of the motions")
@@ -60,10 +60,10 @@ def add_parser(subparsers) -> None:
     track.add_argument("--translation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
                        help="per-frame translation range (mm, random direction)")
     track.add_argument("--options", default="{}", help="extra registration options as JSON")
-    track.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
+    _add_device(track)
     track.set_defaults(func=bench_track)
     robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
-    robust.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    _add_mesh(robust)
     robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
     robust.add_argument("--seed", type=int, default=0, help="random seed of the initial poses")
     robust.add_argument("--size", type=int, default=800, help="image side in px")
@@ -79,10 +79,10 @@ def add_parser(subparsers) -> None:
                         help="image formation of the grey-level rows (noise, background, contrast law, blur, bit depth)")
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
-    robust.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: CUDA when available)")
+    _add_device(robust)
     robust.set_defaults(func=bench_robustness)
     auto = which.add_parser("autoinit", help="registration with no initial pose on a clinical-like rig (107°, mirrored LAT)")
-    auto.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+    _add_mesh(auto)
     auto.add_argument("--cases", type=int, default=20, help="random poses (rotation uniform over SO(3))")
     auto.add_argument("--seed", type=int, default=0, help="random seed of the poses")
     auto.add_argument("--size", type=int, default=512, help="image side in px")
@@ -91,6 +91,15 @@ def add_parser(subparsers) -> None:
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
     auto.set_defaults(func=bench_autoinit)
+
+
+def _add_mesh(parser) -> None:
+    parser.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
+
+
+def _add_device(parser) -> None:
+    parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                        help="options.device (auto: CUDA when available; tracking on the CPU)")
 
 
 def _device(requested: str = "auto") -> str:

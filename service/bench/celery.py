@@ -30,7 +30,8 @@ from typing import Any
 
 import httpx
 
-from .load import _make_case
+from dsareg_engine.warmup import phantom_case_files
+
 from .servers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
@@ -138,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         broker = args.broker_url or (redis := RedisServer().start()).url
         database = args.database_url or (postgres := PostgresServer().start()).url
-        case = _make_case(root, args.size)
+        case = phantom_case_files(root, args.size)
         options = f'{{"starts": 1, "max_iterations": {args.iterations}}}'
         overhead: dict[str, tuple[float, float]] = {}
         rows = _celery_rounds(args, root, broker, database, case, options, processes, overhead)

@@ -28,35 +28,9 @@ from typing import Any
 
 import httpx
 
+from dsareg_engine.warmup import phantom_case_files
+
 from .servers import free_port
-
-
-def _make_case(tmp: Path, size: int) -> dict[str, Any]:
-    import io
-
-    import numpy as np
-    import torch
-    from PIL import Image
-
-    from dsareg_engine.geometry_spec import load_rig
-    from dsareg_engine.phantom import make_vessel_phantom
-    from dsareg_engine.render import Camera, render_hard_silhouette
-
-    rig = load_rig("paper")
-    views = {name: view.resized(size, size) for name, view in rig.views.items()}
-    mesh = make_vessel_phantom()
-    mesh.save(tmp / "phantom.obj")
-    images = {}
-    for name, view in views.items():
-        mesh_to_view = torch.as_tensor(view.world_to_view[None], dtype=torch.float32)
-        mask = render_hard_silhouette(*mesh.torch(), mesh_to_view, Camera.from_view(view))[0].numpy()
-        buffer = io.BytesIO()
-        Image.fromarray(mask.astype(np.uint8) * 255).save(buffer, format="PNG")
-        images[name] = buffer.getvalue()
-    geometry = {"views": {n: v.to_dict() for n, v in views.items()},
-                "initial_mesh_to_world": rig.initial_mesh_to_world.tolist()}
-    return {"mesh": (tmp / "phantom.obj").read_bytes(), "ap": images["ap"], "lat": images["lat"],
-            "geometry": json.dumps(geometry)}
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -240,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="dsareg-bench-") as tmp:
         root = Path(tmp)
-        case = _make_case(root, args.size)
+        case = phantom_case_files(root, args.size)
         rows = []
         for workers in [int(w) for w in args.workers.split(",") if w.strip()]:
             row = run_for_workers(workers, case, args, root)
