@@ -15,7 +15,7 @@ from fastapi import FastAPI
 from ..dbblobs import make_blob_store
 from ..executor import Executor
 from ..settings import ServiceSettings
-from ..store import SqlJobStore, store_outage_errors
+from ..store import store_for, store_outage_errors
 from ..validation import ValidatorPool
 from .deps import ServiceContext
 from .metrics import ServiceMetrics
@@ -86,7 +86,7 @@ class Sweeper:
 def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: Executor | None,
                   make_executor: Callable[[ServiceSettings, Any], Executor], start_background: bool) -> ServiceContext:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    store = SqlJobStore(settings.effective_database_url)
+    store = store_for(settings)
     blobs = make_blob_store(settings, store.engine)
     validator = None
     if start_background:
