@@ -424,6 +424,10 @@ class ValidatorPool:
     def alive(self) -> bool:
         return any(s.process is not None and s.process.is_alive() for s in self.slots)
 
+    def spare_ready(self) -> bool:
+        """The spare has warmed up (a validator lost now is replaced without a cold start)."""
+        return self.spare.check_ready()
+
     def stop(self) -> None:
         self._halt.set()
         if self._watchdog.is_alive():

@@ -22,11 +22,14 @@ def healthz() -> Health:
 @router.get("/readyz", response_model=Health, summary="Readiness: store writable, a worker alive",
             responses={503: {"description": "Not ready", "model": Health}})
 def readyz(ctx: Ctx) -> Response:
+    store_ok = ctx.store.ping()
     checks = {
-        "store_writable": ctx.store.ping(),
-        "workers_alive": ctx.executor.alive_workers(),
+        "store_writable": store_ok,
+        # Celery workers are counted in the database: not asked again when it just failed (one deadline, not two)
+        "workers_alive": ctx.executor.alive_workers() if store_ok or ctx.settings.executor == "embedded" else 0,
         "validator_alive": ctx.validator.alive() if ctx.validator else False,
         "validator_ready": ctx.validator.ready() if ctx.validator else False,
+        "validator_spare_ready": ctx.validator.spare_ready() if ctx.validator else False,
     }
     data_ok = Path(ctx.settings.data_dir).is_dir()
     checks["data_dir"] = data_ok
