@@ -1,7 +1,7 @@
-"""Developer tooling, not imported by the running service.
+"""Benchmarks: commands that print numbers, not imported by the service; run them from the repository root.
 
-* ``python -m service.bench.load``: embedded-executor load benchmark (submissions/s, jobs/min).
-* ``python -m service.bench.celery``: the Celery path with 1, 2, 4 workers.
-* :mod:`service.bench.servers`: throw-away local Redis, PostgreSQL and Orthanc servers on free
-  loopback ports (used by the benchmarks, the scale-out and DICOM tests and ``examples/pacs``).
+* ``python -m benchmarks.load``: embedded-executor load benchmark (submissions/s, jobs/min).
+* ``python -m benchmarks.scaleout``: the Celery path with 1, 2, 4 workers.
+
+The throw-away Redis, PostgreSQL and Orthanc servers they start live in :mod:`tests.support.servers`.
 """

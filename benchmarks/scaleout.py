@@ -1,6 +1,6 @@
 """Celery scale-out benchmark on this machine (a command, not a test).
 
-    python -m service.bench.celery [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
+    python -m benchmarks.scaleout [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
 
 Starts a throw-away Redis and PostgreSQL on loopback (or uses ``--broker-url`` /
 ``--database-url``), the API with ``DSAREG_EXECUTOR=celery`` and, for each worker count,
@@ -32,7 +32,7 @@ import httpx
 
 from dsareg_engine.warmup import phantom_case_files
 
-from .servers import free_port
+from tests.support.servers import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -83,7 +83,7 @@ def _submit(client: httpx.Client, case: dict[str, Any], options: str) -> str:
 
 
 POLL_SECONDS = 0.5
-"""Status poll interval, that of ``dsareg submit --wait`` (:meth:`service.client.Client.wait`). The rates
+"""Status poll interval, that of ``dsareg submit --wait`` (:meth:`service.cli.client.Client.wait`). The rates
 are computed from the job table's timestamps, so polling faster only takes CPU from the workers (at
 0.02 s the client and the API answering it used ≈ 0.2 CPU-s per job of the 2 cores)."""
 
@@ -121,7 +121,7 @@ def _sequential(url: str, case: dict[str, Any], options: str, n: int) -> list[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service.bench.celery", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.scaleout", description=__doc__.split("\n\n")[0])
     parser.add_argument("--workers", default="1,2,4", help="Celery worker process counts")
     parser.add_argument("--jobs", type=int, default=12, help="jobs per worker count")
     parser.add_argument("--size", type=int, default=64, help="image size of the phantom case (px)")
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--database-url", help="use this PostgreSQL instead of starting one")
     args = parser.parse_args(argv)
 
-    from .servers import PostgresServer, RedisServer
+    from tests.support.servers import PostgresServer, RedisServer
 
     root = Path(tempfile.mkdtemp(prefix="dsareg-bench-celery-"))
     redis = postgres = None
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
 def _celery_rounds(args: argparse.Namespace, root: Path, broker: str, database: str, case: dict, options: str,
                    processes: list[subprocess.Popen], overhead: dict[str, tuple[float, float]]) -> list[tuple]:
     """One round per worker count: start the workers, submit concurrently, wait; (count, jobs, span, rate)."""
-    from ..store import SqlJobStore
+    from service.storage.store import SqlJobStore
 
     env = {"DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": broker, "DSAREG_DATABASE_URL": database,
            "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LOG_LEVEL": "warning",
@@ -210,7 +210,7 @@ def _round(args: argparse.Namespace, store: Any, url: str, case: dict, options: 
 def _embedded_overhead(args: argparse.Namespace, root: Path, case: dict, options: str,
                        processes: list[subprocess.Popen]) -> tuple[float, float]:
     """Median end-to-end and queued→claimed times of sequential jobs on one embedded worker."""
-    from ..store import SqlJobStore
+    from service.storage.store import SqlJobStore
 
     emb_root = root / "embedded"
     emb_root.mkdir()

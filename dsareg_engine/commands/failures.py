@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import DsaregInputError
 
 if TYPE_CHECKING:
-    from ..geometry_spec import GeometrySpec
+    from ..geometry.spec import GeometrySpec
 
 USAGE = 2
 FAILED = 1
@@ -49,7 +49,7 @@ def input_file(value: str) -> Path:
 
 def geometry_argument(value: str | None, option: str = "--geometry") -> GeometrySpec | None:
     """A preset name, JSON text, or a geometry JSON file, parsed once (``None`` stays ``None``)."""
-    from ..geometry_spec import parse_geometry
+    from ..geometry.spec import parse_geometry
 
     return None if value is None else parse_geometry(value, field=option, files=True)
 
@@ -104,7 +104,7 @@ def _http_error(exc: BaseException) -> tuple[int, str] | None:
         return USAGE, f"--server: {exc} (accepted: a base URL such as http://127.0.0.1:8000)"
     if isinstance(exc, httpx.HTTPError):
         return FAILED, f"HTTP error talking to the server: {exc}"
-    explanation = getattr(exc, "cli_explanation", None)  # e.g. service.client.ServiceError (a contributed command's)
+    explanation = getattr(exc, "cli_explanation", None)  # e.g. service.cli.client.ServiceError (a contributed command's)
     if callable(explanation):
         usage_error, text = explanation()
         return (USAGE if usage_error else FAILED), text

@@ -13,7 +13,7 @@ to the image centre) or a 3x4 ``projection_matrix`` in pixels. Instead of a seco
 view, ``"lat_from_ap": {"angle_deg": 90, "axis_world": [0, 1, 0], "isocentre_world": [0, 0, 0]}``
 turns the AP chain about an axis through the isocentre. Validation errors name the
 field at fault. What a geometry *argument* is (preset, JSON, file) is decided in one place,
-:func:`dsareg_engine.geometry_spec.parse_geometry`, which also writes the canonical stored form.
+:func:`dsareg_engine.geometry.spec.parse_geometry`, which also writes the canonical stored form.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt, ValidationError, model_validator
 
-from .errors import DsaregInputError
-from .geometry import (
+from ..errors import DsaregInputError
+from .rig import (
     Rig,
     ViewGeometry,
     default_principal_point,
@@ -125,7 +125,7 @@ _ACCEPTED = "a JSON object {'views': {'ap': {...}, 'lat': {...}}, 'initial_mesh_
 
 
 def save_rig(rig: Rig, path: str | Path) -> None:
-    """Write ``rig`` as an explicit geometry file (``load_rig`` in :mod:`dsareg_engine.geometry_spec` reads it)."""
+    """Write ``rig`` as an explicit geometry file (``load_rig`` in :mod:`dsareg_engine.geometry.spec` reads it)."""
     Path(path).write_text(json.dumps(rig.to_dict(), indent=2))
 
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import DsaregInputError
+from ..errors import DsaregInputError
 
 if TYPE_CHECKING:  # torch is imported where it is used, so numpy-only users (the API) stay light
     import torch

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DsaregInputError
+from ..errors import DsaregInputError
 from .pose import validate_rigid
 
 

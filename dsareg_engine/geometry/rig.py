@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import DsaregInputError
+from ..errors import DsaregInputError
 from .pose import invert_rigid, make_transform, rotation_about_axis, validate_rigid
 
 VIEW_NAMES = ("ap", "lat")

@@ -3,7 +3,7 @@
 :func:`parse_geometry` is the only place that decides what a geometry argument is: a preset
 name, JSON text (``str`` or UTF-8 ``bytes``), an already-parsed JSON object, or — for the
 command line only (``files=True``) — the path of a JSON file. It returns a
-:class:`GeometrySpec`: the validated :class:`~dsareg_engine.geometry.Rig` and where it came from.
+:class:`GeometrySpec`: the validated :class:`~dsareg_engine.geometry.rig.Rig` and where it came from.
 
 :meth:`GeometrySpec.to_json` writes the canonical form, always the explicit views (a preset, a
 ``projection_matrix`` or ``lat_from_ap`` expanded); the preset name is kept as provenance only::
@@ -30,9 +30,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, PositiveFloat, PositiveInt, ValidationError
 
-from .errors import DsaregInputError
-from .geometry import Rig, ViewGeometry
-from .geometry_file import PRESETS, rig_from_dict
+from ..errors import DsaregInputError
+from .rig import Rig, ViewGeometry
+from .file import PRESETS, rig_from_dict
 
 GEOMETRY_FORMAT = "dsareg.geometry/1"
 """Version tag of the canonical form; the first member of every canonical text."""

@@ -6,7 +6,7 @@ left-handed, det −1), a different source–detector distance per plane, the is
 the image centre. Each view here is built as: an AP chain (source at world
 ``(0, 0, −sod)``, central ray along world +z, image columns along world +x, rows along
 +y), turned by its angle about world +y through the isocentre (the world origin) with
-:func:`~dsareg_engine.geometry.rotated_view`, then optionally mirrored in ``u``.
+:func:`~dsareg_engine.geometry.rig.rotated_view`, then optionally mirrored in ``u``.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import Rig, ViewGeometry, rotated_view
-from .mesh import TriangleMesh
+from ..geometry.rig import Rig, ViewGeometry, rotated_view
+from ..mesh import TriangleMesh
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ def clinical_biplane_rig(size_px: int = 256, angle_between_deg: float = 107.0, d
 
 def uniform_rotation(rng: np.random.Generator) -> np.ndarray:
     """A rotation ``(3, 3)`` drawn uniformly over SO(3) (normalized Gaussian quaternion)."""
-    from .registration.rotation_grid import quaternions_to_matrices
+    from ..registration.rotation_grid import quaternions_to_matrices
 
     quaternion = rng.normal(size=4)
     return quaternions_to_matrices((quaternion / np.linalg.norm(quaternion))[None])[0]
@@ -100,7 +100,7 @@ def render_masks(mesh: TriangleMesh, rig: Rig, mesh_to_world: np.ndarray) -> dic
     """Hard silhouettes ``{view: (H, W) bool}`` of the mesh at ``mesh_to_world``."""
     import torch
 
-    from .render import Camera, render_hard_silhouette
+    from ..render import Camera, render_hard_silhouette
 
     vertices, faces = mesh.torch(torch.float64)
     return {

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mesh import TriangleMesh
+from ..mesh import TriangleMesh
 
 
 def make_vessel_phantom(

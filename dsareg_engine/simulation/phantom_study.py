@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io.dicom_out import new_uid
+from ..io.dicom_out import new_uid
 
 XA_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.12.1"
 CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"
@@ -50,7 +50,7 @@ def _to_bytes(ds) -> bytes:
 
 
 def _dataset(sop_class: str, study_uid: str, series_uid: str, modality: str, series_number: int, number: int):
-    from .io.dicom_out import new_instance
+    from ..io.dicom_out import new_instance
 
     ds = new_instance(sop_class, new_uid(), charset="ISO_IR 100")
     ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = PATIENT_NAME, PATIENT_ID, "", "O"
@@ -137,11 +137,11 @@ def make_biplane_study(
     """
     import torch
 
-    from .io.dicom_xa import view_from_angles
-    from .io.volume_io import read_volume, volume_to_mesh
+    from ..io.dicom_xa import view_from_angles
+    from ..io.volume_io import read_volume, volume_to_mesh
     from .phantom import make_vessel_phantom
-    from .pose import make_transform
-    from .render import Camera, render_hard_silhouette
+    from ..geometry.pose import make_transform
+    from ..render import Camera, render_hard_silhouette
 
     if mesh_to_world is None:
         axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])

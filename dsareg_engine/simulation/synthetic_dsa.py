@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .geometry import Rig, ViewGeometry
-from .mesh import TriangleMesh
+from ..geometry.rig import Rig, ViewGeometry
+from ..mesh import TriangleMesh
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 
 SEGMENTATION_METHODS = ("auto", "dsa", "otsu", "vesselness", "mask")
 

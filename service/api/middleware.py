@@ -7,7 +7,7 @@ import logging
 import time
 from typing import Any
 
-from .problems import PROBLEM_MEDIA_TYPE, problem_body
+from ..problems import PROBLEM_MEDIA_TYPE, problem_body
 
 log = logging.getLogger("dsareg.service.http")
 

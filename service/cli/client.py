@@ -27,7 +27,7 @@ class ServiceError(Exception):
         super().__init__(message)
 
     def cli_explanation(self) -> tuple[bool, str]:
-        """For the command line (:func:`dsareg_engine.commands.errors.explain`): (the caller's fault?, one line)."""
+        """For the command line (:func:`dsareg_engine.commands.failures.explain`): (the caller's fault?, one line)."""
         text = str(self)
         if self.problem.get("accepted"):
             text += f" (accepted: {self.problem['accepted']})"

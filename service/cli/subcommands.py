@@ -58,7 +58,7 @@ def _add_worker(subparsers: Any) -> None:
 
 
 def _add_submit(subparsers: Any) -> None:
-    from .engine_adapter import engine
+    from ..engine_adapter import engine
 
     input_file, options_help = engine.input_file, engine.options_help
 
@@ -97,8 +97,8 @@ def _add_submit(subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from .app import create_app
-    from .settings import load_settings
+    from ..app import create_app
+    from ..settings import load_settings
 
     settings = load_settings(
         args.config, host=args.host, port=args.port, data_dir=args.data_dir, database_url=args.database_url,
@@ -116,7 +116,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
 
 def run_worker(args: argparse.Namespace) -> int:
-    from .settings import load_settings
+    from ..settings import load_settings
 
     settings = load_settings(
         args.config, data_dir=args.data_dir, database_url=args.database_url, broker_url=args.broker_url,
@@ -125,12 +125,12 @@ def run_worker(args: argparse.Namespace) -> int:
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     if args.engine == "celery":
-        from .celery_worker import run_worker as run_celery_worker
+        from ..jobs.celery.worker import run_worker as run_celery_worker
 
         run_celery_worker(settings, pool=args.pool, hostname=args.hostname)
         return 0
-    from .store import SqlJobStore
-    from .worker import worker_main
+    from ..storage.store import SqlJobStore
+    from ..jobs.worker import worker_main
 
     SqlJobStore(settings.effective_database_url).dispose()  # create the schema if this is the first process
     worker_main(settings, 0)
@@ -164,7 +164,7 @@ def run_submit(args: argparse.Namespace) -> int:
     import os
 
     from .client import RegistrationClient
-    from .engine_adapter import engine
+    from ..engine_adapter import engine
 
     CommandFailed, DsaregInputError = engine.CommandFailed, engine.DsaregInputError
     geometry_argument, json_argument, load_pose = engine.geometry_argument, engine.json_argument, engine.load_pose

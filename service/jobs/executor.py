@@ -17,7 +17,7 @@ import time
 from typing import Any
 
 from .procwatch import WakeLink
-from .settings import ServiceSettings
+from ..settings import ServiceSettings
 from .worker import worker_main
 
 log = logging.getLogger("dsareg.service.executor")
@@ -75,7 +75,7 @@ class NoExecutor(Executor):
 class EmbeddedProcessExecutor(Executor):
     """N worker processes (``spawn`` context) supervised by a thread of the server.
 
-    Each worker has its own :class:`~service.procwatch.WakeLink` pipe (wake-up bytes; closing
+    Each worker has its own :class:`~service.jobs.procwatch.WakeLink` pipe (wake-up bytes; closing
     it stops the worker) instead of process-shared events, whose internal lock a SIGKILLed
     worker could leave held and so block every later notify."""
 

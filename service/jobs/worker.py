@@ -6,7 +6,7 @@ write every output, warnings joined there) → the artifacts and the result into
 (STOW-RS first for a job by reference that asked for it).
 
 Runs in its own process (started by an executor with the ``spawn`` context). See
-:mod:`service.store` for the lease protocol. A background thread renews the lease
+:mod:`service.storage.store` for the lease protocol. A background thread renews the lease
 every ``heartbeat`` seconds even when the engine reports no progress (loading,
 writing), and reads the job's ``cancel_requested`` flag; the engine's
 ``should_stop`` callback then answers from memory.
@@ -23,13 +23,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .blobs import BlobStore
-from .dicom_jobs import pacs_job, pacs_problem
-from .dicomweb import PacsError
-from .engine_adapter import collect_artifacts, engine, run_job, stored_case_files
-from .problems import TYPE_BASE
-from .settings import ServiceSettings
-from .store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
+from ..storage.blobs import BlobStore
+from ..pacs.dicom_jobs import pacs_job, pacs_problem
+from ..pacs.dicomweb import PacsError
+from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
+from ..problems import TYPE_BASE
+from ..settings import ServiceSettings
+from ..storage.store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
 
 log = logging.getLogger("dsareg.service.worker")
 
@@ -115,7 +115,7 @@ def _problem(job_id: str, status: int, kind: str, title: str, detail: str, **ext
 
 
 def is_store_outage(exc: BaseException) -> bool:
-    """The job database is unreachable or busy (see :func:`service.store.store_outage_errors`)."""
+    """The job database is unreachable or busy (see :func:`service.storage.store.store_outage_errors`)."""
     return isinstance(exc, store_outage_errors())
 
 
@@ -273,7 +273,7 @@ def warm_up() -> None:
 def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
     """Entry point of a worker process.
 
-    ``link``: the read end of the server's :class:`~service.procwatch.WakeLink` (None for a
+    ``link``: the read end of the server's :class:`~service.jobs.procwatch.WakeLink` (None for a
     standalone ``dsareg worker --engine embedded``); its end-of-file, SIGTERM, or the death of
     ``parent_pid`` stop the worker (a running job is handed back to the queue).
     """
@@ -300,7 +300,7 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
 def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
     """Claim and run jobs until stopped; idle, wait for a wake-up or ``poll_seconds``."""
     store = SqlJobStore(settings.effective_database_url, create_schema=False)
-    from .dbblobs import make_blob_store
+    from ..storage.dbblobs import make_blob_store
 
     blobs = make_blob_store(settings, store.engine, cache=False)
     worker_id = make_worker_id(index)

@@ -22,9 +22,9 @@ from .dicomweb import (
     parse_reference,
     resolve_server,
 )
-from .engine_adapter import engine, fetched_case_files
-from .settings import ServiceSettings
-from .store import JobRecord
+from ..engine_adapter import engine, fetched_case_files
+from ..settings import ServiceSettings
+from ..storage.store import JobRecord
 
 REFERENCE_ROLE = "dicomweb"
 STORED_FILES = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))

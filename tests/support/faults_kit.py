@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import httpx
-from service_testkit import ExampleCase, submit
+from tests.support.service_testkit import ExampleCase, submit
 
 NEXT_POST_SECONDS = 1.0
 FINAL = ("succeeded", "failed", "canceled")

@@ -1,4 +1,4 @@
-"""Real Redis / PostgreSQL (service.bench.servers) and Celery worker processes for the scale-out tests.
+"""Real Redis / PostgreSQL (tests.support.servers) and Celery worker processes for the scale-out tests.
 
 Environment overrides for CI machines that provide their own servers:
 ``DSAREG_TEST_REDIS_URL``, ``DSAREG_TEST_DATABASE_URL`` (tests that restart Redis then skip).
@@ -12,9 +12,9 @@ import sys
 import time
 from pathlib import Path
 
-from service_testkit import LoggedProcess, Server
+from tests.support.service_testkit import LoggedProcess, Server
 
-from service.bench.servers import PostgresServer, RedisServer, free_port  # noqa: F401 - re-exported
+from tests.support.servers import PostgresServer, RedisServer, free_port  # noqa: F401 - re-exported
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -46,7 +46,7 @@ class CeleryWorker(LoggedProcess):
 
 
 def pid_of_worker_id(worker_id: str) -> int:
-    """``<host>-<pid>-w<index>-<token>`` (see service.worker.make_worker_id)."""
+    """``<host>-<pid>-w<index>-<token>`` (see service.jobs.worker.make_worker_id)."""
     return int(worker_id.rsplit("-", 3)[1])
 
 
@@ -55,7 +55,7 @@ class CeleryTopology:
     ``redis`` and ``postgres`` (blobs in the database, short leases so faults show quickly)."""
 
     def __init__(self, root: Path, redis, postgres):
-        from service.store import SqlJobStore
+        from service.storage.store import SqlJobStore
 
         self.root, self.redis, self.postgres = root, redis, postgres
         self.env = {

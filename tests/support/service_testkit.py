@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from dsareg_engine.metrics import dice  # noqa: F401 - re-exported to the tests
-from service.bench.servers import free_port
+from tests.support.servers import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 CASE_SIZE = 128
@@ -68,7 +68,7 @@ def render_mask(vertices: np.ndarray, faces: np.ndarray, view, mesh_to_world: np
 
 
 def small_views(size: int = CASE_SIZE) -> dict:
-    from dsareg_engine.geometry_spec import load_rig
+    from dsareg_engine.geometry.spec import load_rig
 
     rig = load_rig("paper")
     return {name: view.resized(size, size) for name, view in rig.views.items()}, rig
@@ -76,7 +76,7 @@ def small_views(size: int = CASE_SIZE) -> dict:
 
 def make_example_case(tmp: Path, size: int = CASE_SIZE) -> ExampleCase:
     """The phantom seen by the paper rig shrunk to ``size`` px; the true pose is the identity."""
-    from dsareg_engine.phantom import make_vessel_phantom
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
 
     views, rig = small_views(size)
     mesh = make_vessel_phantom()

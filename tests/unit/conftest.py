@@ -13,7 +13,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 
 XA_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.12.1"
 CT_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.2"

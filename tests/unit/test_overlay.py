@@ -69,9 +69,9 @@ def test_animation_starts_at_the_initial_contour_and_has_stage_labels(tmp_path):
     import torch
     from PIL import Image
 
-    from dsareg_engine.geometry import Rig
-    from dsareg_engine.geometry_spec import load_rig
-    from dsareg_engine.phantom import make_vessel_phantom
+    from dsareg_engine.geometry.rig import Rig
+    from dsareg_engine.geometry.spec import load_rig
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
     from dsareg_engine.pipeline import animation_frames, write_outputs
     from dsareg_engine.registration import register
     from dsareg_engine.registration.options import RegistrationOptions

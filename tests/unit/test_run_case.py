@@ -5,9 +5,9 @@ import json
 import pytest
 import trimesh
 
-from dsareg_engine.geometry_spec import parse_geometry
+from dsareg_engine.geometry.spec import parse_geometry
 from dsareg_engine.io.case import CaseFiles
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 from dsareg_engine.pipeline import RegistrationCanceled, run_case
 
 QUICK = {"starts": 1, "max_iterations": 5}

@@ -9,7 +9,7 @@ from pathlib import Path
 from dsareg_engine.artifacts import REGISTRATION_FILES
 from dsareg_engine.warmup import warm_up_job
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_warm_up_job_writes_what_a_job_writes(tmp_path):
@@ -27,7 +27,7 @@ def test_service_warm_up_loads_what_the_first_job_would_load(tmp_path):
         import json, resource, sys
         from pathlib import Path
         from service.engine_adapter import engine
-        from service.worker import warm_up
+        from service.jobs.worker import warm_up
         from dsareg_engine.warmup import phantom_case_files
         engine.set_cpu_threads(1)
         warm_up()

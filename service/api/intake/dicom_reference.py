@@ -2,10 +2,10 @@
 
 * ``POST /v1/registrations`` with ``Content-Type: application/json`` and a body
   ``{"source": {"dicomweb": {...}}, "options": {...}, "store_results": true}``
-  (see :class:`service.dicomweb.DicomwebRegistrationRequest`). The reference is checked
+  (see :class:`service.pacs.dicomweb.DicomwebRegistrationRequest`). The reference is checked
   (UID syntax, the URL is one of ``settings.dicomweb_servers``, options) and stored as the
-  job's only input; the worker fetches the images (``service/dicom_jobs.py``).
-  The DICOM results are served by :mod:`service.api.artifacts`.
+  job's only input; the worker fetches the images (``service/pacs/dicom_jobs.py``).
+  The DICOM results are served by :mod:`service.api.routes.artifacts`.
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ from fastapi import FastAPI, Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from ..dicomweb import DicomwebRegistrationRequest, resolve_server
-from ..limits import parse_json_part
-from ..problems import Problem
-from ..store import InputFile
-from .deps import ServiceContext
+from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
+from ...budgets import parse_json_part
+from ...problems import Problem
+from ...storage.store import InputFile
+from ..deps import ServiceContext
 from .submission import accepted, check_queue, create_job, find_replay, fingerprint, new_job, parse_options_json
 
 log = logging.getLogger("dsareg.service")

@@ -1,7 +1,7 @@
 """A multipart submission → a queued job: parse the form, store the uploads, validate, enqueue.
 
 The steps (idempotency, back-pressure, create, replay) are shared with the DICOMweb reference
-submission (:mod:`service.api.dicom_reference`) and motion tracking (:mod:`service.api.tracking`).
+submission (:mod:`service.api.intake.dicom_reference`) and motion tracking (:mod:`service.api.routes.tracking`).
 """
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
-from ..blobs import safe_suffix
-from ..engine_adapter import check_options, engine, submitted_geometry
-from ..limits import check_job_cost, parse_json_part
-from ..models import status_body
-from ..problems import Problem
-from ..store import ConflictError, InputFile, JobRecord, new_job_id
-from .deps import ANONYMOUS, ServiceContext
+from ...storage.blobs import safe_suffix
+from ...engine_adapter import check_options, engine, submitted_geometry
+from ...budgets import check_job_cost, parse_json_part
+from ..schemas.jobs import status_body
+from ...problems import Problem
+from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
+from ..deps import ANONYMOUS, ServiceContext
 
 log = logging.getLogger("dsareg.service")
 

@@ -55,7 +55,7 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
     """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
     import signal
 
-    from .procwatch import die_with_parent
+    from ...jobs.procwatch import die_with_parent
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
@@ -65,16 +65,16 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
     # its thread pool reads this at start-up
     os.environ["OMP_NUM_THREADS"] = str(max(1, threads or 1))
     try:
-        from .engine_adapter import engine
+        from ...engine_adapter import engine
 
         engine.preload_case_loading()
         engine.warm_up_parsers()
     except Exception:  # noqa: BLE001
         engine_ok = False
     _set_memory_limit(memory_mb)
-    from .blobs import BlobStore
-    from .engine_adapter import case_summary, engine, load_job_case
-    from .store import InputFile
+    from ...storage.blobs import BlobStore
+    from ...engine_adapter import case_summary, engine, load_job_case
+    from ...storage.store import InputFile
 
     conn.send({"ready": True, "engine": engine_ok})
     while True:
@@ -112,8 +112,8 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
 
 def _largest_input(request: dict) -> str | None:
     """The input that most likely exhausted the memory limit: the largest decoded image, else the largest file."""
-    from .blobs import BlobStore
-    from .limits import image_decoded_bytes
+    from ...storage.blobs import BlobStore
+    from ...budgets import image_decoded_bytes
 
     blobs = BlobStore(request["blob_root"])
     best, best_size = None, -1

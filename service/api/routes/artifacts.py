@@ -6,11 +6,11 @@ from typing import Literal
 
 from fastapi.responses import FileResponse, JSONResponse, Response
 
-from ..engine_adapter import engine
-from ..problems import Problem, problem_responses
-from ..store import JobRecord
-from .deps import Ctx, OwnedJob, Principal, ServiceContext, owned_job
-from .openapi import resource_router
+from ...engine_adapter import engine
+from ...problems import Problem, problem_responses
+from ...storage.store import JobRecord
+from ..deps import Ctx, OwnedJob, Principal, ServiceContext, owned_job
+from ..openapi import resource_router
 
 router = resource_router("results")
 

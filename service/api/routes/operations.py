@@ -7,9 +7,9 @@ from pathlib import Path
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ..models import Health
-from .deps import Ctx
-from .openapi import resource_router
+from ..schemas.jobs import Health
+from ..deps import Ctx
+from ..openapi import resource_router
 
 router = resource_router("operations")
 

@@ -7,12 +7,12 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from ..models import JobList, JobStatus, status_body, summary_body
-from ..problems import Problem, problem_responses
-from ..store import STATUSES, decode_cursor
-from .deps import Ctx, OwnedJob, Principal
-from .openapi import resource_router
-from .submission import MAX_OPTIONS_BYTES, MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+from ..schemas.jobs import JobList, JobStatus, status_body, summary_body
+from ...problems import Problem, problem_responses
+from ...storage.store import STATUSES, decode_cursor
+from ..deps import Ctx, OwnedJob, Principal
+from ..openapi import resource_router
+from ..intake.submission import MAX_OPTIONS_BYTES, MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
 
 log = logging.getLogger("dsareg.service")
 
@@ -68,7 +68,7 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
     key = idempotency_key(request)
     content_type = request.headers.get("content-type", "")
     if content_type.lower().startswith("application/json"):  # inputs by DICOMweb reference
-        from .dicom_reference import submit_by_reference
+        from ..intake.dicom_reference import submit_by_reference
 
         return await submit_by_reference(ctx, request, who, key)
     if not content_type.lower().startswith("multipart/form-data"):

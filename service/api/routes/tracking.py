@@ -17,14 +17,14 @@ from fastapi import Request
 from fastapi.responses import Response
 from starlette.datastructures import FormData, UploadFile
 
-from ..engine_adapter import canonical_geometry
-from ..limits import parse_json_part
-from ..models import JobStatus
-from ..problems import Problem, problem_responses
-from ..store import JobRecord
-from .deps import Ctx, OwnedJob, Principal, ServiceContext
-from .openapi import resource_router
-from .submission import MAX_OPTIONS_BYTES, form_files, idempotency_key, parse_options_json, submit_files
+from ...engine_adapter import canonical_geometry
+from ...budgets import parse_json_part
+from ..schemas.jobs import JobStatus
+from ...problems import Problem, problem_responses
+from ...storage.store import JobRecord
+from ..deps import Ctx, OwnedJob, Principal, ServiceContext
+from ..openapi import resource_router
+from ..intake.submission import MAX_OPTIONS_BYTES, form_files, idempotency_key, parse_options_json, submit_files
 
 router = resource_router("registrations")
 

@@ -7,9 +7,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from .engine_adapter import engine
-from .problems import ProblemDetails
-from .store import JobRecord
+from ...engine_adapter import engine
+from ...problems import ProblemDetails
+from ...storage.store import JobRecord
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
 

@@ -167,7 +167,7 @@ def _components(*models: type[BaseModel]) -> dict[str, Any]:
 
 
 def options_model() -> type[BaseModel]:
-    from .engine_adapter import engine
+    from ...engine_adapter import engine
 
     return engine.RegistrationOptions
 
@@ -210,7 +210,7 @@ def multipart_schema(presets: list[str]) -> dict[str, Any]:
 
 def document(schema: dict[str, Any]) -> dict[str, Any]:
     """Add the payload schemas to an OpenAPI document (in place; returned for convenience)."""
-    from .engine_adapter import engine
+    from ...engine_adapter import engine
 
     PRESETS = engine.PRESETS
 

@@ -1,5 +1,5 @@
-"""The Celery app shared by the API side (:mod:`service.celery_executor`) and the worker side
-(:mod:`service.celery_worker`): the task name and the Celery settings. See the executor's module
+"""The Celery app shared by the API side (:mod:`service.jobs.celery.executor`) and the worker side
+(:mod:`service.jobs.celery.worker`): the task name and the Celery settings. See the executor's module
 docstring for how messages, leases and the job table fit together.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from .settings import ServiceSettings
+from ...settings import ServiceSettings
 
 TASK_NAME = "dsareg.run_job"
 

@@ -1,5 +1,5 @@
 """Celery worker side: ``dsareg worker --engine celery`` runs :func:`run_worker`; each task claims
-its job through the store's lease protocol and runs it with :func:`service.worker.run_one`.
+its job through the store's lease protocol and runs it with :func:`service.jobs.worker.run_one`.
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from .celery_app import TASK_NAME, make_celery
-from .engine_adapter import engine
-from .settings import ServiceSettings
+from .app import TASK_NAME, make_celery
+from ...engine_adapter import engine
+from ...settings import ServiceSettings
 
 log = logging.getLogger("dsareg.service.celery")
 
@@ -21,9 +21,9 @@ class _WorkerState:
     """What one Celery worker process keeps between tasks."""
 
     def __init__(self, settings: ServiceSettings):
-        from .dbblobs import make_blob_store
-        from .store import SqlJobStore
-        from .worker import make_worker_id
+        from ...storage.dbblobs import make_blob_store
+        from ...storage.store import SqlJobStore
+        from ..worker import make_worker_id
 
         self.settings = settings
         self.store = SqlJobStore(settings.effective_database_url, create_schema=False)
@@ -76,7 +76,7 @@ def apply_thread_budget(settings: ServiceSettings) -> int:
 def _run_job_task(self: Any, job_id: str) -> str:
     from sqlalchemy.exc import DBAPIError, OperationalError
 
-    from .worker import run_one
+    from ..worker import run_one
 
     settings: ServiceSettings = self.app.dsareg_settings
     state = _state(settings)
@@ -121,7 +121,7 @@ def run_worker(settings: ServiceSettings, *, pool: str = "threads", hostname: st
         log.warning("could not set the worker's CPU threads")
     from celery import signals
 
-    from .worker import warm_up
+    from ..worker import warm_up
 
     warm_up()
     app = make_celery(settings, _run_job_task)

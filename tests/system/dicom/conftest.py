@@ -28,6 +28,6 @@ def dciodvfy():
 @pytest.fixture(scope="session")
 def study():
     """The project's synthetic biplane study (phantom; no patient data) at a known pose."""
-    from dsareg_engine.phantom_study import make_biplane_study
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
 
     return make_biplane_study(image_px=160, pixel_spacing_mm=0.9, depth=2)

@@ -17,7 +17,7 @@ from dsareg_engine.io.dicom_out import (
     read_sources,
     write_dicom_outputs,
 )
-from dsareg_engine.pose import make_transform
+from dsareg_engine.geometry.pose import make_transform
 
 
 def _random_rigid(seed: int) -> np.ndarray:

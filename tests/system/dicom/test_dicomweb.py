@@ -1,7 +1,7 @@
 """DICOMweb in / DICOM out through the service, against a real PACS (Orthanc + DICOMweb plugin).
 
 Orthanc runs on a free loopback port with a temporary storage directory and its own config
-(``service.bench.servers.OrthancServer``); without the Debian packages orthanc and
+(``tests.support.servers.OrthancServer``); without the Debian packages orthanc and
 orthanc-dicomweb these tests skip.
 """
 
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import io
 import json
-import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -20,13 +19,11 @@ import numpy as np
 import pydicom
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
-
-from service_testkit import Server, wait_for
+from tests.support.service_testkit import Server, wait_for
 
 from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
-from service.bench.servers import OrthancServer, free_port
-from service.dicomweb import DicomwebClient, PacsServer
+from tests.support.servers import OrthancServer, free_port
+from service.pacs.dicomweb import DicomwebClient, PacsServer
 
 OPTIONS = {"starts": 1}
 
@@ -241,7 +238,7 @@ def test_pacs_errors_fail_the_job_with_a_clear_reason(service, orthanc, stub, up
 
 
 def example_lua(dsareg_url: str, dicomweb_url: str, options: str = "{ starts = 1 }") -> str:
-    text = (Path(__file__).resolve().parents[2] / "examples" / "pacs" / "orthanc_trigger.lua").read_text()
+    text = (Path(__file__).resolve().parents[3] / "examples" / "pacs" / "orthanc_trigger.lua").read_text()
     for name, value in (("DSAREG", f'"{dsareg_url}"'), ("PACS_DICOMWEB", f'"{dicomweb_url}"'), ("OPTIONS", options)):
         lines = [line for line in text.splitlines() if line.startswith(f"local {name} = ")]
         assert len(lines) == 1, name

@@ -9,7 +9,7 @@ import httpx
 import pytest
 from pydantic import ValidationError
 
-from service.dicomweb import DicomwebClient, DicomwebRegistrationRequest, PacsError, PacsServer, configured_servers
+from service.pacs.dicomweb import DicomwebClient, DicomwebRegistrationRequest, PacsError, PacsServer, configured_servers
 
 
 def client(handler, **kwargs) -> DicomwebClient:

@@ -2,18 +2,11 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import pytest
 
-HERE = Path(__file__).resolve().parent
-for extra in (HERE, HERE.parent / "service", HERE.parent / "scaleout"):  # faults_kit, service_testkit, scaleout_kit
-    if str(extra) not in sys.path:
-        sys.path.insert(0, str(extra))
-
-from scaleout_kit import PostgresServer, RedisServer
-from service_testkit import make_example_case
+from tests.support.scaleout_kit import PostgresServer, RedisServer
+from tests.support.service_testkit import make_example_case
 
 CASE_SIZE = 64
 SLOW_CASE_SIZE = 256

@@ -9,9 +9,9 @@ import signal
 import time
 
 import pytest
-from faults_kit import NEXT_POST_SECONDS, descendants, settle, tally, timed_post, wait_gone
-from scaleout_kit import CeleryTopology, pid_of_worker_id
-from service_testkit import needs_engine, submit, wait_for
+from tests.support.faults_kit import NEXT_POST_SECONDS, descendants, settle, tally, timed_post, wait_gone
+from tests.support.scaleout_kit import CeleryTopology, pid_of_worker_id
+from tests.support.service_testkit import needs_engine, submit, wait_for
 
 pytestmark = [needs_engine, pytest.mark.slow]
 

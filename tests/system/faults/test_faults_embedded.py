@@ -12,7 +12,7 @@ import sqlite3
 import time
 
 import pytest
-from faults_kit import (
+from tests.support.faults_kit import (
     MULTIPART_START,
     NEXT_POST_SECONDS,
     descendants,
@@ -23,7 +23,7 @@ from faults_kit import (
     timed_post,
     wait_gone,
 )
-from service_testkit import Server, needs_engine, submit, wait_for
+from tests.support.service_testkit import Server, needs_engine, submit, wait_for
 
 pytestmark = [needs_engine, pytest.mark.slow]
 

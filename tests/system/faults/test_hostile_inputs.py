@@ -10,8 +10,8 @@ import zlib
 from pathlib import Path
 
 import pytest
-from faults_kit import descendants, raw_connection
-from service_testkit import Server, needs_engine
+from tests.support.faults_kit import descendants, raw_connection
+from tests.support.service_testkit import Server, needs_engine
 
 pytestmark = [needs_engine, pytest.mark.slow]
 

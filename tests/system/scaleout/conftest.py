@@ -1,17 +1,10 @@
 from __future__ import annotations
 
 import os
-import sys
-from pathlib import Path
 
 import pytest
 
-HERE = Path(__file__).resolve().parent
-for extra in (HERE, HERE.parent / "service"):  # scaleout_kit, service_testkit
-    if str(extra) not in sys.path:
-        sys.path.insert(0, str(extra))
-
-from scaleout_kit import PostgresServer, RedisServer
+from tests.support.scaleout_kit import PostgresServer, RedisServer
 
 try:
     import celery  # noqa: F401

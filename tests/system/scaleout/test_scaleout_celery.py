@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 import pytest
-from scaleout_kit import CeleryTopology, RedisServer, pid_of_worker_id
-from service_testkit import Server, make_example_case, needs_engine, submit, wait_for
+from tests.support.scaleout_kit import CeleryTopology, RedisServer, pid_of_worker_id
+from tests.support.service_testkit import Server, make_example_case, needs_engine, submit, wait_for
 
 pytestmark = [needs_engine, pytest.mark.slow]
 

@@ -8,7 +8,7 @@ import time
 import pytest
 import sqlalchemy as sa
 
-from service.dbblobs import DatabaseBlobStore, make_blob_store
+from service.storage.dbblobs import DatabaseBlobStore, make_blob_store
 from service.settings import ServiceSettings
 
 
@@ -49,7 +49,7 @@ def test_settings_for_scale_out(tmp_path, monkeypatch):
 
 def test_celery_reliability_settings():
     pytest.importorskip("celery")
-    from service.celery_app import celery_config
+    from service.jobs.celery.app import celery_config
 
     conf = celery_config(ServiceSettings(executor="celery", job_timeout_seconds=600))
     assert conf["task_acks_late"] and conf["task_reject_on_worker_lost"]

@@ -1,7 +1,7 @@
 from __future__ import annotations
 
 import pytest
-from service_testkit import Server, make_example_case
+from tests.support.service_testkit import Server, make_example_case
 
 
 @pytest.fixture(scope="session")

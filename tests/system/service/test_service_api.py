@@ -8,7 +8,7 @@ import json
 import httpx
 import numpy as np
 import pytest
-from service_testkit import CASE_SIZE, FAST_OPTIONS, dice, needs_engine, render_mask, small_views, submit, wait_for
+from tests.support.service_testkit import CASE_SIZE, FAST_OPTIONS, dice, needs_engine, render_mask, small_views, submit, wait_for
 
 PROBLEM = "application/problem+json"
 
@@ -238,7 +238,7 @@ def test_python_client_and_submit_command(server, example_case, tmp_path):
     import subprocess
     import sys
 
-    from service.client import RegistrationClient, ServiceError
+    from service.cli.client import RegistrationClient, ServiceError
 
     (tmp_path / "m.obj").write_bytes(example_case.mesh_obj)
     (tmp_path / "ap.png").write_bytes(example_case.ap_png)

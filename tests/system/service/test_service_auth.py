@@ -6,7 +6,7 @@ import hashlib
 import json
 import time
 
-from service_testkit import Server, submit
+from tests.support.service_testkit import Server, submit
 
 
 def test_api_keys_required_and_scoped(tmp_path, example_case):

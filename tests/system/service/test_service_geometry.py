@@ -6,9 +6,9 @@ import json
 import sqlite3
 
 import numpy as np
-from service_testkit import FAST_OPTIONS, Server, needs_engine, submit, wait_for
+from tests.support.service_testkit import FAST_OPTIONS, Server, needs_engine, submit, wait_for
 
-from dsareg_engine.geometry_spec import CANONICAL_PREFIX, GeometrySpec, parse_geometry
+from dsareg_engine.geometry.spec import CANONICAL_PREFIX, GeometrySpec, parse_geometry
 from service.engine_adapter import canonical_geometry, job_geometry
 
 

@@ -7,7 +7,7 @@ import signal
 import sqlite3
 import time
 
-from service_testkit import Server, needs_engine, submit, wait_for
+from tests.support.service_testkit import Server, needs_engine, submit, wait_for
 
 # ~4 s on one quiet core (at the case's own 128 px a 2-start job ends in < 1 s, before a stop or a kill lands)
 SLOW = {"starts": 8, "max_iterations": 400, "coarse_to_fine": False, "working_size_px": 256}

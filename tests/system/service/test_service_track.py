@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from service_testkit import FAST_OPTIONS, needs_engine, png_bytes, render_mask, small_views, submit, wait_for
+from tests.support.service_testkit import FAST_OPTIONS, needs_engine, png_bytes, render_mask, small_views, submit, wait_for
 
 from dsareg_engine.registration.parameterization import random_start_poses
 

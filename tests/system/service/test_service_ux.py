@@ -16,7 +16,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from service_testkit import Server, make_example_case, needs_engine, submit, wait_for
+from tests.support.service_testkit import Server, make_example_case, needs_engine, submit, wait_for
 
 PROGRESS_OPTIONS = {"starts": 2, "max_iterations": 300, "animation": True, "seed": 3}
 QUICK = {"starts": 1, "max_iterations": 20, "seed": 4}
@@ -159,13 +159,13 @@ def test_published_schema_documents_the_payloads(ux_server):
 
 
 def test_the_documented_geometry_and_options_models_match_the_engine():
-    from dsareg_engine.geometry_file import LatFromAp, RigSpec, ViewSpec
-    from service import schemas
+    from dsareg_engine.geometry.file import LatFromAp, RigSpec, ViewSpec
+    from service.api.schemas import payloads as schemas
 
     assert set(schemas.ViewSpec.model_fields) == set(ViewSpec.model_fields)
     assert set(schemas.LatFromAp.model_fields) == set(LatFromAp.model_fields)
     assert set(schemas.GeometryFile.model_fields) == set(RigSpec.model_fields)
-    example = Path(__file__).resolve().parents[2] / "examples" / "phantom" / "geometry.json"
+    example = Path(__file__).resolve().parents[3] / "examples" / "phantom" / "geometry.json"
     schemas.GeometryFile.model_validate_json(example.read_text())
 
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from service_testkit import make_example_case
+from tests.support.service_testkit import make_example_case
 
-from service.blobs import BlobStore
-from service.store import InputFile
-from service.validation import ValidatorPool
+from service.storage.blobs import BlobStore
+from service.storage.store import InputFile
+from service.api.intake.validation import ValidatorPool
 
 
 def _loader_present() -> bool:

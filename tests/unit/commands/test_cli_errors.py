@@ -13,7 +13,7 @@ import pytest
 
 from dsareg_engine.cli import build_parser, main
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 PHANTOM = REPO / "examples" / "phantom"
 
 

@@ -17,12 +17,12 @@ def _commands(parser) -> set[str]:
 
 
 def test_the_service_commands_come_from_the_group():
-    assert ("service", "service.commands:add_parser") in cli.contributed_commands()
+    assert ("service", "service.cli.subcommands:add_parser") in cli.contributed_commands()
     assert {"serve", "worker", "submit", "register"} <= _commands(cli.build_parser())
 
 
 def test_source_tree_fallback_reads_pyproject(tmp_path):
-    assert ("service", "service.commands:add_parser") in cli.source_tree_commands()
+    assert ("service", "service.cli.subcommands:add_parser") in cli.source_tree_commands()
     other = tmp_path / "pyproject.toml"
     other.write_text('[project]\nname = "other"\n[project.entry-points."dsareg.commands"]\nx = "x:add"\n')
     assert cli.source_tree_commands(other) == []
@@ -38,6 +38,13 @@ def test_installed_entry_points_are_used(monkeypatch):
     assert cli.contributed_commands() == [("test", "dsareg_test_plugin:add")]
     commands = _commands(cli.build_parser())
     assert "hello" in commands and "serve" not in commands  # the installed group wins over the source tree's
+
+
+def test_stale_installed_metadata_falls_back_to_the_checkout(monkeypatch):
+    """An editable install made before a module moved names the old module: the checkout's pyproject wins then."""
+    stale = importlib.metadata.EntryPoint(name="service", value="service.commands:add_parser", group=cli.COMMAND_GROUP)
+    monkeypatch.setattr(cli.importlib.metadata, "entry_points", lambda group: [stale] if group == cli.COMMAND_GROUP else [])
+    assert "serve" in _commands(cli.build_parser())
 
 
 def test_a_missing_contributor_is_skipped_but_a_broken_one_is_not(monkeypatch, tmp_path):
@@ -56,7 +63,7 @@ def test_installed_metadata_declares_the_group():
     points = importlib.metadata.entry_points(group=cli.COMMAND_GROUP)
     if not list(points):
         pytest.skip("the installed dsareg metadata predates the dsareg.commands group: reinstall (pip install -e .)")
-    assert "service.commands:add_parser" in {p.value for p in points}
+    assert "service.cli.subcommands:add_parser" in {p.value for p in points}
 
 
 def test_a_contributor_missing_its_dependencies_leaves_the_engine_commands_working():

@@ -7,10 +7,10 @@ import trimesh
 from PIL import Image
 
 from dsareg_engine.cli import main
-from dsareg_engine.geometry_file import paper_rig
+from dsareg_engine.geometry.file import paper_rig
 from dsareg_engine.io.rad import format_rad_header
 from dsareg_engine.io.volume_io import RAS_TO_LPS
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 
 
 @pytest.fixture(scope="module")

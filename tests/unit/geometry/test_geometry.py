@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.geometry import (
+from dsareg_engine.geometry.rig import (
     ViewGeometry,
     biplane_rig,
     view_from_detector_pose,
     view_from_projection_matrix,
 )
-from dsareg_engine.geometry_file import paper_focal_px
-from dsareg_engine.geometry_spec import load_rig
-from dsareg_engine.pose import make_transform, rotation_about_axis
+from dsareg_engine.geometry.file import paper_focal_px
+from dsareg_engine.geometry.spec import load_rig
+from dsareg_engine.geometry.pose import make_transform, rotation_about_axis
 
 
 def _view(mirrored=False, seed=0):

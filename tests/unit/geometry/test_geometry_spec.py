@@ -6,11 +6,11 @@ from unittest import mock
 import numpy as np
 import pytest
 
-from dsareg_engine import geometry_spec
+from dsareg_engine.geometry import spec as geometry_spec
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.geometry import Rig
-from dsareg_engine.geometry_file import paper_rig
-from dsareg_engine.geometry_spec import CANONICAL_PREFIX, GeometrySpec, is_canonical_geometry, parse_geometry
+from dsareg_engine.geometry.rig import Rig
+from dsareg_engine.geometry.file import paper_rig
+from dsareg_engine.geometry.spec import CANONICAL_PREFIX, GeometrySpec, is_canonical_geometry, parse_geometry
 
 
 def _explicit() -> dict:

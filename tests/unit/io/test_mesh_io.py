@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 from dsareg_engine.errors import DsaregInputError
 from dsareg_engine.io.limits import InputLimits
 from dsareg_engine.io.mesh_io import _cluster_decimate, decimate, detect_mesh_format, read_mesh, read_mesh_detailed
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 
 TRIANGLE_OBJ = b"v 0 0 0\nv 10 0 0\nv 0 10 0\nf 1 2 3\n"
 

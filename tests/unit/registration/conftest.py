@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from dsareg_engine.geometry import Rig
-from dsareg_engine.geometry_spec import load_rig
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.geometry.rig import Rig
+from dsareg_engine.geometry.spec import load_rig
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 from dsareg_engine.registration.parameterization import random_start_poses
 from dsareg_engine.render import Camera, render_hard_silhouette
 

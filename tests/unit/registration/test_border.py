@@ -7,7 +7,7 @@ from dsareg_engine.errors import DsaregInputError
 from dsareg_engine.registration import RegistrationOptions, register
 from dsareg_engine.registration.border import MAX_BORDER_SHIFT_PX, update_border_shift
 from dsareg_engine.registration.targets import binary_mask, shifted_mask, signed_border_distance
-from dsareg_engine.segmentation_errors import grow_border
+from dsareg_engine.simulation.segmentation_errors import grow_border
 
 
 def _bar(width: int = 6) -> np.ndarray:

@@ -4,10 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from dsareg_engine.io.segmentation import segment_vessels, vessel_coverage
+from dsareg_engine.vision.segmentation import segment_vessels, vessel_coverage
 from dsareg_engine.metrics import iou
 from dsareg_engine.registration import RegistrationOptions, register
-from dsareg_engine.synthetic_dsa import DsaSettings, synthesize_dsa, vessel_thickness_mm
+from dsareg_engine.simulation.synthetic_dsa import DsaSettings, synthesize_dsa, vessel_thickness_mm
 
 
 @pytest.fixture(scope="module")
@@ -20,9 +20,9 @@ def grey_case(phantom, synthetic_case):
 def test_thickness_of_a_cylinder_seen_side_on():
     # A straight tube of radius 3 mm along world y through the isocentre; the AP central ray is
     # perpendicular to it, so the path length through its middle is the diameter, 6 mm.
-    from dsareg_engine.clinical_rig import clinical_biplane_rig
+    from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig
     from dsareg_engine.mesh import TriangleMesh
-    from dsareg_engine.phantom import _tube
+    from dsareg_engine.simulation.phantom import _tube
 
     vertices, faces = _tube(np.linspace([0.0, -40.0, 0.0], [0.0, 40.0, 0.0], 8), np.full(8, 3.0), 96)
     view = clinical_biplane_rig(256).views["ap"]
@@ -86,7 +86,7 @@ def test_no_catheter_no_noise_settings_are_accepted(phantom, synthetic_case):
 
 
 def test_catheter_is_removed_and_no_pose_grey_case_registers(phantom):
-    from dsareg_engine.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+    from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 
     rig = clinical_biplane_rig(512)
     truth = random_visible_pose(phantom, rig, np.random.default_rng(1), 60.0)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from dsareg_engine.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks, uniform_rotation
-from dsareg_engine.geometry_file import rig_from_dict
+from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks, uniform_rotation
+from dsareg_engine.geometry.file import rig_from_dict
 from dsareg_engine.metrics import mean_distance_mm
 from dsareg_engine.registration import RegistrationOptions, register
 from dsareg_engine.registration.initialization import pixel_ray_world, resolve_initialization, triangulate

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.geometry_spec import load_rig
+from dsareg_engine.geometry.spec import load_rig
 from dsareg_engine.metrics import dice, ground_truth_errors, iou, mean_distance_mm, source_position_error_mm
-from dsareg_engine.pose import make_transform, rotation_about_axis
+from dsareg_engine.geometry.pose import make_transform, rotation_about_axis
 from dsareg_engine.registration.options import parse_options
 from dsareg_engine.registration.parameterization import PoseIncrement, random_start_poses
 from dsareg_engine.registration.schedule import (

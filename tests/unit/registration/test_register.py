@@ -70,8 +70,8 @@ def test_empty_mask_is_a_clear_error(phantom, synthetic_case):
 
 def test_mirrored_detectors_107_degrees_apart(phantom):
     """A .rad-style rig: both detector frames mirrored, planes 107° apart, off-centre principal points."""
-    from dsareg_engine.geometry import Rig, rotated_view, view_from_detector_pose
-    from dsareg_engine.pose import make_transform, rotation_about_axis
+    from dsareg_engine.geometry.rig import Rig, rotated_view, view_from_detector_pose
+    from dsareg_engine.geometry.pose import make_transform, rotation_about_axis
     from dsareg_engine.registration.parameterization import random_start_poses
     from dsareg_engine.render import Camera, render_hard_silhouette
     import torch
@@ -114,7 +114,7 @@ def test_pure_torch_fallback_registers_without_numba(phantom, synthetic_case, mo
 
 def test_registration_tolerates_simulated_segmentation_errors(phantom, synthetic_case):
     """Masks one pixel too wide, with missing segments, a catheter and speckle: still < 1 mm ADD."""
-    from dsareg_engine.segmentation_errors import corrupt
+    from dsareg_engine.simulation.segmentation_errors import corrupt
 
     rig, masks = synthetic_case(phantom, 400, 5.0, 5.0)
     rng = np.random.default_rng(0)

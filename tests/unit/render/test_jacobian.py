@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from dsareg_engine.geometry_spec import load_rig
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.geometry.spec import load_rig
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 from dsareg_engine.registration.parameterization import PoseIncrement
 from dsareg_engine.render import Camera, SilhouetteSettings, render_soft_silhouette
 from dsareg_engine.render.jacobian import render_soft_silhouette_jacobian

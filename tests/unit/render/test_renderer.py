@@ -5,11 +5,11 @@ import pytest
 import torch
 from skimage.draw import polygon as fill_polygon
 
-from dsareg_engine.geometry import ViewGeometry, view_from_detector_pose
-from dsareg_engine.geometry_spec import load_rig
+from dsareg_engine.geometry.rig import ViewGeometry, view_from_detector_pose
+from dsareg_engine.geometry.spec import load_rig
 from dsareg_engine.metrics import iou
-from dsareg_engine.phantom import make_vessel_phantom
-from dsareg_engine.pose import make_transform, rotation_about_axis
+from dsareg_engine.simulation.phantom import make_vessel_phantom
+from dsareg_engine.geometry.pose import make_transform, rotation_about_axis
 from dsareg_engine.render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 
 

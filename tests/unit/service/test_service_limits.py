@@ -1,4 +1,4 @@
-"""Submission limits (service/limits.py) and the process links (service/procwatch.py), in-process."""
+"""Submission limits (service/budgets.py) and the process links (service/jobs/procwatch.py), in-process."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import zlib
 import pytest
 
 from service.engine_adapter import check_image_budget
-from service.limits import (
+from service.budgets import (
     MAX_JSON_DEPTH,
     image_decoded_bytes,
     job_cost,
@@ -84,7 +84,7 @@ def test_decoded_bytes_from_the_header():
 
 
 def _sleeper(link, parent_pid):  # spawn target: a worker-like child following the server's pipe
-    from service.procwatch import WorkerControl, die_with_parent
+    from service.jobs.procwatch import WorkerControl, die_with_parent
 
     control = WorkerControl()
     signal.signal(signal.SIGTERM, control.request_stop)
@@ -95,7 +95,7 @@ def _sleeper(link, parent_pid):  # spawn target: a worker-like child following t
 
 
 def test_closing_the_wake_link_stops_the_child():
-    from service.procwatch import WakeLink
+    from service.jobs.procwatch import WakeLink
 
     ctx = mp.get_context("spawn")
     link = WakeLink(ctx)
@@ -121,7 +121,7 @@ MIDDLE = """
 import multiprocessing as mp, os, sys, time
 sys.path.insert(0, {here!r})
 from test_service_limits import _sleeper
-from service.procwatch import WakeLink
+from service.jobs.procwatch import WakeLink
 if __name__ == "__main__":
     ctx = mp.get_context("spawn")
     link = WakeLink(ctx)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 
-from service.blobs import safe_suffix
+from service.storage.blobs import safe_suffix
 from service.settings import load_settings
 
 

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from service.store import ConflictError, InputFile, JobRecord, SqlJobStore, new_job_id
+from service.storage.store import ConflictError, InputFile, JobRecord, SqlJobStore, new_job_id
 
 
 def _job(store: SqlJobStore, key: str | None = None, digest: str = "a" * 64, request_hash: str = "h1", max_attempts=2):

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dsareg_engine.segmentation_errors import CORRUPTIONS, add_catheter, add_speckle, corrupt, drop_segments, grow_border, shrink_border
+from dsareg_engine.simulation.segmentation_errors import CORRUPTIONS, add_catheter, add_speckle, corrupt, drop_segments, grow_border, shrink_border
 
 
 @pytest.fixture()

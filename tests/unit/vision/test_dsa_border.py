@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dsareg_engine.io import dsa_border
+from dsareg_engine.vision import dsa_border
 
 
 def _curved_background_with_vessels() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from dsareg_engine.geometry import Rig
-from dsareg_engine.geometry_spec import load_rig
-from dsareg_engine.io.dsa_coverage import dsa_vessel_coverage
-from dsareg_engine.io.segmentation import _bright_vessels, segment_vessels, vessel_coverage
-from dsareg_engine.io.vessel_onset import estimate_blur_px
-from dsareg_engine.phantom import make_vessel_phantom
+from dsareg_engine.geometry.rig import Rig
+from dsareg_engine.geometry.spec import load_rig
+from dsareg_engine.vision.dsa_coverage import dsa_vessel_coverage
+from dsareg_engine.vision.segmentation import _bright_vessels, segment_vessels, vessel_coverage
+from dsareg_engine.vision.vessel_onset import estimate_blur_px
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 from dsareg_engine.render import Camera
 from dsareg_engine.render.silhouette import render_hard_silhouette
-from dsareg_engine.synthetic_dsa import DsaSettings, synthesize_dsa
+from dsareg_engine.simulation.synthetic_dsa import DsaSettings, synthesize_dsa
 
 SIZE = 400
 CLEAN = DsaSettings(background_variation=0.0, noise_sigma=0.002, catheter_mm=0.0)
@@ -59,8 +59,8 @@ def test_coverage_places_borders_closer_than_the_binary_mask(phantom_views):
 
 
 def test_blur_is_measured_on_the_vessel_edges(phantom_views):
-    from dsareg_engine.io.dsa_border import dsa_contrast, dsa_vessel_mask
-    from dsareg_engine.io.dsa_coverage import _wide_edge
+    from dsareg_engine.vision.dsa_border import dsa_contrast, dsa_vessel_mask
+    from dsareg_engine.vision.dsa_coverage import _wide_edge
 
     mesh, rig, _ = phantom_views
     large = Rig({name: view.resized(800, 800) for name, view in rig.views.items()}, np.eye(4))  # wider vessels

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.geometry import ViewGeometry
-from dsareg_engine.io.segmentation import resample_mask, segment_vessels, vessels_are_dark
+from dsareg_engine.geometry.rig import ViewGeometry
+from dsareg_engine.vision.segmentation import resample_mask, segment_vessels, vessels_are_dark
 
 
 def dice(a, b):
