@@ -86,7 +86,7 @@ class ServiceSettings(BaseSettings):
                     "(507 + Retry-After) before anything is written, and a worker does not claim jobs below it; "
                     "0: no floor (a full disk is still a 507, never a 500).")
 
-    # deadlines on the job database (service/dbtimeouts.py): a frozen database is a fast 503
+    # deadlines on the job database (service/storage/dbtimeouts.py): a frozen database is a fast 503
     sqlite_busy_timeout_seconds: float = Field(
         1.0, gt=0.0, description="SQLite: how long a write waits for the database lock (a writer frozen with "
                                  "the lock → 503 + Retry-After after this long).")
@@ -124,7 +124,7 @@ class ServiceSettings(BaseSettings):
         0.5, gt=0.0, description="Longest a submission waits for the broker (executor=celery): a down or frozen "
                                  "broker leaves the job queued in the table and the sweeper re-sends it.")
 
-    # DICOMweb (service/dicomweb.py): the only PACS a request may name, with their credentials
+    # DICOMweb (service/pacs/dicomweb.py): the only PACS a request may name, with their credentials
     dicomweb_servers: Annotated[list[Any], NoDecode] = Field(
         default_factory=list,
         description='DICOMweb servers jobs may read from / store to: JSON list of {"url", "username"?, "password"?, '

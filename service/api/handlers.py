@@ -11,11 +11,11 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from ..diskspace import RETRY_AFTER_SECONDS as DISK_RETRY_AFTER
-from ..diskspace import DiskFull, is_disk_full
-from ..httpfaults import allowed_methods
 from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
-from ..store import store_outage_errors
+from ..storage.diskspace import RETRY_AFTER_SECONDS as DISK_RETRY_AFTER
+from ..storage.diskspace import DiskFull, is_disk_full
+from ..storage.store import store_outage_errors
+from .httpfaults import allowed_methods
 
 log = logging.getLogger("dsareg.service")
 
