@@ -11,8 +11,9 @@ from ..models import JobList, JobStatus, status_body, summary_body
 from ..problems import Problem, problem_responses
 from ..store import STATUSES, decode_cursor
 from .deps import Ctx, OwnedJob, Principal
+from .forms import read_form
 from .openapi import resource_router
-from .submission import MAX_OPTIONS_BYTES, MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+from .submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
 
 log = logging.getLogger("dsareg.service")
 
@@ -74,7 +75,7 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
     if not content_type.lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat",
                       accepted="multipart/form-data")
-    form = await request.form(max_files=MAX_VOLUME_FILES + 8, max_fields=20, max_part_size=MAX_OPTIONS_BYTES)
+    form = await read_form(request, max_files=MAX_VOLUME_FILES + 8, max_fields=20)
     try:
         return await submit_form(ctx, form, who, key)
     finally:
