@@ -90,6 +90,10 @@ class ServiceSettings(BaseSettings):
     api_key_hashes: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="SHA-256 hex digests of accepted keys."
     )
+    metrics_public: bool | None = Field(
+        None, description="GET /metrics without an API key. Default: public only when no API keys are configured; "
+                          "otherwise it needs a valid key (any). The metrics are service-wide aggregates (jobs by "
+                          "state, queue depth, latency by route template): no key, job id or path appears in them.")
 
     # scale-out (see service/README.md, "Scale-out with Celery")
     executor: Literal["embedded", "celery"] = Field(
@@ -144,6 +148,11 @@ class ServiceSettings(BaseSettings):
     @property
     def auth_enabled(self) -> bool:
         return bool(self.api_key_hashes)
+
+    @property
+    def metrics_open(self) -> bool:
+        """Whether /metrics answers without an API key (``metrics_public``, else: no keys configured)."""
+        return (not self.auth_enabled) if self.metrics_public is None else self.metrics_public
 
     @property
     def effective_database_url(self) -> str:
