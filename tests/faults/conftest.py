@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 HERE = Path(__file__).resolve().parent
-for extra in (HERE, HERE.parent / "service", HERE.parent / "scaleout"):  # faults_kit, service_testkit, scaleout_kit
+for extra in (HERE, HERE.parent / "service", HERE.parent / "scaleout", HERE.parent / "io"):  # + hostile_images
     if str(extra) not in sys.path:
         sys.path.insert(0, str(extra))
 

@@ -39,3 +39,27 @@ def with_dicom_value(data: bytes, tag: tuple[int, int], vr: bytes, value: bytes)
 
 NUMBER_OF_FRAMES = (0x0028, 0x0008)
 RESCALE_SLOPE = (0x0028, 0x1053)
+
+
+def plain_xa(rows: int = 64, cols: int = 64, frames: int = 2) -> bytes:
+    """A small multi-frame DICOM XA (no geometry tags, RescaleSlope 1) to corrupt with :func:`with_dicom_value`."""
+    import io
+
+    import numpy as np
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = "1.2.840.10008.5.1.4.1.1.12.1"
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID, "XA"
+    ds.Rows, ds.Columns, ds.NumberOfFrames, ds.SamplesPerPixel = rows, cols, frames, 1
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+    ds.PhotometricInterpretation, ds.RescaleSlope, ds.RescaleIntercept = "MONOCHROME2", 1, 0
+    ds.PixelData = (np.arange(frames * rows * cols, dtype=np.uint16) % 4000).tobytes()
+    buffer = io.BytesIO()
+    ds.save_as(buffer, enforce_file_format=True)
+    return buffer.getvalue()
