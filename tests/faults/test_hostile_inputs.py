@@ -157,8 +157,9 @@ class PeakSampler(threading.Thread):
                     pass
 
 
-def test_hostile_corpus_never_5xx(hostile_server, case):
+def test_hostile_corpus_never_5xx(hostile_server, case, tmp_path):
     srv = hostile_server
+    poller = HealthPoller(srv.port, tmp_path / "stop")
     with srv.client() as client:
         assert _post(client, case, {}, {}).status_code == 202  # warm: the validator has parsed once
         validator = _validator_pid(srv)
@@ -179,8 +180,11 @@ def test_hostile_corpus_never_5xx(hostile_server, case):
         validator_peak = sampler.peak_kb
         api_growth = _status_kb(srv.process.pid, "VmRSS") - api_rss
         metrics = client.get("/metrics").text
+    stall = poller.stop()
     print(f"hostile corpus: {tried} inputs, 0 5xx; validator peak {validator_peak / 1024:.0f} MB "
-          f"(baseline {validator_base / 1024:.0f} MB); API RSS growth {api_growth / 1024:.0f} MB")
+          f"(baseline {validator_base / 1024:.0f} MB); API RSS growth {api_growth / 1024:.0f} MB; "
+          f"longest /healthz answer {stall['worst_s']:.3f} s over {stall['polls']} polls")
+    assert stall["worst_s"] < STALL_LIMIT_S, stall  # the validator parses; the event loop never waits on it
     assert (validator_peak - validator_base) < 512 * 1024, (validator_peak, validator_base)
     assert api_growth < 256 * 1024, api_growth
     server_errors = [line for line in metrics.splitlines()  # (/readyz is 503 while the validator warms up)
