@@ -4,7 +4,7 @@ torch (the runs are in :mod:`dsareg_engine.commands.bench`, imported when a benc
 from __future__ import annotations
 
 from ..registration.options import CONFIGURATIONS
-from ..segmentation_errors import CORRUPTIONS
+from ..simulation.segmentation_errors import CORRUPTIONS
 from .deferred import deferred
 
 GREY_VARIANTS = {
@@ -18,7 +18,7 @@ GREY_VARIANTS = {
     "8bit": ({}, 8),
     "noisefree": ({"noise_sigma": 0.0}, 16),
 }
-"""Grey-level image formations (:class:`~dsareg_engine.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
+"""Grey-level image formations (:class:`~dsareg_engine.simulation.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
 
 
 def add_parser(subparsers) -> None:

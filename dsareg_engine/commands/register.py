@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..errors import DsaregInputError
 from ..registration.options import CONFIGURATIONS
-from .errors import geometry_argument, input_file, json_argument, options_help
+from .failures import geometry_argument, input_file, json_argument, options_help
 
 
 def add_parser(subparsers) -> None:
@@ -62,7 +62,7 @@ def _model_inputs(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     from ..io.case import load_case  # the engine (torch) loads only when a registration runs
     from ..pipeline import write_outputs
-    from ..pose_file import load_pose
+    from ..geometry.pose_file import load_pose
     from ..registration import register
     from ..registration.options import parse_options
 
