@@ -16,10 +16,10 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CollectorRegistry, Counter
 
-from ..storage.blobs import BlobStore
 from ..jobs.executor import Executor
 from ..problems import Problem
 from ..settings import ServiceSettings
+from ..storage.blobs import BlobStore
 from ..storage.store import JobRecord, JobStore, is_job_id
 from .intake.validation import ValidatorPool
 

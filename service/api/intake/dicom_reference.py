@@ -19,8 +19,8 @@ from fastapi import FastAPI, Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
 from ...budgets import parse_json_part
+from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
 from ...problems import Problem
 from ...storage.store import InputFile
 from ..deps import ServiceContext

@@ -17,13 +17,13 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
-from ...storage.blobs import safe_suffix
-from ...engine_adapter import check_options, engine, submitted_geometry
 from ...budgets import check_job_cost, parse_json_part
-from ..schemas.jobs import status_body
+from ...engine_adapter import check_options, engine, submitted_geometry
 from ...problems import Problem
+from ...storage.blobs import safe_suffix
 from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
 from ..deps import ANONYMOUS, ServiceContext
+from ..schemas.jobs import status_body
 from .forms import MAX_TEXT_PART_BYTES
 
 log = logging.getLogger("dsareg.service")

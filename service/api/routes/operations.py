@@ -9,10 +9,10 @@ from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ..schemas.jobs import Health
 from ...problems import Problem, problem_responses
 from ..deps import Ctx, bearer, principal
 from ..openapi import resource_router
+from ..schemas.jobs import Health
 
 router = resource_router("operations")
 

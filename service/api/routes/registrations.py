@@ -7,13 +7,13 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from ..schemas.jobs import JobList, JobStatus, status_body, summary_body
 from ...problems import Problem, problem_responses
 from ...storage.store import STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
-from ..openapi import resource_router
-from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
 from ..intake.forms import read_form
+from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+from ..openapi import resource_router
+from ..schemas.jobs import JobList, JobStatus, status_body, summary_body
 
 log = logging.getLogger("dsareg.service")
 

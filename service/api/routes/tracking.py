@@ -18,13 +18,12 @@ from fastapi import Request
 from fastapi.responses import Response
 from starlette.datastructures import FormData, UploadFile
 
-from ...engine_adapter import canonical_geometry
 from ...budgets import parse_json_part
-from ..schemas.jobs import JobStatus
+from ...engine_adapter import canonical_geometry
 from ...problems import Problem, problem_responses
 from ...storage.store import JobRecord
 from ..deps import Ctx, OwnedJob, Principal, ServiceContext
-from ..openapi import resource_router
+from ..intake.forms import read_form
 from ..intake.submission import (
     MAX_OPTIONS_BYTES,
     form_files,
@@ -33,7 +32,8 @@ from ..intake.submission import (
     read_text_field,
     submit_files,
 )
-from ..intake.forms import read_form
+from ..openapi import resource_router
+from ..schemas.jobs import JobStatus
 
 router = resource_router("registrations")
 

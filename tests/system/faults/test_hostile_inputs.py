@@ -18,6 +18,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+
 from tests.support.faults_kit import descendants, raw_connection
 from tests.support.hostile_images import (
     NUMBER_OF_FRAMES,

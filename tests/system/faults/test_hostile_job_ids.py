@@ -6,6 +6,7 @@ every ``{job_id}`` route, on SQLite and on a real PostgreSQL (which refuses NUL 
 from __future__ import annotations
 
 import pytest
+
 from tests.support.service_testkit import Server
 
 PROBLEM = "application/problem+json"

@@ -8,9 +8,9 @@ import hashlib
 import time
 
 import pytest
-from tests.support.service_testkit import Server
 
 from service.storage.store import JobRecord, SqlJobStore, new_job_id
+from tests.support.service_testkit import Server
 
 ALPHA, BETA = "alpha-metrics-key-0123", "beta-metrics-key-4567"
 

@@ -43,8 +43,8 @@ def test_building_the_parser_imports_no_engine():
 @pytest.mark.parametrize("argv", [["register", "--bogus"], ["bench", "render", "--size", "x"], ["render"],
                                   ["submit", "--server"], ["serve", "--port", "x"]])
 def test_an_argument_error_imports_no_engine(argv):
-    code = ("from dsareg_engine.cli import main\ntry:\n    main(%r)\nexcept SystemExit as exc:\n    assert exc.code == 2\n"
-            % argv) + LOADED
+    code = (f"from dsareg_engine.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit as exc:\n"
+            "    assert exc.code == 2\n") + LOADED
     assert _python(code)["loaded"] == []
 
 
