@@ -41,7 +41,8 @@ from .errors import DsaregInputError
 
 if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
     from .cli import run_parsed
-    from .commands.failures import CommandFailed, geometry_argument, input_file, json_argument, options_help
+    from .commands.arguments import geometry_argument, input_file, json_argument, options_help
+    from .commands.failures import CommandFailed
     from .geometry.file import PRESETS
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
@@ -77,10 +78,10 @@ _LAZY = {
     "default_cpu_threads": "dsareg_engine.threads",
     "run_parsed": "dsareg_engine.cli",
     "CommandFailed": "dsareg_engine.commands.failures",
-    "input_file": "dsareg_engine.commands.failures",
-    "options_help": "dsareg_engine.commands.failures",
-    "geometry_argument": "dsareg_engine.commands.failures",
-    "json_argument": "dsareg_engine.commands.failures",
+    "input_file": "dsareg_engine.commands.arguments",
+    "options_help": "dsareg_engine.commands.arguments",
+    "geometry_argument": "dsareg_engine.commands.arguments",
+    "json_argument": "dsareg_engine.commands.arguments",
     "load_pose": "dsareg_engine.geometry.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
 }

@@ -11,7 +11,7 @@ from ..pipeline import write_outputs
 from ..geometry.pose_file import load_pose
 from ..registration import CONFIGURATIONS, register
 from ..registration.options import parse_options
-from .failures import geometry_argument, input_file, json_argument, options_help
+from .arguments import geometry_argument, input_file, json_argument, options_help
 
 
 def add_parser(subparsers) -> None:

@@ -12,7 +12,7 @@ from ..errors import DsaregInputError
 from ..overlay import write_png
 from ..geometry.pose_file import load_pose
 from ..render import Camera, render_hard_silhouette
-from .failures import geometry_argument, input_file
+from .arguments import geometry_argument, input_file
 
 
 def add_parser(subparsers) -> None:
