@@ -322,8 +322,9 @@ class ValidatorPool:
                 self._free.put_nowait(slot)
         return self._free
 
-    def _refill(self, slot: _Slot, why: str) -> None:
-        """``slot`` (its process killed) takes the warm spare; a new spare starts."""
+    def _refill(self, slot: _Slot, why: str, *, spare_now: bool = True) -> None:
+        """``slot`` (its process killed) takes the warm spare; a new spare starts now, or (``spare_now=False``,
+        a request is about to be sent again) after that request, so its warm-up does not compete with it."""
         with self._spare_lock:
             if self._halt.is_set():
                 return
@@ -332,7 +333,8 @@ class ValidatorPool:
             else:
                 self.spare.kill()
                 slot.start()
-            self.spare.start()
+            if spare_now:
+                self.spare.start()
             self.replaced += 1
         log.warning("validator replaced (%s); pid %s takes over", why, slot.process.pid if slot.process else None)
 
@@ -349,28 +351,36 @@ class ValidatorPool:
                         self._refill(slot, f"{health} while idle")
                 finally:
                     slot.lock.release()
-            with self._spare_lock:
-                if not self._halt.is_set() and self.spare.health() != "ok":
+            with self._spare_lock:  # a missing spare (process None) is started by the request that used it
+                if not self._halt.is_set() and self.spare.process is not None and self.spare.health() != "ok":
                     self.spare.kill()
                     self.spare.start()
+
+    def _ensure_spare(self) -> None:
+        with self._spare_lock:
+            if not self._halt.is_set() and self.spare.process is None:
+                self.spare.start()
 
     def _run(self, slot: _Slot, request: dict) -> tuple[dict | None, str | None]:
         """One request on ``slot`` (in a thread), sent once more to a fresh process when its validator
         died or froze under it."""
         with slot.lock:
-            reply, why = slot.call(request, self.timeout)
-            if why is not None:
-                self._refill(slot, why)
-                if why in ("dead", "frozen"):
-                    reply, second = slot.call(request, self.timeout)
-                    if second is not None:
-                        self._refill(slot, second)
-                        why = "dead twice" if second == "dead" else second
-                    else:
-                        why = None
-            elif reply is not None and reply.get("recycle"):  # memory the allocator keeps after a MemoryError
-                slot.kill()
-                self._refill(slot, "recycled after MemoryError")
+            try:
+                reply, why = slot.call(request, self.timeout)
+                if why is not None:
+                    self._refill(slot, why, spare_now=False)
+                    if why in ("dead", "frozen"):
+                        reply, second = slot.call(request, self.timeout)
+                        if second is not None:
+                            self._refill(slot, second, spare_now=False)
+                            why = "dead twice" if second == "dead" else second
+                        else:
+                            why = None
+                elif reply is not None and reply.get("recycle"):  # memory the allocator keeps after a MemoryError
+                    slot.kill()
+                    self._refill(slot, "recycled after MemoryError")
+            finally:
+                self._ensure_spare()
         return reply, why
 
     async def validate(self, request: dict) -> ValidationOutcome:
