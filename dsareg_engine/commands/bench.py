@@ -22,7 +22,7 @@ from .render import load_mesh_argument
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness, track)",
+        "bench", help="benchmarks (render, table1, capture, robustness, track, autoinit, clinical)",
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
@@ -91,6 +91,9 @@ def add_parser(subparsers) -> None:
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
     auto.set_defaults(func=bench_autoinit)
+    from .bench_clinical import add_parser as add_clinical
+
+    add_clinical(which)
 
 
 def _add_mesh(parser) -> None:
