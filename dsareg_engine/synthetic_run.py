@@ -23,12 +23,14 @@ from .mesh import TriangleMesh
 from .synthetic_dsa import vessel_thickness_mm
 
 IODINE_PER_MM = 0.12
+REFERENCE_PX = 160
 FRONT_RAMP = 0.15
 
 
 @dataclass(frozen=True)
 class Plane:
-    """One C-arm plane: angles (deg), distances (mm), detector pixel spacing (mm)."""
+    """One C-arm plane: angles (deg), distances (mm), detector pixel spacing (mm) at ``REFERENCE_PX``
+    pixels per side (the field of view stays the same at other sizes)."""
 
     primary_deg: float
     secondary_deg: float
@@ -36,9 +38,13 @@ class Plane:
     sod_mm: float
     spacing_mm: float
 
+    def spacing_at(self, size_px: int) -> float:
+        return self.spacing_mm * REFERENCE_PX / size_px
+
     def view(self, size_px: int) -> ViewGeometry:
+        spacing = self.spacing_at(size_px)
         return view_from_angles(self.primary_deg, self.secondary_deg, self.sid_mm, self.sod_mm,
-                                (self.spacing_mm, self.spacing_mm), (size_px, size_px))
+                                (spacing, spacing), (size_px, size_px))
 
 
 @dataclass
@@ -140,7 +146,7 @@ def subtracted_xa(dsa_log: np.ndarray, plane: Plane, name: str) -> bytes:
     ds.ImageType = ["DERIVED", "PRIMARY", "SINGLE PLANE", "SUBTRACTION"]
     ds.PhotometricInterpretation = "MONOCHROME2"
     ds.PixelIntensityRelationship, ds.PixelIntensityRelationshipSign = "LOG", 1
-    classic_geometry(ds, plane)
+    classic_geometry(ds, plane, dsa_log.shape[0])
     stored = np.clip(np.round(3000.0 + 2500.0 * dsa_log), 0, 4095).astype(np.uint16)
     ds.PixelData = stored.tobytes()
     return to_bytes(ds)
@@ -150,7 +156,9 @@ XA_SOP = "1.2.840.10008.5.1.4.1.1.12.1"
 ENHANCED_XA_SOP = "1.2.840.10008.5.1.4.1.1.12.1.1"
 
 
-def classic_geometry(ds, plane: Plane) -> None:
+def classic_geometry(ds, plane: Plane, size_px: int) -> None:
+    """The plane's geometry in the classic XA tags (positioner angles, distances, imager pixel spacing)."""
     ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = plane.primary_deg, plane.secondary_deg
     ds.DistanceSourceToDetector, ds.DistanceSourceToPatient = plane.sid_mm, plane.sod_mm
-    ds.ImagerPixelSpacing = [plane.spacing_mm, plane.spacing_mm]
+    spacing = round(plane.spacing_at(size_px), 6)
+    ds.ImagerPixelSpacing = [spacing, spacing]

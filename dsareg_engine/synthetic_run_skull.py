@@ -4,7 +4,7 @@ Background: an ellipsoidal skull shell (bone) around an ellipsoidal brain (soft 
 per pixel ray (chord lengths through both ellipsoids), and a smooth ±8 % soft-tissue field; the
 skull is placed off-centre so its rim crosses the field of view. Each pixel counts
 ``Poisson(N0 · exp(−attenuation))`` photons, blurred 0.5 px, stored 12-bit ``LIN`` (values ∝
-intensity; air saturates at 4095). Tags: classic multi-frame XA (geometry only in the XA positioner / distance tags),
+intensity; no attenuation at ~4000). Tags: classic multi-frame XA (geometry only in the XA positioner / distance tags),
 Recommended Viewing Mode ``SUB`` and a Mask Subtraction Sequence ``AVG_SUB`` (mask frames
 1–2, applied to frames 3–N). The patient moves by ``motion_px`` between the mask and the
 contrast frames.
@@ -23,7 +23,7 @@ from .synthetic_dsa import _smooth_field
 from .synthetic_run import (XA_SOP, NativeRunCase, Plane, base_dataset, classic_geometry, peak_of, pose_in_view,
                             subtracted_xa, to_bytes, vessel_frames)
 
-GAIN_COUNTS_PER_PHOTON = 2500.0 / 3000.0
+GAIN_COUNTS_PER_PHOTON = 4000.0 / 36000.0  # no attenuation → ~4000 of 4095 (N0 = 36000)
 PLANES = {"ap": Plane(4.0, 3.0, 1100.0, 760.0, 1.1), "lat": Plane(88.0, -2.0, 1150.0, 780.0, 1.1)}
 
 
@@ -89,7 +89,7 @@ def _counts(attenuation: np.ndarray, settings: SkullRunSettings, rng: np.random.
     expected = settings.photons * np.exp(-attenuation)
     counts = rng.poisson(expected).astype(np.float32)
     counts = cv2.GaussianBlur(counts, (0, 0), 0.5)
-    gain = GAIN_COUNTS_PER_PHOTON  # the head's interior at ~2500 of 4095; air saturates
+    gain = GAIN_COUNTS_PER_PHOTON
     return np.clip(np.round(counts * gain), 0, 4095).astype(np.uint16)
 
 
@@ -106,7 +106,7 @@ def _dataset(stack: np.ndarray, plane: Plane, name: str, settings: SkullRunSetti
     ds.PixelIntensityRelationship, ds.PixelIntensityRelationshipSign = "LIN", 1
     ds.RecommendedViewingMode = "SUB"
     ds.FrameTime = 250.0
-    classic_geometry(ds, plane)
+    classic_geometry(ds, plane, stack.shape[1])
     from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
 
@@ -136,7 +136,8 @@ def make_skull_run(seed: int = 0, settings: SkullRunSettings = SkullRunSettings(
         files[name] = to_bytes(_dataset(stack, PLANES[name], name, settings))
         peak = peak_of(list(settings.fill), list(settings.strength))
         contrast = np.log(np.maximum(stack[peak].astype(np.float64), 1.0))
-        clean = np.log(np.clip(settings.photons * GAIN_COUNTS_PER_PHOTON * np.exp(-moved), 1.0, 4095.0))  # noise-free mask
+        expected = cv2.GaussianBlur(settings.photons * GAIN_COUNTS_PER_PHOTON * np.exp(-moved), (0, 0), 0.5)
+        clean = np.log(np.clip(expected, 1.0, 4095.0))  # the noise-free mask, aligned
         subtracted[name] = subtracted_xa((contrast - clean).astype(np.float32), PLANES[name], name)
     return NativeRunCase(files=files, subtracted=subtracted, mesh=mesh, mesh_to_world=pose, rig=rig,
                          motion_px={name: settings.motion_px for name in rig.views},

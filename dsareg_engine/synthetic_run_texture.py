@@ -88,7 +88,7 @@ def texture_attenuation(shape: tuple[int, int], settings: TextureRunSettings, rn
     return (1.6 + texture + settings.band_attenuation * bands(shape, settings.bands, rng) + heel).astype(np.float32)
 
 
-def _frame_groups(plane: Plane, n_frames: int, n_masks: int, settle_deg: float):
+def _frame_groups(plane: Plane, n_frames: int, n_masks: int, settle_deg: float, size_px: int):
     from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
 
@@ -103,7 +103,8 @@ def _frame_groups(plane: Plane, n_frames: int, n_masks: int, settle_deg: float):
         frames.append(item)
     shared, geometry, pixels = Dataset(), Dataset(), Dataset()
     geometry.DistanceSourceToIsocenter, geometry.DistanceSourceToDetector = plane.sod_mm, plane.sid_mm
-    pixels.ImagerPixelSpacing = [plane.spacing_mm, plane.spacing_mm]
+    spacing = round(plane.spacing_at(size_px), 6)
+    pixels.ImagerPixelSpacing = [spacing, spacing]
     pixels.PixelIntensityRelationship, pixels.PixelIntensityRelationshipSign = "LOG", -1
     shared.XRayGeometrySequence = Sequence([geometry])
     shared.FramePixelDataPropertiesSequence = Sequence([pixels])
@@ -115,7 +116,7 @@ def _dataset(stack: np.ndarray, plane: Plane, name: str, settings: TextureRunSet
     ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE", "NONE"]
     ds.PhotometricInterpretation = "MONOCHROME1"
     ds.PerFrameFunctionalGroupsSequence, ds.SharedFunctionalGroupsSequence = _frame_groups(
-        plane, len(stack), settings.n_mask_frames, settings.settle_deg)
+        plane, len(stack), settings.n_mask_frames, settings.settle_deg, stack.shape[1])
     ds.PixelData = stack.tobytes()
     return ds
 

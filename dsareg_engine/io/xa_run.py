@@ -59,6 +59,43 @@ class RunReading:
     motion_correction: bool = True
 
 
+@dataclass(frozen=True)
+class ImageReading:
+    """How a case's two images are read: a frame choice per view, and the subtraction settings.
+
+    Attributes:
+        ap_frame, lat_frame: per view, as :attr:`RunReading.frame`.
+        subtraction, motion_correction: as in :class:`RunReading`, for both views.
+    """
+
+    ap_frame: int | str | None = None
+    lat_frame: int | str | None = None
+    subtraction: str = "auto"
+    motion_correction: bool = True
+
+    @classmethod
+    def both(cls, frame: int | str | None) -> ImageReading:
+        return cls(ap_frame=frame, lat_frame=frame)
+
+    def for_view(self, name: str) -> RunReading:
+        return RunReading(frame=getattr(self, f"{name}_frame", None), subtraction=self.subtraction,
+                          motion_correction=self.motion_correction)
+
+    def merged(self, other: ImageReading | None, field_prefix: str = "options.frames") -> ImageReading:
+        """``other``'s frames where this one has none (a frame given twice, differently, is refused);
+        ``other``'s subtraction settings."""
+        if other is None:
+            return self
+        frames = {}
+        for name in ("ap", "lat"):
+            mine, theirs = getattr(self, f"{name}_frame"), getattr(other, f"{name}_frame")
+            if mine is not None and theirs is not None and mine != theirs:
+                raise DsaregInputError(f"the {name} frame is given twice ({mine!r} and {theirs!r})",
+                                       field=f"{field_prefix}.{name}", accepted="one frame choice per view")
+            frames[f"{name}_frame"] = mine if mine is not None else theirs
+        return ImageReading(**frames, subtraction=other.subtraction, motion_correction=other.motion_correction)
+
+
 @dataclass
 class RunImage:
     """The image made from a run: ``pixels`` ``(H, W)`` float32, the frame whose geometry applies,
