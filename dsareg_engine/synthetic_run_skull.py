@@ -20,10 +20,9 @@ import numpy as np
 from .geometry import Rig, ViewGeometry
 from .phantom import make_vessel_phantom
 from .synthetic_dsa import _smooth_field
-from .synthetic_run import (XA_SOP, NativeRunCase, Plane, base_dataset, classic_geometry, peak_of, pose_in_view,
+from .synthetic_run import (REFERENCE_PX, XA_SOP, NativeRunCase, Plane, base_dataset, classic_geometry, peak_of, pose_in_view,
                             subtracted_xa, to_bytes, vessel_frames)
 
-GAIN_COUNTS_PER_PHOTON = 4000.0 / 36000.0  # no attenuation → ~4000 of 4095 (N0 = 36000)
 PLANES = {"ap": Plane(4.0, 3.0, 1100.0, 760.0, 1.1), "lat": Plane(88.0, -2.0, 1150.0, 780.0, 1.1)}
 
 
@@ -34,7 +33,7 @@ class SkullRunSettings:
         fill, strength: per frame, the contrast front (fraction of the tree) and the iodine strength.
         mask_frames: 1-based frame numbers the recipe averages into the mask (the frames before contrast).
         motion_px: ``(down, right)`` patient motion of the contrast frames.
-        photons: ``N0``, photons per pixel without attenuation.
+        photons: ``N0``, photons per pixel without attenuation at 160 px per side (scaled with the pixel area).
         skull_centre_mm, skull_radii_mm, bone_mm: the skull (world LPS, about the isocentre).
         bone_per_mm, tissue_per_mm: attenuation coefficients, 1/mm.
     """
@@ -85,11 +84,16 @@ def skull_attenuation(view: ViewGeometry, settings: SkullRunSettings, rng: np.ra
     return (settings.bone_per_mm * (outer - inner) + tissue).astype(np.float32)
 
 
+def _photons(settings: SkullRunSettings) -> float:
+    """``N0`` per pixel at this size: the detector's dose spreads over the same field of view."""
+    return settings.photons * (REFERENCE_PX / settings.size_px) ** 2
+
+
 def _counts(attenuation: np.ndarray, settings: SkullRunSettings, rng: np.random.Generator) -> np.ndarray:
-    expected = settings.photons * np.exp(-attenuation)
+    expected = _photons(settings) * np.exp(-attenuation)
     counts = rng.poisson(expected).astype(np.float32)
     counts = cv2.GaussianBlur(counts, (0, 0), 0.5)
-    gain = GAIN_COUNTS_PER_PHOTON
+    gain = 4000.0 / _photons(settings)  # no attenuation → ~4000 of 4095
     return np.clip(np.round(counts * gain), 0, 4095).astype(np.uint16)
 
 
@@ -136,7 +140,7 @@ def make_skull_run(seed: int = 0, settings: SkullRunSettings = SkullRunSettings(
         files[name] = to_bytes(_dataset(stack, PLANES[name], name, settings))
         peak = peak_of(list(settings.fill), list(settings.strength))
         contrast = np.log(np.maximum(stack[peak].astype(np.float64), 1.0))
-        expected = cv2.GaussianBlur(settings.photons * GAIN_COUNTS_PER_PHOTON * np.exp(-moved), (0, 0), 0.5)
+        expected = cv2.GaussianBlur(4000.0 * np.exp(-moved), (0, 0), 0.5)
         clean = np.log(np.clip(expected, 1.0, 4095.0))  # the noise-free mask, aligned
         subtracted[name] = subtracted_xa((contrast - clean).astype(np.float32), PLANES[name], name)
     return NativeRunCase(files=files, subtracted=subtracted, mesh=mesh, mesh_to_world=pose, rig=rig,

@@ -99,6 +99,12 @@ def image_reading(options: RegistrationOptions):
                         motion_correction=options.motion_correction)
 
 
+def _is_union_tag(part) -> bool:
+    """Pydantic names the member of a union it tried (``constrained-int``, ``literal['minip']``); not a field."""
+    text = str(part)
+    return any(c in text for c in "-[('") or text in ("int", "str", "float", "bool", "none")
+
+
 def parse_options(data: dict | str | bytes | None) -> RegistrationOptions:
     """Validate options given as a dict or JSON text.
 
@@ -113,7 +119,7 @@ def parse_options(data: dict | str | bytes | None) -> RegistrationOptions:
         return RegistrationOptions.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
-        location = ".".join(str(part) for part in first["loc"])
+        location = ".".join(str(part) for part in first["loc"] if not _is_union_tag(part))
         raise DsaregInputError(
             first["msg"],
             field=f"options.{location}" if location else "options",
