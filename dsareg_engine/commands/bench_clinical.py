@@ -50,11 +50,11 @@ def _mesh_bytes(mesh) -> bytes:
 def _native(generator: str, subtracted: bool) -> Callable[[int, int], ClinicalCase]:
     def build(seed: int, size_px: int) -> ClinicalCase:
         if generator == "skull":
-            from ..synthetic_run_skull import SkullRunSettings, make_skull_run
+            from ..simulation.native_run_skull import SkullRunSettings, make_skull_run
 
             run = make_skull_run(seed, SkullRunSettings(size_px=size_px))
         else:
-            from ..synthetic_run_texture import TextureRunSettings, make_texture_run
+            from ..simulation.native_run_texture import TextureRunSettings, make_texture_run
 
             run = make_texture_run(seed, TextureRunSettings(size_px=size_px))
         images = run.subtracted if subtracted else run.files

@@ -16,7 +16,7 @@ The DSA image of contrast frame ``n`` is ``D_n = log C_n − log M_n`` (0 where 
 negative in the vessels: vessels dark, as the readers deliver DSA), with ``M_n`` the recipe's
 mask (moved by its Mask Sub-pixel Shift) or, without a recipe, the mean of the frames before
 contrast arrives. The mask is then moved onto the contrast frame by the patient motion found on
-the background (:mod:`.xa_motion`); the move is recorded.
+the background (:mod:`dsareg_engine.vision.xa_motion`); the move is recorded.
 
 **Which frame.** ``None``: the contrast frame of maximum opacification (the largest integrated
 darkening ``Σ max(0, −D − 3σ)``); ``"minip"``: the per-pixel minimum of ``D`` over the arterial
@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from ..errors import DsaregInputError
-from .xa_motion import MotionSettings, estimate_shift, shift_image
+from ..vision.xa_motion import MotionSettings, estimate_shift, shift_image
 from .xa_recipe import SubtractionItem, parse_recipe
 
 STATIC_RATIO = 4.0
