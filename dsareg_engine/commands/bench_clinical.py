@@ -15,9 +15,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from ..io.case import CaseFiles
+if TYPE_CHECKING:
+    from ..io.case import CaseFiles
 
 SUCCESS_ADD_MM = 1.0
 
@@ -49,6 +52,8 @@ def _mesh_bytes(mesh) -> bytes:
 
 def _native(generator: str, subtracted: bool) -> Callable[[int, int], ClinicalCase]:
     def build(seed: int, size_px: int) -> ClinicalCase:
+        from ..io.case import CaseFiles
+
         if generator == "skull":
             from ..simulation.native_run_skull import SkullRunSettings, make_skull_run
 
@@ -113,16 +118,3 @@ def bench_clinical(args: argparse.Namespace) -> int:
         print(f"| {kind.name} | {len(rows)} | {ok}/{len(rows)} | {np.median(adds):.4f} / {max(adds):.4f} | {verdicts} | "
               f"{np.median([r['wall_s'] for r in rows]):.1f} | {np.median([r['cpu_s'] for r in rows]):.1f} |", flush=True)
     return 0
-
-
-def add_parser(which) -> None:
-    """``dsareg bench clinical`` (called from :mod:`.bench`)."""
-    sub = which.add_parser("clinical", help="registration from stored clinical inputs, per input kind "
-                                            "(native XA runs, ...), with no geometry file and no initial pose")
-    sub.add_argument("--cases", type=int, default=3, help="cases (seeds) per input kind")
-    sub.add_argument("--seed", type=int, default=0, help="first seed")
-    sub.add_argument("--size", type=int, default=160, help="image side in px")
-    sub.add_argument("--kinds", nargs="*", default=[], help="only the kinds whose name contains one of these words")
-    sub.add_argument("--options", default="{}", help="extra registration options as JSON")
-    sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
-    sub.set_defaults(func=bench_clinical)
