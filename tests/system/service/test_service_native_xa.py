@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pydicom
 import pytest
-from service_testkit import needs_engine, wait_for
+from tests.support.service_testkit import needs_engine, wait_for
 
 from dsareg_engine.metrics import mean_distance_mm
 from dsareg_engine.simulation.native_run import to_bytes
