@@ -44,15 +44,20 @@ def phantom_case_files(work_dir: Path, size_px: int = WARM_UP_SIZE_PX) -> dict[s
     return files
 
 
-def warm_up_job(work_dir: Path) -> dict:
+def warm_up_job(work_dir: Path, *, pose_search: bool = False) -> dict:
     """Load, register (``WARM_UP_ITERATIONS`` iterations), write every output and the DICOM results
-    of a tiny phantom case in ``work_dir``, as a job does; returns the result dict."""
+    of a tiny phantom case in ``work_dir``, as a job does; returns the result dict. ``pose_search``:
+    without an initial pose, so the pose search's kernels run too."""
     from .geometry.spec import parse_geometry
     from .io.case import CaseFiles
     from .pipeline import run_case
 
     work_dir = Path(work_dir)
     files = phantom_case_files(work_dir)
+    if pose_search:
+        geometry = json.loads(files["geometry"])
+        geometry.pop("initial_mesh_to_world")
+        files["geometry"] = json.dumps(geometry)
     case_files = CaseFiles(mesh=files["mesh"], mesh_name="mesh.obj", ap=files["ap"], ap_name="ap.png",
                            lat=files["lat"], lat_name="lat.png", geometry=parse_geometry(files["geometry"]))
     return run_case(case_files, {"starts": 1, "max_iterations": WARM_UP_ITERATIONS}, work_dir, label="warm-up",
