@@ -22,16 +22,17 @@ def run(args: argparse.Namespace) -> int:
     import tempfile
     from pathlib import Path
 
-    from .. import api
+    from ..threads import default_cpu_threads, set_cpu_threads
+    from ..warmup import warm_up_job, warm_up_renderer
 
     started = time.monotonic()
-    for threads in sorted({1, api.default_cpu_threads()}):  # 1 thread: the serial twins; more: the parallel kernels
-        api.set_cpu_threads(threads)
+    for threads in sorted({1, default_cpu_threads()}):  # 1 thread: the serial twins; more: the parallel kernels
+        set_cpu_threads(threads)
         step = time.monotonic()
-        api.warm_up_renderer()
+        warm_up_renderer()
         for pose_search in (False, True):
             with tempfile.TemporaryDirectory(prefix="dsareg-warmup-") as work_dir:
-                api.warm_up_job(Path(work_dir), pose_search=pose_search)
+                warm_up_job(Path(work_dir), pose_search=pose_search)
         print(f"warmup: kernels for {threads} thread(s) ready in {time.monotonic() - step:.1f} s", file=sys.stderr)
     print(f"warmup: done in {time.monotonic() - started:.1f} s")
     return 0
