@@ -41,8 +41,9 @@ from .errors import DsaregInputError
 
 if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
     from .cli import run_parsed
-    from .commands.failures import CommandFailed, geometry_argument, input_file, json_argument, options_help
-    from .geometry.file import PRESETS
+    from .commands.arguments import geometry_argument, input_file, json_argument, options_help
+    from .commands.failures import CommandFailed
+    from .geometry.file import PRESETS, LatFromAp, RigSpec, ViewSpec
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
@@ -59,6 +60,9 @@ _LAZY = {
     "parse_options": "dsareg_engine.registration.options",
     "validate_rigid": "dsareg_engine.geometry.pose",
     "PRESETS": "dsareg_engine.geometry.file",
+    "RigSpec": "dsareg_engine.geometry.file",
+    "ViewSpec": "dsareg_engine.geometry.file",
+    "LatFromAp": "dsareg_engine.geometry.file",
     "GeometrySpec": "dsareg_engine.geometry.spec",
     "parse_geometry": "dsareg_engine.geometry.spec",
     "is_canonical_geometry": "dsareg_engine.geometry.spec",
@@ -77,10 +81,10 @@ _LAZY = {
     "default_cpu_threads": "dsareg_engine.threads",
     "run_parsed": "dsareg_engine.cli",
     "CommandFailed": "dsareg_engine.commands.failures",
-    "input_file": "dsareg_engine.commands.failures",
-    "options_help": "dsareg_engine.commands.failures",
-    "geometry_argument": "dsareg_engine.commands.failures",
-    "json_argument": "dsareg_engine.commands.failures",
+    "input_file": "dsareg_engine.commands.arguments",
+    "options_help": "dsareg_engine.commands.arguments",
+    "geometry_argument": "dsareg_engine.commands.arguments",
+    "json_argument": "dsareg_engine.commands.arguments",
     "load_pose": "dsareg_engine.geometry.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
     "warm_up_renderer": "dsareg_engine.warmup",
@@ -103,8 +107,10 @@ __all__ = [
     "DsaregInputError",
     "GeometrySpec",
     "InputLimits",
+    "LatFromAp",
     "RegistrationCanceled",
     "RegistrationOptions",
+    "RigSpec",
     "default_cpu_threads",
     "geometry_argument",
     "input_file",
@@ -126,6 +132,7 @@ __all__ = [
     "run_parsed",
     "run_registration_case",
     "set_cpu_threads",
+    "ViewSpec",
     "validate_rigid",
     "warm_up_job",
     "warm_up_parsers",
