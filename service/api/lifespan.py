@@ -13,6 +13,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from ..dbblobs import make_blob_store
+from ..dimse.listener import start_in_app
 from ..executor import Executor
 from ..settings import ServiceSettings
 from ..store import SqlJobStore, store_outage_errors
@@ -115,11 +116,14 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper = Sweeper(ctx)
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
+            ctx.extra["dicom_listener"] = start_in_app(ctx)  # DSAREG_DICOM_PORT set: the DICOM node
         log.info("dsareg service ready (%d worker processes, store %s)", settings.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
         try:
             yield
         finally:
+            if ctx.extra.get("dicom_listener") is not None:
+                await asyncio.to_thread(ctx.extra["dicom_listener"].stop)
             if ctx.sweeper:
                 ctx.sweeper.stop()
             await asyncio.to_thread(ctx.executor.stop)
