@@ -104,11 +104,13 @@ class Inbox:
             still = set(conn.execute(sa.select(instances.c.sha256).where(instances.c.sha256.in_(rows))).scalars())
         return sorted(set(rows) - still)
 
-    def discard_stale(self, live: set[str]) -> list[str]:
-        """Drop ``received`` rows of associations not in ``live`` (they died with an earlier process)."""
+    def discard_stale(self, live: set[str], older_than_seconds: float = 0.0) -> list[str]:
+        """Drop ``received`` rows of associations not in ``live`` (they died, or died with an earlier process),
+        those received at least ``older_than_seconds`` ago."""
+        before = time.time() - older_than_seconds
         with self.engine.connect() as conn:
             dead = set(conn.execute(sa.select(instances.c.association).where(
-                instances.c.state == "received").distinct()).scalars()) - live
+                instances.c.state == "received", instances.c.received_at <= before).distinct()).scalars()) - live
         orphans: list[str] = []
         for association in dead:
             orphans += self.discard_association(association)

@@ -63,15 +63,10 @@ def idempotency_key(study_uid: str, job: PlannedJob) -> str:
     return "dimse:" + hashlib.sha256(text.encode()).hexdigest()
 
 
-async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
-                         by_uid: dict[str, StoredInstance]) -> tuple[str, bool]:
-    """One planned job → ``(job id, created)``; raises :class:`Problem` like the HTTP submission."""
-    settings = ctx.settings
-    owner, key = job_owner(settings), idempotency_key(study_uid, job)
-    existing = await asyncio.to_thread(ctx.store.find_idempotent, owner, key)
-    if existing is not None:
-        return existing.id, False
-    document = json.dumps(source_document(study_uid, job, by_uid, settings), sort_keys=True).encode()
+async def _planned_inputs(ctx: ServiceContext, study_uid: str, job: PlannedJob,
+                          by_uid: dict[str, StoredInstance]) -> tuple[list[InputFile], Any]:
+    """The job's inputs (the received instances and its ``dimse`` document) and its parsed options."""
+    document = json.dumps(source_document(study_uid, job, by_uid, ctx.settings), sort_keys=True).encode()
     digest, size = await asyncio.to_thread(ctx.blobs.put_bytes, document)
 
     def item(role: str, uid: str) -> InputFile:
@@ -79,7 +74,27 @@ async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
 
     inputs = [item("ap", job.ap), item("lat", job.lat), *(item("volume", uid) for uid in job.volume),
               InputFile(role=ROLE, sha256=digest, size=size, suffix=".json")]
-    options = parse_options_json(dict(settings.dicom_job_options) or None)
+    return inputs, parse_options_json(dict(ctx.settings.dicom_job_options) or None)
+
+
+async def prevalidate(ctx: ServiceContext, study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance]) -> None:
+    """Parse a planned job's inputs ahead of time (when its association is released, before the study is
+    stable): the validator keeps successful outcomes by content, so the submission then costs no parse."""
+    inputs, options = await _planned_inputs(ctx, study_uid, job, by_uid)
+    try:
+        await validate_inputs(ctx, inputs, None, options)
+    except Problem:
+        pass  # reported by the submission itself
+
+
+async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
+                         by_uid: dict[str, StoredInstance]) -> tuple[str, bool]:
+    """One planned job → ``(job id, created)``; raises :class:`Problem` like the HTTP submission."""
+    owner, key = job_owner(ctx.settings), idempotency_key(study_uid, job)
+    existing = await asyncio.to_thread(ctx.store.find_idempotent, owner, key)
+    if existing is not None:
+        return existing.id, False
+    inputs, options = await _planned_inputs(ctx, study_uid, job, by_uid)
     options_json = options.model_dump(mode="json")
     await check_queue(ctx, owner)
     warnings = await validate_inputs(ctx, inputs, None, options)
@@ -104,11 +119,18 @@ def _header(ctx: ServiceContext, item: StoredInstance):
 class StudyDispatcher:
     """A thread: stable studies → planned jobs → submitted on ``loop`` (the API's event loop, or its own)."""
 
-    def __init__(self, ctx: ServiceContext, inbox: Inbox, loop: asyncio.AbstractEventLoop, tick_seconds: float = 0.25):
+    HOUSEKEEPING_SECONDS = 5.0
+
+    def __init__(self, ctx: ServiceContext, inbox: Inbox, loop: asyncio.AbstractEventLoop, tick_seconds: float = 0.25,
+                 housekeeping=None):
         self.ctx, self.inbox, self.loop, self.tick = ctx, inbox, loop, tick_seconds
+        self.housekeeping = housekeeping or (lambda: None)
+        self._last_housekeeping = 0.0
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._retry_at: dict[str, float] = {}
+        self._early: set[str] = set()
+        self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="dimse-dispatcher", daemon=True)
         self.dispatched: list[dict[str, Any]] = []  # recent outcomes, for logs and tests
 
@@ -120,18 +142,36 @@ class StudyDispatcher:
         self._wake.set()
         self._thread.join(10)
 
-    def wake(self, _studies: Any = None) -> None:
+    def wake(self, studies: Any = None) -> None:
+        """An association was released with instances of ``studies``: parse their planned jobs early."""
+        with self._lock:
+            self._early.update(studies or ())
         self._wake.set()
 
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
                 self.dispatch_once()
+                self._prevalidate_released()
+                if time.monotonic() - self._last_housekeeping > self.HOUSEKEEPING_SECONDS:
+                    self._last_housekeeping = time.monotonic()
+                    self.housekeeping()
             except Exception:  # noqa: BLE001 - keep dispatching; the inbox is unchanged, retried next tick
                 log.exception("dispatching received studies failed; retrying")
                 self._stop.wait(2.0)
             self._wake.wait(self.tick)
             self._wake.clear()
+
+    def _prevalidate_released(self) -> None:
+        with self._lock:
+            studies, self._early = self._early, set()
+        for study in studies:
+            items = self.inbox.study(study)
+            plan = plan_study([_header(self.ctx, item) for item in items], angle_between)
+            by_uid = {item.sop_instance_uid: item for item in items}
+            for job in plan.jobs:
+                future = asyncio.run_coroutine_threadsafe(prevalidate(self.ctx, study, job, by_uid), self.loop)
+                future.result(timeout=self.ctx.settings.validation_timeout_seconds + 30)
 
     def dispatch_once(self) -> int:
         now = time.time()

@@ -31,7 +31,8 @@ class DicomListener:
         self.ctx = ctx
         store = ctx.store
         self.inbox = Inbox(store.engine, getattr(store, "writer", None))
-        self.dispatcher = StudyDispatcher(ctx, self.inbox, loop, tick_seconds=min(0.25, ctx.settings.dicom_stable_seconds / 4))
+        self.dispatcher = StudyDispatcher(ctx, self.inbox, loop, tick_seconds=min(0.25, ctx.settings.dicom_stable_seconds / 4),
+                                          housekeeping=lambda: self.scp.sweep())
         self.scp = StoreScp(ctx.settings, self.inbox, ctx.blobs, on_commit=self.dispatcher.wake)
         self.server = None
 

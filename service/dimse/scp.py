@@ -111,6 +111,7 @@ class StoreScp:
         self._numbers = itertools.count(1)
         self._ids: dict[int, str] = {}
         self._studies: dict[str, set[str]] = {}
+        self._closed: dict[int, float] = {}
         self._lock = threading.Lock()
         self.stats = {"associations": 0, "rejected": 0, "stored": 0, "aborted": 0, "refused": 0}
 
@@ -149,10 +150,6 @@ class StoreScp:
                 self.stats["associations"] += 1
             return self._ids[key]
 
-    def live_associations(self) -> set[str]:
-        with self._lock:
-            return set(self._ids.values())
-
     # ---- C-STORE ----------------------------------------------------------------------------------
     def on_store(self, event: Any) -> int:
         """Store, fsync, index, then answer (0000; A700 out of space or storage failed; C000 unreadable)."""
@@ -184,35 +181,61 @@ class StoreScp:
         return SUCCESS
 
     # ---- end of an association ---------------------------------------------------------------------
+    # The association's thread reports a release (EVT_RELEASED) or an abort (EVT_ABORTED, also for a
+    # connection lost without release); the transport's thread reports the closed connection
+    # (EVT_CONN_CLOSE), possibly *before* the release is reported, so a close alone decides nothing:
+    # it only starts a grace period after which an association that was neither released nor
+    # aborted counts as dead (:meth:`sweep`).
     def on_released(self, event: Any) -> None:
         association = self.association_id(event.assoc)
         count = self.inbox.commit_association(association)
         with self._lock:
             studies = self._studies.pop(association, set())
+            self._forget(event.assoc)
         if count:
             log.info("association %s released: %d instance(s) of %d study(ies) committed", association, count,
                      len(studies))
             self.on_commit(studies)
 
     def on_aborted(self, event: Any) -> None:
-        """A-ABORT or a closed connection without release: what it stored is dropped."""
+        """A-ABORT or a connection lost without release: what it stored is dropped."""
         with self._lock:
             association = self._ids.get(id(event.assoc))
-        if association is None:
-            return
+            self._forget(event.assoc)
+            self._studies.pop(association, None)
+        if association is not None:
+            self._discard(association)
+
+    def on_closed(self, event: Any) -> None:
+        with self._lock:
+            if id(event.assoc) in self._ids:
+                self._closed[id(event.assoc)] = time.monotonic()
+
+    def _forget(self, assoc: Any) -> None:
+        self._ids.pop(id(assoc), None)
+        self._closed.pop(id(assoc), None)
+
+    def _discard(self, association: str) -> None:
         orphans = self.inbox.discard_association(association)
         if orphans:
             self.stats["aborted"] += 1
             self.blobs.delete(orphans, min_age_seconds=0.0)
             log.warning("association %s ended without release: %d stored instance file(s) discarded", association,
                         len(orphans))
-        with self._lock:
-            self._studies.pop(association, None)
 
-    def on_closed(self, event: Any) -> None:
-        self.on_aborted(event)
+    def sweep(self, grace_seconds: float = 10.0) -> None:
+        """Discard what associations closed long ago without release or abort (and any dead process) left."""
+        now = time.monotonic()
         with self._lock:
-            self._ids.pop(id(event.assoc), None)
+            dead = [key for key, closed in self._closed.items() if now - closed > grace_seconds]
+            for key in dead:
+                self._closed.pop(key, None)
+                self._studies.pop(self._ids.pop(key, ""), None)
+            live = set(self._ids.values())
+        orphans = self.inbox.discard_stale(live, older_than_seconds=grace_seconds)
+        if orphans:
+            self.blobs.delete(orphans, min_age_seconds=0.0)
+            log.warning("%d stored instance file(s) of associations that ended without release discarded", len(orphans))
 
 
 def make_ae(settings: Any):
@@ -234,6 +257,8 @@ def start_server(settings: Any, scp: StoreScp):
     """Start listening (a thread per association); returns the pynetdicom server (``.shutdown()``)."""
     from pynetdicom import evt
 
+    if not log.isEnabledFor(logging.DEBUG):  # one INFO line per C-STORE otherwise
+        logging.getLogger("pynetdicom").setLevel(logging.WARNING)
     ae = make_ae(settings)
     handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_C_STORE, scp.on_store),
                 (evt.EVT_RELEASED, scp.on_released), (evt.EVT_ABORTED, scp.on_aborted),

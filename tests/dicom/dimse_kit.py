@@ -97,15 +97,14 @@ def scu_send(port: int, paths: list[Path], calling: str, *, abort_after: int | N
 
 
 def jobs_of_study(client, study_uid: str) -> list[dict]:
-    """Every job of the service made from ``study_uid`` (by the ``dimse`` source of its result or inputs)."""
+    """Every job of the service made from ``study_uid`` (by its ``source.dimse``)."""
     found = []
     cursor = None
     while True:
         page = client.get("/v1/registrations", params={"limit": 100, **({"cursor": cursor} if cursor else {})}).json()
         for item in page["items"]:
             job = client.get(item["links"]["self"]).json()
-            source = (((job.get("result") or {}).get("dicom") or {}).get("source") or {}).get("dimse") or {}
-            if source.get("study_uid") == study_uid or study_uid in job.get("dimse_study_uids", []):
+            if ((job.get("source") or {}).get("dimse") or {}).get("study_uid") == study_uid:
                 found.append(job)
         cursor = page.get("next_cursor")
         if not cursor:
