@@ -183,3 +183,58 @@ def test_export_destination_down_fails_clearly_and_the_job_succeeds(node, study,
     assert "DOWNPEER" in error["detail"] and "3 attempts" in error["detail"]
     assert export["seconds"] < 30
     assert done["result"]["mesh_to_world"]  # the registration itself stands
+
+
+def _pull_reference(study_uid: str, paths, peer: str) -> dict:
+    headers = [pydicom.dcmread(p, stop_before_pixels=True) for p in paths]
+    ap, lat = (h for h in headers if h.Modality == "XA")
+    volume = next(h for h in headers if h.Modality == "CT")
+    return {"source": {"dimse": {"peer": peer, "study_uid": study_uid, "ap": {"series_uid": ap.SeriesInstanceUID},
+                                 "lat": {"series_uid": lat.SeriesInstanceUID},
+                                 "volume": {"series_uid": volume.SeriesInstanceUID}}},
+            "options": {"starts": 1}}
+
+
+def test_pull_by_dimse_reference_from_orthanc_and_store_back(node, study, tmp_path):
+    """``source.dimse``: the worker retrieves the study from Orthanc by C-GET and C-STOREs the results back."""
+    orthanc = node.orthanc
+    if not orthanc.process or orthanc.process.poll() is not None:
+        try:
+            orthanc.start()
+        except Exception as exc:  # noqa: BLE001
+            pytest.skip(f"cannot start Orthanc ({str(exc)[:200]})")
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    with httpx.Client(base_url=orthanc.url, auth=(orthanc.user, orthanc.password), timeout=60) as pacs:
+        for path in paths:
+            assert pacs.post("/instances", content=path.read_bytes()).status_code == 200
+        with node.client() as client:
+            answer = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "ORTHANC"))
+            assert answer.status_code == 202, answer.text
+            done = wait_for(client, answer.json()["id"], timeout=300)
+        assert done["status"] == "succeeded", done
+        dicom = done["result"]["dicom"]
+        assert dicom["source"]["dimse"]["peer"] == "ORTHANC" and dicom["source"]["dimse"]["instances"] == len(paths)
+        assert dicom["exported"][0]["status"] == "stored"
+        reg_uid = dicom["instances"]["reg.dcm"]["sop_instance_uid"]
+        found = pacs.post("/tools/find", json={"Level": "Instance", "Query": {"SOPInstanceUID": reg_uid}}).json()
+        reg = pydicom.dcmread(io.BytesIO(pacs.get(f"/instances/{found[0]}/file").content))
+    print(f"\nC-GET of {len(paths)} instances: {dicom['source']['dimse']['fetch_seconds']:.2f} s")
+    assert_pose(reg, pydicom.dcmread(paths[-1]).FrameOfReferenceUID, study.mesh_to_world)
+
+
+def test_pull_refusals_and_a_retrieve_source_that_is_down(node, study, tmp_path):
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    with node.client() as client:
+        unknown = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "NOTAPEER"))
+        assert unknown.status_code == 422 and unknown.json()["field"] == "source.dimse.peer"
+        bad = _pull_reference(study_uid, paths, "DOWNPEER")
+        bad["source"]["dimse"]["study_uid"] = "1.2.x"
+        answer = client.post("/v1/registrations", json=bad)
+        assert answer.status_code == 422 and answer.json()["field"] == "source.dimse.study_uid"
+        answer = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "DOWNPEER"))
+        assert answer.status_code == 202
+        done = wait_for(client, answer.json()["id"], timeout=120)
+    assert done["status"] == "failed"
+    error = done["error"]
+    assert error["type"].endswith("/pacs-error") and error["peer"] == "DOWNPEER" and error["step"] == "retrieve ap (C-GET)"
+    assert "DOWNPEER" in error["detail"]
