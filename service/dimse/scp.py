@@ -243,7 +243,7 @@ def make_ae(settings: Any):
     from pynetdicom import AE
 
     ae = AE(ae_title=settings.dicom_ae_title)
-    ae.maximum_pdu_size = 0  # no limit: fewer, larger P-DATA PDUs on loopback
+    ae.maximum_pdu_size = 1 << 20  # 1 MiB P-DATA PDUs (0 = "unlimited" trips dcmtk on encapsulated pixel data)
     for timeout in ("acse_timeout", "dimse_timeout", "network_timeout"):
         setattr(ae, timeout, settings.dicom_timeout_seconds)
     syntaxes = decodable_transfer_syntaxes()

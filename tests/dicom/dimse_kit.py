@@ -45,8 +45,11 @@ def renamed_study(study, folder: Path) -> tuple[str, list[Path]]:
     return study_uid, paths
 
 
-def storescu(port: int, paths: list[Path], calling: str = "STORESCU", called: str = "DSAREG") -> subprocess.CompletedProcess:
-    return subprocess.run(["storescu", "-aet", calling, "-aec", called, "127.0.0.1", str(port), *map(str, paths)],
+def storescu(port: int, paths: list[Path], calling: str = "STORESCU", called: str = "DSAREG",
+             options: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+    """dcmtk ``storescu`` of ``paths`` in one association (``options``: e.g. ``-xs`` to propose JPEG Lossless)."""
+    return subprocess.run(["storescu", *options, "-aet", calling, "-aec", called, "127.0.0.1", str(port),
+                           *map(str, paths)],
                           capture_output=True, text=True, timeout=120, check=False)
 
 

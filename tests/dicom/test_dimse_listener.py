@@ -118,3 +118,36 @@ def test_killed_mid_association_then_the_study_is_sent_again(topology, study, tm
     assert len(jobs) == 1, jobs
     assert storescu(listener.port, paths).returncode == 0  # and once more: still one job
     assert len(settle_and_count(api, study_uid)) == 1
+
+
+def test_compressed_transfer_syntaxes_are_accepted_kept_and_decoded(topology, study, tmp_path):
+    """XA in JPEG Lossless SV1 and the CT in RLE Lossless (dcmtk ``dcmcjpeg`` / ``dcmcrle``): stored as sent, the
+    job's input validation decodes them (a job is queued)."""
+    import shutil
+
+    import pydicom
+
+    if not (shutil.which("dcmcjpeg") and shutil.which("dcmcrle")):
+        pytest.skip("dcmtk's dcmcjpeg / dcmcrle not installed")
+    api, listener = topology
+    study_uid, paths = renamed_study(study, tmp_path / "plain")
+    compressed = []
+    for index, path in enumerate(paths):
+        target = tmp_path / f"c{index:03d}.dcm"
+        tool = ["dcmcjpeg", "+e1"] if index < 2 else ["dcmcrle"]
+        subprocess.run([*tool, str(path), str(target)], check=True, capture_output=True, timeout=60)
+        compressed.append(target)
+    # storescu proposes one compressed syntax per run: the XA pair (JPEG Lossless SV1), then the CT (RLE)
+    assert storescu(listener.port, compressed[:2], options=("-xs",)).returncode == 0
+    assert storescu(listener.port, compressed[2:], options=("-xr",)).returncode == 0
+    jobs = settle_and_count(api, study_uid)
+    assert len(jobs) == 1, jobs
+    syntaxes = set()
+    for blob in (listener.data_dir / "blobs").glob("??/*"):
+        try:
+            ds = pydicom.dcmread(blob, stop_before_pixels=True)
+        except Exception:  # noqa: BLE001 - other blobs (JSON)
+            continue
+        if getattr(ds, "StudyInstanceUID", None) == study_uid:
+            syntaxes.add(str(ds.file_meta.TransferSyntaxUID))
+    assert syntaxes == {"1.2.840.10008.1.2.4.70", "1.2.840.10008.1.2.5"}
