@@ -257,7 +257,7 @@ def settings_to_env(settings: ServiceSettings) -> dict[str, str]:
         value = getattr(settings, name)
         if name == "api_keys" or value is None:
             continue
-        if isinstance(value, list):
+        if isinstance(value, (list, dict)):
             env[f"DSAREG_{name.upper()}"] = json.dumps(value)
         else:
             env[f"DSAREG_{name.upper()}"] = str(value)
