@@ -10,8 +10,9 @@ Association policy (checked on A-ASSOCIATE-RQ, in ``EVT_REQUESTED``, answered A-
   exceeded" otherwise (a C-STORE that would go below it answers A700 "out of resources").
 
 C-STORE: the instance is stored as received (its transfer syntax kept), fsynced, indexed
-(:mod:`service.dimse.inbox`), then answered 0000. A released association commits its
-instances; an aborted one (A-ABORT, a dropped connection) discards them.
+(:mod:`service.dimse.inbox`), then answered 0000. An A-RELEASE-RQ commits the association's
+instances before the release is confirmed; an aborted association (A-ABORT, a dropped
+connection) discards them.
 """
 
 from __future__ import annotations
@@ -186,15 +187,32 @@ class StoreScp:
     # (EVT_CONN_CLOSE), possibly *before* the release is reported, so a close alone decides nothing:
     # it only starts a grace period after which an association that was neither released nor
     # aborted counts as dead (:meth:`sweep`).
-    def on_released(self, event: Any) -> None:
-        association = self.association_id(event.assoc)
-        count = self.inbox.commit_association(association)
+    def on_acse(self, event: Any) -> None:
+        """A-RELEASE-RQ received: commit *before* the release is confirmed, so that a peer that saw its
+        association end normally never loses an instance (a listener killed right after still has them)."""
+        from pynetdicom.pdu_primitives import A_RELEASE
+
+        primitive = event.primitive
+        if not isinstance(primitive, A_RELEASE) or primitive.result is not None:
+            return
         with self._lock:
-            studies = self._studies.pop(association, set())
-            self._forget(event.assoc)
+            association = self._ids.get(id(event.assoc))
+        if association is None:
+            return  # nothing stored (an echo)
+        try:
+            count = self.inbox.commit_association(association)
+        except Exception:  # noqa: BLE001 - the rows stay 'received' and are discarded: the peer must resend
+            log.exception("association %s: its instances could not be committed", association)
+            return
         if count:
-            log.info("association %s released: %d instance(s) of %d study(ies) committed", association, count,
-                     len(studies))
+            log.info("association %s released: %d instance(s) committed", association, count)
+
+    def on_released(self, event: Any) -> None:
+        with self._lock:
+            association = self._ids.get(id(event.assoc))
+            studies = self._studies.pop(association, set()) if association else set()
+            self._forget(event.assoc)
+        if studies:
             self.on_commit(studies)
 
     def on_aborted(self, event: Any) -> None:
@@ -260,7 +278,7 @@ def start_server(settings: Any, scp: StoreScp):
     if not log.isEnabledFor(logging.DEBUG):  # one INFO line per C-STORE otherwise
         logging.getLogger("pynetdicom").setLevel(logging.WARNING)
     ae = make_ae(settings)
-    handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_C_STORE, scp.on_store),
+    handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_C_STORE, scp.on_store), (evt.EVT_ACSE_RECV, scp.on_acse),
                 (evt.EVT_RELEASED, scp.on_released), (evt.EVT_ABORTED, scp.on_aborted),
                 (evt.EVT_CONN_CLOSE, scp.on_closed)]
     return ae.start_server((settings.dicom_host, settings.dicom_port), block=False, evt_handlers=handlers)
