@@ -103,12 +103,11 @@ def _wait(predicate, timeout: float, step: float = 0.05):
 
 
 def _iso(text: str) -> float:
-    return _dt.datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+    return _dt.datetime.fromisoformat(text).timestamp()
 
 
 def round_trip(folder: Path, stable_seconds: float) -> dict:
     import httpx
-
     from dsareg_engine.phantom_study import make_biplane_study
 
     study = make_biplane_study(image_px=160, pixel_spacing_mm=0.9, depth=2)

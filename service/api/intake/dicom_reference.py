@@ -19,14 +19,15 @@ from fastapi import FastAPI, Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
+from ...budgets import parse_json_part
 from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
 from ...pacs.dimse.pull import ROLE as PULL_ROLE
 from ...pacs.dimse.pull import DimseRegistrationRequest
 from ...pacs.dimse.scp import configured_peers
-from ...budgets import parse_json_part
 from ...problems import Problem
 from ...storage.store import InputFile
 from ..deps import ServiceContext
+from .forms import read_body
 from .submission import accepted, check_queue, create_job, find_replay, fingerprint, new_job, parse_options_json
 
 log = logging.getLogger("dsareg.service")
@@ -39,9 +40,7 @@ def _field(loc) -> str:
 
 
 async def parse_reference(request: Request) -> DicomwebRegistrationRequest | DimseRegistrationRequest:
-    body = await request.body()
-    if len(body) > MAX_REFERENCE_BYTES:
-        raise Problem(413, f"a reference request is at most {MAX_REFERENCE_BYTES} bytes")
+    body = await read_body(request, MAX_REFERENCE_BYTES)  # streamed: never buffered past the limit
     data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
     if isinstance(data.get("source"), dict) and "dimse" in data["source"]:
         try:

@@ -80,7 +80,7 @@ class StudyDispatcher:
                 if time.monotonic() - self._last_housekeeping > self.HOUSEKEEPING_SECONDS:
                     self._last_housekeeping = time.monotonic()
                     self.housekeeping()
-            except Exception:  # noqa: BLE001 - keep dispatching; the inbox is unchanged, retried next tick
+            except Exception:
                 log.exception("dispatching received studies failed; retrying")
                 self._stop.wait(2.0)
             self._wake.wait(self.tick)

@@ -19,8 +19,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from ..dicomweb import ImageRef, PacsError, VolumeRef, _uid
 from ...engine_adapter import engine, fetched_case_files
+from ..dicomweb import ImageRef, PacsError, VolumeRef, _uid
 from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
 
 ROLE = "dimse-reference"

@@ -173,7 +173,7 @@ class StoreScp:
                 fsync_file(local)
             calling = str(event.assoc.requestor.ae_title).strip()
             self.inbox.add(StoredInstance(sop, study, series, sop_class, digest, size, calling, time.time()), association)
-        except Exception:  # noqa: BLE001 - the peer must hear a failure, not success
+        except Exception:
             log.exception("C-STORE of an instance could not be stored")
             return OUT_OF_RESOURCES
         with self._lock:
@@ -201,7 +201,7 @@ class StoreScp:
             return  # nothing stored (an echo)
         try:
             count = self.inbox.commit_association(association)
-        except Exception:  # noqa: BLE001 - the rows stay 'received' and are discarded: the peer must resend
+        except Exception:
             log.exception("association %s: its instances could not be committed", association)
             return
         if count:

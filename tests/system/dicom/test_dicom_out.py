@@ -10,6 +10,7 @@ import pydicom
 import pytest
 from PIL import Image
 
+from dsareg_engine.geometry.pose import make_transform
 from dsareg_engine.io.dicom_out import (
     REG_SOP_CLASS,
     SC_SOP_CLASS,
@@ -18,7 +19,6 @@ from dsareg_engine.io.dicom_out import (
     read_sources,
     write_dicom_outputs,
 )
-from dsareg_engine.geometry.pose import make_transform
 
 
 def _random_rigid(seed: int) -> np.ndarray:

@@ -15,11 +15,11 @@ import httpx
 import numpy as np
 import pydicom
 import pytest
-from tests.support.dimse_kit import StoreScp, echoscu, jobs_of_study, need_dcmtk, renamed_study, scu_send, storescu
-from tests.support.service_testkit import Server, wait_for
 
 from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
+from tests.support.dimse_kit import StoreScp, echoscu, jobs_of_study, need_dcmtk, renamed_study, scu_send, storescu
 from tests.support.servers import OrthancServer, free_port
+from tests.support.service_testkit import Server, wait_for
 
 STABLE_S = 1.0
 

@@ -10,12 +10,12 @@ import pydicom
 import pytest
 from pynetdicom import AE
 
-from tests.support.servers import free_port
-from service.storage.blobs import BlobStore
 from service.pacs.dimse.inbox import Inbox
 from service.pacs.dimse.scp import StoreScp, start_server
 from service.settings import ServiceSettings
+from service.storage.blobs import BlobStore
 from service.storage.store import SqlJobStore
+from tests.support.servers import free_port
 
 
 @pytest.fixture

@@ -6,8 +6,8 @@ import pytest
 from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
-from service.pacs.dimse.grouping import plan_study
 from service.pacs.dimse.dispatcher import angle_between
+from service.pacs.dimse.grouping import plan_study
 
 pytestmark = pytest.mark.filterwarnings("ignore:Invalid value for VR UI")  # readable names as UIDs
 
