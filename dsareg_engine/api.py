@@ -49,6 +49,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.xa_run import ImageReading
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+    from .io.dicom_xa import c_arm_rotation
     from .io.limits import DEFAULT_LIMITS, InputLimits
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
     from .geometry.pose import validate_rigid
@@ -79,6 +80,7 @@ _LAZY = {
     "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
     "DicomSources": "dsareg_engine.io.dicom_out",
+    "c_arm_rotation": "dsareg_engine.io.dicom_xa",
     "read_sources": "dsareg_engine.io.dicom_out",
     "write_dicom_outputs": "dsareg_engine.io.dicom_out",
     "set_cpu_threads": "dsareg_engine.threads",
@@ -116,6 +118,7 @@ __all__ = [
     "RegistrationCanceled",
     "RegistrationOptions",
     "RigSpec",
+    "c_arm_rotation",
     "default_cpu_threads",
     "geometry_argument",
     "input_file",
