@@ -53,10 +53,12 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading"}``."""
     import signal
 
-    from ...jobs.procwatch import die_with_parent
+    from ...jobs.procwatch import die_with_parent, set_process_name
+
+    set_process_name("dsareg-validate")
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
@@ -99,7 +101,8 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
         try:
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
-            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"))
+            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
+                                 request.get("reading"))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
@@ -306,7 +309,7 @@ class ValidatorPool:
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:
