@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import DsaregInputError
 from ..io.case import load_case
+from ..io.volume_kind import VolumeReading
 from ..pipeline import write_outputs
 from ..pose_file import load_pose
 from ..registration import CONFIGURATIONS, register
@@ -25,8 +26,9 @@ def add_parser(subparsers) -> None:
     model.add_argument("--mesh", type=input_file, metavar="FILE",
                        help="vessel surface mesh in mm (OBJ, STL, PLY, OFF, GLB)")
     model.add_argument("--volume", nargs="+", metavar="FILE|DIR",
-                       help="3D angiography volume instead of a mesh: one file (NIfTI, NRRD, DICOM), "
-                            "every file of a DICOM series, or the series' folder")
+                       help="3D volume instead of a mesh: one file (NIfTI, NRRD, DICOM), every file of a DICOM "
+                            "series, or the series' folder; a CTA, TOF-MRA or 3D-DSA (told from its tags; override "
+                            "with --options '{\"volume_kind\": \"cta\"}', volume_vessel_min / volume_vessel_max)")
     parser.add_argument("--ap", required=True, type=input_file, metavar="FILE",
                         help="AP DSA image or vessel mask (PNG, TIFF, JPEG, DICOM XA, .rad with its .raw)")
     parser.add_argument("--lat", required=True, type=input_file, metavar="FILE", help="LAT image or mask (as --ap)")
@@ -87,10 +89,12 @@ def run(args: argparse.Namespace) -> int:
         **model,
         ap=ap_bytes, ap_name=Path(args.ap).name,
         lat=lat_bytes, lat_name=Path(args.lat).name,
-        geometry=geometry, segmentation=parsed.segmentation,
+        geometry=geometry, segmentation=parsed.segmentation, volume_reading=VolumeReading.from_options(parsed),
     )
     for warning in case.warnings:
         print(f"warning: {warning}")
+    if case.volume is not None:
+        print(f"volume: {case.volume.text()}; {case.volume.faces} faces extracted")
 
     def show(event: dict) -> None:
         print(f"\r{event['stage']:>14} it {event['iteration']:4d} loss {event['loss']:.5f}", end="", flush=True)
@@ -98,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
     result = register(case.mesh, case.fitted, case.rig, parsed, progress=show)
     print()
     out = Path(args.out)
-    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images)
+    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images,
+                  volume=case.volume.to_dict() if case.volume is not None else None)
     if args.dicom_out:
         from ..io.dicom_out import read_sources, write_dicom_outputs
 

@@ -15,7 +15,9 @@ from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
 from .segmentation import SEGMENTATION_METHODS, vessel_coverage
-from .volume_io import read_volume, volume_to_mesh
+from .volume_io import read_volume
+from .volume_kind import VolumeReading
+from .volume_vessels import VolumeReadout, extract_vessels
 
 ASPECT_TOLERANCE = 0.01
 
@@ -36,6 +38,7 @@ class Case:
         kinds: what each input was read as (``{"mesh": "stl", "ap": "dicom-xa", ...}``).
         images: the images as read (``(H, W)`` float, before segmentation), shown under
             the overlays' contours.
+        volume: for a volume input, what was read from it (kind, thresholds, voxels kept).
     """
 
     mesh: TriangleMesh
@@ -45,6 +48,7 @@ class Case:
     kinds: dict[str, str] = field(default_factory=dict)
     images: dict[str, np.ndarray] = field(default_factory=dict)
     targets: dict[str, np.ndarray] = field(default_factory=dict)
+    volume: VolumeReadout | None = None
 
     @property
     def fitted(self) -> dict[str, np.ndarray]:
@@ -79,11 +83,13 @@ class CaseFiles:
     warnings: tuple[str, ...] = ()
 
 
-def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS) -> Case:
+def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS,
+                    volume_reading: VolumeReading | None = None) -> Case:
     """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's."""
     case = load_case(mesh=files.mesh, mesh_name=files.mesh_name, volume=files.volume, volume_name=files.volume_name,
                      ap=files.ap, ap_name=files.ap_name, lat=files.lat, lat_name=files.lat_name,
-                     geometry=files.geometry, segmentation=segmentation, limits=limits, frame=files.frame)
+                     geometry=files.geometry, segmentation=segmentation, limits=limits, frame=files.frame,
+                     volume_reading=volume_reading)
     case.warnings[:0] = list(files.warnings)
     return case
 
@@ -102,6 +108,7 @@ def load_case(
     segmentation: str = "auto",
     limits: InputLimits = DEFAULT_LIMITS,
     frame: int | str | None = None,
+    volume_reading: VolumeReading | None = None,
 ) -> Case:
     """Read, validate and segment the inputs of one case.
 
@@ -115,12 +122,14 @@ def load_case(
         segmentation: ``"auto"``, ``"otsu"``, ``"vesselness"`` or ``"mask"``.
         frame: for multi-frame DICOM: a frame number, ``"minip"``, or ``None``
             (maximum opacification).
+        volume_reading: how to read vessels from a volume (kind, thresholds); ``None`` = detect.
 
     Raises:
         DsaregInputError: with ``field`` naming the input at fault.
     """
     warnings: list[str] = []
     kinds: dict[str, str] = {}
+    volume_readout = None
     if segmentation not in SEGMENTATION_METHODS:
         raise DsaregInputError(
             f"unknown method '{segmentation}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
@@ -140,7 +149,8 @@ def load_case(
     else:
         loaded = read_volume(volume, volume_name, limits, field_name="volume")
         warnings.extend(loaded.warnings)
-        surface = volume_to_mesh(loaded, field_name="volume")
+        extraction = extract_vessels(loaded, volume_reading, field_name="volume")
+        surface, volume_readout = extraction.mesh, extraction.readout
         kinds["volume"] = loaded.kind
         if surface.n_faces > limits.working_faces:
             original = surface.n_faces
@@ -183,7 +193,7 @@ def load_case(
         views[name] = view
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
-                images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets)
+                images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets, volume=volume_readout)
 
 
 def _resolve_rig(geometry: GeometrySpec | None, images: dict[str, LoadedImage], warnings: list[str],
