@@ -47,6 +47,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
     from .io.limits import DEFAULT_LIMITS, InputLimits
+    from .io.volume_kind import VolumeReading
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
     from .pose import validate_rigid
     from .pose_file import load_pose
@@ -67,6 +68,7 @@ _LAZY = {
     "InputLimits": "dsareg_engine.io.limits",
     "DEFAULT_LIMITS": "dsareg_engine.io.limits",
     "load_case": "dsareg_engine.io.case",
+    "VolumeReading": "dsareg_engine.io.volume_kind",
     "run_registration_case": "dsareg_engine.pipeline",
     "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
@@ -104,6 +106,7 @@ __all__ = [
     "InputLimits",
     "RegistrationCanceled",
     "RegistrationOptions",
+    "VolumeReading",
     "default_cpu_threads",
     "geometry_argument",
     "input_file",

@@ -16,8 +16,10 @@ def _slice_dataset(sop_class: str, series_uid: str, frame_uid: str, study_uid: s
     from .io.dicom_out import new_instance, new_uid
 
     ds = new_instance(sop_class, new_uid(), charset="ISO_IR 100")
-    ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = "PHANTOM^HEAD", "DSAREG-HEAD-1", "", "O"
-    ds.StudyInstanceUID, ds.StudyDate, ds.StudyTime, ds.StudyID = study_uid, "20260101", "120000", "HEAD1"
+    from .phantom_study import PATIENT_ID, PATIENT_NAME
+
+    ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = PATIENT_NAME, PATIENT_ID, "", "O"
+    ds.StudyInstanceUID, ds.StudyDate, ds.StudyTime, ds.StudyID = study_uid, "20260101", "120000", "DSAREG1"
     ds.AccessionNumber, ds.ReferringPhysicianName = "", ""
     ds.SeriesInstanceUID, ds.SeriesNumber, ds.Modality, ds.InstanceNumber = series_uid, 3, modality, number
     ds.FrameOfReferenceUID, ds.PositionReferenceIndicator = frame_uid, ""
@@ -52,7 +54,7 @@ def _write_slices(data: np.ndarray, affine: np.ndarray, slice_axis: int, make, s
     return parts
 
 
-def cta_series(data: np.ndarray, affine: np.ndarray, variant: str) -> tuple[list[bytes], np.ndarray, np.ndarray]:
+def cta_series(data: np.ndarray, affine: np.ndarray, variant: str) -> tuple[list[bytes], np.ndarray, np.ndarray, str]:
     """CT slices in HU; returns the files and the voxels as stored (HU after quantization)."""
     from .io.dicom_out import new_uid
 
@@ -80,10 +82,10 @@ def cta_series(data: np.ndarray, affine: np.ndarray, variant: str) -> tuple[list
 
     dtype = "<u2" if variant == "a" else "<i2"
     parts = _write_slices(stored, affine, 2, make, lambda plane: plane.astype(dtype).tobytes(), reverse=variant == "b")
-    return parts, quantized.astype(np.float32), affine
+    return parts, quantized.astype(np.float32), affine, study_uid
 
 
-def mra_series(data: np.ndarray, affine: np.ndarray, variant: str) -> tuple[list[bytes], np.ndarray, np.ndarray]:
+def mra_series(data: np.ndarray, affine: np.ndarray, variant: str) -> tuple[list[bytes], np.ndarray, np.ndarray, str]:
     """MR slices (axial for "a", sagittal for "b" with a rescale slope); the files and the voxels as stored."""
     from .io.dicom_out import new_uid
 
@@ -100,10 +102,10 @@ def mra_series(data: np.ndarray, affine: np.ndarray, variant: str) -> tuple[list
             ds.SeriesDescription, ds.SequenceName, ds.AngioFlag = "tof_fl3d_tra", "*fl3d1r_t70", "Y"
         else:
             ds.ImageType = ["ORIGINAL", "PRIMARY", "OTHER"]
-            ds.SeriesDescription = "3D inflow angio"
+            ds.SeriesDescription = "Head 3D T1 FFE"
             ds.RescaleSlope, ds.RescaleIntercept = slope, 0
         return ds
 
     parts = _write_slices(stored, affine, 2 if variant == "a" else 0, make,
                           lambda plane: plane.astype("<u2").tobytes(), reverse=False)
-    return parts, (stored * slope).astype(np.float32), affine
+    return parts, (stored * slope).astype(np.float32), affine, study_uid

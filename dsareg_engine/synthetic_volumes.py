@@ -18,7 +18,7 @@ rescale, which of Modality / Image Type / Contrast-Bolus / angio tags are presen
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -84,7 +84,7 @@ class SyntheticVolume:
     data: np.ndarray
     affine: np.ndarray
     kind: str
-    tags: dict = field(default_factory=dict)
+    study_uid: str = ""
 
 
 def vessel_tree(depth: int = 3, seed: int = 3) -> TriangleMesh:
@@ -185,8 +185,8 @@ def make_cta_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, 
     tree = vessel_tree(depth, seed)
     volume, affine = _compose(tree, voxel_mm, spec.levels, "cta", rng, spec.texture)
     data = _finish(volume, spec, rng, rician=False)
-    parts, data, affine = cta_series(data, affine, variant)
-    return SyntheticVolume(parts, tree, data, affine, "cta")
+    parts, data, affine, study_uid = cta_series(data, affine, variant)
+    return SyntheticVolume(parts, tree, data, affine, "cta", study_uid)
 
 
 def make_tof_mra_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3) -> SyntheticVolume:
@@ -198,8 +198,54 @@ def make_tof_mra_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int =
     tree = vessel_tree(depth, seed)
     volume, affine = _compose(tree, voxel_mm, spec.levels, "mra", rng, spec.texture)
     data = _finish(volume, spec, rng, rician=True)
-    parts, data, affine = mra_series(data, affine, variant)
-    return SyntheticVolume(parts, tree, data, affine, "mra")
+    parts, data, affine, study_uid = mra_series(data, affine, variant)
+    return SyntheticVolume(parts, tree, data, affine, "mra", study_uid)
 
 
-__all__ = ["CTA_VARIANTS", "MRA_VARIANTS", "SyntheticVolume", "make_cta_head", "make_tof_mra_head", "vessel_tree"]
+@dataclass
+class VolumeCase:
+    """A head volume and the biplane XA pair (AP / LAT, geometry in their tags) of its true tree at ``mesh_to_world``."""
+
+    volume: SyntheticVolume
+    ap: bytes
+    lat: bytes
+    mesh_to_world: np.ndarray
+
+
+def default_pose() -> np.ndarray:
+    """6° about an oblique axis and (3, −2, 3.5) mm: the pose the DICOM phantom study uses."""
+    from .pose import make_transform
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = np.radians(6.0)
+    return make_transform(np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k, np.array([3.0, -2.0, 3.5]))
+
+
+def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
+                     image_px: int = 256, pixel_spacing_mm: float = 0.6,
+                     mesh_to_world: np.ndarray | None = None) -> VolumeCase:
+    """A CTA (``kind="cta"``) or TOF-MRA (``"mra"``) head and the XA pair of its tree (the true surface, not
+    what a reader extracts), seen by the DICOM phantom study's biplane (:mod:`dsareg_engine.phantom_study`)."""
+    import torch
+
+    from .io.dicom_xa import view_from_angles
+    from .phantom_study import AP_ANGLES, LAT_ANGLES, SID_MM, SOD_MM, _xa
+    from .render import Camera, render_hard_silhouette
+
+    maker = {"cta": make_cta_head, "mra": make_tof_mra_head}[kind]
+    volume = maker(variant, voxel_mm=voxel_mm, depth=depth, seed=seed)
+    pose = default_pose() if mesh_to_world is None else np.asarray(mesh_to_world, float)
+    vertices, faces = volume.tree.torch(torch.float64)
+    images = {}
+    for index, (name, angles, plane) in enumerate((("ap", AP_ANGLES, "A"), ("lat", LAT_ANGLES, "B"))):
+        view = view_from_angles(angles[0], angles[1], SID_MM[index], SOD_MM[index],
+                                (pixel_spacing_mm, pixel_spacing_mm), (image_px, image_px))
+        mask = render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view @ pose)[None],
+                                      Camera.from_view(view))[0].numpy().astype(bool)
+        images[name] = _xa(mask, angles, SID_MM[index], SOD_MM[index], pixel_spacing_mm, volume.study_uid,
+                           10 + index, plane)[0]
+    return VolumeCase(volume, images["ap"], images["lat"], pose)
+
+
+__all__ = ["CTA_VARIANTS", "VolumeCase", "default_pose", "make_volume_case", "MRA_VARIANTS", "SyntheticVolume", "make_cta_head", "make_tof_mra_head", "vessel_tree"]

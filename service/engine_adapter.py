@@ -128,11 +128,17 @@ def fetched_case_files(ap: bytes, lat: bytes, volume: list[bytes], frame: Any, w
                             volume_name="volume.dcm", frame=frame, warnings=tuple(warnings))
 
 
+def volume_reading(options: Any) -> dict[str, Any]:
+    """The options that decide how a volume is read (kind, vessel window), as the validator request carries them."""
+    return {"kind": options.volume_kind, "vessel_min": options.volume_vessel_min,
+            "vessel_max": options.volume_vessel_max}
+
+
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
-                  limits: dict[str, int] | None = None) -> Any:
+                  limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None) -> Any:
     """Read a job's stored inputs as the worker will (the API's validator calls this)."""
     files = stored_case_files(inputs, geometry, read, limits)
-    return engine.load_case_files(files, segmentation, input_limits(limits))
+    return engine.load_case_files(files, segmentation, input_limits(limits), engine.VolumeReading(**(reading or {})))
 
 
 def case_summary(case: Any) -> dict[str, Any]:

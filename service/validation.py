@@ -52,7 +52,7 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "volume_reading", "blob_root"}``."""
     import signal
 
     from .procwatch import die_with_parent
@@ -98,7 +98,8 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
         try:
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
-            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"))
+            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
+                                 request.get("volume_reading"))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
@@ -231,7 +232,7 @@ class _Slot:
 
 class ValidatorPool:
     """Successful outcomes are cached by request content (inputs are content-addressed, so
-    the same hashes + geometry + segmentation + limits parse the same way)."""
+    the same hashes + geometry + segmentation + volume reading + limits parse the same way)."""
 
     CACHE_SIZE = 512
 
@@ -244,7 +245,8 @@ class ValidatorPool:
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "volume_reading", "limits",
+                                              "require_cuda")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:

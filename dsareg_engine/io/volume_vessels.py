@@ -86,6 +86,7 @@ class VesselExtraction:
     mesh: TriangleMesh
     readout: VolumeReadout
     kept: np.ndarray  # bool, the volume's shape: the vessel voxels the surface encloses
+    excluded: np.ndarray | None = None  # bool: what was set aside (CTA bone + band, the MRA scalp shell)
 
 
 def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, field_name: str = "volume") -> VesselExtraction:
@@ -101,15 +102,15 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     if reading.kind == "auto":
         kind, source = detect_volume_kind(volume.tags, voxels)
     else:
-        kind, source = reading.kind, "options.volume_kind"
+        kind, source = reading.kind, "given: volume_kind"
     spacing = np.asarray(volume.spacing_mm)
     smooth = ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
     if kind == "cta":
-        field, mask, levels = _cta(smooth, spacing, reading, field_name)
+        field, mask, levels, excluded = _cta(smooth, spacing, reading, field_name)
     elif kind == "mra":
-        field, mask, levels = _mra(smooth, volume.affine, spacing, reading, field_name)
+        field, mask, levels, excluded = _mra(smooth, volume.affine, spacing, reading, field_name)
     else:
-        field, mask, levels = _dsa3d(smooth, reading, field_name)
+        (field, mask, levels), excluded = _dsa3d(smooth, reading, field_name), None
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(mask)[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
@@ -118,7 +119,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     check_vessel_shape(mask, spacing, readout, field_name=field_name)
     mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
     readout.faces = mesh.n_faces
-    return VesselExtraction(mesh, readout, mask)
+    return VesselExtraction(mesh, readout, mask, excluded)
 
 
 def _finite(data: np.ndarray, field_name: str) -> np.ndarray:
@@ -184,7 +185,7 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     peak = vessel if vessel is not None else float(np.percentile(smooth[core], 75))
     field = _partial_volume_field(smooth, near_bone | bone, tissue, peak, bone, bone_hu)
     field[(near_bone | bone) & ~mask] = np.minimum(field[(near_bone | bone) & ~mask], tissue)  # no surface there
-    return field, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}
+    return field, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
 
 
 def _partial_volume_field(smooth, near_bone, tissue: float, vessel: float, bone: np.ndarray, bone_hu: float):
@@ -244,13 +245,13 @@ def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: V
     seeded = np.isin(labels, np.unique(labels[seeds & (labels > 0)]))
     mask = largest_components(seeded, field_name=field_name)
     if reading.vessel_min is not None:
-        return smooth, mask, {"min": level, "tissue": tissue, "vessel": peak}
+        return smooth, mask, {"min": level, "tissue": tissue, "vessel": peak}, ~interior
     field = _local_half_maximum(smooth, mask, tissue, spacing, level)
     # what crosses its own half maximum, connected to the bright vessels: drops texture blobs that reached
     # the vessels through voxels below half the vessels' own contrast
     labels, _ = ndimage.label(mask & (field > level))
     mask = largest_components(np.isin(labels, np.unique(labels[seeds & (labels > 0)])), field_name=field_name)
-    return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak}
+    return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak}, ~interior
 
 
 def _local_half_maximum(smooth: np.ndarray, mask: np.ndarray, tissue: float, spacing: np.ndarray,

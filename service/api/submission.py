@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ..blobs import safe_suffix
-from ..engine_adapter import check_options, engine, submitted_geometry
+from ..engine_adapter import check_options, engine, submitted_geometry, volume_reading
 from ..limits import check_job_cost, parse_json_part
 from ..models import status_body
 from ..problems import Problem
@@ -155,6 +155,7 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         return []
     outcome = await ctx.validator.validate({
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
+        "volume_reading": volume_reading(options),
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
         "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
     })
