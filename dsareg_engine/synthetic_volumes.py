@@ -24,6 +24,8 @@ import numpy as np
 
 from .mesh import TriangleMesh
 
+MIN_HEAD_MM = (45.0, 55.0, 45.0)
+"""Smallest semi-axes (x, y, z) of the skull's inner surface; the tree adds its own extent + a margin."""
 TRUNK_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 """Phantom frame → LPS: the phantom's trunk direction (+y) becomes superior (+z)."""
 
@@ -112,12 +114,13 @@ def _smooth_field(rng, shape, sigma_vox: float) -> np.ndarray:
     return field / (field.std() + 1e-12)
 
 
-def _compose(tree: TriangleMesh, voxel_mm: float, levels: HeadLevels, kind: str, rng, texture: float):
-    """Noise-free voxels before blur, the affine, and the head's inner semi-axes."""
+def _compose(tree: TriangleMesh, voxel_mm: float, levels: HeadLevels, kind: str, rng, texture: float,
+             min_head_mm=MIN_HEAD_MM):
+    """Noise-free voxels before blur, and the affine."""
     skull_mm, scalp_mm = 4.0, 5.0 if kind == "cta" else 6.0
     occupancy, affine = _tree_occupancy(tree, voxel_mm, margin_mm=0.0)
     low, high = tree.vertices.min(0), tree.vertices.max(0)
-    inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), [45.0, 55.0, 45.0])
+    inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
     centre = (low + high) / 2.0 + np.array([0.0, 0.0, 8.0])
     outer = inner + skull_mm + scalp_mm + 6.0  # air around the head
     bottom = low[2] - 8.0  # the volume's lowest slice: through the neck, below the trunk's start
@@ -176,27 +179,29 @@ def _finish(volume: np.ndarray, variant: HeadVariant, rng, rician: bool) -> np.n
     return (blurred + noise()).astype(np.float32)
 
 
-def make_cta_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3) -> SyntheticVolume:
+def make_cta_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
+                  min_head_mm=MIN_HEAD_MM) -> SyntheticVolume:
     """A CTA-like DICOM series (CT, HU) of the tree in a head with skull and skull base."""
     from .synthetic_volume_dicom import cta_series
 
     spec = CTA_VARIANTS[variant]
     rng = np.random.default_rng(seed + 101)
     tree = vessel_tree(depth, seed)
-    volume, affine = _compose(tree, voxel_mm, spec.levels, "cta", rng, spec.texture)
+    volume, affine = _compose(tree, voxel_mm, spec.levels, "cta", rng, spec.texture, min_head_mm)
     data = _finish(volume, spec, rng, rician=False)
     parts, data, affine, study_uid = cta_series(data, affine, variant)
     return SyntheticVolume(parts, tree, data, affine, "cta", study_uid)
 
 
-def make_tof_mra_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3) -> SyntheticVolume:
+def make_tof_mra_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
+                      min_head_mm=MIN_HEAD_MM) -> SyntheticVolume:
     """A TOF-MRA-like DICOM series (MR) of the tree in a head with bright scalp fat and dark bone."""
     from .synthetic_volume_dicom import mra_series
 
     spec = MRA_VARIANTS[variant]
     rng = np.random.default_rng(seed + 202)
     tree = vessel_tree(depth, seed)
-    volume, affine = _compose(tree, voxel_mm, spec.levels, "mra", rng, spec.texture)
+    volume, affine = _compose(tree, voxel_mm, spec.levels, "mra", rng, spec.texture, min_head_mm)
     data = _finish(volume, spec, rng, rician=True)
     parts, data, affine, study_uid = mra_series(data, affine, variant)
     return SyntheticVolume(parts, tree, data, affine, "mra", study_uid)
@@ -223,7 +228,7 @@ def default_pose() -> np.ndarray:
 
 
 def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
-                     image_px: int = 256, pixel_spacing_mm: float = 0.6,
+                     image_px: int = 256, pixel_spacing_mm: float = 0.6, min_head_mm=MIN_HEAD_MM,
                      mesh_to_world: np.ndarray | None = None) -> VolumeCase:
     """A CTA (``kind="cta"``) or TOF-MRA (``"mra"``) head and the XA pair of its tree (the true surface, not
     what a reader extracts), seen by the DICOM phantom study's biplane (:mod:`dsareg_engine.phantom_study`)."""
@@ -234,7 +239,7 @@ def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float =
     from .render import Camera, render_hard_silhouette
 
     maker = {"cta": make_cta_head, "mra": make_tof_mra_head}[kind]
-    volume = maker(variant, voxel_mm=voxel_mm, depth=depth, seed=seed)
+    volume = maker(variant, voxel_mm=voxel_mm, depth=depth, seed=seed, min_head_mm=min_head_mm)
     pose = default_pose() if mesh_to_world is None else np.asarray(mesh_to_world, float)
     vertices, faces = volume.tree.torch(torch.float64)
     images = {}

@@ -6,10 +6,11 @@ vessel voxels → a shape check (:mod:`.vessel_shape`) → marching cubes (:func
 * **3D-DSA** (already subtracted): Otsu threshold of the lightly smoothed volume, largest components —
   exactly :func:`.volume_io.volume_to_mesh`.
 * **CTA** (HU): bone = above ``vessel_max`` (700 HU); voxels within a partial-volume band of bone
-  (``PV_BAND_MM`` plus the blur) are not trusted as vessel seeds; vessels = the HU window above the
-  surface level (halfway between soft tissue and the vessels' own HU) outside that band, connected
-  components from the largest, then regrown into the band within the window (the lumen in the carotid
-  canal, the wall where a vessel touches bone). For the surface, voxels in the band are read as a blend
+  (``PV_BAND_MM`` plus a voxel) seed vessels only where they are a plateau in the window (a lumen: the
+  carotid in its canal), never on the steep ramp of a bone surface; vessels = the HU window above the
+  surface level (halfway between soft tissue and the vessels' own HU), connected components from the
+  largest, then regrown into the band through voxels with no tissue-level voxel within two (the lumen's wall
+  where a vessel touches bone, not the partial-volume layer of a bone surface). For the surface, voxels in the band are read as a blend
   of vessel and bone (their vessel fraction), so bone never makes a surface and a vessel in a bony
   canal keeps its wall.
 * **TOF-MRA**: the head (above an Otsu air level, holes filled slice by slice); a shell
@@ -32,9 +33,10 @@ from .volume_kind import VolumeReading, detect_volume_kind
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
+PLATEAU_FRACTION = 0.3  # CTA: near bone, a lumen's gradient stays below this × (vessel − tissue) per mm
 SOFT_TISSUE_HU = (-150.0, 150.0)
 MRA_SHELL_MM = 7.0
-MRA_EXTENT = 0.3  # MRA: vessel voxels reach down to tissue + this × (vessel − tissue)
+MRA_EXTENT = 0.4  # MRA: vessel voxels reach down to tissue + this × (vessel − tissue)
 LOCAL_PEAK_MM = 5.0
 SMOOTHING_SIGMA_VOX = 0.5
 
@@ -173,19 +175,36 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
         vessel = float(np.percentile(smooth[candidates], 75))
         level = (tissue + vessel) / 2.0
     window = (smooth > level) & (smooth < bone_hu)
-    seeds = window & ~near_bone
-    if seeds.sum() < 8:
+    if (window & ~near_bone).sum() < 8:
         raise _no_vessels(f"no voxels in the window {level:.0f} to {bone_hu:.0f} HU away from bone", field_name, "CTA")
+    peak = vessel if vessel is not None else float(np.percentile(smooth[window & ~near_bone], 75))
+    # near bone, only a plateau in the window is a lumen (a vessel in a bony canal); a partial-volume voxel
+    # at a bone surface sits on a steep ramp from tissue to bone
+    seeds = window & ~near_bone
+    seeds |= _plateau(smooth, window & near_bone, spacing, PLATEAU_FRACTION * (peak - tissue))
     core = largest_components(seeds, field_name=field_name)
-    # regrow into the band only through voxels with no tissue-level neighbour: the lumen and wall of a vessel
+    # regrow into the band only through voxels with no tissue-level voxel near: the lumen and wall of a vessel
     # in a bony canal (vessel and bone around), not the partial-volume layer of a bone surface (tissue beside)
-    enclosed = ndimage.minimum_filter(smooth, footprint=ndimage.generate_binary_structure(3, 1)) > level
-    steps = int(np.ceil(band / float(spacing.min()))) + 1
+    enclosed = ndimage.minimum_filter(smooth, size=5) > level  # no tissue within 2 voxels
+    steps = int(np.ceil(PV_BAND_MM / float(spacing.min()))) + 1  # the wall beside bone: the lumen is seeded
     mask = ndimage.binary_dilation(core, iterations=steps, mask=core | (window & enclosed))
-    peak = vessel if vessel is not None else float(np.percentile(smooth[core], 75))
     field = _partial_volume_field(smooth, near_bone | bone, tissue, peak, bone, bone_hu)
     field[(near_bone | bone) & ~mask] = np.minimum(field[(near_bone | bone) & ~mask], tissue)  # no surface there
     return field, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
+
+
+def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gradient_per_mm: float) -> np.ndarray:
+    """The voxels of ``where`` whose gradient (central differences, per mm) is below ``max_gradient_per_mm``."""
+    index = np.nonzero(where)
+    squared = np.zeros(len(index[0]), np.float32)
+    for axis in range(3):
+        up, down = list(index), list(index)
+        up[axis] = np.minimum(index[axis] + 1, smooth.shape[axis] - 1)
+        down[axis] = np.maximum(index[axis] - 1, 0)
+        squared += ((smooth[tuple(up)] - smooth[tuple(down)]) / (2.0 * spacing[axis])) ** 2
+    out = np.zeros(smooth.shape, bool)
+    out[index] = np.sqrt(squared) < max_gradient_per_mm
+    return out
 
 
 def _partial_volume_field(smooth, near_bone, tissue: float, vessel: float, bone: np.ndarray, bone_hu: float):
@@ -224,8 +243,7 @@ def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: V
     if interior.sum() < 1000:
         raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
     values = smooth[interior]
-    tissue = float(np.median(values))
-    spread = 1.4826 * float(np.median(np.abs(values - tissue)))
+    tissue, spread = _mode_and_upper_spread(values)
     bright = values[values > tissue + 6.0 * spread]
     if reading.vessel_min is not None:
         level, vessel = float(reading.vessel_min), None
@@ -252,6 +270,19 @@ def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: V
     labels, _ = ndimage.label(mask & (field > level))
     mask = largest_components(np.isin(labels, np.unique(labels[seeds & (labels > 0)])), field_name=field_name)
     return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak}, ~interior
+
+
+def _mode_and_upper_spread(values: np.ndarray) -> tuple[float, float]:
+    """The most common value (the brain; the skull and CSF left inside the shell are darker) and the
+    spread of the values above it (σ of a Gaussian: 1.4826 × their median distance from the mode)."""
+    low, high = np.percentile(values, [0.5, 99.5])
+    counts, edges = np.histogram(values, bins=256, range=(float(low), float(high)))
+    from scipy import ndimage
+
+    mode_bin = int(np.argmax(ndimage.gaussian_filter1d(counts.astype(float), 2.0)))
+    mode = float((edges[mode_bin] + edges[mode_bin + 1]) / 2.0)
+    above = values[values > mode] - mode
+    return mode, 1.4826 * float(np.median(above)) if above.size else 0.0
 
 
 def _local_half_maximum(smooth: np.ndarray, mask: np.ndarray, tissue: float, spacing: np.ndarray,
