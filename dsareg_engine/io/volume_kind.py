@@ -82,7 +82,7 @@ def detect_volume_kind(tags: dict[str, str], data: np.ndarray) -> tuple[str, str
         return "3d-dsa", "Modality CT without air (below -500 HU): read as already subtracted"
     if modality:
         return "3d-dsa", f"Modality {modality}: read as already subtracted"
-    if air >= MIN_AIR_FRACTION and float(sample.max()) > 300.0:
+    if air >= MIN_AIR_FRACTION and float(np.max(data)) > 300.0:
         return "cta", f"no DICOM tags; values look like HU with air ({100 * air:.0f}% below {AIR_HU:.0f})"
     return "3d-dsa", "no DICOM tags: read as already subtracted (set options.volume_kind for a CTA or MRA)"
 
