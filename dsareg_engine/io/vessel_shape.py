@@ -43,6 +43,15 @@ def _coarse(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return blocks.mean(axis=(1, 3, 5)), spacing * factors
 
 
+def crop_to(mask: np.ndarray, margin: int = 1) -> np.ndarray:
+    """``mask`` cut to its bounding box plus ``margin`` voxels (the same components, holes and ridges)."""
+    box = np.argwhere(mask)
+    if len(box) == 0:
+        return mask
+    low, high = np.maximum(box.min(0) - margin, 0), box.max(0) + margin + 1
+    return mask[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+
+
 def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, float]:
     """(plate share, solid share) of the structure's ridge voxels (see the module text); (0, 0) if empty."""
     from scipy import ndimage
@@ -76,7 +85,7 @@ def shape_measures(mask: np.ndarray, spacing) -> dict[str, float]:
     from scipy import ndimage
 
     kept = int(mask.sum())
-    filled = int(ndimage.binary_fill_holes(mask).sum()) if kept else 0
+    filled = int(ndimage.binary_fill_holes(crop_to(mask)).sum()) if kept else 0
     plate, solid = curvature_shares(mask, np.asarray(spacing, float))
     return {"kept_fraction": kept / mask.size, "enclosed_ratio": filled / max(kept, 1), "plate_fraction": plate,
             "solid_fraction": solid}

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
-from .vessel_shape import check_vessel_shape
+from .vessel_shape import check_vessel_shape, crop_to
 from .volume_io import Volume, largest_components, surface_from_mask
 from .volume_kind import VolumeReading, detect_volume_kind
 
@@ -114,7 +114,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     else:
         (field, mask, levels), excluded = _dsa3d(smooth, reading, field_name), None
     unit = "HU" if kind == "cta" else "intensity"
-    labels_count = int(ndimage.label(mask)[1])
+    labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
                             levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(mask.size), labels_count,
                             "local half maximum" if "low" in levels else "level")
