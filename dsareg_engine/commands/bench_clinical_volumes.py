@@ -55,15 +55,15 @@ def _mesh_bytes(mesh) -> bytes:
 
 
 VOLUME_CASE_KINDS: list[tuple[str, str, Callable[[int, int], VolumeCaseFiles]]] = [
-    ("CTA, generator A", f"{VOXEL_MM} mm CT series: vessels 350 HU, brain 35, skull 1200 (4 mm), skull-base slab 900 "
-     "crossed by the trunk, air; white noise 8 HU, blur 0.5 vox; unsigned + intercept, Contrast/Bolus Agent",
+    ("CTA, generator A", (f"{VOXEL_MM} mm CT series: vessels 350 HU, brain 35, skull 1200 (4 mm), skull-base slab 900 "
+     "crossed by the trunk, air; white noise 8 HU, blur 0.5 vox; unsigned + intercept, Contrast/Bolus Agent"),
      _volume_case("cta", "a")),
-    ("CTA, generator B", "vessels 430 HU, brain 42, scalp fat -80, skull 1550, slab 1050; correlated noise 14 HU, blur "
-     "0.8 vox; signed, slices reversed, no contrast tag", _volume_case("cta", "b")),
-    ("TOF-MRA, generator A", "MR series: vessels 560 → 480 distally, brain 210 textured, scalp fat 430, bone 40, CSF 90; "
-     "Rician noise 8, blur 0.5 vox; axial, Angio Flag", _volume_case("mra", "a")),
-    ("TOF-MRA, generator B", "vessels 720 → 520, brain 300 textured ±40, fat 640, bone 60; Rician 15, blur 0.8 vox; "
-     "sagittal slices, rescale slope 0.5, no angio tags", _volume_case("mra", "b")),
+    ("CTA, generator B", ("vessels 430 HU, brain 42, scalp fat -80, skull 1550, slab 1050; correlated noise 14 HU, blur "
+     "0.8 vox; signed, slices reversed, no contrast tag"), _volume_case("cta", "b")),
+    ("TOF-MRA, generator A", ("MR series: vessels 560 → 480 distally, brain 210 textured, scalp fat 430, bone 40, CSF 90; "
+     "Rician noise 8, blur 0.5 vox; axial, Angio Flag"), _volume_case("mra", "a")),
+    ("TOF-MRA, generator B", ("vessels 720 → 520, brain 300 textured ±40, fat 640, bone 60; Rician 15, blur 0.8 vox; "
+     "sagittal slices, rescale slope 0.5, no angio tags"), _volume_case("mra", "b")),
     ("  true tree as a mesh", "the reference: the same XA pair (generator A's) with the true surface as the model",
      _volume_case("cta", "a", as_mesh=True)),
 ]

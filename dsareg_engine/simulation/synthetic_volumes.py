@@ -235,8 +235,8 @@ def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float =
     import torch
 
     from ..io.dicom_xa import view_from_angles
-    from .phantom_study import AP_ANGLES, LAT_ANGLES, SID_MM, SOD_MM, _xa
     from ..render import Camera, render_hard_silhouette
+    from .phantom_study import AP_ANGLES, LAT_ANGLES, SID_MM, SOD_MM, _xa
 
     maker = {"cta": make_cta_head, "mra": make_tof_mra_head}[kind]
     volume = maker(variant, voxel_mm=voxel_mm, depth=depth, seed=seed, min_head_mm=min_head_mm)
@@ -253,4 +253,4 @@ def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float =
     return VolumeCase(volume, images["ap"], images["lat"], pose)
 
 
-__all__ = ["CTA_VARIANTS", "VolumeCase", "default_pose", "make_volume_case", "MRA_VARIANTS", "SyntheticVolume", "make_cta_head", "make_tof_mra_head", "vessel_tree"]
+__all__ = ["CTA_VARIANTS", "MRA_VARIANTS", "SyntheticVolume", "VolumeCase", "default_pose", "make_cta_head", "make_tof_mra_head", "make_volume_case", "vessel_tree"]

@@ -11,9 +11,9 @@ import json
 
 import numpy as np
 import pytest
-from tests.support.service_testkit import Server, wait_for
 
 from dsareg_engine.simulation.synthetic_volumes import make_volume_case
+from tests.support.service_testkit import Server, wait_for
 
 
 @pytest.fixture(scope="module")

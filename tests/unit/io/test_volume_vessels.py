@@ -6,7 +6,7 @@ registration ended 160 mm off; the MRA the same (scalp fat, brain).
 """
 
 import json
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -25,13 +25,13 @@ VOXEL_MM = 1.0  # coarse, in a narrow head: ~2 MB series, about a CPU second to 
 SMALL_HEAD_MM = (30.0, 30.0, 40.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _case(kind: str, variant: str):
     return make_volume_case(kind, variant, voxel_mm=VOXEL_MM, depth=2, image_px=160, pixel_spacing_mm=0.9,
                             min_head_mm=SMALL_HEAD_MM)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _read(kind: str, variant: str):
     volume = read_volume(_case(kind, variant).volume.parts)
     return volume, extract_vessels(volume)
