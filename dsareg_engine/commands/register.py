@@ -6,16 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import DsaregInputError
-<<<<<<< HEAD
-from ..io.case import load_case
-from ..io.volume_kind import VolumeReading
-from ..pipeline import write_outputs
-from ..geometry.pose_file import load_pose
-from ..registration import CONFIGURATIONS, register
-from ..registration.options import parse_options
-=======
 from ..registration.options import CONFIGURATIONS
->>>>>>> main
 from .failures import geometry_argument, input_file, json_argument, options_help
 
 
@@ -71,6 +62,7 @@ def _model_inputs(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from ..io.case import load_case  # the engine (torch) loads only when a registration runs
+    from ..io.volume_kind import VolumeReading
     from ..pipeline import write_outputs
     from ..geometry.pose_file import load_pose
     from ..registration import register
