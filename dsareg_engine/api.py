@@ -47,6 +47,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+    from .io.dicom_xa import c_arm_rotation
     from .io.limits import DEFAULT_LIMITS, InputLimits
     from .io.volume_kind import VolumeReading
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
@@ -77,6 +78,7 @@ _LAZY = {
     "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
     "DicomSources": "dsareg_engine.io.dicom_out",
+    "c_arm_rotation": "dsareg_engine.io.dicom_xa",
     "read_sources": "dsareg_engine.io.dicom_out",
     "write_dicom_outputs": "dsareg_engine.io.dicom_out",
     "set_cpu_threads": "dsareg_engine.threads",
@@ -114,6 +116,7 @@ __all__ = [
     "RegistrationOptions",
     "RigSpec",
     "VolumeReading",
+    "c_arm_rotation",
     "default_cpu_threads",
     "geometry_argument",
     "input_file",

@@ -127,6 +127,16 @@ def volume_reading(options: Any) -> dict[str, Any]:
             "vessel_max": options.volume_vessel_max}
 
 
+def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """Degrees between the view directions of two C-arm positions ``(primary°, secondary°)``
+    (the engine's C-arm convention, ``engine.c_arm_rotation``)."""
+    import numpy as np
+
+    beam_at_ap = np.array([0.0, -1.0, 0.0])  # the AP view looks along −y (LPS: anterior)
+    da, db = (engine.c_arm_rotation(p, s) @ beam_at_ap for p, s in (a, b))
+    return float(np.degrees(np.arccos(np.clip(float(da @ db), -1.0, 1.0))))
+
+
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
                   limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None) -> Any:
     """Read a job's stored inputs as the worker will (the API's validator calls this)."""
