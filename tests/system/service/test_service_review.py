@@ -6,15 +6,19 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sqlite3
 import time
+from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
 from tests.support.service_testkit import Server, needs_engine, submit, wait_for
+from tests.support.webdriver import Browser, browser_binaries
 
 ALPHA, BETA = "review-alpha-key-0123456789", "review-beta-key-9876543210"
 SLOW = {"starts": 2, "max_iterations": 400, "seed": 5}
+SHOTS = Path(__file__).resolve().parents[3] / "docs" / "images"
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +110,9 @@ def _old_schema() -> sa.MetaData:
     new = {("jobs", "review"), ("jobs", "review_decision"), ("job_events", "detail")}
     old = sa.MetaData()
     for table in metadata.sorted_tables:
-        sa.Table(table.name, old, *[sa.Column(c.name, c.type, primary_key=c.primary_key, nullable=c.nullable) for c in table.columns if (table.name, c.name) not in new])
+        columns = [c for c in table.columns if (table.name, c.name) not in new]
+        sa.Table(table.name, old, *[sa.Column(c.name, c.type, primary_key=c.primary_key, nullable=c.nullable)
+                                    for c in columns])
     return old
 
 
@@ -134,3 +140,90 @@ def test_existing_database_gains_review_columns(tmp_path):
     finally:
         srv.stop()
     assert [e for e, _ in _events(srv, "a" * 32)] == ["reviewed"]
+
+
+# ---- the review page in a real browser -------------------------------------------------------------
+
+
+def test_review_page_is_small_and_offline(keyed_server):
+    with keyed_server.client() as c:
+        assert c.get("/ui", follow_redirects=False).headers["location"] == "/ui/"
+        index = c.get("/ui/")
+        assert index.status_code == 200 and "default-src 'self'" in index.headers["content-security-policy"]
+        parts = [index] + [c.get(f"/ui/{name}") for name in ("app.js", "app.css")]
+        assert all(p.status_code == 200 for p in parts)
+        assert c.get("/ui/..%2Fjobs.sqlite3").status_code == 404 and c.get("/ui/secret.txt").status_code == 404
+    weight = sum(len(p.content) for p in parts)
+    assert weight <= 200_000, weight
+    for part in parts:  # nothing from outside the service: no CDN, fonts or analytics
+        assert "http://" not in part.text and "https://" not in part.text and "//cdn" not in part.text
+
+
+@needs_engine
+def test_review_page_in_chromium(keyed_server, example_case, tmp_path):
+    browser_binaries()
+    with keyed_server.client(headers={"Authorization": f"Bearer {ALPHA}"}) as alpha, \
+            keyed_server.client(headers={"Authorization": f"Bearer {BETA}"}) as beta:
+        job_id = submit(alpha, example_case).json()["id"]
+        other = submit(beta, example_case, options={"starts": 1, "max_iterations": 21}).json()["id"]
+        assert wait_for(alpha, job_id, timeout=180)["status"] == "succeeded"
+    browser = Browser(tmp_path / "profile", height=1100)
+    try:
+        browser.open(keyed_server.url + "/ui/")
+        browser.find("#api-key")
+        browser.wait("return document.getElementById('message').textContent.includes('401')", what="401 without key")
+        browser.type("#api-key", ALPHA + "\ue007")  # typed once, Enter submits
+        link = f'a[href="#/job/{job_id}"]'
+        browser.find(link)
+        rows = browser.run("return [...document.querySelectorAll('#jobs tbody tr')].map(r => r.innerText)")
+        assert not [r for r in rows if other[:12] in r], rows  # the other key's job is invisible
+        assert "not reviewed" in next(r for r in rows if job_id[:12] in r)
+        browser.run("document.activeElement.blur()")
+        browser.screenshot(tmp_path / "list.png")
+        browser.click(link)  # click 1: open the job
+        browser.wait("const i = document.querySelectorAll('.views img[data-view]'); "
+                     "return i.length === 2 && [...i].every(x => x.complete && x.naturalWidth > 0)", what="overlays")
+        browser.wait("const p = document.querySelector('.plot img'); return p && p.complete && p.naturalWidth > 0",
+                     what="loss plot")
+        assert browser.run("return document.querySelector('.views img').src").startswith("blob:")
+        browser.click("#toggle-masks")
+        browser.wait("return document.querySelector('.views figcaption').textContent.includes('mask')", what="masks")
+        browser.click("#toggle-masks")
+        text = browser.run("return document.body.innerText")
+        assert "Dice ap" in text and "Pose rotation" in text and "Verdict" in text, text
+        browser.type("#comment", "Contours follow the vessels in both views.")
+        browser.run("document.activeElement.blur(); window.scrollTo(0, 0)")
+        browser.screenshot(tmp_path / "job.png")
+        browser.click("#approve")  # click 2: approve
+        browser.wait("return document.getElementById('review-state').innerText.includes('approved')", what="approved")
+        with keyed_server.client(headers={"Authorization": f"Bearer {ALPHA}"}) as alpha:
+            review = alpha.get(f"/v1/registrations/{job_id}").json()["review"]
+        assert review["decision"] == "approved" and review["comment"].startswith("Contours follow")
+        # keyboard only: back to the list, the focus ring is visible on a link
+        browser.open(keyed_server.url + "/ui/#/")
+        browser.find(link)
+        browser.keys("\ue004\ue004")
+        outline = browser.run("const a = document.activeElement; return [a.tagName, getComputedStyle(a).outlineStyle]")
+        assert outline[1] != "none", outline
+    finally:
+        browser.close()
+    _keep_screenshots(tmp_path)
+
+
+def _keep_screenshots(tmp_path: Path) -> None:
+    """Small copies left in /tmp for a look; with DSAREG_UPDATE_SCREENSHOTS=1 also the docs' (docs/images)."""
+    from PIL import Image
+
+    for name in ("list", "job"):
+        image = Image.open(tmp_path / f"{name}.png").convert("RGB")
+        colours = image.convert("L").getcolors(maxcolors=1 << 16)
+        assert colours is None or len(colours) > 20, f"{name}: the screenshot is (nearly) blank"
+        small = image.convert("P", palette=Image.Palette.ADAPTIVE, colors=64)
+        targets = [Path("/tmp") / f"dsareg-review-{name}.png"]
+        if os.environ.get("DSAREG_UPDATE_SCREENSHOTS") == "1":
+            targets.append(SHOTS / f"review-{name}.png")
+        for target in targets:
+            try:
+                small.save(target, optimize=True)
+            except OSError:
+                pass
