@@ -52,18 +52,22 @@ def _set_memory_limit(extra_mb: int) -> None:
         pass
 
 
-def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
-    "volume_reading"}``."""
+def _become_validator(parent_pid: int | None) -> None:
+    """Name the process (``dsareg-validate``), ignore Ctrl-C (the server stops it), die with the server."""
     import signal
 
     from ...jobs.procwatch import die_with_parent, set_process_name
 
     set_process_name("dsareg-validate")
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
         die_with_parent(parent_pid, signal.SIGKILL)
+
+
+def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
+    "volume_reading"}``."""
+    _become_validator(parent_pid)
     engine_ok = True
     # parsing needs no torch (the engine imports it only to register); should a parser import it,
     # its thread pool reads this at start-up
