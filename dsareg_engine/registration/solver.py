@@ -32,6 +32,7 @@ from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_u
 from .gauss_newton import levenberg_marquardt
 from .initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .options import RegistrationOptions
+from .partial import looks_partial, match_fractions, trimmed_weight
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .progress import ProgressPlan
 from .result import RegistrationResult, ViewResult
@@ -140,6 +141,8 @@ class _Problem:
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
         self.windows: dict[tuple[str, float], tuple[int, int, int, int]] = {}
         """Per (view, scale): the pixel window ``(x0, y0, x1, y1)`` the loss is evaluated in (see set_windows)."""
+        self.partial = False
+        """Partial visibility (see :mod:`.partial`): background far from the vessels weighs little in the loss."""
 
     def _footprint(self, view, poses: np.ndarray) -> np.ndarray:
         """Pixel bounding box ``(u_min, v_min, u_max, v_max)`` of the mesh's vertices under all ``poses`` in ``view``."""
@@ -205,12 +208,15 @@ class _Problem:
 
     def target(self, view_name: str, stage: Stage, dtype: torch.dtype) -> ViewTarget:
         shift = self.border_shift_px[view_name]
-        key = (view_name, stage.scale, stage.blur_px, dtype, shift)
+        key = (view_name, stage.scale, stage.blur_px, dtype, shift, self.partial)
         if key not in self._targets:
             target = level_target(
                 self.targets[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
                 self.options.thin_vessel_weighting, dtype, shift, self.signed_distance(view_name) if shift else None,
             )
+            if self.partial:
+                trimmed = torch.as_tensor(trimmed_weight(target.target.numpy()), dtype=dtype)
+                target.weight = trimmed if target.weight is None else target.weight * trimmed
             target.target = target.target.to(self.device)
             if target.weight is not None:
                 target.weight = target.weight.to(self.device)
@@ -232,6 +238,17 @@ class _Problem:
             silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
             self.border_shift_px[name] = update_border_shift(
                 self.targets[name], silhouette, self.border_shift_px[name], self.signed_distance(name))
+
+    def match_fractions(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> dict[str, dict]:
+        """Per view the unmatched / uncovered fractions (:func:`.partial.match_fractions`) of the full mesh at ``mesh_to_world``."""
+        vertices, faces = self.mesh_tensors(torch.float64)
+        fractions = {}
+        for name in views:
+            view = self.rig.views[name]
+            pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
+            silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
+            fractions[name] = match_fractions(silhouette, self.masks[name])
+        return fractions
 
     def view_inputs(self, name: str, stage: Stage, dtype: torch.dtype) -> tuple[Camera, torch.Tensor, torch.Tensor | None, int]:
         """The stage's camera, target ``(h, w)`` and weight ``(h, w)`` or None, cut to its window if it has
@@ -422,6 +439,7 @@ class _Run:
     """Confidence's runner-up (see :func:`_runner_up`), measured when the batched stages hand over."""
     outcome: _StageOutcome | None = None
     final_loss: float = float("nan")
+    partial_checked: bool = False
 
 
 class _Reporter:
@@ -482,6 +500,7 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     if searched is not None:
         initial = searched.poses[0]
     problem = _Problem(mesh, targets, rig, options, device, initial)
+    problem.partial = searched is not None and searched.method == "search+coverage"
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -524,8 +543,12 @@ def _run_stage(setup: _Setup, run: _Run, reporter: _Reporter, options: Registrat
     # Fine stages only, and not in the single-view phase of a sequential configuration: one
     # view's depth is loose there, and a border measured at a wrong magnification costs the
     # two-view stages extra iterations to undo.
-    if (options.border_correction and index > 0 and stage.scale >= 0.5 * finest_scale
-            and set(stage.views) == set(setup.used_views) and index < planned):
+    fine = index > 0 and stage.scale >= 0.5 * finest_scale and set(stage.views) == set(setup.used_views) and index < planned
+    if fine and not (problem.partial or setup.tracking or run.partial_checked):
+        # The first fine stage: does a live start explain every vessel with part of the model unmatched?
+        run.partial_checked = True
+        problem.partial = any(looks_partial(problem.match_fractions(pose, stage.views)) for pose in run.poses)
+    if options.border_correction and fine:
         problem.update_border_shifts(run.pose_history[-1], stage.views)
     if not stage.all_starts and len(run.poses) > 1:
         run.other = _runner_up(problem, stage, run.poses)
@@ -728,7 +751,15 @@ def _confidence(problem, estimate, views, other, outcome, used_views) -> dict:
         "border_shift_px": {name: round(problem.border_shift_px[name], 3) for name in used_views},
         "outside_fraction": {name: round(outside_fraction(problem.rig.views[name], world), 4) for name in used_views},
         "stopped_on_tolerance": outcome is not None and outcome.stopped_by == "tolerance",
+        **_match_signals({name: match_fractions(views[name].silhouette, problem.masks[name]) for name in used_views}),
+        "partial_loss": problem.partial,
     })
+
+
+def _match_signals(fractions: dict[str, dict]) -> dict:
+    """``unmatched_fraction`` / ``uncovered_fraction`` per view, rounded (see :mod:`.partial`)."""
+    return {f"{key}_fraction": {name: round(value[key], 4) for name, value in fractions.items()}
+            for key in ("unmatched", "uncovered")}
 
 
 def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) -> dict[str, ViewResult]:
