@@ -69,16 +69,13 @@ def selective_injection(mesh: TriangleMesh, fraction: float, rng: np.random.Gene
 
 
 def extra_territory(mesh: TriangleMesh, tree: VesselTree | None = None) -> PartialCase:
-    """The model = the mesh and its mirror image across a plane through the inflow (a second territory
-    fed from the same point); the images show the mesh alone. The plane's normal is the mesh's widest
-    principal axis across the inflow-to-centre direction, so the copy spreads away from the original."""
+    """The model = the mesh and its mirror image across the plane through the inflow facing the mesh's
+    centre (a second territory fed from the same point, spreading the other way); the images show the
+    mesh alone."""
     tree = tree or vessel_tree(mesh)
     origin = mesh.vertices[tree.inflow]
-    toward = mesh.centroid - origin
-    toward /= max(np.linalg.norm(toward), 1e-9)
-    centred = mesh.vertices - mesh.centroid
-    _, _, axes = np.linalg.svd(centred - np.outer(centred @ toward, toward), full_matrices=False)
-    normal = axes[0]
+    normal = mesh.centroid - origin
+    normal /= max(np.linalg.norm(normal), 1e-9)
     mirrored = mesh.vertices - 2.0 * np.outer((mesh.vertices - origin) @ normal, normal)
     vertices = np.concatenate([mesh.vertices, mirrored])
     faces = np.concatenate([mesh.faces, mesh.faces[:, ::-1] + len(mesh.vertices)])  # a mirror turns the winding

@@ -130,3 +130,32 @@ def compact(mesh: TriangleMesh, face_mask: np.ndarray) -> TriangleMesh:
     faces = mesh.faces[face_mask]
     used, inverse = np.unique(faces, return_inverse=True)
     return TriangleMesh(mesh.vertices[used], inverse.reshape(faces.shape).astype(np.int64))
+
+
+MIN_REGION_FACES = 50
+
+
+def select_region(mesh: TriangleMesh, region) -> TriangleMesh:
+    """The faces of ``mesh`` inside ``region`` (:class:`~dsareg_engine.registration.options.ModelRegion`):
+    all three vertices in the box / sphere, or downstream of the vertex nearest ``branch_near_mm``."""
+    from .errors import DsaregInputError
+
+    vertices = mesh.vertices
+    if region.box_mm is not None:
+        low, high = np.minimum(*np.asarray(region.box_mm)), np.maximum(*np.asarray(region.box_mm))
+        inside = np.all((vertices >= low) & (vertices <= high), axis=1)
+        field = "options.region.box_mm"
+    elif region.sphere_mm is not None:
+        centre, radius = np.asarray(region.sphere_mm[0]), float(region.sphere_mm[1])
+        inside = np.linalg.norm(vertices - centre, axis=1) <= radius
+        field = "options.region.sphere_mm"
+    else:
+        tree = vessel_tree(mesh)
+        inside = tree.downstream_of(int(cKDTree(vertices).query(np.asarray(region.branch_near_mm))[1]))
+        field = "options.region.branch_near_mm"
+    selected = faces_of(mesh, inside)
+    if selected.n_faces < MIN_REGION_FACES:
+        raise DsaregInputError(
+            f"selects {selected.n_faces} of the model's {mesh.n_faces} faces", field=field,
+            accepted=f"a region (model frame, mm) holding at least {MIN_REGION_FACES} faces of the model")
+    return selected

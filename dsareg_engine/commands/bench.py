@@ -22,7 +22,7 @@ from .render import load_mesh_argument
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness, track)",
+        "bench", help="benchmarks (render, table1, capture, robustness, autoinit, partial, track)",
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
@@ -91,6 +91,19 @@ def add_parser(subparsers) -> None:
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
     auto.set_defaults(func=bench_autoinit)
+    partial = which.add_parser("partial", help="no initial pose, images showing part of the model (early filling, "
+                               "one injected branch, a model with an extra territory) plus safety cases")
+    _add_mesh(partial)
+    partial.add_argument("--cases", type=int, default=4, help="random poses per row")
+    partial.add_argument("--seed", type=int, default=0, help="random seed of the poses and injection points")
+    partial.add_argument("--size", type=int, default=512, help="image side in px")
+    partial.add_argument("--fractions", type=float, nargs="+", default=[0.4, 0.5, 0.6],
+                         help="visible fractions of the model's faces (early filling and one branch)")
+    partial.add_argument("--kinds", nargs="+", default=["full", "early_filling", "selective_injection", "extra_territory"],
+                         choices=["full", "early_filling", "selective_injection", "extra_territory"], help="rows to run")
+    partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
+    partial.add_argument("--options", default="{}", help="extra registration options as JSON")
+    partial.set_defaults(func=bench_partial)
 
 
 def _add_mesh(parser) -> None:
@@ -422,4 +435,92 @@ def bench_track(args: argparse.Namespace) -> int:
           f"{np.median([r['rotation_error_deg'] for r in rows]):.4f} | {np.median([r['translation_error_mm'] for r in rows]):.4f} | "
           f"{np.median(wall):.0f} / {np.percentile(wall, 90):.0f} | {np.median(cpu):.0f} | "
           f"{sum(r['converged'] for r in rows)}/{len(rows)} |")
+    return 0
+
+
+def _partial_cases(mesh, args: argparse.Namespace):
+    """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
+    from ..partial_filling import early_filling, extra_territory, full_visibility, selective_injection
+    from ..vessel_tree import vessel_tree
+
+    tree = vessel_tree(mesh)
+    rng = np.random.default_rng(args.seed)
+    rows = []
+    for kind in args.kinds:
+        if kind == "full":
+            rows.append(("full", 1.0, lambda: full_visibility(mesh)))
+        elif kind == "extra_territory":
+            rows.append(("extra_territory", None, lambda: extra_territory(mesh, tree)))
+        else:
+            for fraction in args.fractions:
+                if kind == "early_filling":
+                    rows.append((kind, fraction, lambda f=fraction: early_filling(mesh, f, tree)))
+                else:
+                    rows.append((kind, fraction, lambda f=fraction: selective_injection(mesh, f, rng, tree)))
+    if not args.no_safety:
+        rows += [("wrong_tree", None, "wrong_tree"), ("swapped_views", None, "swapped_views"),
+                 ("swapped_views+early_filling", 0.5, "swapped_early")]
+    return rows
+
+
+def _partial_case(mesh, rig, rng, case, args):
+    """``(model, masks, visible fraction, true pose)`` of one case of a ``bench partial`` row."""
+    from ..clinical_rig import random_visible_pose, render_masks
+    from ..partial_filling import early_filling
+    from ..phantom import make_vessel_phantom
+
+    if isinstance(case, str):
+        truth = random_visible_pose(mesh, rig, rng, 40.0)
+        if case == "wrong_tree":
+            return mesh, render_masks(make_vessel_phantom(seed=args.seed + 7), rig, truth), 1.0, truth
+        visible = mesh if case == "swapped_views" else early_filling(mesh, 0.5).visible
+        masks = render_masks(visible, rig, truth)
+        swapped = {"ap": _fit_size(masks["lat"], masks["ap"].shape), "lat": _fit_size(masks["ap"], masks["lat"].shape)}
+        return mesh, swapped, visible.n_faces / mesh.n_faces, truth
+    made = case()
+    truth = random_visible_pose(made.model, rig, rng, 40.0)
+    return made.model, render_masks(made.visible, rig, truth), made.visible_fraction, truth
+
+
+def _fit_size(mask: np.ndarray, shape) -> np.ndarray:
+    return mask if mask.shape == shape else np.zeros(shape, bool)
+
+
+def bench_partial(args: argparse.Namespace) -> int:
+    """Partial visibility: success / ADD / verdict per visible fraction, and the confusion table."""
+    from ..clinical_rig import clinical_biplane_rig
+
+    mesh = load_mesh_argument(args.mesh)
+    rig = clinical_biplane_rig(args.size)
+    rng = np.random.default_rng(args.seed + 1)
+    extra = json.loads(args.options)
+    print(f"mesh {mesh.n_faces} faces, clinical rig {args.size}x{args.size} px, {args.cases} cases per row, no initial pose, "
+          f"true masks of the visible part, options {extra}")
+    print("| row | visible fraction | success (ADD < 1 mm) | ADD mm median / max | verdicts ok / check / failed "
+          "| partial reason | median CPU s |")
+    print("|---|---|---|---|---|---|---|")
+    confusion = {(right, verdict): 0 for right in (True, False) for verdict in ("ok", "check", "failed")}
+    for name, _, case in _partial_cases(mesh, args):
+        rows = []
+        for index in range(args.cases):
+            model, masks, fraction, truth = _partial_case(mesh, rig, rng, case, args)
+            options = RegistrationOptions(seed=args.seed + index, **extra, ground_truth_mesh_to_world=truth.tolist())
+            cpu = time.process_time()
+            result = register(model, masks, rig, options)
+            confidence = result.metrics["confidence"]
+            add = result.metrics["ground_truth"]["add_mm"]
+            right = add < 1.0 and name != "wrong_tree"
+            confusion[(right, confidence["verdict"])] += 1
+            rows.append({"add": add, "right": right, "verdict": confidence["verdict"], "cpu": time.process_time() - cpu,
+                         "fraction": fraction,
+                         "partial": any("do not show" in reason for reason in confidence["reasons"])})
+        add = np.array([row["add"] for row in rows])
+        verdicts = " / ".join(str(sum(row["verdict"] == v for row in rows)) for v in ("ok", "check", "failed"))
+        print(f"| {name} | {np.mean([row['fraction'] for row in rows]):.2f} | {np.mean([row['right'] for row in rows]) * 100:.0f} % | "
+              f"{np.median(add):.3f} / {add.max():.3f} | {verdicts} | {sum(row['partial'] for row in rows)}/{len(rows)} | "
+              f"{np.median([row['cpu'] for row in rows]):.1f} |", flush=True)
+    print("\n| pose \\ verdict | ok | check | failed |\n|---|---|---|---|")
+    for right in (True, False):
+        print(f"| {'right (ADD < 1 mm)' if right else 'wrong (ADD ≥ 1 mm, or another tree)'} | "
+              + " | ".join(str(confusion[(right, v)]) for v in ("ok", "check", "failed")) + " |")
     return 0

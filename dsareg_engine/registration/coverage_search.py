@@ -49,12 +49,12 @@ class CoverageSettings:
         refine_steps_deg: rotation steps of the hill-climb, one round each.
     """
 
-    window_px: int = 64
+    window_px: int = 40
     model_reach: float = 1.5
     margin: float = 0.3
     beta: float = 2.0
     chunk: int = 512
-    rotations: int = 1024
+    rotations: int = 512
     refine_top: int = 16
     refine_steps_deg: tuple[float, ...] = (12.0, 6.0, 3.0)
 

@@ -4,13 +4,37 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import DsaregInputError
 
 Configuration = Literal["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"]
 CONFIGURATIONS: tuple[str, ...] = ("ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap")
 Matrix4 = list[list[float]]
+
+
+Vector3 = tuple[float, float, float]
+
+
+class ModelRegion(BaseModel):
+    """The part of the model a run injected (model frame, mm): exactly one of a box, a sphere or the
+    branch nearest a point (that branch and everything downstream of it, from the model's inflow)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    box_mm: tuple[Vector3, Vector3] | None = Field(None, description="Opposite corners [[x0, y0, z0], [x1, y1, z1]] of an axis-aligned box.")
+    sphere_mm: tuple[Vector3, float] | None = Field(None, description="[[x, y, z], radius] of a sphere.")
+    branch_near_mm: Vector3 | None = Field(None, description="A point near the injected branch: the branch nearest it and "
+                                           "what lies downstream of it (the inflow is guessed: the thickest vessel's far end).")
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> ModelRegion:
+        given = [name for name in ("box_mm", "sphere_mm", "branch_near_mm") if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of box_mm, sphere_mm, branch_near_mm")
+        if self.sphere_mm is not None and not self.sphere_mm[1] > 0:
+            raise ValueError("the sphere's radius must be > 0 mm")
+        return self
 
 
 class RegistrationOptions(BaseModel):
@@ -51,6 +75,9 @@ class RegistrationOptions(BaseModel):
         "the border exactly on the model's surface); reported as metrics.border_shift_px.",
     )
     initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
+    region: ModelRegion | None = Field(
+        None, description="Register only this part of the model (what the run injected, when the model holds more "
+        "vessels than the images show); without it partial visibility is detected from the images.")
     initialization: Literal["auto", "given", "search"] = Field(
         "auto",
         description="Where the starts come from: 'given' = the initial pose (request, else geometry, else identity) "

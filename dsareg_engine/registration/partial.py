@@ -42,6 +42,11 @@ def match_fractions(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: floa
     return {"unmatched": unmatched, "uncovered": uncovered}
 
 
+def unmatched_pixels(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float = MATCH_TOLERANCE_PX) -> np.ndarray:
+    """``(H, W)`` bool: silhouette pixels farther than ``tolerance_px`` from any vessel of ``mask``."""
+    return silhouette & ~_near(mask, tolerance_px)
+
+
 def looks_partial(fractions: dict[str, dict]) -> bool:
     """True when every view's ``match_fractions`` say: all vessels explained, part of the model unmatched."""
     return all(f["unmatched"] >= PARTIAL_UNMATCHED and f["uncovered"] <= PARTIAL_UNCOVERED for f in fractions.values())

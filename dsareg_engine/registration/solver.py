@@ -27,6 +27,7 @@ from ..pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from ..render.jacobian import jacobian_available
 from ..vessel_target import binary_mask, is_coverage
+from ..vessel_tree import select_region
 from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
@@ -405,6 +406,8 @@ def register(
     """
     options = options or RegistrationOptions()
     device = _resolve_device(options.device, options.mode)
+    if options.region is not None:
+        mesh = select_region(mesh, options.region)
     with _torch_threads(1 if device.type == "cpu" else torch.get_num_threads()):
         return _register(mesh, masks, rig, options, device, progress, should_stop, target_points)
 
