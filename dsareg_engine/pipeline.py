@@ -164,7 +164,7 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
         unmatched = unmatched_pixels(view.silhouette, masks[name])
         shown = unmatched if unmatched.sum() >= PARTIAL_UNMATCHED * max(1, view.silhouette.sum()) else None
         caption = Caption(view=name, dice=view.dice, verdict=verdict, ok=ok, job=label, mm_per_px=scale,
-                          unmatched_label=None if shown is None else "model, no vessel")
+                          unmatched_label=None if shown is None else "unfilled")
         background = (images or {}).get(name)
         write_png(out_dir / artifacts.overlay_png(name),
                   overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption,
