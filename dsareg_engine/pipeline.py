@@ -28,10 +28,10 @@ from .io.case import Case, CaseFiles, load_case_files
 from .io.limits import DEFAULT_LIMITS, InputLimits
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
-from .registration.partial import PARTIAL_UNMATCHED, unmatched_pixels
 from .plots import loss_figure
 from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
 from .registration.options import parse_options
+from .registration.partial import PARTIAL_UNMATCHED, unmatched_pixels
 from .registration.progress import REGISTRATION_SHARE
 from .render import Camera, render_hard_silhouette
 

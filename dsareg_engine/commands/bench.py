@@ -9,14 +9,14 @@ import time
 import numpy as np
 import torch
 
-from ..geometry import Rig
-from ..geometry_spec import load_rig
+from ..geometry.rig import Rig
+from ..geometry.spec import load_rig
 from ..metrics import mean_distance_mm
-from ..pose import so3_log
+from ..geometry.pose import so3_log
 from ..registration import CONFIGURATIONS, RegistrationOptions, register
 from ..registration.parameterization import PoseIncrement, random_start_poses
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
-from ..segmentation_errors import CORRUPTIONS, corrupt
+from ..simulation.segmentation_errors import CORRUPTIONS, corrupt
 from .render import load_mesh_argument
 
 
@@ -327,14 +327,14 @@ GREY_VARIANTS = {
     "8bit": ({}, 8),
     "noisefree": ({"noise_sigma": 0.0}, 16),
 }
-"""Grey-level image formations (:class:`~dsareg_engine.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
+"""Grey-level image formations (:class:`~dsareg_engine.simulation.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
 
 
 def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", truth: np.ndarray | None = None) -> dict:
     """Targets segmented (``method``; ``dsa``: the coverage registration fits, ``dsa_binary``: its former
     binary mask) from DSA images synthesized from the model at ``truth`` (default identity)."""
-    from ..io.segmentation import segment_vessels, vessel_coverage
-    from ..synthetic_dsa import DsaSettings, synthesize_dsa
+    from ..vision.segmentation import segment_vessels, vessel_coverage
+    from ..simulation.synthetic_dsa import DsaSettings, synthesize_dsa
 
     changes, bits = GREY_VARIANTS[variant]
     images = synthesize_dsa(mesh, rig, np.eye(4) if truth is None else truth, seed=seed, settings=DsaSettings(**changes))
@@ -349,7 +349,7 @@ def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", tru
 
 def bench_autoinit(args: argparse.Namespace) -> int:
     """No initial pose: uniform random rotations, positions anywhere the mesh stays in both views."""
-    from ..clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+    from ..simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 
     mesh = load_mesh_argument(args.mesh)
     rig = clinical_biplane_rig(args.size)
@@ -440,8 +440,8 @@ def bench_track(args: argparse.Namespace) -> int:
 
 def _partial_cases(mesh, args: argparse.Namespace):
     """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
-    from ..partial_filling import early_filling, extra_territory, full_visibility, selective_injection
-    from ..vessel_tree import vessel_tree
+    from ..simulation.partial_filling import early_filling, extra_territory, full_visibility, selective_injection
+    from ..geometry.vessel_tree import vessel_tree
 
     tree = vessel_tree(mesh)
     rng = np.random.default_rng(args.seed)
@@ -465,9 +465,9 @@ def _partial_cases(mesh, args: argparse.Namespace):
 
 def _partial_case(mesh, rig, rng, case, args):
     """``(model, masks, visible fraction, true pose)`` of one case of a ``bench partial`` row."""
-    from ..clinical_rig import random_visible_pose, render_masks
-    from ..partial_filling import early_filling
-    from ..phantom import make_vessel_phantom
+    from ..simulation.clinical_rig import random_visible_pose, render_masks
+    from ..simulation.partial_filling import early_filling
+    from ..simulation.phantom import make_vessel_phantom
 
     if isinstance(case, str):
         truth = random_visible_pose(mesh, rig, rng, 40.0)
@@ -488,7 +488,7 @@ def _fit_size(mask: np.ndarray, shape) -> np.ndarray:
 
 def bench_partial(args: argparse.Namespace) -> int:
     """Partial visibility: success / ADD / verdict per visible fraction, and the confusion table."""
-    from ..clinical_rig import clinical_biplane_rig
+    from ..simulation.clinical_rig import clinical_biplane_rig
 
     mesh = load_mesh_argument(args.mesh)
     rig = clinical_biplane_rig(args.size)

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 from ..metrics import mean_distance_mm
 
 

@@ -29,7 +29,7 @@ import numba
 import numpy as np
 import scipy.fft
 
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 from ..render.serial_kernels import KernelPair
 from . import search_kernels
 
@@ -82,7 +82,7 @@ def coverage_view(view: ViewGeometry, mask: np.ndarray, centre_world: np.ndarray
     scale = min(1.0, settings.window_px / side)
     level = view.scaled(scale)
     pixel_scale = level.width / view.width
-    canvas = 2 * int(round(side * pixel_scale / 2.0)) * 2
+    canvas = 4 * round(side * pixel_scale / 4.0)
     centre = np.array([(cols.max() + cols.min()) / 2.0, (rows.max() + rows.min()) / 2.0])
     corner = np.round(pixel_scale * (centre + 0.5) - 0.5 - canvas / 2.0)
     u0, v0 = level.principal_point_px

@@ -1,0 +1,239 @@
+"""Typed payloads of the OpenAPI document: geometry, options, result (and the multipart parts).
+
+The API keeps its runtime models permissive (a result is the engine's JSON, whatever fields
+later versions add); these models *document* the payloads with descriptions, units, examples
+and enums, and :func:`document` puts them into ``/openapi.json``:
+
+* ``components.schemas``: ``RegistrationOptions`` (the engine's own model, so the fields
+  cannot drift), ``GeometryFile`` / ``ViewSpec`` / ``LatFromAp``, ``RegistrationResult`` /
+  ``ViewResult`` / ``ResultMetrics`` / ``GroundTruthErrors``;
+* the ``POST /v1/registrations`` multipart parts, each with its schema and encoding;
+* ``JobStatus.result`` and ``GET …/result`` point at ``RegistrationResult``.
+
+Result models allow extra fields (``additionalProperties``), so fields that later engine
+versions add (e.g. ``verdict``, ``metrics.initialization``) stay valid: known ones are
+documented, unknown ones pass.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Matrix4 = list[list[float]]
+Matrix34 = list[list[float]]
+IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+REF = "#/components/schemas/{model}"
+
+
+# ---- geometry file ---------------------------------------------------------------------------
+
+
+class ViewSpec(BaseModel):
+    """One X-ray view. Either `sid_mm` + `world_to_view` (+ optional `principal_point_px`) or a
+    `projection_matrix`."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
+        "principal_point_px": [399.5, 399.5],
+        "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}]})
+
+    image_size: tuple[int, int] = Field(description="[width, height] of the image in pixels.", examples=[[800, 800]])
+    pixel_spacing_mm: tuple[float, float] = Field(
+        description="[column, row] pixel spacing at the detector, mm (DICOM Imager Pixel Spacing).",
+        examples=[[0.3, 0.3]])
+    sid_mm: float | None = Field(None, gt=0, description="Source-to-detector distance, mm.", examples=[1200.0])
+    principal_point_px: tuple[float, float] | None = Field(
+        None, description="[u0, v0] foot of the central ray on the image, pixels; default the image centre "
+                          "((W-1)/2, (H-1)/2).")
+    world_to_view: Matrix4 | None = Field(
+        None, description="4x4 rigid transform world mm → view frame (origin at the source, +z along the central "
+                          "ray toward the detector, +x along columns, +y along rows); det may be -1 (mirror).")
+    projection_matrix: Matrix34 | None = Field(
+        None, description="3x4 world mm → homogeneous pixels, instead of sid_mm + world_to_view.")
+
+
+class LatFromAp(BaseModel):
+    """The lateral view as the AP imaging chain turned about an axis through the isocentre."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    angle_deg: float = Field(description="Rotation angle, degrees (90 for an orthogonal biplane).", examples=[90.0])
+    axis_world: tuple[float, float, float] = Field((0.0, 1.0, 0.0), description="Rotation axis, world frame.")
+    isocentre_world: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Isocentre, world mm.")
+
+
+class GeometryFile(BaseModel):
+    """The C-arm geometry (the `geometry` part): two views in world millimetres and the initial pose.
+    Instead of JSON, the part may be a preset name (`paper`), or be left out when both images are
+    DICOM XA (or `.rad`) files whose headers carry the geometry."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "views": {"ap": {"image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
+                         "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}},
+        "lat_from_ap": {"angle_deg": 90.0}, "initial_mesh_to_world": IDENTITY}]})
+
+    views: dict[Literal["ap", "lat"], ViewSpec] = Field(description="The views by name: `ap` and `lat`.")
+    lat_from_ap: LatFromAp | None = Field(None, description="Derive `lat` from `ap` (then give only `ap`).")
+    initial_mesh_to_world: Matrix4 | None = Field(
+        None, description="4x4 rigid initial pose mesh mm → world mm where the optimization starts (default identity).")
+
+
+# ---- result ---------------------------------------------------------------------------------
+
+
+class GroundTruthErrors(BaseModel):
+    """Errors against `options.ground_truth_mesh_to_world` (synthetic studies)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rotation_error_deg: float | None = Field(None, description="Angle of the rotation difference, degrees.")
+    translation_error_mm: float | None = Field(
+        None, description="Distance of the AP source position in the mesh frame, mm (the paper's definition).")
+    add_mm: float | None = Field(None, description="Average distance of the mesh vertices, mm.")
+    mtre_mm: float | None = Field(None, description="Mean target registration error, mm.")
+    mpd_mm: dict[str, float | None] | None = Field(None, description="Mean projection distance per view, mm.")
+    initial_mtre_mm: float | None = Field(None, description="mTRE of the initial pose, mm.")
+
+
+class ResultMetrics(BaseModel):
+    """How the registration went."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "loss": 0.0019, "iterations": {"ap+lat:1/4": 17, "ap+lat:1/2": 27, "ap+lat:1/1": 37, "ap+lat:1/1:refine": 11},
+        "seconds": {"ap+lat:1/4": 0.72, "ap+lat:1/2": 0.64, "ap+lat:1/1": 1.68, "ap+lat:1/1:refine": 0.41,
+                    "total": 5.5},
+        "device": "cpu", "converged": True, "reason": "pose change below tolerance in the final stage",
+        "starts": 4, "starts_agreeing": 4, "configuration": "simultaneous",
+        "border_shift_px": {"ap": -0.008, "lat": 0.004}}]})
+
+    loss: float | None = Field(None, description="Final loss (mean squared silhouette error), dimensionless.")
+    iterations: dict[str, int] = Field(default_factory=dict, description="Iterations per stage, in the order run.")
+    seconds: dict[str, float] = Field(default_factory=dict, description="Seconds per stage and `total`.")
+    device: str | None = Field(None, description="Where it ran (`cpu`, `cuda`).")
+    converged: bool | None = Field(
+        None, description="True only when the final stage stopped on the pose-change rule and every view's Dice ≥ 0.5.")
+    reason: str | None = Field(None, description="Why converged is what it is.")
+    starts: int | None = Field(None, description="Initial poses tried.")
+    starts_agreeing: int | None = Field(None, description="Starts that ended within 2 mm ADD of the best.")
+    configuration: Literal["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"] | None = None
+    border_shift_px: dict[str, float] | None = Field(
+        None, description="Measured mask border offset per view, pixels (border correction).")
+    warnings: list[str] | None = Field(None, description="Notes on the result (e.g. single-view ambiguity).")
+    ground_truth: GroundTruthErrors | None = None
+
+
+class ViewResult(BaseModel):
+    """Per-view outcome."""
+
+    model_config = ConfigDict(extra="allow")
+
+    world_to_view: Matrix4 = Field(description="4x4 world mm → view frame (the geometry's, unchanged).")
+    mesh_to_view: Matrix4 = Field(description="4x4 = world_to_view · mesh_to_world.")
+    projection_matrix: Matrix34 = Field(description="3x4 homogeneous mesh-frame mm → homogeneous pixels.")
+    dice: float = Field(ge=0, le=1, description="Dice of the registered hard silhouette with the vessel mask.")
+    iou: float = Field(ge=0, le=1, description="Intersection over union of the same.")
+
+
+class RegistrationResult(BaseModel):
+    """The registration result (`result.json`). Later versions may add fields (e.g. `verdict`)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "mesh_to_world": IDENTITY, "initial_mesh_to_world": IDENTITY,
+        "views": {"ap": {"world_to_view": IDENTITY, "mesh_to_view": IDENTITY,
+                         "projection_matrix": [[692.8, 0, 399.5, 0], [0, 692.8, 399.5, 0], [0, 0, 1, 0]],
+                         "dice": 0.997, "iou": 0.994}},
+        "metrics": {"loss": 0.0019, "converged": True, "reason": "pose change below tolerance in the final stage"}}]})
+
+    mesh_to_world: Matrix4 = Field(description="4x4 rigid estimated pose, mesh mm → world mm: the answer.")
+    initial_mesh_to_world: Matrix4 | None = Field(None, description="4x4 pose the registration started from.")
+    views: dict[str, ViewResult] = Field(description="Per view (`ap`, `lat`).")
+    metrics: ResultMetrics
+    warnings: list[str] | None = Field(None, description="Notes from reading the inputs (decimation, resizing...).")
+    verdict: Any | None = Field(None, description="The engine's verdict on the pose, when it gives one.")
+
+
+# ---- putting them into the OpenAPI document -----------------------------------------------
+
+
+def _components(*models: type[BaseModel]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for model in models:
+        schema = model.model_json_schema(ref_template=REF, mode="serialization")
+        out.update(schema.pop("$defs", {}))
+        out[model.__name__] = schema
+    return out
+
+
+def options_model() -> type[BaseModel]:
+    from ...engine_adapter import engine
+
+    return engine.RegistrationOptions
+
+
+def multipart_schema(presets: list[str]) -> dict[str, Any]:
+    """The multipart/form-data body of ``POST /v1/registrations``."""
+    return {
+        "type": "object",
+        "required": ["ap", "lat"],
+        "description": "Give `mesh` or `volume`, both images, and optionally `geometry` and `options`.",
+        "properties": {
+            "mesh": {"type": "string", "format": "binary",
+                     "description": "Vessel surface mesh in mm: OBJ, STL (ASCII/binary), PLY, OFF or GLB."},
+            "volume": {"type": "array", "items": {"type": "string", "format": "binary"},
+                       "description": "Vessel volume instead of a mesh: NIfTI, NRRD, a DICOM series (one part per "
+                                      "file) or `.rad` + `.raw`; segmented (Otsu) and meshed (marching cubes)."},
+            "ap": {"type": "string", "format": "binary",
+                   "description": "AP view: DSA image or binary vessel mask (PNG, TIFF, JPEG, DICOM XA single/"
+                                  "multi-frame); a `.rad` + `.raw` pair as two parts."},
+            "lat": {"type": "string", "format": "binary", "description": "LAT view, as `ap`."},
+            "geometry": {
+                "description": "The C-arm geometry: a preset name, GeometryFile JSON (text or a file part), or "
+                               "nothing when DICOM XA / .rad headers carry it.",
+                "anyOf": [
+                    {"type": "string", "enum": presets, "description": "A preset name."},
+                    {"type": "string", "contentMediaType": "application/json",
+                     "contentSchema": {"$ref": REF.format(model="GeometryFile")}},
+                ],
+                "examples": [presets[0] if presets else "paper"],
+            },
+            "options": {
+                "type": "string", "contentMediaType": "application/json",
+                "contentSchema": {"$ref": REF.format(model="RegistrationOptions")},
+                "description": "RegistrationOptions as JSON text; every field is optional.",
+                "examples": ['{"starts": 2, "max_iterations": 300}'],
+            },
+        },
+    }
+
+
+def document(schema: dict[str, Any]) -> dict[str, Any]:
+    """Add the payload schemas to an OpenAPI document (in place; returned for convenience)."""
+    from ...engine_adapter import engine
+
+    PRESETS = engine.PRESETS
+
+    schemas = schema.setdefault("components", {}).setdefault("schemas", {})
+    schemas.update(_components(options_model(), GeometryFile, RegistrationResult))
+    result_ref = {"$ref": REF.format(model="RegistrationResult")}
+    for name in ("JobStatus", "JobStatus-Output"):
+        props = schemas.get(name, {}).get("properties", {})
+        if "result" in props:
+            props["result"] = {"anyOf": [result_ref, {"type": "null"}],
+                               "description": "The registration result when succeeded, else null."}
+    paths = schema.get("paths", {})
+    post = paths.get("/v1/registrations", {}).get("post")
+    if post is not None:
+        post["requestBody"] = {"required": True, "content": {"multipart/form-data": {
+            "schema": multipart_schema(sorted(PRESETS)),
+            "encoding": {"options": {"contentType": "application/json, text/plain"},
+                         "geometry": {"contentType": "text/plain, application/json"},
+                         "volume": {"contentType": "application/octet-stream"}},
+        }}}
+    get_result = paths.get("/v1/registrations/{job_id}/result", {}).get("get")
+    if get_result is not None:
+        ok = get_result.setdefault("responses", {}).setdefault("200", {})
+        ok["description"] = "The registration result."
+        ok["content"] = {"application/json": {"schema": result_ref}}
+    return schema
