@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     if args.region_box:
         options["region"] = {"box_mm": [args.region_box[:3], args.region_box[3:]]}
     elif args.region_sphere:
-        options["region"] = {"sphere_mm": [args.region_sphere[:3], args.region_sphere[3]]}
+        options["region"] = {"sphere": {"centre_mm": args.region_sphere[:3], "radius_mm": args.region_sphere[3]}}
     elif args.region_branch:
         options["region"] = {"branch_near_mm": args.region_branch}
     if args.track:

@@ -145,10 +145,10 @@ def select_region(mesh: TriangleMesh, region) -> TriangleMesh:
         low, high = np.minimum(*np.asarray(region.box_mm)), np.maximum(*np.asarray(region.box_mm))
         inside = np.all((vertices >= low) & (vertices <= high), axis=1)
         field = "options.region.box_mm"
-    elif region.sphere_mm is not None:
-        centre, radius = np.asarray(region.sphere_mm[0]), float(region.sphere_mm[1])
+    elif region.sphere is not None:
+        centre, radius = np.asarray(region.sphere.centre_mm), float(region.sphere.radius_mm)
         inside = np.linalg.norm(vertices - centre, axis=1) <= radius
-        field = "options.region.sphere_mm"
+        field = "options.region.sphere"
     else:
         tree = vessel_tree(mesh)
         inside = tree.downstream_of(int(cKDTree(vertices).query(np.asarray(region.branch_near_mm))[1]))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -13,7 +13,17 @@ CONFIGURATIONS: tuple[str, ...] = ("ap", "lat", "simultaneous", "ap_then_lat", "
 Matrix4 = list[list[float]]
 
 
-Vector3 = tuple[float, float, float]
+FiniteMm = Annotated[float, Field(allow_inf_nan=False)]
+Point3 = Annotated[list[FiniteMm], Field(min_length=3, max_length=3)]
+
+
+class SphereRegion(BaseModel):
+    """A sphere in the model frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    centre_mm: Point3 = Field(description="Centre [x, y, z] (model frame, mm).")
+    radius_mm: FiniteMm = Field(gt=0, description="Radius (mm).")
 
 
 class ModelRegion(BaseModel):
@@ -22,18 +32,18 @@ class ModelRegion(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    box_mm: tuple[Vector3, Vector3] | None = Field(None, description="Opposite corners [[x0, y0, z0], [x1, y1, z1]] of an axis-aligned box.")
-    sphere_mm: tuple[Vector3, float] | None = Field(None, description="[[x, y, z], radius] of a sphere.")
-    branch_near_mm: Vector3 | None = Field(None, description="A point near the injected branch: the branch nearest it and "
-                                           "what lies downstream of it (the inflow is guessed: the thickest vessel's far end).")
+    box_mm: Annotated[list[Point3], Field(min_length=2, max_length=2)] | None = Field(
+        None, description="Opposite corners [[x0, y0, z0], [x1, y1, z1]] of an axis-aligned box.")
+    sphere: SphereRegion | None = Field(None, description="A sphere.")
+    branch_near_mm: Point3 | None = Field(None, description="A point [x, y, z] near the injected branch: the branch "
+                                          "nearest it and what lies downstream of it (the inflow is guessed: the "
+                                          "thickest vessel's far end from the model's centre).")
 
     @model_validator(mode="after")
     def _exactly_one(self) -> ModelRegion:
-        given = [name for name in ("box_mm", "sphere_mm", "branch_near_mm") if getattr(self, name) is not None]
+        given = [name for name in ("box_mm", "sphere", "branch_near_mm") if getattr(self, name) is not None]
         if len(given) != 1:
-            raise ValueError("give exactly one of box_mm, sphere_mm, branch_near_mm")
-        if self.sphere_mm is not None and not self.sphere_mm[1] > 0:
-            raise ValueError("the sphere's radius must be > 0 mm")
+            raise ValueError("give exactly one of box_mm, sphere, branch_near_mm")
         return self
 
 

@@ -59,15 +59,17 @@ def test_phantom_inflow_is_its_trunk_base(phantom):
 
 def test_regions_select_faces_and_name_the_field(phantom):
     mesh = _y_tree()
-    box = select_region(mesh, ModelRegion(box_mm=((-10, -50, -10), (10, -5, 10))))
+    box = select_region(mesh, ModelRegion(box_mm=[[-10, -50, -10], [10, -5, 10]]))
     assert box.n_faces > 100 and np.all(box.vertices[:, 1] <= -5)
-    sphere = select_region(mesh, ModelRegion(sphere_mm=((0, -20, 0), 8.0)))
+    sphere = select_region(mesh, ModelRegion(sphere={"centre_mm": [0, -20, 0], "radius_mm": 8.0}))
     assert np.all(np.linalg.norm(sphere.vertices - [0, -20, 0], axis=1) <= 8.0)
-    branch = select_region(mesh, ModelRegion(branch_near_mm=(-15, 15, 0)))
+    branch = select_region(mesh, ModelRegion(branch_near_mm=[-15, 15, 0]))
     assert np.all(branch.vertices[:, 0] < 0)
-    with pytest.raises(DsaregInputError, match="options.region.sphere_mm"):
-        select_region(mesh, ModelRegion(sphere_mm=((100, 100, 100), 1.0)))
-    with pytest.raises(DsaregInputError, match="options.region"):
-        parse_options({"region": {"sphere_mm": [[0, 0, 0], 5], "box_mm": [[0, 0, 0], [1, 1, 1]]}})
-    with pytest.raises(DsaregInputError, match="options.region"):
-        parse_options({"region": {"sphere_mm": [[0, 0, 0], -1]}})
+    with pytest.raises(DsaregInputError, match="options.region.sphere"):
+        select_region(mesh, ModelRegion(sphere={"centre_mm": [100, 100, 100], "radius_mm": 1.0}))
+    with pytest.raises(DsaregInputError, match="options.region: .*exactly one"):
+        parse_options({"region": {"sphere": {"centre_mm": [0, 0, 0], "radius_mm": 5}, "box_mm": [[0, 0, 0], [1, 1, 1]]}})
+    with pytest.raises(DsaregInputError, match="options.region.sphere.radius_mm"):
+        parse_options({"region": {"sphere": {"centre_mm": [0, 0, 0], "radius_mm": -1}}})
+    with pytest.raises(DsaregInputError, match="options.region.branch_near_mm"):
+        parse_options({"region": {"branch_near_mm": [0, 0]}})
