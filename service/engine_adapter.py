@@ -22,7 +22,6 @@ from dsareg_engine import api as engine
 
 from .storage.blobs import BlobStore
 from .budgets import image_decoded_bytes, parse_json_part
-from .problems import Problem
 
 if TYPE_CHECKING:  # the job store (SQLAlchemy) is not needed to parse the CLI or call the engine
     from .storage.store import InputFile
@@ -37,14 +36,12 @@ def submitted_geometry(text: str | None) -> str | None:
     """A submission's ``geometry`` part → the canonical JSON to store; blank or absent → ``None``.
 
     Parsed once here (a preset name or a JSON object; never a file path, so a client cannot make
-    the server read its own files), with the service's bounded JSON parser; 422 naming the field.
+    the server read its own files), with the service's bounded JSON parser; an unusable geometry raises
+    ``engine.DsaregInputError`` naming the field (the API answers 422: :mod:`service.api.handlers`).
     """
     if text is None or not text.strip():
         return None
-    try:
-        spec = engine.parse_geometry(text, loads=lambda part: parse_json_part(part, "geometry"))
-    except engine.DsaregInputError as exc:
-        raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+    spec = engine.parse_geometry(text, loads=lambda part: parse_json_part(part, "geometry"))
     return spec.to_json()
 
 
@@ -79,15 +76,11 @@ def input_limits(limits: dict[str, int] | None) -> Any:
 
 
 def check_options(options: Any) -> None:
-    """Refuse what the worker would refuse, naming the option (422)."""
+    """Refuse what the worker would refuse: ``engine.DsaregInputError`` naming the option (422 in the API)."""
     for name in ("initial_mesh_to_world", "ground_truth_mesh_to_world"):
         matrix = getattr(options, name, None)
-        if matrix is None:
-            continue
-        try:
+        if matrix is not None:
             engine.validate_rigid(matrix, field=f"options.{name}", allow_mirror=False)
-        except engine.DsaregInputError as exc:
-            raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
 
 
 def check_image_budget(data: bytes, field: str, limit: int) -> None:

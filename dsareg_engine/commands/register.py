@@ -6,12 +6,8 @@ import argparse
 from pathlib import Path
 
 from ..errors import DsaregInputError
-from ..io.case import load_case
-from ..pipeline import write_outputs
-from ..geometry.pose_file import load_pose
-from ..registration import CONFIGURATIONS, register
-from ..registration.options import parse_options
-from .failures import geometry_argument, input_file, json_argument, options_help
+from ..registration.options import CONFIGURATIONS
+from .arguments import geometry_argument, input_file, json_argument, options_help
 
 
 def add_parser(subparsers) -> None:
@@ -71,6 +67,12 @@ def _model_inputs(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..io.case import load_case  # the engine (torch) loads only when a registration runs
+    from ..pipeline import write_outputs
+    from ..geometry.pose_file import load_pose
+    from ..registration import register
+    from ..registration.options import parse_options
+
     options = json_argument(args.options, "--options") or {}
     if not isinstance(options, dict):
         raise DsaregInputError("must be a JSON object", field="--options", accepted='e.g. {"starts": 2}')

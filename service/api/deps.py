@@ -7,7 +7,6 @@ and checked to belong to the caller (404 / 403 otherwise).
 
 from __future__ import annotations
 
-import hashlib
 import hmac
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Annotated, Any
@@ -16,11 +15,11 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CollectorRegistry, Counter
 
-from ..storage.blobs import BlobStore
 from ..jobs.executor import Executor
 from ..problems import Problem
-from ..settings import ServiceSettings
-from ..storage.store import JobRecord, JobStore
+from ..settings import ServiceSettings, hash_api_key
+from ..storage.blobs import BlobStore
+from ..storage.store import JobRecord, JobStore, is_job_id
 from .intake.validation import ValidatorPool
 
 if TYPE_CHECKING:
@@ -59,7 +58,7 @@ def principal(request: Request, credentials: HTTPAuthorizationCredentials | None
         return ANONYMOUS
     if credentials is None or not credentials.credentials:
         raise Problem(401, "send 'Authorization: Bearer <API key>'", headers={"WWW-Authenticate": "Bearer"})
-    digest = hashlib.sha256(credentials.credentials.strip().encode("utf-8")).hexdigest()
+    digest = hash_api_key(credentials.credentials)
     match = None
     for known in ctx.settings.api_key_hashes:  # compare against all, in constant time each
         if hmac.compare_digest(digest, known):
@@ -73,9 +72,13 @@ Principal = Annotated[str, Depends(principal)]
 
 
 def owned_job(ctx: ServiceContext, job_id: str, who: str) -> JobRecord:
-    job = ctx.store.get(job_id) if len(job_id) <= 64 else None
+    """The job ``job_id`` of the caller; an id that cannot be one (syntax) never reaches the database."""
+    if not is_job_id(job_id):
+        raise Problem(404, "no registration job with this id", kind="job-not-found", field="job_id",
+                      accepted="a job id as returned by POST /v1/registrations (1 to 64 of A-Z a-z 0-9 _ -)")
+    job = ctx.store.get(job_id)
     if job is None:
-        raise Problem(404, f"no registration job with id '{job_id[:64]}'", kind="job-not-found")
+        raise Problem(404, f"no registration job with id '{job_id}'", kind="job-not-found")
     if job.owner != who:
         raise Problem(403, "this job belongs to another API key")
     return job

@@ -262,12 +262,16 @@ def warm_up() -> None:
     first job otherwise costs ~1.5 CPU-s more than the next ones."""
     import tempfile
 
+    started = time.monotonic()
+    log.info("worker warming up: compiling the numba kernels and running one tiny job (minutes on a fresh "
+             "install with an empty kernel cache, a few seconds once cached; `dsareg warmup` fills the cache ahead)")
     try:
         engine.warm_up_renderer()
         with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-") as work_dir:
             engine.warm_up_job(Path(work_dir))
     except Exception:
         log.warning("warm-up incomplete; the first job will be slower", exc_info=True)
+    log.info("worker warmed up in %.1f s; ready for jobs", time.monotonic() - started)
 
 
 def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
@@ -279,8 +283,9 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
     """
     import signal
 
-    from .procwatch import WorkerControl, die_with_parent
+    from .procwatch import WorkerControl, die_with_parent, set_process_name
 
+    set_process_name(f"dsareg-worker{index}")
     control = WorkerControl()
     signal.signal(signal.SIGINT, signal.SIG_IGN if link is not None else control.request_stop)
     signal.signal(signal.SIGTERM, control.request_stop)

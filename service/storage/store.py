@@ -25,6 +25,7 @@ from __future__ import annotations
 import abc
 import base64
 import json
+import re
 import secrets
 import time
 import uuid
@@ -42,6 +43,16 @@ FINISHED = ("succeeded", "failed", "canceled")
 def new_job_id() -> str:
     """Server-made, unguessable, URL-safe (never derived from user input)."""
     return uuid.uuid4().hex
+
+
+JOB_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""What a job id may look like (new ones are 32 hex digits): checked before any id from a request reaches
+the database, so a NUL, an over-long or a non-id string is a plain 404 on every store (PostgreSQL refuses
+NUL in text with a DataError that used to become a 500)."""
+
+
+def is_job_id(text: str) -> bool:
+    return JOB_ID_PATTERN.fullmatch(text) is not None
 
 
 @dataclass
@@ -155,6 +166,10 @@ class JobStore(abc.ABC):
 
     @abc.abstractmethod
     def live_workers(self, since: float) -> int: ...
+
+    def workers_seen_since(self, since: float) -> dict[int, float]:
+        """``{pid: last_seen}`` of the workers seen at or after ``since`` (wall time)."""
+        raise NotImplementedError
 
     @abc.abstractmethod
     def finished_durations(self) -> list[tuple[str, float]]: ...
@@ -546,6 +561,15 @@ class SqlJobStore(JobStore):
     def live_workers(self, since: float) -> int:
         with self.engine.connect() as conn:
             return int(conn.execute(sa.select(sa.func.count()).select_from(workers).where(workers.c.last_seen >= since)).scalar_one())
+
+    def workers_seen_since(self, since: float) -> dict[int, float]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(workers.c.pid, workers.c.last_seen).where(workers.c.last_seen >= since)).all()
+        seen: dict[int, float] = {}
+        for pid, last_seen in rows:
+            if pid is not None:
+                seen[int(pid)] = max(float(last_seen), seen.get(int(pid), 0.0))
+        return seen
 
     def finished_durations(self) -> list[tuple[str, float]]:
         with self.engine.connect() as conn:

@@ -17,18 +17,19 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
-from ...storage.blobs import safe_suffix
-from ...engine_adapter import check_options, engine, submitted_geometry
 from ...budgets import check_job_cost, parse_json_part
-from ..schemas.jobs import status_body
+from ...engine_adapter import check_options, engine, submitted_geometry
 from ...problems import Problem
+from ...storage.blobs import safe_suffix
 from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
 from ..deps import ANONYMOUS, ServiceContext
+from ..schemas.jobs import status_body
+from .forms import MAX_TEXT_PART_BYTES
 
 log = logging.getLogger("dsareg.service")
 
-MAX_GEOMETRY_BYTES = 1 << 20
-MAX_OPTIONS_BYTES = 1 << 20
+MAX_GEOMETRY_BYTES = MAX_TEXT_PART_BYTES
+MAX_OPTIONS_BYTES = MAX_TEXT_PART_BYTES
 MAX_VOLUME_FILES = 4000
 RETRY_AFTER_QUEUED = "2"
 FORM_FIELDS = ("mesh", "volume", "ap", "lat", "geometry", "options")
@@ -61,12 +62,9 @@ def read_text_field(value: Any, name: str, limit: int) -> str:
 
 
 def parse_options_json(data: Any) -> dict[str, Any]:
-    """Options (a dict, JSON text or None) → the validated, complete options as JSON (422 if invalid)."""
-    DsaregInputError = engine.DsaregInputError
-    try:
-        options = engine.parse_options(data)
-    except DsaregInputError as exc:
-        raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+    """Options (a dict, JSON text or None) → the validated, complete options (``engine.DsaregInputError``
+    naming the option if invalid: 422, :mod:`service.api.handlers`)."""
+    options = engine.parse_options(data)
     check_options(options)
     return options
 
@@ -213,7 +211,7 @@ def accepted(stored: JobRecord) -> JSONResponse:
 async def submit_form(ctx: ServiceContext, form: Any, who: str, key: str | None) -> Response:
     """A parsed multipart form → 202 with the new job (or 200/409 for an Idempotency-Key replay)."""
     files = form_files(form)
-    geometry, options = form_geometry_and_options(form)
+    geometry, options = await asyncio.to_thread(form_geometry_and_options, form)  # JSON parsing off the event loop
     return await submit_files(ctx, files, geometry, options, who, key)
 
 

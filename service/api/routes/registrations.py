@@ -7,33 +7,17 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from ..schemas.jobs import JobList, JobStatus, status_body, summary_body
 from ...problems import Problem, problem_responses
 from ...storage.store import STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
+from ..intake.forms import read_form
+from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
 from ..openapi import resource_router
-from ..intake.submission import MAX_OPTIONS_BYTES, MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+from ..schemas.jobs import JobList, JobStatus, status_body, summary_body
 
 log = logging.getLogger("dsareg.service")
 
 router = resource_router("registrations")
-
-MULTIPART_SCHEMA = {
-    "type": "object",
-    "required": ["ap", "lat"],
-    "properties": {
-        "mesh": {"type": "string", "format": "binary", "description": "Vessel surface mesh (OBJ, STL, PLY, VTK…). Give mesh or volume."},
-        "volume": {"type": "array", "items": {"type": "string", "format": "binary"},
-                   "description": "Segmented 3D volume (NIfTI, NRRD, or a DICOM series as several files)."},
-        "ap": {"type": "string", "format": "binary",
-               "description": "AP view: DSA image or vessel mask (PNG, TIFF, DICOM XA…); a .rad + .raw pair as two parts."},
-        "lat": {"type": "string", "format": "binary", "description": "LAT view: DSA image or vessel mask (as ap)."},
-        "geometry": {"type": "string", "description": "Preset name (e.g. 'paper') or geometry JSON (text or file); "
-                                                      "optional when DICOM XA headers carry the geometry."},
-        "options": {"type": "string", "description": "RegistrationOptions as JSON, e.g. {\"starts\": 2}.",
-                    "example": "{\"starts\": 1, \"max_iterations\": 100}"},
-    },
-}
 
 SUBMIT_DOC = {
     "status_code": 202,
@@ -46,7 +30,8 @@ SUBMIT_DOC = {
         "while reusing the key with a different request is a 409."
     ),
     "openapi_extra": {
-        "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": MULTIPART_SCHEMA}}},
+        # the body's schema is written once, in service/api/schemas/payloads.py (multipart_schema, document)
+        "requestBody": {"required": True},
         "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
                         "schema": {"type": "string", "minLength": 1, "maxLength": 255, "pattern": r"\S"},
                         "description": "Makes retries of the same submission safe. 1 to 255 characters, at "
@@ -74,7 +59,7 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
     if not content_type.lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat",
                       accepted="multipart/form-data")
-    form = await request.form(max_files=MAX_VOLUME_FILES + 8, max_fields=20, max_part_size=MAX_OPTIONS_BYTES)
+    form = await read_form(request, max_files=MAX_VOLUME_FILES + 8, max_fields=20)
     try:
         return await submit_form(ctx, form, who, key)
     finally:
