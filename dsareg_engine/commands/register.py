@@ -41,6 +41,10 @@ def add_parser(subparsers) -> None:
                         help='re-register after a small motion from --initial (options.mode "track": fast, one start)')
     parser.add_argument("--ground-truth", type=input_file, metavar="POSE.json",
                         help='pose file {"mesh_to_world": 4x4} of the true pose; adds error metrics (ADD, mTRE...)')
+    for name in ("ap", "lat"):
+        parser.add_argument(f"--{name}-frame", metavar="N|minip",
+                            help=f"multi-frame XA: the {name.upper()} frame to use (0-based) or 'minip' (default: "
+                                 "maximum opacification; native runs are subtracted first); the views may differ")
     parser.add_argument("--options", metavar="JSON|FILE", help=options_help())
     region = parser.add_mutually_exclusive_group()
     region.add_argument("--region-box", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
@@ -66,12 +70,22 @@ def _model_inputs(args: argparse.Namespace) -> dict:
     return {"volume": parts if len(parts) > 1 else parts[0], "volume_name": paths[0].name}
 
 
+def frame_argument(value: str, flag: str) -> int | str:
+    """``--ap-frame`` / ``--lat-frame``: a 0-based frame index or ``minip``."""
+    if value == "minip":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise DsaregInputError(f"'{value}' is not a frame index", field=flag, accepted="an integer ≥ 0 or 'minip'") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from ..io.case import load_case  # the engine (torch) loads only when a registration runs
     from ..pipeline import write_outputs
     from ..geometry.pose_file import load_pose
     from ..registration import register
-    from ..registration.options import parse_options
+    from ..registration.options import image_reading, parse_options
 
     options = json_argument(args.options, "--options") or {}
     if not isinstance(options, dict):
@@ -89,6 +103,10 @@ def run(args: argparse.Namespace) -> int:
         options["region"] = {"sphere": {"centre_mm": args.region_sphere[:3], "radius_mm": args.region_sphere[3]}}
     elif args.region_branch:
         options["region"] = {"branch_near_mm": args.region_branch}
+    for name in ("ap", "lat"):
+        value = getattr(args, f"{name}_frame")
+        if value is not None:
+            options.setdefault("frames", {})[name] = frame_argument(value, f"--{name}-frame")
     if args.track:
         if not args.initial:
             raise DsaregInputError("--track re-registers from a previous pose: give it with --initial",
@@ -102,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         **model,
         ap=ap_bytes, ap_name=Path(args.ap).name,
         lat=lat_bytes, lat_name=Path(args.lat).name,
-        geometry=geometry, segmentation=parsed.segmentation,
+        geometry=geometry, segmentation=parsed.segmentation, reading=image_reading(parsed),
     )
     for warning in case.warnings:
         print(f"warning: {warning}")
@@ -113,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     result = register(case.mesh, case.fitted, case.rig, parsed, progress=show)
     print()
     out = Path(args.out)
-    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images)
+    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images,
+                  readings=case.readings)
     if args.dicom_out:
         from ..io.dicom_out import read_sources, write_dicom_outputs
 

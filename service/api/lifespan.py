@@ -11,10 +11,12 @@ from typing import Any
 from fastapi import FastAPI
 
 from ..storage.dbblobs import make_blob_store
+from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
 from ..settings import ServiceSettings
 from ..jobs.sweeper import Sweeper
 from ..storage.store import SqlJobStore
+from .intake.dimse import DimseIntake
 from .intake.validation import ValidatorPool
 from .deps import ServiceContext
 from .prometheus import ServiceMetrics
@@ -37,6 +39,15 @@ def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: 
                           registry=metrics.registry, uploads=metrics.uploads)
 
 
+def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
+    """The DICOM node of ``dsareg serve`` when ``DSAREG_DICOM_PORT`` is set (its jobs go through this API's intake)."""
+    if not ctx.settings.dicom_port:
+        return None
+    listener = DicomListener(ctx.settings, ctx.store, ctx.blobs, DimseIntake(ctx), asyncio.get_running_loop())
+    listener.start()
+    return listener
+
+
 def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: dict[str, ServiceContext | None], *,
                   executor: Executor | None, make_executor: Callable[[ServiceSettings, Any], Executor],
                   start_background: bool):
@@ -54,11 +65,14 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper = Sweeper(ctx)
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
+            ctx.extra["dicom_listener"] = _start_dicom_node(ctx)
         log.info("dsareg service ready (%d worker processes, store %s)", settings.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
         try:
             yield
         finally:
+            if ctx.extra.get("dicom_listener") is not None:
+                await asyncio.to_thread(ctx.extra["dicom_listener"].stop)
             if ctx.sweeper:
                 ctx.sweeper.stop()
             await asyncio.to_thread(ctx.executor.stop)

@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from ..storage.blobs import BlobStore
-from ..pacs.dicom_jobs import pacs_job, pacs_problem
+from ..pacs.dicom_jobs import STORED_FILES, pacs_job, pacs_problem
 from ..pacs.dicomweb import PacsError
+from ..pacs.dimse.export import dimse_job
 from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
@@ -223,16 +224,19 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
               out_dir: Path) -> str:
     """Inputs → one engine call → artifacts and result into the store (both retried across store outages)."""
     pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
+    dimse = dimse_job(job, blobs.read, settings)  # made from a study received over DIMSE, or None
     if pacs is None:
         files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.input_limits)
     else:
         files = pacs.fetch()
     result = run_job(files, job.options, out_dir, limits=settings.input_limits, control=control,
-                     label=f"job {job.id}", dicom="best_effort" if pacs is None else "required")
+                     label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
     if control.lost:
         return "lost"
     if pacs is not None:
         result = pacs.store_back(result, out_dir)
+    if dimse is not None:
+        result = dimse.export(result, out_dir, STORED_FILES)
     artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
     outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
     if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete

@@ -7,6 +7,7 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
+from ...pacs.dimse.export import dimse_source
 from ...problems import Problem, problem_responses
 from ...storage.store import STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
@@ -100,9 +101,12 @@ def list_jobs(
 
 @router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",
             responses=problem_responses(401, 403, 404))
-def get_job(job: OwnedJob) -> Response:
+def get_job(ctx: Ctx, job: OwnedJob) -> Response:
     headers = {"Retry-After": RETRY_AFTER_QUEUED} if job.status in ("queued", "running") else {}
-    return JSONResponse(status_body(job), headers=headers)
+    body = status_body(job)
+    if (source := dimse_source(job, ctx.blobs.read)) is not None:
+        body["source"] = source
+    return JSONResponse(body, headers=headers)
 
 
 @router.post("/v1/registrations/{job_id}/cancel", response_model=JobStatus, summary="Cancel a job",
