@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from .api.routes import artifacts, operations, registrations, tracking
+from .api.routes import artifacts, operations, registrations, review, tracking, ui
 from .api.deps import ServiceContext
 from .api.intake.dicom_reference import document_json_submission
 from .api.handlers import install_handlers
@@ -50,7 +50,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
-    mount(app, registrations.router, tracking.router, artifacts.router, operations.router)
+    mount(app, registrations.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
     document_json_submission(app)
     install_docs(app)
     install_openapi(app, settings)

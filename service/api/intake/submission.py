@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ...budgets import check_job_cost, parse_json_part
-from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry
+from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry, volume_reading
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
 from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
@@ -154,6 +154,7 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
     outcome = await ctx.validator.validate({
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
         "reading": image_reading_json(options),
+        "volume_reading": volume_reading(options),
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
         "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
     })

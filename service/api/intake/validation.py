@@ -52,7 +52,8 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading"}``."""
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
+    "volume_reading"}``."""
     import signal
 
     from ...jobs.procwatch import die_with_parent, set_process_name
@@ -101,7 +102,7 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
             case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
-                                 request.get("reading"))
+                                 request.get("reading"), request.get("volume_reading"))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
@@ -234,7 +235,7 @@ class _Slot:
 
 class ValidatorPool:
     """Successful outcomes are cached by request content (inputs are content-addressed, so
-    the same hashes + geometry + segmentation + limits parse the same way)."""
+    the same hashes + geometry + segmentation + volume reading + limits parse the same way)."""
 
     CACHE_SIZE = 512
 
@@ -247,7 +248,8 @@ class ValidatorPool:
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading",
+                                              "volume_reading")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:

@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ...engine_adapter import engine
 from ...problems import ProblemDetails
 from ...storage.store import JobRecord
+from .review import Review, review_model
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
 
@@ -72,6 +73,8 @@ class JobStatus(BaseModel):
     source: dict[str, Any] | None = Field(
         None, description='Only for a job made from a study received over DIMSE: {"dimse": {"calling_ae", '
                           '"study_uid", "pairing", "ap", "lat", "volume"}} (absent otherwise).')
+    review: Review | None = Field(None, description="A person's latest review (POST /v1/registrations/{id}/review); "
+                                                    "null until then.")
     links: JobLinks
 
 
@@ -98,6 +101,7 @@ class JobSummary(BaseModel):
                                                   "(results without one: 'converged' / 'NOT converged').")
     dice: dict[str, float] | None = Field(None, description="Dice per view of the registered silhouette.")
     error: str | None = Field(None, description="Title and detail of the problem, for failed jobs.")
+    review: Review | None = Field(None, description="A person's latest review; null until then.")
     links: JobLinks
 
 
@@ -176,7 +180,7 @@ def job_status(job: JobRecord) -> JobStatus:
         progress=_progress(job),
         result=job.result if job.status == "succeeded" else None,
         error=ProblemDetails(**job.error) if job.error and job.status == "failed" else None,
-        warnings=job.warnings, links=job_links(job.id, job),
+        warnings=job.warnings, review=review_model(job.review), links=job_links(job.id, job),
     )
 
 
@@ -219,7 +223,8 @@ def job_summary(job: JobRecord) -> JobSummary:
         id=job.id, status=job.status, created_at=iso(job.created_at) or "", started_at=iso(job.started_at),
         finished_at=iso(job.finished_at), seconds=seconds, progress=_progress(job),
         converged=metrics.get("converged") if isinstance(metrics.get("converged"), bool) else None,
-        verdict=_verdict(result) if result else None, dice=dice or None, error=error, links=links,
+        verdict=_verdict(result) if result else None, dice=dice or None, error=error,
+        review=review_model(job.review), links=links,
     )
 
 

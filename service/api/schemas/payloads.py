@@ -140,6 +140,25 @@ class ImageReadingRecord(BaseModel):
     mask_shift_px: MaskShift | None = None
 
 
+class VolumeRead(BaseModel):
+    """What was read from a volume input: its kind, the vessel window, the voxels kept."""
+
+    model_config = ConfigDict(extra="allow")
+
+    kind: Literal["cta", "mra", "3d-dsa"] = Field(description="How the volume was read.")
+    kind_source: str = Field(description="Why: the DICOM tags / values that decided, or `options.volume_kind`.")
+    unit: Literal["HU", "intensity"]
+    vessel_min: float = Field(description="Lowest vessel value kept (HU or intensity).")
+    vessel_max: float | None = Field(None, description="CTA: the bone level (HU); voxels above it are bone.")
+    tissue_level: float | None = Field(None, description="Estimated background tissue level.")
+    vessel_level: float | None = Field(None, description="Estimated vessel level.")
+    voxels_kept: int = Field(description="Vessel voxels kept.")
+    voxels_total: int = Field(description="Voxels in the volume.")
+    components: int = Field(description="Connected vessel components kept.")
+    surface: str = Field("level", description="`level` (at vessel_min) or `local half maximum` (MRA).")
+    faces: int = Field(description="Faces of the extracted surface, before decimation to the working budget.")
+
+
 class RegistrationResult(BaseModel):
     """The registration result (`result.json`). Later versions may add fields (e.g. `verdict`)."""
 
@@ -158,6 +177,7 @@ class RegistrationResult(BaseModel):
     image_reading: dict[str, ImageReadingRecord] | None = Field(
         None, description="Per view, what was read from a multi-frame XA run (frames, mask frames, recipe, shift).")
     verdict: Any | None = Field(None, description="The engine's verdict on the pose, when it gives one.")
+    volume: VolumeRead | None = Field(None, description="For a volume input: what was read from it.")
 
 
 # ---- putting them into the OpenAPI document -----------------------------------------------
