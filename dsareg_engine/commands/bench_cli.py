@@ -27,6 +27,17 @@ def add_parser(subparsers) -> None:
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
+    _add_render(which)
+    _add_table1_capture(which)
+    _add_track(which)
+    _add_robustness(which)
+    _add_autoinit(which)
+    _add_partial(which)
+    _add_clinical(which)
+
+
+def _add_render(which) -> None:
+    """``dsareg bench``: the renderer's speed."""
     render = which.add_parser("render", help="ms per forward and forward+backward")
     _add_mesh(render)
     render.add_argument("--size", type=int, nargs="+", default=[256, 400, 800], help="image sides in px")
@@ -37,6 +48,10 @@ def add_parser(subparsers) -> None:
     render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
     _add_device(render)
     render.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_render"))
+
+
+def _add_table1_capture(which) -> None:
+    """``dsareg bench``: the paper's Table 1 and the capture range."""
     for name in ("table1", "capture"):
         sub = which.add_parser(name, help={"table1": "the paper's Table 1: accuracy per configuration",
                                            "capture": "capture range: success per initial mTRE bin"}[name])
@@ -50,6 +65,10 @@ def add_parser(subparsers) -> None:
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
         _add_device(sub)
         sub.set_defaults(func=deferred(f"dsareg_engine.commands.bench:bench_{name}"))
+
+
+def _add_track(which) -> None:
+    """``dsareg bench``: tracking."""
     track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
     _add_mesh(track)
     track.add_argument("--sequences", type=int, default=5, help="independent motion sequences")
@@ -63,6 +82,10 @@ def add_parser(subparsers) -> None:
     track.add_argument("--options", default="{}", help="extra registration options as JSON")
     _add_device(track)
     track.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_track"))
+
+
+def _add_robustness(which) -> None:
+    """``dsareg bench``: segmentation errors and grey-level DSA."""
     robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
     _add_mesh(robust)
     robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
@@ -82,6 +105,10 @@ def add_parser(subparsers) -> None:
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     _add_device(robust)
     robust.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_robustness"))
+
+
+def _add_autoinit(which) -> None:
+    """``dsareg bench``: no initial pose."""
     auto = which.add_parser("autoinit", help="registration with no initial pose on a clinical-like rig (107°, mirrored LAT)")
     _add_mesh(auto)
     auto.add_argument("--cases", type=int, default=20, help="random poses (rotation uniform over SO(3))")
@@ -92,6 +119,10 @@ def add_parser(subparsers) -> None:
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
     auto.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_autoinit"))
+
+
+def _add_partial(which) -> None:
+    """``dsareg bench``: partial visibility."""
     partial = which.add_parser("partial", help="no initial pose, images showing part of the model (early filling, "
                                "one injected branch, a model with an extra territory) plus safety cases")
     _add_mesh(partial)
@@ -105,7 +136,6 @@ def add_parser(subparsers) -> None:
     partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
     partial.add_argument("--options", default="{}", help="extra registration options as JSON")
     partial.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_partial"))
-    _add_clinical(which)
 
 
 def _add_clinical(which) -> None:
