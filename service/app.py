@@ -11,9 +11,9 @@ from typing import Any
 
 from fastapi import FastAPI
 
+from . import __version__
 from .api import artifacts, operations, registrations, tracking
 from .api.deps import ServiceContext
-from .api.dicom_reference import document_json_submission
 from .api.handlers import install_handlers
 from .api.lifespan import make_lifespan
 from .api.metrics import make_metrics
@@ -25,9 +25,12 @@ from .problems import problem_responses
 from .settings import ServiceSettings
 
 DESCRIPTION = (
-    "Registers a 3D vessel model to biplane DSA images. Submit a job with `POST /v1/registrations`, "
-    "poll the `Location` it returns, then fetch the result and overlays. Errors are "
-    "`application/problem+json` (RFC 9457)."
+    "Registers a 3D vessel model to biplane DSA images. Submit a job with `POST /v1/registrations` "
+    "(multipart files, or JSON with the inputs by DICOMweb reference), poll the `Location` it returns (or give a "
+    "`callback_url`), then fetch the result and overlays.\n\n"
+    "**`succeeded` means the job ran; the `verdict` says whether to trust the pose**: `ok` use it, `check` look at "
+    "the overlays first, `failed` do not use it (`result.verdict` = `result.metrics.confidence.verdict`, with "
+    "`reasons` in plain words). Errors are `application/problem+json` (RFC 9457)."
 )
 
 
@@ -47,7 +50,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
                              start_background=start_background)
     app = FastAPI(
         title="dsareg registration service",
-        version="1.0.0",
+        version=__version__,  # pyproject.toml's version (service/__init__.py)
         description=DESCRIPTION,
         lifespan=lifespan,
         responses=problem_responses(500),
@@ -59,7 +62,6 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
     mount(app, registrations.router, tracking.router, artifacts.router, operations.router)
-    document_json_submission(app)
     install_docs(app)
     install_openapi(app, settings)
     return app

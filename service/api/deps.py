@@ -24,6 +24,7 @@ from ..store import JobRecord, JobStore
 from ..validation import ValidatorPool
 
 if TYPE_CHECKING:
+    from ..callbacks import CallbackDeliverer
     from .lifespan import Sweeper
 
 ANONYMOUS = "anonymous"
@@ -39,6 +40,7 @@ class ServiceContext:
     registry: CollectorRegistry
     uploads: Counter
     sweeper: Sweeper | None = None
+    callbacks: CallbackDeliverer | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 

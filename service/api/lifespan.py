@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import threading
 import time
@@ -12,11 +13,13 @@ from typing import Any
 
 from fastapi import FastAPI
 
+from ..callbacks import CallbackDeliverer
 from ..dbblobs import make_blob_store
 from ..executor import Executor
 from ..settings import ServiceSettings
 from ..store import SqlJobStore, store_outage_errors
 from ..validation import ValidatorPool
+from ..models import summary_body
 from .deps import ServiceContext
 from .metrics import ServiceMetrics
 
@@ -98,6 +101,20 @@ def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: 
                           registry=metrics.registry, uploads=metrics.uploads)
 
 
+def callback_body(job: Any) -> bytes:
+    """A callback's body: the job summary (``JobSummary``) as compact JSON."""
+    return json.dumps(summary_body(job), separators=(",", ":")).encode("utf-8")
+
+
+def start_callbacks(ctx: ServiceContext) -> CallbackDeliverer:
+    """The completion-callback deliverer of this API process (service/callbacks.py), in every topology."""
+    from .. import __version__
+
+    deliverer = CallbackDeliverer(ctx.store, ctx.settings, callback_body, user_agent=f"dsareg/{__version__}")
+    deliverer.start()
+    return deliverer
+
+
 def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: dict[str, ServiceContext | None], *,
                   executor: Executor | None, make_executor: Callable[[ServiceSettings, Any], Executor],
                   start_background: bool):
@@ -115,11 +132,14 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper = Sweeper(ctx)
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
+            ctx.callbacks = start_callbacks(ctx)
         log.info("dsareg service ready (%d worker processes, store %s)", settings.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
         try:
             yield
         finally:
+            if ctx.callbacks:
+                ctx.callbacks.stop()
             if ctx.sweeper:
                 ctx.sweeper.stop()
             await asyncio.to_thread(ctx.executor.stop)

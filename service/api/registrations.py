@@ -7,7 +7,7 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from ..models import JobList, JobStatus, status_body, summary_body
+from ..models import JobList, JobStatus, previous_link_header, status_body, summary_body
 from ..problems import Problem, problem_responses
 from ..store import STATUSES, decode_cursor
 from .deps import Ctx, OwnedJob, Principal
@@ -40,8 +40,10 @@ SUBMIT_DOC = {
     "response_model": JobStatus,
     "summary": "Submit a registration job",
     "description": (
-        "multipart/form-data with `mesh` (or `volume`), `ap`, `lat`, optional `geometry` and `options`. "
+        "multipart/form-data with `mesh` (or `volume`), `ap`, `lat`, optional `geometry`, `options` and "
+        "`callback_url`; or application/json with the inputs by DICOMweb reference (`DicomwebRegistrationRequest`). "
         "Inputs are fully parsed before the job is accepted. Answers 202 with `Location` of the job. "
+        "A job that `succeeded` ran to the end; whether to trust its pose is `verdict` (ok / check / failed). "
         "With an `Idempotency-Key` header, repeating the same request returns the original job (200), "
         "while reusing the key with a different request is a 409."
     ),
@@ -117,7 +119,7 @@ def list_jobs(
             responses=problem_responses(401, 403, 404))
 def get_job(job: OwnedJob) -> Response:
     headers = {"Retry-After": RETRY_AFTER_QUEUED} if job.status in ("queued", "running") else {}
-    return JSONResponse(status_body(job), headers=headers)
+    return JSONResponse(status_body(job), headers={**headers, **previous_link_header(job)})
 
 
 @router.post("/v1/registrations/{job_id}/cancel", response_model=JobStatus, summary="Cancel a job",
@@ -132,7 +134,7 @@ def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
     updated = ctx.store.request_cancel(job.id) or job
     ctx.executor.cancel(job.id)
     code = 202 if updated.status == "running" else 200
-    return JSONResponse(status_body(updated), status_code=code)
+    return JSONResponse(status_body(updated), status_code=code, headers=previous_link_header(updated))
 
 
 @router.delete("/v1/registrations/{job_id}", status_code=204, summary="Delete a job and its files",
