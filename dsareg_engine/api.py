@@ -42,6 +42,7 @@ from .errors import DsaregInputError
 if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
     from .cli import run_parsed
     from .commands.errors import CommandFailed, geometry_argument, input_file, json_argument, options_help
+    from .commands.progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
     from .geometry_file import PRESETS
     from .geometry_spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
@@ -81,6 +82,10 @@ _LAZY = {
     "options_help": "dsareg_engine.commands.errors",
     "geometry_argument": "dsareg_engine.commands.errors",
     "json_argument": "dsareg_engine.commands.errors",
+    "ProgressPrinter": "dsareg_engine.commands.progress_lines",
+    "verdict_meets": "dsareg_engine.commands.progress_lines",
+    "REQUIRE_CHOICES": "dsareg_engine.commands.progress_lines",
+    "VERDICT_NOT_MET_EXIT": "dsareg_engine.commands.progress_lines",
     "load_pose": "dsareg_engine.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
 }
@@ -93,6 +98,8 @@ __all__ = [
     "LOSS_DCM",
     "LOSS_PNG",
     "PRESETS",
+    "REQUIRE_CHOICES",
+    "VERDICT_NOT_MET_EXIT",
     "REGISTRATION_FILES",
     "REG_DCM",
     "RESULT_JSON",
@@ -102,6 +109,7 @@ __all__ = [
     "DsaregInputError",
     "GeometrySpec",
     "InputLimits",
+    "ProgressPrinter",
     "RegistrationCanceled",
     "RegistrationOptions",
     "default_cpu_threads",
@@ -126,6 +134,7 @@ __all__ = [
     "run_registration_case",
     "set_cpu_threads",
     "validate_rigid",
+    "verdict_meets",
     "warm_up_job",
     "warm_up_parsers",
     "warm_up_renderer",

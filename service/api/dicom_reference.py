@@ -64,12 +64,12 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest:
 
 async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, key: str | None) -> Response:
     reference = await parse_reference(request)
+    callback_url = checked_callback_url(ctx, reference.callback_url)
     server = resolve_server(ctx.settings, reference.source.dicomweb.url)
     if server is None:
         raise Problem(422, "this DICOMweb server is not configured on this registration server "
                            "(the administrator lists allowed servers in DSAREG_DICOMWEB_SERVERS)",
                       field="source.dicomweb.url")
-    callback_url = checked_callback_url(ctx, reference.callback_url)
     options = parse_options_json(json.dumps(reference.options) if reference.options else None)
     options_json = options.model_dump(mode="json")
     stored_reference = reference.model_copy(update={"options": {}})
