@@ -99,13 +99,13 @@ def run(args: argparse.Namespace) -> int:
     printer = ProgressPrinter()
     for warning in case.warnings:
         printer.message(f"warning: {warning}")
+    out = Path(args.out)
     try:
         result = register(case.mesh, case.fitted, case.rig, parsed, progress=printer.update)
+        data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation,
+                             images=case.images, progress=printer.update, warnings=case.warnings)
     finally:
         printer.close()
-    out = Path(args.out)
-    data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images,
-                         warnings=case.warnings)
     if args.dicom_out:
         from ..io.dicom_out import read_sources, write_dicom_outputs
 

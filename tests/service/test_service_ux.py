@@ -71,6 +71,11 @@ def test_progress_is_monotone_over_a_real_job(finished_jobs):
     last_stage = list(final["result"]["metrics"]["iterations"])[-1]
     assert final["progress"]["stage"] == last_stage and final["progress"]["fraction"] == 1.0
     assert final["progress"]["iteration"] == final["result"]["metrics"]["iterations"][last_stage]
+    # writing the outputs moves the bar on (stages outputs / animation / dicom / saving), not sitting at 92 %
+    after = [p for p in running if p["stage"] in ("outputs", "animation", "dicom", "saving")]
+    assert {p["stage"] for p in after} >= {"outputs"}, stages
+    assert max(p["fraction"] for p in after) > 0.95, after
+    assert len({round(p["fraction"], 3) for p in after}) >= 3, after
 
 
 @needs_engine
@@ -82,9 +87,13 @@ def test_links_lead_only_to_what_exists(ux_server, finished_jobs):
     assert "animation" in animated["links"] and "animation" not in quick["links"]
     with ux_server.client() as c:
         for job in (animated, quick):
-            assert {"result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot"} <= set(job["links"])
+            assert {"result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot", "dicom_reg",
+                    "dicom_overlay_ap", "dicom_overlay_lat", "track"} <= set(job["links"]), job["links"]
+            assert job["links"]["track"] == f"/v1/registrations/{job['id']}/track"
             for name, link in job["links"].items():
                 assert link is not None
+                if name == "track":  # a POST (tests/service/test_service_track.py)
+                    continue
                 r = c.get(link)
                 assert r.status_code == 200, (name, link, r.text[:200])
         gif = c.get(animated["links"]["animation"]).content
