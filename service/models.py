@@ -9,10 +9,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .engine_adapter import engine
 from .problems import ProblemDetails
+from .schemas import Verdict
 from .store import JobRecord
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
-Verdict = Literal["ok", "check", "failed"]
 STATUS_TEXT = ("The job's state. `succeeded` means the job ran to the end and has a result; whether to trust the pose "
                "is the `verdict` (ok / check / failed), never the status.")
 VERDICT_TEXT = ("= result.metrics.confidence.verdict: ok (use the pose), check (look at the overlays first), failed "

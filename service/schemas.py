@@ -17,6 +17,7 @@ documented, unknown ones pass.
 
 from __future__ import annotations
 
+from enum import Enum
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -97,8 +98,12 @@ class GroundTruthErrors(BaseModel):
     initial_mtre_mm: float | None = Field(None, description="mTRE of the initial pose, mm.")
 
 
-Verdict = Literal["ok", "check", "failed"]
-"""Whether to trust the pose: ``ok`` use it, ``check`` look at the overlays first, ``failed`` do not use it."""
+class Verdict(str, Enum):
+    """Whether to trust the pose: `ok` use it, `check` look at the overlays first, `failed` do not use it."""
+
+    ok = "ok"
+    check = "check"
+    failed = "failed"
 
 
 class RunnerUp(BaseModel):

@@ -107,12 +107,13 @@ def _schema(doc: dict, name: str) -> dict:
     return doc["components"]["schemas"][name]
 
 
-def _enum(prop: dict) -> list:
+def _enum(doc: dict, prop: dict) -> list:
+    """The enum of a property (through a $ref to a component, and an optional null)."""
     for option in prop.get("anyOf", [prop]):
+        if "$ref" in option:
+            option = _schema(doc, option["$ref"].rsplit("/", 1)[1])
         if "enum" in option:
             return option["enum"]
-        if "$ref" in option:
-            return []
     return []
 
 
@@ -124,7 +125,7 @@ def test_openapi_types_the_whole_result(contract_server):
     for name, model in (("confidence", "Confidence"), ("initialization", "Initialization"), ("motion", "Motion")):
         assert {"$ref": f"#/components/schemas/{model}"} in metrics[name]["anyOf"], name
     confidence = _schema(doc, "Confidence")
-    assert confidence["properties"]["verdict"]["enum"] == ["ok", "check", "failed"]
+    assert _enum(doc, confidence["properties"]["verdict"]) == ["ok", "check", "failed"]
     assert "verdict" in confidence["required"]
     assert confidence["properties"]["reasons"] == {**confidence["properties"]["reasons"], "type": "array",
                                                    "items": {"type": "string"}}
@@ -133,21 +134,21 @@ def test_openapi_types_the_whole_result(contract_server):
     assert {"outside_fraction", "border_shift_px", "runner_up", "stopped_on_tolerance"} <= set(signals)
     for open_model in ("Confidence", "ConfidenceSignals", "ResultMetrics", "RegistrationResult", "DicomResult"):
         assert _schema(doc, open_model).get("additionalProperties") is True, open_model  # the engine may add fields
-    assert _schema(doc, "Initialization")["properties"]["method"]["enum"] == ["given", "search"]
+    assert _enum(doc, _schema(doc, "Initialization")["properties"]["method"]) == ["given", "search"]
     assert {"rotation_deg", "translation_mm"} <= set(_schema(doc, "Motion")["required"])
     result = _schema(doc, "RegistrationResult")["properties"]
-    assert _enum(result["verdict"]) == ["ok", "check", "failed"]
+    assert _enum(doc, result["verdict"]) == ["ok", "check", "failed"]
     assert {"$ref": "#/components/schemas/DicomResult"} in result["dicom"]["anyOf"]
     assert "sop_instance_uid" in _schema(doc, "DicomInstance")["required"]
     for model in ("JobSummary", "JobStatus"):
         props = _schema(doc, model)["properties"]
-        assert _enum(props["verdict"]) == ["ok", "check", "failed"], model
+        assert props["verdict"]["anyOf"][0] == {"$ref": "#/components/schemas/Verdict"}, model  # one enum type
         assert "succeeded" in props["status"]["description"] and "verdict" in props["status"]["description"]
     assert "`succeeded` means the job ran" in doc["info"]["description"]
     links = _schema(doc, "JobLinks")["properties"]
     assert {"dicom_reg", "dicom_overlay_ap", "dicom_overlay_lat", "dicom_loss", "track", "previous"} <= set(links)
     callback = _schema(doc, "CallbackState")["properties"]
-    assert callback["state"]["enum"] == ["pending", "delivering", "delivered", "failed"]
+    assert _enum(doc, callback["state"]) == ["pending", "delivering", "delivered", "failed"]
     # both request bodies of the submission, the JSON one as a named model a generator can use
     body = doc["paths"]["/v1/registrations"]["post"]["requestBody"]["content"]
     assert body["application/json"]["schema"] == {"$ref": "#/components/schemas/DicomwebRegistrationRequest"}

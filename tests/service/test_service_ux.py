@@ -219,7 +219,7 @@ def test_real_responses_match_the_published_schema(ux_server, example_case, fini
 
 
 @needs_engine
-def test_generated_client_talks_to_the_server(ux_server, finished_jobs, tmp_path):
+def test_generated_client_talks_to_the_server(ux_server, finished_jobs, example_case, tmp_path):
     generator = shutil.which("openapi-python-client", path=str(Path(sys.executable).parent)) or shutil.which(
         "openapi-python-client")
     if generator is None:
@@ -253,6 +253,24 @@ def test_generated_client_talks_to_the_server(ux_server, finished_jobs, tmp_path
         assert isinstance(page, models.JobList) and quick["id"] in [item.id for item in page.items]
         missing = get_job.sync_detailed(client=client, job_id="nope")
         assert missing.status_code == 404 and isinstance(missing.parsed, models.ProblemDetails)
+        # the verdict through typed fields: a job with AP and LAT swapped runs (succeeded) but is not to be trusted
+        assert status.result.verdict in list(models.Verdict) and status.verdict == status.result.verdict
+        assert isinstance(status.result.metrics.confidence, models.Confidence)
+        with ux_server.client() as c:
+            swapped = submit(c, example_case, options=QUICK, names=("m.obj", "lat.png", "ap.png"),
+                             files_override={"ap": example_case.lat_png, "lat": example_case.ap_png}).json()
+        wait_for_typed = time.monotonic() + 180
+        while (job := get_job.sync(client=client, job_id=swapped["id"])).status.value in ("queued", "running"):
+            assert time.monotonic() < wait_for_typed, "the swapped job did not finish"
+            time.sleep(0.3)
+        assert job.status == models.JobStatusStatus.SUCCEEDED  # it ran ...
+        assert job.verdict == models.Verdict.FAILED and job.result.verdict == models.Verdict.FAILED  # ... wrongly
+        confidence = job.result.metrics.confidence
+        assert confidence.verdict == models.Verdict.FAILED
+        assert confidence.reasons and all(isinstance(reason, str) for reason in confidence.reasons)
+        assert max(confidence.signals.dice.additional_properties.values()) < 0.5
+        summary = next(i for i in list_jobs.sync(client=client, limit=100).items if i.id == swapped["id"])
+        assert summary.verdict == models.Verdict.FAILED and summary.reasons == confidence.reasons
     finally:
         sys.path.remove(str(tmp_path))
         for name in [m for m in sys.modules if m == "dsareg_client" or m.startswith("dsareg_client.")]:
