@@ -378,3 +378,31 @@ def test_submit_require_ok_exits_non_zero_on_a_swapped_pair(contract_server, cas
     assert "below --require ok" in done.stderr
     check = _dsareg_submit(contract_server, case_dir, "--require", "check", swapped=False)
     assert check.returncode == 0, (check.stdout, check.stderr[-2000:])
+
+
+# ---- the Python client (docs/api/python-client.md) ------------------------------------------------
+
+
+@needs_engine
+def test_python_client_submit_wait_verdict_overlays_dicom_track_cancel(contract_server, receivers, example_case,
+                                                                        tmp_path):
+    from service.client import RegistrationClient
+
+    up, _ = receivers
+    with RegistrationClient(contract_server.url) as client:
+        job = client.submit(mesh=example_case.mesh_obj, ap=example_case.ap_png, lat=example_case.lat_png,
+                            geometry=example_case.geometry, options={"starts": 1, "max_iterations": 20},
+                            callback_url=up.url("/hooks/client"))
+        final = client.wait(job["id"], timeout=180)
+        assert final["status"] == "succeeded" and final["verdict"] in ("ok", "check")
+        assert final["callback"]["url"] == up.url("/hooks/client")
+        overlays = client.download_overlays(job["id"], tmp_path)
+        assert [p.name for p in overlays] == ["overlay_ap.png", "overlay_lat.png"]
+        reg = client.download_dicom(job["id"], "reg.dcm")
+        assert reg[128:132] == b"DICM"
+        tracked = client.track(job["id"], ap=example_case.ap_png, lat=example_case.lat_png,
+                               options={"max_iterations": 10})
+        assert tracked["links"]["previous"] == f"/v1/registrations/{job['id']}"
+        canceled = client.cancel(tracked["id"])
+        assert canceled["status"] in ("canceled", "running")
+        assert client.wait(tracked["id"], timeout=120)["status"] in ("canceled", "succeeded")
