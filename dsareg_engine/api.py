@@ -41,16 +41,16 @@ from .errors import DsaregInputError
 
 if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
     from .cli import run_parsed
-    from .commands.errors import CommandFailed, geometry_argument, input_file, json_argument, options_help
+    from .commands.failures import CommandFailed, geometry_argument, input_file, json_argument, options_help
     from .commands.progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
-    from .geometry_file import PRESETS
-    from .geometry_spec import GeometrySpec, is_canonical_geometry, parse_geometry
+    from .geometry.file import PRESETS
+    from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
     from .io.limits import DEFAULT_LIMITS, InputLimits
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
-    from .pose import validate_rigid
-    from .pose_file import load_pose
+    from .geometry.pose import validate_rigid
+    from .geometry.pose_file import load_pose
     from .registration.options import RegistrationOptions, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
     from .warmup import warm_up_job
@@ -58,11 +58,11 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
     "parse_options": "dsareg_engine.registration.options",
-    "validate_rigid": "dsareg_engine.pose",
-    "PRESETS": "dsareg_engine.geometry_file",
-    "GeometrySpec": "dsareg_engine.geometry_spec",
-    "parse_geometry": "dsareg_engine.geometry_spec",
-    "is_canonical_geometry": "dsareg_engine.geometry_spec",
+    "validate_rigid": "dsareg_engine.geometry.pose",
+    "PRESETS": "dsareg_engine.geometry.file",
+    "GeometrySpec": "dsareg_engine.geometry.spec",
+    "parse_geometry": "dsareg_engine.geometry.spec",
+    "is_canonical_geometry": "dsareg_engine.geometry.spec",
     "CaseFiles": "dsareg_engine.io.case",
     "load_case_files": "dsareg_engine.io.case",
     "InputLimits": "dsareg_engine.io.limits",
@@ -77,16 +77,16 @@ _LAZY = {
     "set_cpu_threads": "dsareg_engine.threads",
     "default_cpu_threads": "dsareg_engine.threads",
     "run_parsed": "dsareg_engine.cli",
-    "CommandFailed": "dsareg_engine.commands.errors",
-    "input_file": "dsareg_engine.commands.errors",
-    "options_help": "dsareg_engine.commands.errors",
-    "geometry_argument": "dsareg_engine.commands.errors",
-    "json_argument": "dsareg_engine.commands.errors",
+    "CommandFailed": "dsareg_engine.commands.failures",
+    "input_file": "dsareg_engine.commands.failures",
+    "options_help": "dsareg_engine.commands.failures",
+    "geometry_argument": "dsareg_engine.commands.failures",
+    "json_argument": "dsareg_engine.commands.failures",
     "ProgressPrinter": "dsareg_engine.commands.progress_lines",
     "verdict_meets": "dsareg_engine.commands.progress_lines",
     "REQUIRE_CHOICES": "dsareg_engine.commands.progress_lines",
     "VERDICT_NOT_MET_EXIT": "dsareg_engine.commands.progress_lines",
-    "load_pose": "dsareg_engine.pose_file",
+    "load_pose": "dsareg_engine.geometry.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
 }
 
@@ -171,7 +171,7 @@ def warm_up_parsers() -> None:
     import numpy as np
 
     from .io.mesh_io import read_mesh
-    from .io.segmentation import segment_vessels
+    from .vision.segmentation import segment_vessels
 
     image = np.zeros((48, 48), np.float32)
     image[20:28, 4:44] = 1.0
@@ -189,7 +189,7 @@ def warm_up_renderer() -> None:
 
     import dsareg_engine.pipeline  # noqa: F401
 
-    from .geometry import ViewGeometry
+    from .geometry.rig import ViewGeometry
     from .render import Camera, render_hard_silhouette, render_soft_silhouette
 
     view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,

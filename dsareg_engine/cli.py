@@ -2,7 +2,7 @@
 
 Sub-command modules expose ``add_parser(subparsers)``; the parser they register sets
 ``func`` to a callable ``(args) -> int``. Errors go through one path
-(:mod:`dsareg_engine.commands.errors`): one line on stderr, exit status 2 for usage and
+(:mod:`dsareg_engine.commands.failures`): one line on stderr, exit status 2 for usage and
 input errors, 1 when the work failed; no traceback reaches the user unless ``--debug``.
 """
 
@@ -15,7 +15,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-from .commands.errors import run_guarded
+from .commands.failures import run_guarded
 
 COMMAND_MODULES = (
     "dsareg_engine.commands.render",
@@ -27,7 +27,7 @@ COMMAND_MODULES = (
 
 COMMAND_GROUP = "dsareg.commands"
 """Entry-point group through which other packages contribute sub-commands: each entry point is a
-callable ``add_parser(subparsers)`` (the service's: ``service = "service.commands:add_parser"``)."""
+callable ``add_parser(subparsers)`` (the service's: ``service = "service.cli.subcommands:add_parser"``)."""
 
 
 def contributed_commands() -> list[tuple[str, str]]:
@@ -64,6 +64,12 @@ def _load(module_name: str, attribute: str = "add_parser"):
     return getattr(module, attribute)
 
 
+def _load_target(target: str):
+    """The callable an entry-point value ``"module:attribute"`` names, or None when the module is not installed."""
+    module_name, _, attribute = target.partition(":")
+    return _load(module_name.strip(), attribute.strip() or "add_parser")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dsareg", description="3D/2D vessel registration for biplane DSA. `dsareg COMMAND --help` describes "
@@ -72,9 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show Python tracebacks of errors (for bug reports)")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     adders = [_load(name) for name in COMMAND_MODULES]
-    for _, target in contributed_commands():
-        module_name, _, attribute = target.partition(":")
-        adders.append(_load(module_name.strip(), attribute.strip() or "add_parser"))
+    in_checkout = dict(source_tree_commands())
+    for name, target in contributed_commands():
+        add_parser = _load_target(target)
+        if add_parser is None and in_checkout.get(name, target) != target:
+            add_parser = _load_target(in_checkout[name])  # stale install metadata: the module moved in this checkout
+        adders.append(add_parser)
     for add_parser in adders:
         if add_parser is not None:
             _add_commands(add_parser, subparsers)

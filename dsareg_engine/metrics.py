@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import ViewGeometry
-from .pose import invert_rigid, rotation_error_deg
+from .geometry.rig import ViewGeometry
+from .geometry.pose import invert_rigid, rotation_error_deg
 
 
 def dice(mask_a: np.ndarray, mask_b: np.ndarray) -> float:

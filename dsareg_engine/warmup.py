@@ -24,8 +24,8 @@ def phantom_case_files(work_dir: Path, size_px: int = WARM_UP_SIZE_PX) -> dict[s
     import torch
     from PIL import Image
 
-    from .geometry_spec import load_rig
-    from .phantom import make_vessel_phantom
+    from .geometry.spec import load_rig
+    from .simulation.phantom import make_vessel_phantom
     from .render import Camera, render_hard_silhouette
 
     rig = load_rig("paper")
@@ -47,7 +47,7 @@ def phantom_case_files(work_dir: Path, size_px: int = WARM_UP_SIZE_PX) -> dict[s
 def warm_up_job(work_dir: Path) -> dict:
     """Load, register (``WARM_UP_ITERATIONS`` iterations), write every output and the DICOM results
     of a tiny phantom case in ``work_dir``, as a job does; returns the result dict."""
-    from .geometry_spec import parse_geometry
+    from .geometry.spec import parse_geometry
     from .io.case import CaseFiles
     from .pipeline import run_case
 

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import torch
 
-from dsareg_engine.geometry import Rig
-from dsareg_engine.geometry_file import save_rig
-from dsareg_engine.geometry_spec import load_rig
-from dsareg_engine.phantom import make_vessel_phantom
-from dsareg_engine.pose_file import save_pose
+from dsareg_engine.geometry.rig import Rig
+from dsareg_engine.geometry.file import save_rig
+from dsareg_engine.geometry.spec import load_rig
+from dsareg_engine.simulation.phantom import make_vessel_phantom
+from dsareg_engine.geometry.pose_file import save_pose
 from dsareg_engine.registration.parameterization import random_start_poses
 from dsareg_engine.render import Camera, render_hard_silhouette
 

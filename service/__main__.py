@@ -7,7 +7,7 @@ import sys
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .commands import add_parser
+    from .cli.subcommands import add_parser
     from .engine_adapter import engine
 
     parser = argparse.ArgumentParser(prog="python -m service")

@@ -7,20 +7,20 @@ per resource, the offline docs and the OpenAPI patches.
 
 from __future__ import annotations
 
-from typing import Any
 
 from fastapi import FastAPI
 
 from . import __version__
-from .api import artifacts, operations, registrations, tracking
+from .api.routes import artifacts, operations, registrations, tracking
 from .api.deps import ServiceContext
 from .api.handlers import install_handlers
 from .api.lifespan import make_lifespan
-from .api.metrics import make_metrics
+from .api.prometheus import make_metrics
 from .api.openapi import install_openapi, mount, operation_id
-from .docs_offline import install_docs
-from .executor import EmbeddedProcessExecutor, Executor, NoExecutor
-from .middleware import BodyLimitMiddleware, MetricsMiddleware
+from .api.docs_offline import install_docs
+from .jobs.executor import Executor
+from .jobs.factory import make_executor
+from .api.middleware import BodyLimitMiddleware, MetricsMiddleware
 from .problems import problem_responses
 from .settings import ServiceSettings
 
@@ -32,15 +32,6 @@ DESCRIPTION = (
     "the overlays first, `failed` do not use it (`result.verdict` = `result.metrics.confidence.verdict`, with "
     "`reasons` in plain words). Errors are `application/problem+json` (RFC 9457)."
 )
-
-
-def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
-    """The executor the settings ask for (the one place that knows every kind)."""
-    if settings.executor == "celery":
-        from .celery_executor import CeleryExecutor
-
-        return CeleryExecutor(settings, store)
-    return EmbeddedProcessExecutor(settings) if settings.workers > 0 else NoExecutor()
 
 
 def create_app(settings: ServiceSettings, *, executor: Executor | None = None, start_background: bool = True) -> FastAPI:

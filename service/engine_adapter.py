@@ -20,12 +20,12 @@ from typing import TYPE_CHECKING, Any
 
 from dsareg_engine import api as engine
 
-from .blobs import BlobStore
-from .limits import image_decoded_bytes, parse_json_part
+from .storage.blobs import BlobStore
+from .budgets import image_decoded_bytes, parse_json_part
 from .problems import Problem
 
 if TYPE_CHECKING:  # the job store (SQLAlchemy) is not needed to parse the CLI or call the engine
-    from .store import InputFile
+    from .storage.store import InputFile
 
 ROLES = ("mesh", "volume", "ap", "lat")
 

@@ -105,7 +105,7 @@ class ServiceSettings(BaseSettings):
         60.0, gt=0.0, description="A queued job not picked up this long is sent to the broker again (executor=celery).")
     task_max_retries: int = Field(5, ge=0, le=50, description="Retries of a Celery task on a transient store error.")
 
-    # DICOMweb (service/dicomweb.py): the only PACS a request may name, with their credentials
+    # DICOMweb (service/pacs/dicomweb.py): the only PACS a request may name, with their credentials
     dicomweb_servers: Annotated[list[Any], NoDecode] = Field(
         default_factory=list,
         description='DICOMweb servers jobs may read from / store to: JSON list of {"url", "username"?, "password"?, '
@@ -115,7 +115,7 @@ class ServiceSettings(BaseSettings):
                                                               "timeouts and 408/429/502/503/504.")
     dicomweb_retry_backoff_seconds: float = Field(0.5, ge=0.0, description="First retry delay (doubles each retry).")
 
-    # completion callbacks (service/callbacks.py, docs/api/callbacks.md)
+    # completion callbacks (service/jobs/callbacks.py, docs/api/callbacks.md)
     callback_allowed: Annotated[list[str], NoDecode] = Field(
         default_factory=list,
         description="URL prefixes a job's callback_url must start with (JSON list or comma-separated), e.g. "

@@ -2,11 +2,14 @@
 
 * ``dsareg_engine`` never imports ``service`` (the engine has no web code);
 * in ``service/`` only the boundary module ``service.engine_adapter`` imports the engine, and only
-  ``dsareg_engine.api`` (``service.bench`` is developer tooling that makes phantom cases);
+  ``dsareg_engine.api`` (``benchmarks`` is developer tooling that makes phantom cases);
 * nothing in the engine imports ``dsareg_engine.api`` (it is the top of the engine's graph);
-* neither package has an import cycle.
+* the service's folders are layers: ``service.storage`` imports nothing else of the service,
+  ``service.jobs`` never imports ``service.api``, and only ``service.app`` imports ``service.api``;
+* neither package has an import cycle, counting imports under ``if TYPE_CHECKING:`` too
+  (:func:`test_no_import_cycles_even_type_only`).
 
-Imports under ``if TYPE_CHECKING:`` never run and are not counted.
+The first rules count only imports that run: those under ``if TYPE_CHECKING:`` are skipped.
 """
 
 from __future__ import annotations
@@ -18,7 +21,6 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("dsareg_engine", "service")
 BOUNDARY = "service.engine_adapter"
 ENGINE_API = "dsareg_engine.api"
-DEV_TOOLING = ("service.bench",)
 
 
 def _modules() -> dict[str, Path]:
@@ -38,22 +40,23 @@ def _is_type_checking(node: ast.If) -> bool:
         isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
-def _import_nodes(tree: ast.AST):
+def _import_nodes(tree: ast.AST, type_only: bool = False):
     for node in ast.iter_child_nodes(tree):
-        if isinstance(node, ast.If) and _is_type_checking(node):
+        if isinstance(node, ast.If) and _is_type_checking(node) and not type_only:
             for child in node.orelse:
-                yield from _import_nodes(ast.Module(body=[child], type_ignores=[]))
+                yield from _import_nodes(ast.Module(body=[child], type_ignores=[]), type_only)
             continue
         if isinstance(node, (ast.Import, ast.ImportFrom)):
             yield node
-        yield from _import_nodes(node)
+        yield from _import_nodes(node, type_only)
 
 
-def _imports(module: str, path: Path, modules: dict[str, Path]) -> set[str]:
-    """Every module of the two packages that ``module`` imports (anywhere in its code)."""
+def _imports(module: str, path: Path, modules: dict[str, Path], type_only: bool = False) -> set[str]:
+    """Every module of the two packages that ``module`` imports (anywhere in its code; with ``type_only``
+    also under ``if TYPE_CHECKING:``)."""
     is_package = path.name == "__init__.py"
     targets: set[str] = set()
-    for node in _import_nodes(ast.parse(path.read_text(), str(path))):
+    for node in _import_nodes(ast.parse(path.read_text(), str(path)), type_only):
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
         else:
@@ -73,9 +76,9 @@ def _imports(module: str, path: Path, modules: dict[str, Path]) -> set[str]:
     return targets
 
 
-def _graph() -> dict[str, set[str]]:
+def _graph(type_only: bool = False) -> dict[str, set[str]]:
     modules = _modules()
-    return {name: _imports(name, path, modules) for name, path in modules.items()}
+    return {name: _imports(name, path, modules, type_only) for name, path in modules.items()}
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -115,8 +118,8 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_is_read():
     graph = _graph()
-    assert {"dsareg_engine.api", "dsareg_engine.pipeline", "service.app", "service.api.registrations"} <= set(graph)
-    assert "service.api.deps" in graph["service.api.registrations"]
+    assert {"dsareg_engine.api", "dsareg_engine.pipeline", "service.app", "service.api.routes.registrations"} <= set(graph)
+    assert "service.api.deps" in graph["service.api.routes.registrations"]
     assert ENGINE_API in graph[BOUNDARY]
 
 
@@ -129,7 +132,7 @@ def test_engine_never_imports_service():
 def test_only_the_boundary_imports_the_engine():
     bad = {}
     for module, targets in _graph().items():
-        if module.split(".")[0] != "service" or module.startswith(DEV_TOOLING):
+        if module.split(".")[0] != "service":
             continue
         engine = sorted(t for t in targets if t.split(".")[0] == "dsareg_engine")
         allowed = [ENGINE_API] if module == BOUNDARY else []
@@ -144,6 +147,43 @@ def test_nothing_in_the_engine_imports_its_api():
 
 def test_no_import_cycles():
     assert _cycles(_graph()) == []
+
+
+def test_no_import_cycles_even_type_only():
+    assert _cycles(_graph(type_only=True)) == []
+
+
+def _service_imports(prefix: str) -> dict[str, list[str]]:
+    """``service`` modules under ``prefix`` → the service modules they import (type-only imports included)."""
+    return {m: sorted(t for t in ts if t.split(".")[0] == "service")
+            for m, ts in _graph(type_only=True).items() if m == prefix or m.startswith(prefix + ".")}
+
+
+def _inside(module: str, prefix: str) -> bool:
+    return module == prefix or module.startswith(prefix + ".")
+
+
+def test_storage_imports_nothing_else_of_the_service():
+    bad = {m: [t for t in ts if not _inside(t, "service.storage") and t != "service"]
+           for m, ts in _service_imports("service.storage").items()}
+    assert not {m: ts for m, ts in bad.items() if ts}
+
+
+def test_jobs_never_import_the_api():
+    bad = {m: [t for t in ts if _inside(t, "service.api")] for m, ts in _service_imports("service.jobs").items()}
+    assert not {m: ts for m, ts in bad.items() if ts}
+
+
+def test_only_the_app_imports_the_api():
+    bad = {m: [t for t in ts if _inside(t, "service.api")] for m, ts in _service_imports("service").items()
+           if not _inside(m, "service.api") and m != "service.app"}
+    assert not {m: ts for m, ts in bad.items() if ts}
+
+
+def test_folder_rules_see_a_violation():
+    graph = _graph(type_only=True)
+    assert "service.jobs.sweeper" in graph["service.api.deps"]  # a type-only import is read
+    assert "service.storage.store" in graph["service.jobs.worker"]
 
 
 def test_cycle_finder_finds_cycles():

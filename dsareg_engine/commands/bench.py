@@ -9,14 +9,14 @@ import time
 import numpy as np
 import torch
 
-from ..geometry import Rig
-from ..geometry_spec import load_rig
+from ..geometry.rig import Rig
+from ..geometry.spec import load_rig
 from ..metrics import mean_distance_mm
-from ..pose import so3_log
+from ..geometry.pose import so3_log
 from ..registration import CONFIGURATIONS, RegistrationOptions, register
 from ..registration.parameterization import PoseIncrement, random_start_poses
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
-from ..segmentation_errors import CORRUPTIONS, corrupt
+from ..simulation.segmentation_errors import CORRUPTIONS, corrupt
 from .render import load_mesh_argument
 
 
@@ -314,14 +314,14 @@ GREY_VARIANTS = {
     "8bit": ({}, 8),
     "noisefree": ({"noise_sigma": 0.0}, 16),
 }
-"""Grey-level image formations (:class:`~dsareg_engine.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
+"""Grey-level image formations (:class:`~dsareg_engine.simulation.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
 
 
 def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", truth: np.ndarray | None = None) -> dict:
     """Targets segmented (``method``; ``dsa``: the coverage registration fits, ``dsa_binary``: its former
     binary mask) from DSA images synthesized from the model at ``truth`` (default identity)."""
-    from ..io.segmentation import segment_vessels, vessel_coverage
-    from ..synthetic_dsa import DsaSettings, synthesize_dsa
+    from ..vision.segmentation import segment_vessels, vessel_coverage
+    from ..simulation.synthetic_dsa import DsaSettings, synthesize_dsa
 
     changes, bits = GREY_VARIANTS[variant]
     images = synthesize_dsa(mesh, rig, np.eye(4) if truth is None else truth, seed=seed, settings=DsaSettings(**changes))
@@ -336,7 +336,7 @@ def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", tru
 
 def bench_autoinit(args: argparse.Namespace) -> int:
     """No initial pose: uniform random rotations, positions anywhere the mesh stays in both views."""
-    from ..clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+    from ..simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 
     mesh = load_mesh_argument(args.mesh)
     rig = clinical_biplane_rig(args.size)

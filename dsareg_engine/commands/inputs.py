@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..io.segmentation import SEGMENTATION_METHODS
+from ..vision.segmentation import SEGMENTATION_METHODS
 
 
 def add_parser(subparsers) -> None:
@@ -79,7 +79,7 @@ def _frame(value: str | None):
 
 def describe(path: Path) -> list[str]:
     """Lines describing one input file (what ``dsareg inspect`` prints)."""
-    from ..geometry_spec import parse_geometry
+    from ..geometry.spec import parse_geometry
     from ..io import rad
     from ..io.image_io import detect_image_format, read_image
     from ..io.mesh_io import detect_mesh_format, read_mesh_detailed
@@ -173,7 +173,7 @@ def _segment(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from ..io.image_io import read_image
-    from ..io.segmentation import segment_vessels
+    from ..vision.segmentation import segment_vessels
 
     path = Path(args.image)
     image = read_image(_file_parts(path, "image"), path.name, frame=_frame(args.frame), field_name="image")

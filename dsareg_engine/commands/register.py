@@ -10,10 +10,10 @@ from pathlib import Path
 from ..errors import DsaregInputError
 from ..io.case import load_case
 from ..pipeline import write_outputs
-from ..pose_file import load_pose
+from ..geometry.pose_file import load_pose
 from ..registration import CONFIGURATIONS, register
 from ..registration.options import parse_options
-from .errors import geometry_argument, input_file, json_argument, options_help
+from .failures import geometry_argument, input_file, json_argument, options_help
 from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
 
 

@@ -10,9 +10,9 @@ import torch
 
 from ..errors import DsaregInputError
 from ..overlay import write_png
-from ..pose_file import load_pose
+from ..geometry.pose_file import load_pose
 from ..render import Camera, render_hard_silhouette
-from .errors import geometry_argument, input_file
+from .failures import geometry_argument, input_file
 
 
 def add_parser(subparsers) -> None:
@@ -33,7 +33,7 @@ def add_parser(subparsers) -> None:
 def load_mesh_argument(path: str | None):
     """The mesh named on the command line, or the built-in phantom."""
     if path is None:
-        from ..phantom import make_vessel_phantom
+        from ..simulation.phantom import make_vessel_phantom
 
         return make_vessel_phantom()
     from ..io.mesh_io import read_mesh

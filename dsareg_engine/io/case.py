@@ -7,14 +7,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..geometry import VIEW_NAMES, Rig, ViewGeometry
-from ..geometry_spec import GeometrySpec
+from ..geometry.rig import VIEW_NAMES, Rig, ViewGeometry
+from ..geometry.spec import GeometrySpec
 from ..mesh import TriangleMesh
-from ..vessel_target import binary_mask
+from ..vision.vessel_target import binary_mask
 from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
-from .segmentation import SEGMENTATION_METHODS, vessel_coverage
+from ..vision.segmentation import SEGMENTATION_METHODS, vessel_coverage
 from .volume_io import read_volume, volume_to_mesh
 
 ASPECT_TOLERANCE = 0.01
@@ -109,7 +109,7 @@ def load_case(
         mesh / volume: exactly one: a surface mesh file's bytes, or a volume (one file,
             a DICOM series as a list of files, or a ``.rad`` + ``.raw`` pair as a list).
         ap, lat: each image file's bytes, or ``[.rad bytes, .raw bytes]``.
-        geometry: the parsed geometry (:func:`dsareg_engine.geometry_spec.parse_geometry`, or
+        geometry: the parsed geometry (:func:`dsareg_engine.geometry.spec.parse_geometry`, or
             :meth:`GeometrySpec.from_json` for a stored one), or ``None`` to take it from the
             images (DICOM XA tags or ``.rad`` headers).
         segmentation: ``"auto"``, ``"otsu"``, ``"vesselness"`` or ``"mask"``.

@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..geometry import Rig, ViewGeometry, default_principal_point
-from ..pose import make_transform
+from ..geometry.rig import Rig, ViewGeometry, default_principal_point
+from ..geometry.pose import make_transform
 
 GEOMETRY_TAGS = (
     "PositionerPrimaryAngle",

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 from . import rad as rad_format
 from .limits import DEFAULT_LIMITS, InputLimits
 

@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..geometry import ViewGeometry, view_from_detector_pose
-from ..pose import validate_rigid
+from ..geometry.rig import ViewGeometry, view_from_detector_pose
+from ..geometry.pose import validate_rigid
 
 _DTYPES = {
     "float": "<f4",

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 from ..metrics import mean_distance_mm
 
 

@@ -27,7 +27,7 @@ import cv2
 import numba
 import numpy as np
 
-from ..geometry import Rig, ViewGeometry
+from ..geometry.rig import Rig, ViewGeometry
 from ..mesh import TriangleMesh
 from ..render.serial_kernels import KernelPair
 from . import search_kernels

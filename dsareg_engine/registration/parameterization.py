@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..pose import so3_exp, so3_log
+from ..geometry.pose import so3_exp, so3_log
 
 
 class PoseIncrement:

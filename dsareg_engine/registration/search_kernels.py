@@ -3,7 +3,7 @@
 Each candidate ``b`` places the centred points ``p`` (``(N, 3)``) at ``M_b p + o_b`` in a
 view frame (``M_b`` = world_to_view rotation · candidate rotation, ``o_b`` its position in
 the view frame) and projects them with ``u = u0 + fx x / z``, ``v = v0 + fy y / z`` (the
-convention of :mod:`dsareg_engine.geometry`). Candidates are split over threads.
+convention of :mod:`dsareg_engine.geometry.rig`). Candidates are split over threads.
 """
 
 from __future__ import annotations

@@ -20,13 +20,13 @@ import numpy as np
 import torch
 
 from ..errors import DsaregInputError
-from ..geometry import Rig
+from ..geometry.rig import Rig
 from ..mesh import TriangleMesh, decimate
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
-from ..pose import validate_rigid
+from ..geometry.pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from ..render.jacobian import jacobian_available
-from ..vessel_target import binary_mask, is_coverage
+from ..vision.vessel_target import binary_mask, is_coverage
 from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
@@ -376,7 +376,7 @@ def register(
         mesh: vessel surface, mesh-frame mm.
         masks: ``{"ap": (H, W), "lat": (H, W)}``, each the size of its view: bool vessel masks, or
             float vessel coverage in [0, 1] per pixel (sub-pixel borders, e.g. from grey-level DSA,
-            :func:`~dsareg_engine.io.segmentation.vessel_coverage`), fitted as they are.
+            :func:`~dsareg_engine.vision.segmentation.vessel_coverage`), fitted as they are.
         rig: view geometry and the initial pose.
         options: see :class:`RegistrationOptions`.
         progress: called with ``{"stage", "iteration", "loss", "fraction"}`` every few iterations.

@@ -11,9 +11,9 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 from ..render import Camera
-from ..vessel_target import binary_mask, is_coverage
+from ..vision.vessel_target import binary_mask, is_coverage
 
 
 @dataclass

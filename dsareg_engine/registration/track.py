@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pose import so3_log
+from ..geometry.pose import so3_log
 from .schedule import ADAM_SIGMA_PX, FINAL_SIGMA_PX, Stage
 
 TRACK_SIDE_PX = 200

@@ -6,12 +6,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ..geometry import ViewGeometry
+from ..geometry.rig import ViewGeometry
 
 
 @dataclass(frozen=True)
 class Camera:
-    """Pixel intrinsics of one view (see :mod:`dsareg_engine.geometry` for frames).
+    """Pixel intrinsics of one view (see :mod:`dsareg_engine.geometry.rig` for frames).
 
     Attributes:
         focal_px: ``(fx, fy) = (sid/du, sid/dv)``.

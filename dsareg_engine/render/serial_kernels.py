@@ -10,7 +10,7 @@ with the twins. A service worker runs with a 1-thread budget (``THREADS_PER_WORK
 
 A twin is the kernel's own Python function compiled without ``parallel=True``: ``prange`` runs
 as ``range`` on the calling thread, visiting the same work in the same order as the parallel
-kernel's single thread (``tests/render/test_serial_kernels.py`` holds their outputs equal). It
+kernel's single thread (``tests/unit/render/test_serial_kernels.py`` holds their outputs equal). It
 is cached on disk under its own name (numba's cache key ignores ``parallel``, so a twin of the
 same function object would load the parallel build, or the other way round).
 """

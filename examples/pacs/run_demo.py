@@ -34,8 +34,8 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from dsareg_engine.io.dicom_out import read_registration_matrix
-from dsareg_engine.phantom_study import make_biplane_study
-from service.bench.servers import OrthancServer, free_port
+from dsareg_engine.simulation.phantom_study import make_biplane_study
+from tests.support.servers import OrthancServer, free_port
 
 OPTIONS = {"starts": 1}
 

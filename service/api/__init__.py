@@ -1,10 +1,12 @@
-"""The HTTP API, one module per concern.
+"""The HTTP API, one module per concern; only :mod:`service.app` imports it.
 
-* ``deps``: the typed dependencies every route uses (``Ctx``, ``Principal``, ``OwnedJob``).
-* ``registrations`` / ``tracking`` / ``artifacts`` / ``operations``: one ``APIRouter`` per resource.
-* ``submission`` (multipart) and ``dicom_reference`` (JSON, DICOMweb): parsing a submission into a job.
-* ``lifespan`` (store, validators, executor, sweeper), ``metrics`` (Prometheus), ``handlers``
-  (problem+json error handlers), ``openapi`` (the document's patches).
+* ``routes/``: one ``APIRouter`` per resource (registrations, tracking, artifacts, operations).
+* ``intake/``: a submission into a job — ``submission`` (multipart), ``dicom_reference`` (JSON, DICOMweb),
+  ``validation`` (the validator processes).
+* ``schemas/``: what the API returns and documents (``jobs``, ``payloads``).
+* ``deps`` (typed dependencies ``Ctx``, ``Principal``, ``OwnedJob``), ``lifespan`` (store, validators, executor,
+  sweeper), ``prometheus`` (metrics), ``middleware``, ``handlers`` (problem+json), ``httpfaults``, ``openapi``
+  (the document's patches), ``docs_offline`` (/docs and /redoc without a CDN).
 
 :func:`service.app.create_app` only wires these together.
 """

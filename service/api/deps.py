@@ -16,16 +16,16 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CollectorRegistry, Counter
 
-from ..blobs import BlobStore
-from ..executor import Executor
+from ..storage.blobs import BlobStore
+from ..jobs.executor import Executor
 from ..problems import Problem
 from ..settings import ServiceSettings
-from ..store import JobRecord, JobStore
-from ..validation import ValidatorPool
+from ..storage.store import JobRecord, JobStore
+from .intake.validation import ValidatorPool
 
 if TYPE_CHECKING:
-    from ..callbacks import CallbackDeliverer
-    from .lifespan import Sweeper
+    from ..jobs.callbacks import CallbackDeliverer
+    from ..jobs.sweeper import Sweeper
 
 ANONYMOUS = "anonymous"
 

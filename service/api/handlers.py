@@ -11,9 +11,9 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
-from ..httpfaults import allowed_methods
+from .httpfaults import allowed_methods
 from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
-from ..store import store_outage_errors
+from ..storage.store import store_outage_errors
 
 log = logging.getLogger("dsareg.service")
 

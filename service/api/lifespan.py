@@ -6,84 +6,23 @@ import asyncio
 import contextlib
 import json
 import logging
-import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
 from fastapi import FastAPI
 
-from ..callbacks import CallbackDeliverer
-from ..dbblobs import make_blob_store
-from ..executor import Executor
+from ..jobs.callbacks import CallbackDeliverer
+from ..storage.dbblobs import make_blob_store
+from ..jobs.executor import Executor
 from ..settings import ServiceSettings
-from ..store import SqlJobStore, store_outage_errors
-from ..validation import ValidatorPool
-from ..models import summary_body
+from ..jobs.sweeper import Sweeper
+from ..storage.store import SqlJobStore
+from .intake.validation import ValidatorPool
+from .schemas.jobs import summary_body
 from .deps import ServiceContext
-from .metrics import ServiceMetrics
+from .prometheus import ServiceMetrics
 
 log = logging.getLogger("dsareg.service")
-
-
-class Sweeper:
-    """Recovers expired leases (often) and enforces retention (every sweep interval).
-
-    After the job store was unreachable, no lease is judged expired for one lease period: while
-    the database was down no worker could renew its lease, so an expired lease is no sign of a
-    dead worker, and requeuing would throw away a registration its worker is about to save.
-    """
-
-    def __init__(self, ctx: ServiceContext):
-        self.ctx = ctx
-        self._halt = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="sweeper", daemon=True)
-        self.last_retention = 0.0
-        self.recover_after = 0.0  # monotonic time before which leases are not recovered (store outage grace)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._halt.set()
-        self._thread.join(5)
-
-    def _run(self) -> None:
-        recovery_every = max(0.5, min(5.0, self.ctx.settings.lease_seconds / 3.0))
-        while not self._halt.wait(recovery_every):
-            try:
-                self.sweep_once(recover=time.monotonic() >= self.recover_after)
-            except store_outage_errors() as exc:
-                log.warning("sweep skipped: job store unavailable (%s)", type(exc).__name__)
-                self.recover_after = time.monotonic() + self.ctx.settings.lease_seconds
-            except Exception:
-                log.exception("sweep failed")
-
-    def sweep_once(self, *, force_retention: bool = False, recover: bool = True) -> None:
-        store = self.ctx.store
-        requeued, failed = store.recover_expired() if recover else ([], [])
-        for job_id in requeued:
-            log.warning("job %s: lease expired, requeued", job_id)
-        for job_id in failed:
-            log.warning("job %s: lease expired, no attempts left (or canceled)", job_id)
-        self.ctx.executor.requeued(requeued)
-        self.ctx.executor.maintain(store)
-        now = time.time()
-        if force_retention or now - self.last_retention >= self.ctx.settings.sweep_interval_seconds:
-            self.last_retention = now
-            self._retention(now)
-
-    def _retention(self, now: float) -> None:
-        store, blobs, settings = self.ctx.store, self.ctx.blobs, self.ctx.settings
-        expired = store.expired_finished(now - settings.retention_hours * 3600.0)
-        for job_id in expired:
-            orphans = store.delete(job_id)
-            blobs.delete(orphans, min_age_seconds=0.0)  # submit re-stores a blob it still needs
-            blobs.remove_job_work(job_id)
-        if expired:
-            log.info("retention: removed %d jobs", len(expired))
-        blobs.collect_garbage(store.referenced_blobs(), min_age_seconds=3600.0)
-        blobs.clean_tmp()
 
 
 def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: Executor | None,
@@ -107,7 +46,7 @@ def callback_body(job: Any) -> bytes:
 
 
 def start_callbacks(ctx: ServiceContext) -> CallbackDeliverer:
-    """The completion-callback deliverer of this API process (service/callbacks.py), in every topology."""
+    """The completion-callback deliverer of this API process (service/jobs/callbacks.py), in every topology."""
     from .. import __version__
 
     deliverer = CallbackDeliverer(ctx.store, ctx.settings, callback_body, user_agent=f"dsareg/{__version__}")

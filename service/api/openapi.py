@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter, FastAPI
 
 from ..problems import ProblemDetails, problem_responses
-from ..schemas import document as document_payloads
+from .schemas.payloads import document as document_payloads
 from ..settings import ServiceSettings
 
 

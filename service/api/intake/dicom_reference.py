@@ -1,0 +1,93 @@
+"""API side of the DICOM integration: submission by DICOMweb reference.
+
+* ``POST /v1/registrations`` with ``Content-Type: application/json`` and a body
+  ``{"source": {"dicomweb": {...}}, "options": {...}, "store_results": true}``
+  (see :class:`service.pacs.dicomweb.DicomwebRegistrationRequest`). The reference is checked
+  (UID syntax, the URL is one of ``settings.dicomweb_servers``, options) and stored as the
+  job's only input; the worker fetches the images (``service/pacs/dicom_jobs.py``).
+  The DICOM results are served by :mod:`service.api.routes.artifacts`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+from fastapi import Request
+from fastapi.responses import Response
+from pydantic import ValidationError
+
+from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
+from ...budgets import parse_json_part
+from ...problems import Problem
+from ...storage.store import InputFile
+from ..deps import ServiceContext
+from .submission import (
+    accepted,
+    check_queue,
+    checked_callback_url,
+    create_job,
+    find_replay,
+    fingerprint,
+    new_job,
+    parse_options_json,
+)
+
+log = logging.getLogger("dsareg.service")
+
+MAX_REFERENCE_BYTES = 64 * 1024
+
+
+def _field(loc) -> str:
+    return ".".join(str(part) for part in loc)
+
+
+async def parse_reference(request: Request) -> DicomwebRegistrationRequest:
+    body = await request.body()
+    if len(body) > MAX_REFERENCE_BYTES:
+        raise Problem(413, f"a reference request is at most {MAX_REFERENCE_BYTES} bytes")
+    data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
+    if not isinstance(data, dict) or "source" not in data:
+        raise Problem(422, "a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} is required "
+                           "(or send multipart/form-data with the files mesh (or volume), ap and lat)", field="source",
+                      accepted="application/json with source.dicomweb, or multipart/form-data")
+    try:
+        return DicomwebRegistrationRequest.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise Problem(422, f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
+                      accepted='{"source": {"dicomweb": {"url", "study_uid", "ap": {"series_uid"}, '
+                               '"lat": {"series_uid"}, "volume": {"series_uid"}}}, "options": {}, "store_results": true}'
+                      ) from None
+
+
+async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, key: str | None) -> Response:
+    reference = await parse_reference(request)
+    callback_url = checked_callback_url(ctx, reference.callback_url)
+    server = resolve_server(ctx.settings, reference.source.dicomweb.url)
+    if server is None:
+        raise Problem(422, "this DICOMweb server is not configured on this registration server "
+                           "(the administrator lists allowed servers in DSAREG_DICOMWEB_SERVERS)",
+                      field="source.dicomweb.url")
+    options = parse_options_json(json.dumps(reference.options) if reference.options else None)
+    options_json = options.model_dump(mode="json")
+    stored_reference = reference.model_copy(update={"options": {}})
+    stored_reference.source.dicomweb.url = server.url  # normalized
+    text = stored_reference.model_dump_json(exclude={"callback_url"}).encode()  # the callback is the job's, not an input
+    digest, size = await asyncio.to_thread(ctx.blobs.put_bytes, text)
+    inputs = [InputFile(role="dicomweb", sha256=digest, size=size, suffix=".json")]
+    request_hash = fingerprint(inputs, None, options_json, callback_url)
+    if (previous := await find_replay(ctx, who, key, request_hash)) is not None:
+        return previous
+    await check_queue(ctx, who)
+    job = new_job(ctx, who, key, options_json=options_json, geometry=None, inputs=inputs, warnings=[],
+                  request_hash=request_hash, input_bytes=size, callback_url=callback_url)
+    stored, answer = await create_job(ctx, job)
+    if stored is None:
+        return answer  # type: ignore[return-value]
+    if not ctx.blobs.exists(digest):
+        await asyncio.to_thread(ctx.blobs.put_bytes, text)
+    await asyncio.to_thread(ctx.executor.submit, stored.id)
+    log.info("job %s: queued by DICOMweb reference", stored.id)
+    return accepted(stored)

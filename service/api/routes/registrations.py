@@ -1,0 +1,150 @@
+"""``/v1/registrations``: submit, list, status, cancel, delete."""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from ..schemas.jobs import JobList, JobStatus, previous_link_header, status_body, summary_body
+from ...problems import Problem, problem_responses
+from ...storage.store import STATUSES, decode_cursor
+from ..deps import Ctx, OwnedJob, Principal
+from ..openapi import resource_router
+from ..intake.submission import MAX_OPTIONS_BYTES, MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+
+log = logging.getLogger("dsareg.service")
+
+router = resource_router("registrations")
+
+MULTIPART_SCHEMA = {
+    "type": "object",
+    "required": ["ap", "lat"],
+    "properties": {
+        "mesh": {"type": "string", "format": "binary", "description": "Vessel surface mesh (OBJ, STL, PLY, VTK…). Give mesh or volume."},
+        "volume": {"type": "array", "items": {"type": "string", "format": "binary"},
+                   "description": "Segmented 3D volume (NIfTI, NRRD, or a DICOM series as several files)."},
+        "ap": {"type": "string", "format": "binary",
+               "description": "AP view: DSA image or vessel mask (PNG, TIFF, DICOM XA…); a .rad + .raw pair as two parts."},
+        "lat": {"type": "string", "format": "binary", "description": "LAT view: DSA image or vessel mask (as ap)."},
+        "geometry": {"type": "string", "description": "Preset name (e.g. 'paper') or geometry JSON (text or file); "
+                                                      "optional when DICOM XA headers carry the geometry."},
+        "options": {"type": "string", "description": "RegistrationOptions as JSON, e.g. {\"starts\": 2}.",
+                    "example": "{\"starts\": 1, \"max_iterations\": 100}"},
+    },
+}
+
+SUBMIT_DOC = {
+    "status_code": 202,
+    "response_model": JobStatus,
+    "summary": "Submit a registration job",
+    "description": (
+        "multipart/form-data with `mesh` (or `volume`), `ap`, `lat`, optional `geometry`, `options` and "
+        "`callback_url`; or application/json with the inputs by DICOMweb reference (`DicomwebRegistrationRequest`). "
+        "Inputs are fully parsed before the job is accepted. Answers 202 with `Location` of the job. "
+        "A job that `succeeded` ran to the end; whether to trust its pose is `verdict` (ok / check / failed). "
+        "With an `Idempotency-Key` header, repeating the same request returns the original job (200), "
+        "while reusing the key with a different request is a 409."
+    ),
+    "openapi_extra": {
+        "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": MULTIPART_SCHEMA}}},
+        "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
+                        "schema": {"type": "string", "minLength": 1, "maxLength": 255, "pattern": r"\S"},
+                        "description": "Makes retries of the same submission safe. 1 to 255 characters, at "
+                                       "least one of them not white space; otherwise 400 (field "
+                                       "`Idempotency-Key`)."}],
+    },
+    "responses": {
+        200: {"description": "Idempotent replay: the job created earlier with this key.", "model": JobStatus},
+        202: {"description": "Accepted; poll the Location.", "headers": {
+            "Location": {"description": "The job's URL.", "schema": {"type": "string"}},
+            "Retry-After": {"description": "Seconds before the first poll.", "schema": {"type": "integer"}}}},
+        **problem_responses(400, 401, 409, 413, 415, 422, 429, 503),
+    },
+}
+
+
+@router.post("/v1/registrations", **SUBMIT_DOC)
+async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
+    key = idempotency_key(request)
+    content_type = request.headers.get("content-type", "")
+    if content_type.lower().startswith("application/json"):  # inputs by DICOMweb reference
+        from ..intake.dicom_reference import submit_by_reference
+
+        return await submit_by_reference(ctx, request, who, key)
+    if not content_type.lower().startswith("multipart/form-data"):
+        raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat",
+                      accepted="multipart/form-data")
+    form = await request.form(max_files=MAX_VOLUME_FILES + 8, max_fields=20, max_part_size=MAX_OPTIONS_BYTES)
+    try:
+        return await submit_form(ctx, form, who, key)
+    finally:
+        await form.close()
+
+
+def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | None) -> dict:
+    if status is not None and status not in STATUSES:
+        raise Problem(422, f"unknown status '{status[:20]}'", field="status", accepted=", ".join(STATUSES))
+    if cursor:
+        try:
+            decode_cursor(cursor)
+        except Exception:  # noqa: BLE001
+            raise Problem(400, "the cursor is not valid; use next_cursor from a previous page", field="cursor") from None
+    records, next_cursor = ctx.store.list(owner=who, status=status, limit=limit, cursor=cursor)
+    next_link = None
+    if next_cursor:
+        next_link = f"/v1/registrations?limit={limit}&cursor={next_cursor}" + (f"&status={status}" if status else "")
+    return {"items": [summary_body(r) for r in records], "next_cursor": next_cursor, "links": {"next": next_link}}
+
+
+@router.get("/v1/registrations", response_model=JobList, summary="List jobs (newest first)",
+            responses=problem_responses(400, 401, 422))
+def list_jobs(
+    ctx: Ctx,
+    status: str | None = Query(None, description="Only jobs in this state.",
+                               json_schema_extra={"enum": list(STATUSES)}),
+    limit: int = Query(20, ge=1, le=100, description="Page size."),
+    cursor: str | None = Query(
+        None, max_length=200,
+        description="Opaque paging token: exactly the `next_cursor` of the previous page (URL-safe base64 "
+                    "without padding, at most 200 characters). Any other value → 400 with field `cursor`."),
+    *,
+    who: Principal,
+) -> Response:
+    return JSONResponse(list_page(ctx, who, status, limit, cursor))
+
+
+@router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",
+            responses=problem_responses(401, 403, 404))
+def get_job(job: OwnedJob) -> Response:
+    headers = {"Retry-After": RETRY_AFTER_QUEUED} if job.status in ("queued", "running") else {}
+    return JSONResponse(status_body(job), headers={**headers, **previous_link_header(job)})
+
+
+@router.post("/v1/registrations/{job_id}/cancel", response_model=JobStatus, summary="Cancel a job",
+             description="A queued job is canceled at once (200); a running job stops at its next progress check "
+                         "(202, poll until status is canceled). A finished job gives 409.",
+             responses={202: {"description": "Cancellation requested; the worker stops shortly.", "model": JobStatus},
+                        **problem_responses(401, 403, 404, 409)})
+def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
+    if job.status in ("succeeded", "failed"):
+        raise Problem(409, f"the job already finished ({job.status}); nothing to cancel", kind="job-finished",
+                      extra={"job_status": job.status})
+    updated = ctx.store.request_cancel(job.id) or job
+    ctx.executor.cancel(job.id)
+    code = 202 if updated.status == "running" else 200
+    return JSONResponse(status_body(updated), status_code=code, headers=previous_link_header(updated))
+
+
+@router.delete("/v1/registrations/{job_id}", status_code=204, summary="Delete a job and its files",
+               response_class=Response, responses={204: {"description": "Deleted."}, **problem_responses(401, 403, 404)})
+def delete_job(ctx: Ctx, job: OwnedJob) -> Response:
+    if job.status == "running":
+        ctx.store.request_cancel(job.id)
+        ctx.executor.cancel(job.id)
+    orphans = ctx.store.delete(job.id)
+    ctx.blobs.delete(orphans, min_age_seconds=0.0)
+    ctx.blobs.remove_job_work(job.id)
+    log.info("job %s: deleted", job.id)
+    return Response(status_code=204)

@@ -1,0 +1,127 @@
+"""``POST /v1/registrations/{job_id}/track``: re-register a finished job's model to a new AP/LAT pair.
+
+During an intervention the patient moves; the client sends only the new images. The new job
+re-uses the previous job's stored model files (mesh or volume) and geometry, starts from its
+result's ``mesh_to_world`` with ``options.mode = "track"`` (one start, a short schedule), and its
+result carries ``metrics.motion`` (rotation in degrees, translation in mm since the previous pose).
+It runs as an ordinary job through the same queue and workers (the API process never loads the
+engine), so status, result, overlays, cancel and delete work as for any job.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+from fastapi import Request
+from fastapi.responses import Response
+from starlette.datastructures import FormData, UploadFile
+
+from ...engine_adapter import canonical_geometry
+from ...budgets import parse_json_part
+from ..schemas.jobs import JobStatus
+from ...problems import Problem, problem_responses
+from ...storage.store import JobRecord
+from ..deps import Ctx, OwnedJob, Principal, ServiceContext
+from ..openapi import resource_router
+from ..intake.submission import (
+    MAX_OPTIONS_BYTES,
+    form_callback_url,
+    form_files,
+    idempotency_key,
+    parse_options_json,
+    submit_files,
+)
+
+router = resource_router("registrations")
+
+TRACK_SCHEMA = {
+    "type": "object",
+    "required": ["ap", "lat"],
+    "properties": {
+        "ap": {"type": "string", "format": "binary", "description": "New AP image or vessel mask (same rig as the job)."},
+        "lat": {"type": "string", "format": "binary", "description": "New LAT image or vessel mask."},
+        "options": {"type": "string", "description": "RegistrationOptions overriding the job's (JSON); mode is 'track', "
+                                                     "the initial pose is the job's result.",
+                    "example": "{\"max_iterations\": 60}"},
+        "callback_url": {"type": "string", "maxLength": 2048,
+                         "description": "POSTed the new job's summary once it ends (as for POST /v1/registrations)."},
+    },
+}
+INHERITED_OUT = ("ground_truth_mesh_to_world", "initial_mesh_to_world", "mode", "starts")
+"""Options of the previous job that do not carry over: its truth, its start, its mode."""
+
+TRACK_DOC = {
+    "status_code": 202,
+    "response_model": JobStatus,
+    "summary": "Re-register the job's model to a new AP/LAT pair (motion tracking)",
+    "description": (
+        "multipart/form-data with `ap`, `lat` and optional `options`. The job must have succeeded; its model and "
+        "geometry are re-used and its result pose is the starting pose. Answers 202 with the new job's "
+        "`Location`; its result has the new `mesh_to_world` and `metrics.motion` (`rotation_deg`, "
+        "`translation_mm`, `mean_displacement_mm`) since the previous pose."
+    ),
+    "openapi_extra": {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": TRACK_SCHEMA}}},
+                   "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
+                                   "schema": {"type": "string", "maxLength": 255}}]},
+    "responses": {202: {"description": "Accepted; poll the Location.", "headers": {
+        "Location": {"description": "The new job's URL.", "schema": {"type": "string"}}}},
+        **problem_responses(400, 401, 403, 404, 409, 413, 415, 422, 429, 503)},
+}
+
+
+async def _options(previous: JobRecord, form: Any) -> Any:
+    """The new job's options: the previous job's (less INHERITED_OUT), the form's, mode track, its pose."""
+    options = {k: v for k, v in previous.options.items() if k not in INHERITED_OUT}
+    options_values = form.getlist("options")
+    if len(options_values) > 1:
+        raise Problem(422, "give options at most once", field="options")
+    if options_values:
+        text = options_values[0]
+        if isinstance(text, UploadFile):
+            text = (await text.read()).decode("utf-8", errors="replace")
+        if text.strip():
+            options.update(parse_json_part(text, "options"))
+    options["mode"] = "track"
+    options["initial_mesh_to_world"] = previous.result["mesh_to_world"]
+    return parse_options_json(options)
+
+
+def _model_parts(ctx: ServiceContext, previous: JobRecord) -> list[tuple[str, UploadFile]]:
+    """The previous job's stored model files (mesh or volume) as (role, upload) form items."""
+    parts = []
+    for item in previous.inputs:
+        if item.role in ("mesh", "volume"):
+            data = ctx.blobs.read(item.sha256)
+            parts.append((item.role, UploadFile(io.BytesIO(data), size=len(data), filename=f"{item.role}{item.suffix}")))
+    return parts
+
+
+@router.post("/v1/registrations/{job_id}/track", **TRACK_DOC)
+async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) -> Response:
+    if previous.status != "succeeded" or not previous.result or "mesh_to_world" not in previous.result:
+        raise Problem(409, f"only a succeeded job can be tracked from: this one is {previous.status}",
+                      kind="job-not-succeeded", extra={"job_status": previous.status})
+    key = idempotency_key(request)
+    if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
+        raise Problem(415, "send multipart/form-data with the files ap and lat", accepted="multipart/form-data")
+    form = await request.form(max_files=6, max_fields=5, max_part_size=MAX_OPTIONS_BYTES)
+    model_files: list[tuple[str, UploadFile]] = []
+    try:
+        unknown = sorted(set(form.keys()) - {"ap", "lat", "options", "callback_url"})
+        if unknown:
+            raise Problem(422, f"unknown form field(s) {unknown[:5]}; the model and geometry are the job's",
+                          field=str(unknown[0])[:64], accepted="ap, lat, options, callback_url")
+        callback_url = form_callback_url(ctx, form)
+        options = await _options(previous, form)
+        model_files = _model_parts(ctx, previous)
+        items: list[tuple[str, Any]] = list(model_files)
+        items += [(name, value) for name in ("ap", "lat") for value in form.getlist(name)]
+        geometry = canonical_geometry(previous.geometry)  # the job's, as stored (parsed once at its submission)
+        # the new job records its previous one: its status, result and 202 carry Link: rel="previous"
+        return await submit_files(ctx, form_files(FormData(items)), geometry, options, who, key,
+                                  callback_url=callback_url, previous_id=previous.id)
+    finally:
+        for _, upload in model_files:
+            await upload.close()
+        await form.close()

@@ -1,0 +1,386 @@
+"""Typed payloads of the OpenAPI document: geometry, options, result (and the multipart parts).
+
+The API keeps its runtime models permissive (a result is the engine's JSON, whatever fields
+later versions add); these models *document* the payloads with descriptions, units, examples
+and enums, and :func:`document` puts them into ``/openapi.json``:
+
+* ``components.schemas``: ``RegistrationOptions`` (the engine's own model, so the fields
+  cannot drift), ``GeometryFile`` / ``ViewSpec`` / ``LatFromAp``, ``RegistrationResult`` /
+  ``ViewResult`` / ``ResultMetrics`` / ``GroundTruthErrors``;
+* the ``POST /v1/registrations`` multipart parts, each with its schema and encoding;
+* ``JobStatus.result`` and ``GET …/result`` point at ``RegistrationResult``.
+
+Result models allow extra fields (``additionalProperties``), so fields that later engine
+versions add (e.g. ``verdict``, ``metrics.initialization``) stay valid: known ones are
+documented, unknown ones pass.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Matrix4 = list[list[float]]
+Matrix34 = list[list[float]]
+IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+REF = "#/components/schemas/{model}"
+
+
+# ---- geometry file ---------------------------------------------------------------------------
+
+
+class ViewSpec(BaseModel):
+    """One X-ray view. Either `sid_mm` + `world_to_view` (+ optional `principal_point_px`) or a
+    `projection_matrix`."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
+        "principal_point_px": [399.5, 399.5],
+        "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}]})
+
+    image_size: tuple[int, int] = Field(description="[width, height] of the image in pixels.", examples=[[800, 800]])
+    pixel_spacing_mm: tuple[float, float] = Field(
+        description="[column, row] pixel spacing at the detector, mm (DICOM Imager Pixel Spacing).",
+        examples=[[0.3, 0.3]])
+    sid_mm: float | None = Field(None, gt=0, description="Source-to-detector distance, mm.", examples=[1200.0])
+    principal_point_px: tuple[float, float] | None = Field(
+        None, description="[u0, v0] foot of the central ray on the image, pixels; default the image centre "
+                          "((W-1)/2, (H-1)/2).")
+    world_to_view: Matrix4 | None = Field(
+        None, description="4x4 rigid transform world mm → view frame (origin at the source, +z along the central "
+                          "ray toward the detector, +x along columns, +y along rows); det may be -1 (mirror).")
+    projection_matrix: Matrix34 | None = Field(
+        None, description="3x4 world mm → homogeneous pixels, instead of sid_mm + world_to_view.")
+
+
+class LatFromAp(BaseModel):
+    """The lateral view as the AP imaging chain turned about an axis through the isocentre."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    angle_deg: float = Field(description="Rotation angle, degrees (90 for an orthogonal biplane).", examples=[90.0])
+    axis_world: tuple[float, float, float] = Field((0.0, 1.0, 0.0), description="Rotation axis, world frame.")
+    isocentre_world: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Isocentre, world mm.")
+
+
+class GeometryFile(BaseModel):
+    """The C-arm geometry (the `geometry` part): two views in world millimetres and the initial pose.
+    Instead of JSON, the part may be a preset name (`paper`), or be left out when both images are
+    DICOM XA (or `.rad`) files whose headers carry the geometry."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "views": {"ap": {"image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
+                         "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}},
+        "lat_from_ap": {"angle_deg": 90.0}, "initial_mesh_to_world": IDENTITY}]})
+
+    views: dict[Literal["ap", "lat"], ViewSpec] = Field(description="The views by name: `ap` and `lat`.")
+    lat_from_ap: LatFromAp | None = Field(None, description="Derive `lat` from `ap` (then give only `ap`).")
+    initial_mesh_to_world: Matrix4 | None = Field(
+        None, description="4x4 rigid initial pose mesh mm → world mm where the optimization starts (default identity).")
+
+
+# ---- result ---------------------------------------------------------------------------------
+
+
+class GroundTruthErrors(BaseModel):
+    """Errors against `options.ground_truth_mesh_to_world` (synthetic studies)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rotation_error_deg: float | None = Field(None, description="Angle of the rotation difference, degrees.")
+    translation_error_mm: float | None = Field(
+        None, description="Distance of the AP source position in the mesh frame, mm (the paper's definition).")
+    add_mm: float | None = Field(None, description="Average distance of the mesh vertices, mm.")
+    mtre_mm: float | None = Field(None, description="Mean target registration error, mm.")
+    mpd_mm: dict[str, float | None] | None = Field(None, description="Mean projection distance per view, mm.")
+    initial_mtre_mm: float | None = Field(None, description="mTRE of the initial pose, mm.")
+
+
+class Verdict(str, Enum):
+    """Whether to trust the pose: `ok` use it, `check` look at the overlays first, `failed` do not use it."""
+
+    ok = "ok"
+    check = "check"
+    failed = "failed"
+
+
+class RunnerUp(BaseModel):
+    """The best start that ended at a distinct pose, and how well it and the kept pose fit."""
+
+    model_config = ConfigDict(extra="allow")
+
+    distance_mm: float = Field(description="Mean vertex distance of that pose from the kept one, mm.")
+    best_fit: float = Field(description="Fit of the kept pose (tolerant F-score, 0–1, mean over the views).")
+    fit: float = Field(description="Fit of the distinct pose (same measure); close to best_fit = ambiguous.")
+
+
+class ConfidenceSignals(BaseModel):
+    """The measurements the verdict is made of (see docs/api/results.md)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    dice: dict[str, float] = Field(
+        default_factory=dict, description="Per view: Dice (0–1) of the registered silhouette with the vessel mask "
+                                          "as fitted (its border moved by the border correction).")
+    runner_up: RunnerUp | None = Field(None, description="A distinct pose that fits almost as well, or null.")
+    border_shift_px: dict[str, float] | None = Field(
+        None, description="Per view: how far the border correction moved the mask outline, pixels (signed).")
+    outside_fraction: dict[str, float] = Field(
+        default_factory=dict, description="Per view: fraction (0–1) of the model's vertices projecting outside the image.")
+    stopped_on_tolerance: bool | None = Field(
+        None, description="True when the final stage stopped because the pose stopped changing (not the iteration cap).")
+
+
+class Confidence(BaseModel):
+    """The verdict on the pose and why. `failed`: some view's Dice < 0.5; `check`: any view's Dice < 0.7, a
+    distinct pose fits almost as well, a border shift ≥ 1.5 px, > 25 % of the model outside an image, or the
+    iteration cap was hit; else `ok`."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "verdict": "failed", "reasons": ["ap: the model's silhouette overlaps the vessels poorly (dice 0.25)"],
+        "signals": {"dice": {"ap": 0.25, "lat": 0.31}, "runner_up": None, "border_shift_px": {"ap": 0.1, "lat": 0.0},
+                    "outside_fraction": {"ap": 0.0, "lat": 0.0}, "stopped_on_tolerance": True}}]})
+
+    verdict: Verdict = Field(description="ok: use the pose; check: look at the overlays first; failed: do not use it.")
+    reasons: list[str] = Field(default_factory=list,
+                               description="Plain-word sentences, one per finding (empty when ok); failed ones first.")
+    signals: ConfidenceSignals = Field(default_factory=ConfidenceSignals)
+
+
+class Initialization(BaseModel):
+    """Where the optimization started: a given pose, or a search over candidate poses."""
+
+    model_config = ConfigDict(extra="allow")
+
+    method: Literal["given", "search"] = Field(description="given: the geometry's / options' initial pose; "
+                                                           "search: the best candidates of a pose search.")
+    candidates_scored: int = Field(0, description="Candidate poses scored by the search (0 when given).")
+    seconds: float = Field(0.0, description="Time of the search, seconds.")
+    best_score: float | None = Field(None, description="Search score of the best candidate (higher is better).")
+    runner_up_score: float | None = Field(None, description="Score of the second-best candidate.")
+
+
+class Motion(BaseModel):
+    """Motion since the previous pose (tracking jobs: `POST …/track`, `options.mode: "track"`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rotation_deg: float = Field(description="Angle of the relative rotation, degrees.")
+    translation_mm: float = Field(description="Displacement of the model's centroid, world mm.")
+    mean_displacement_mm: float = Field(description="Mean displacement of the model's vertices, mm.")
+    world_motion: Matrix4 | None = Field(None, description="4x4 current · previous⁻¹ (world frame).")
+
+
+class ResultMetrics(BaseModel):
+    """How the registration went."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "loss": 0.0019, "iterations": {"ap+lat:1/4": 17, "ap+lat:1/2": 27, "ap+lat:1/1": 37, "ap+lat:1/1:refine": 11},
+        "seconds": {"ap+lat:1/4": 0.72, "ap+lat:1/2": 0.64, "ap+lat:1/1": 1.68, "ap+lat:1/1:refine": 0.41,
+                    "total": 5.5},
+        "device": "cpu", "converged": True, "reason": "pose change below tolerance in the final stage",
+        "starts": 4, "starts_agreeing": 4, "configuration": "simultaneous",
+        "border_shift_px": {"ap": -0.008, "lat": 0.004}}]})
+
+    loss: float | None = Field(None, description="Final loss (mean squared silhouette error), dimensionless.")
+    iterations: dict[str, int] = Field(default_factory=dict, description="Iterations per stage, in the order run.")
+    seconds: dict[str, float] = Field(default_factory=dict, description="Seconds per stage and `total`.")
+    device: str | None = Field(None, description="Where it ran (`cpu`, `cuda`).")
+    converged: bool | None = Field(
+        None, description="True only when the final stage stopped on the pose-change rule and every view's Dice ≥ 0.5.")
+    reason: str | None = Field(None, description="Why converged is what it is.")
+    starts: int | None = Field(None, description="Initial poses tried.")
+    starts_agreeing: int | None = Field(None, description="Starts that ended within 2 mm ADD of the best.")
+    configuration: Literal["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"] | None = None
+    border_shift_px: dict[str, float] | None = Field(
+        None, description="Measured mask border offset per view, pixels (border correction).")
+    warnings: list[str] | None = Field(None, description="Notes on the result (e.g. single-view ambiguity).")
+    ground_truth: GroundTruthErrors | None = None
+    confidence: Confidence | None = Field(None, description="The verdict on the pose and its reasons (every result "
+                                                            "of this version has one).")
+    initialization: Initialization | None = None
+    mode: Literal["register", "track"] | None = Field(None, description="track: a tracking job (then `motion`).")
+    motion: Motion | None = None
+
+
+class ViewResult(BaseModel):
+    """Per-view outcome."""
+
+    model_config = ConfigDict(extra="allow")
+
+    world_to_view: Matrix4 = Field(description="4x4 world mm → view frame (the geometry's, unchanged).")
+    mesh_to_view: Matrix4 = Field(description="4x4 = world_to_view · mesh_to_world.")
+    projection_matrix: Matrix34 = Field(description="3x4 homogeneous mesh-frame mm → homogeneous pixels.")
+    dice: float = Field(ge=0, le=1, description="Dice of the registered hard silhouette with the vessel mask.")
+    iou: float = Field(ge=0, le=1, description="Intersection over union of the same.")
+
+
+class DicomInstance(BaseModel):
+    """One DICOM object the job wrote (`GET …/dicom/{name}`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    sop_class_uid: str
+    sop_instance_uid: str
+    series_instance_uid: str | None = None
+    study_instance_uid: str | None = None
+
+
+class DicomSource(BaseModel):
+    """Where the inputs of a job by reference came from."""
+
+    model_config = ConfigDict(extra="allow")
+
+    server: str | None = Field(None, description="The DICOMweb base URL.")
+    study_uid: str | None = None
+    fetch_seconds: float | None = Field(None, description="Time to fetch the inputs, seconds.")
+    requests: int | None = Field(None, description="HTTP requests made to fetch them.")
+
+
+class DicomStored(BaseModel):
+    """What was stored back into the PACS (STOW-RS) for a job by reference with `store_results`."""
+
+    model_config = ConfigDict(extra="allow")
+
+    server: str | None = None
+    study_uid: str | None = None
+    sop_instance_uids: list[str] = Field(default_factory=list)
+    confirmed: bool | None = Field(None, description="True when the PACS confirmed every instance.")
+    store_seconds: float | None = None
+
+
+class DicomResult(BaseModel):
+    """The DICOM results: REG (model → C-arm frame) and Secondary Captures."""
+
+    model_config = ConfigDict(extra="allow")
+
+    instances: dict[str, DicomInstance] = Field(
+        default_factory=dict, description="By file name (`reg.dcm`, `overlay_ap.dcm`, `overlay_lat.dcm`, `loss.dcm`).")
+    source: DicomSource | None = None
+    stored: DicomStored | None = None
+
+
+class RegistrationResult(BaseModel):
+    """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
+    `succeeded` only ran to the end. Later versions may add fields; clients must ignore unknown ones."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "mesh_to_world": IDENTITY, "initial_mesh_to_world": IDENTITY, "verdict": "ok",
+        "views": {"ap": {"world_to_view": IDENTITY, "mesh_to_view": IDENTITY,
+                         "projection_matrix": [[692.8, 0, 399.5, 0], [0, 692.8, 399.5, 0], [0, 0, 1, 0]],
+                         "dice": 0.997, "iou": 0.994}},
+        "metrics": {"loss": 0.0019, "converged": True, "reason": "pose change below tolerance in the final stage",
+                    "confidence": {"verdict": "ok", "reasons": [], "signals": {}}}}]})
+
+    mesh_to_world: Matrix4 = Field(description="4x4 rigid estimated pose, mesh mm → world mm: the answer.")
+    initial_mesh_to_world: Matrix4 | None = Field(None, description="4x4 pose the registration started from.")
+    views: dict[str, ViewResult] = Field(description="Per view (`ap`, `lat`).")
+    metrics: ResultMetrics
+    warnings: list[str] | None = Field(None, description="Notes from reading the inputs (decimation, resizing...).")
+    verdict: Verdict | None = Field(
+        None, description="= metrics.confidence.verdict: ok (use the pose), check (look at the overlays first), "
+                          "failed (do not use it). Null only for results of versions before the verdict.")
+    dicom: DicomResult | None = Field(None, description="The DICOM objects written (and fetched/stored in a PACS).")
+
+
+# ---- putting them into the OpenAPI document -----------------------------------------------
+
+
+def _components(*models: type[BaseModel]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for model in models:
+        schema = model.model_json_schema(ref_template=REF, mode="serialization")
+        out.update(schema.pop("$defs", {}))
+        out[model.__name__] = schema
+    return out
+
+
+def options_model() -> type[BaseModel]:
+    from ...engine_adapter import engine
+
+    return engine.RegistrationOptions
+
+
+def multipart_schema(presets: list[str]) -> dict[str, Any]:
+    """The multipart/form-data body of ``POST /v1/registrations``."""
+    return {
+        "type": "object",
+        "required": ["ap", "lat"],
+        "description": "Give `mesh` or `volume`, both images, and optionally `geometry` and `options`.",
+        "properties": {
+            "mesh": {"type": "string", "format": "binary",
+                     "description": "Vessel surface mesh in mm: OBJ, STL (ASCII/binary), PLY, OFF or GLB."},
+            "volume": {"type": "array", "items": {"type": "string", "format": "binary"},
+                       "description": "Vessel volume instead of a mesh: NIfTI, NRRD, a DICOM series (one part per "
+                                      "file) or `.rad` + `.raw`; segmented (Otsu) and meshed (marching cubes)."},
+            "ap": {"type": "string", "format": "binary",
+                   "description": "AP view: DSA image or binary vessel mask (PNG, TIFF, JPEG, DICOM XA single/"
+                                  "multi-frame); a `.rad` + `.raw` pair as two parts."},
+            "lat": {"type": "string", "format": "binary", "description": "LAT view, as `ap`."},
+            "geometry": {
+                "description": "The C-arm geometry: a preset name, GeometryFile JSON (text or a file part), or "
+                               "nothing when DICOM XA / .rad headers carry it.",
+                "anyOf": [
+                    {"type": "string", "enum": presets, "description": "A preset name."},
+                    {"type": "string", "contentMediaType": "application/json",
+                     "contentSchema": {"$ref": REF.format(model="GeometryFile")}},
+                ],
+                "examples": [presets[0] if presets else "paper"],
+            },
+            "options": {
+                "type": "string", "contentMediaType": "application/json",
+                "contentSchema": {"$ref": REF.format(model="RegistrationOptions")},
+                "description": "RegistrationOptions as JSON text; every field is optional.",
+                "examples": ['{"starts": 2, "max_iterations": 300}'],
+            },
+            "callback_url": {
+                "type": "string", "maxLength": 2048,
+                "description": "POSTed the job summary (JobSummary JSON, signed) once the job ends; must start with "
+                               "one of the server's DSAREG_CALLBACK_ALLOWED prefixes, else 422.",
+                "examples": ["https://ris.example.org/dsareg-hooks/job-done"],
+            },
+        },
+    }
+
+
+def reference_model() -> type[BaseModel]:
+    from ...pacs.dicomweb import DicomwebRegistrationRequest
+
+    return DicomwebRegistrationRequest
+
+
+def document(schema: dict[str, Any]) -> dict[str, Any]:
+    """Add the payload schemas to an OpenAPI document (in place; returned for convenience)."""
+    from ...engine_adapter import engine
+
+    PRESETS = engine.PRESETS
+
+    schemas = schema.setdefault("components", {}).setdefault("schemas", {})
+    schemas.update(_components(options_model(), GeometryFile, RegistrationResult, reference_model()))
+    result_ref = {"$ref": REF.format(model="RegistrationResult")}
+    for name in ("JobStatus", "JobStatus-Output"):
+        props = schemas.get(name, {}).get("properties", {})
+        if "result" in props:
+            props["result"] = {"anyOf": [result_ref, {"type": "null"}],
+                               "description": "The registration result when succeeded, else null."}
+    paths = schema.get("paths", {})
+    post = paths.get("/v1/registrations", {}).get("post")
+    if post is not None:
+        post["requestBody"] = {"required": True, "content": {
+            "multipart/form-data": {
+                "schema": multipart_schema(sorted(PRESETS)),
+                "encoding": {"options": {"contentType": "application/json, text/plain"},
+                             "geometry": {"contentType": "text/plain, application/json"},
+                             "volume": {"contentType": "application/octet-stream"}},
+            },
+            # inputs by DICOMweb reference (service/api/dicom_reference.py)
+            "application/json": {"schema": {"$ref": REF.format(model=reference_model().__name__)}},
+        }}
+    get_result = paths.get("/v1/registrations/{job_id}/result", {}).get("get")
+    if get_result is not None:
+        ok = get_result.setdefault("responses", {}).setdefault("200", {})
+        ok["description"] = "The registration result."
+        ok["content"] = {"application/json": {"schema": result_ref}}
+    return schema

@@ -1,0 +1,163 @@
+"""Executors: what runs queued jobs. The job store is the queue; an executor only
+provides workers that claim from it.
+
+:class:`Executor` is deliberately small so that a later executor (Celery, Kubernetes
+jobs…) can plug in: ``start``/``stop`` its workers, ``notify`` them that a job was
+queued (a hint, workers also poll), and report how many are alive for ``/readyz``.
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+import multiprocessing as mp
+import os
+import threading
+import time
+from typing import Any
+
+from .procwatch import WakeLink
+from ..settings import ServiceSettings
+from .worker import worker_main
+
+log = logging.getLogger("dsareg.service.executor")
+
+
+class Executor(abc.ABC):
+    @abc.abstractmethod
+    def start(self) -> None: ...
+
+    @abc.abstractmethod
+    def stop(self, timeout: float = 10.0) -> None: ...
+
+    @abc.abstractmethod
+    def notify(self) -> None:
+        """A job was queued."""
+
+    @abc.abstractmethod
+    def alive_workers(self) -> int: ...
+
+    def submit(self, job_id: str) -> None:
+        """A job was queued (the API calls this after inserting it)."""
+        self.notify()
+
+    def cancel(self, job_id: str) -> None:
+        """Cancellation was requested in the job table (workers also read the flag)."""
+
+    def requeued(self, job_ids: list[str]) -> None:
+        """Jobs went back to ``queued`` (lease recovery)."""
+        if job_ids:
+            self.notify()
+
+    def maintain(self, store: Any) -> None:
+        """Periodic work of the API's sweeper (e.g. re-dispatching jobs a broker lost)."""
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": type(self).__name__, "alive_workers": self.alive_workers()}
+
+
+class NoExecutor(Executor):
+    """API only: jobs stay queued until an external worker claims them."""
+
+    def start(self) -> None:
+        pass
+
+    def stop(self, timeout: float = 10.0) -> None:
+        pass
+
+    def notify(self) -> None:
+        pass
+
+    def alive_workers(self) -> int:
+        return 0
+
+
+class EmbeddedProcessExecutor(Executor):
+    """N worker processes (``spawn`` context) supervised by a thread of the server.
+
+    Each worker has its own :class:`~service.jobs.procwatch.WakeLink` pipe (wake-up bytes; closing
+    it stops the worker) instead of process-shared events, whose internal lock a SIGKILLed
+    worker could leave held and so block every later notify."""
+
+    def __init__(self, settings: ServiceSettings, workers: int | None = None):
+        self.settings = settings
+        self.count = settings.workers if workers is None else workers
+        self.ctx = mp.get_context("spawn")
+        self.links: list[WakeLink | None] = [None] * self.count
+        self.processes: list[Any] = [None] * self.count
+        self.restarts = 0
+        self._supervisor: threading.Thread | None = None
+        self._halt = threading.Event()
+        self._lock = threading.Lock()
+        self._links_lock = threading.Lock()
+
+    def _spawn(self, index: int) -> None:
+        with self._links_lock:  # no notify writes to the old pipe once it is closed (its fd number may be reused)
+            old, self.links[index] = self.links[index], None
+        if old is not None:
+            old.close()
+        link = WakeLink(self.ctx)
+        process = self.ctx.Process(
+            target=worker_main, args=(self.settings, index, link.child_end(), os.getpid()),
+            name=f"dsareg-worker-{index}", daemon=False,
+        )
+        process.start()
+        link.started()
+        with self._links_lock:
+            self.links[index] = link
+        self.processes[index] = process
+        log.info("worker process %d started (pid %s)", index, process.pid)
+
+    def start(self) -> None:
+        with self._lock:
+            for index in range(self.count):
+                self._spawn(index)
+        self._supervisor = threading.Thread(target=self._supervise, name="worker-supervisor", daemon=True)
+        self._supervisor.start()
+
+    def _supervise(self) -> None:
+        backoff = [0.0] * self.count
+        while not self._halt.wait(1.0):
+            with self._lock:
+                for index, process in enumerate(self.processes):
+                    if process is None or process.is_alive() or self._halt.is_set():
+                        continue
+                    if time.monotonic() < backoff[index]:
+                        continue
+                    log.warning("worker process %d (pid %s) exited with %s; restarting", index, process.pid, process.exitcode)
+                    process.join(0)
+                    self.restarts += 1
+                    backoff[index] = time.monotonic() + 2.0
+                    self._spawn(index)
+
+    def notify(self) -> None:
+        with self._links_lock:  # held only for non-blocking one-byte writes
+            for link in self.links:
+                if link is not None:
+                    link.notify()
+
+    def alive_workers(self) -> int:
+        return sum(1 for p in self.processes if p is not None and p.is_alive())
+
+    def pids(self) -> list[int]:
+        return [p.pid for p in self.processes if p is not None and p.is_alive()]
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._halt.set()
+        with self._lock, self._links_lock:  # no restart after this point: the supervisor checks _halt under _lock
+            for index, link in enumerate(self.links):
+                if link is not None:
+                    link.close()
+                self.links[index] = None
+        deadline = time.monotonic() + timeout
+        for process in self.processes:
+            if process is not None:
+                process.join(max(0.0, deadline - time.monotonic()))
+        for process in self.processes:
+            if process is not None and process.is_alive():
+                log.warning("worker pid %s did not stop in time; terminating", process.pid)
+                process.terminate()
+                process.join(3)
+                if process.is_alive():
+                    process.kill()
+                    process.join(3)

@@ -1,0 +1,17 @@
+"""Which executor runs the jobs: the one place that knows every kind (so the executors do not import each other)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..settings import ServiceSettings
+from .executor import EmbeddedProcessExecutor, Executor, NoExecutor
+
+
+def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
+    """The executor the settings ask for (the one place that knows every kind)."""
+    if settings.executor == "celery":
+        from .celery.executor import CeleryExecutor
+
+        return CeleryExecutor(settings, store)
+    return EmbeddedProcessExecutor(settings) if settings.workers > 0 else NoExecutor()

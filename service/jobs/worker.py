@@ -1,0 +1,338 @@
+"""A worker: claims jobs from the store and runs them (one at a time).
+
+One job is one straight path (:func:`_register`): its inputs (the stored blobs, or a DICOMweb
+fetch) → :func:`service.engine_adapter.run_job`, the one call into the engine (read, register,
+write every output, warnings joined there) → the artifacts and the result into the store
+(STOW-RS first for a job by reference that asked for it).
+
+Runs in its own process (started by an executor with the ``spawn`` context). See
+:mod:`service.storage.store` for the lease protocol. A background thread renews the lease
+every ``heartbeat`` seconds even when the engine reports no progress (loading,
+writing), and reads the job's ``cancel_requested`` flag; the engine's
+``should_stop`` callback then answers from memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from ..storage.blobs import BlobStore
+from ..pacs.dicom_jobs import pacs_job, pacs_problem
+from ..pacs.dicomweb import PacsError
+from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
+from ..problems import TYPE_BASE
+from ..settings import ServiceSettings
+from ..storage.store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
+
+log = logging.getLogger("dsareg.service.worker")
+
+STORING_FRACTION = 0.985  # STOW-RS of the DICOM results into the PACS (jobs by reference)
+SAVING_FRACTION = 0.99  # artifacts into the blob store, then the result into the job store
+
+
+def make_worker_id(index: int) -> str:
+    return f"{socket.gethostname()[:40]}-{os.getpid()}-w{index}-{random_token(3)}"
+
+
+class _JobControl:
+    """State shared by the engine callbacks and the heartbeat thread of one running job."""
+
+    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
+                 cancel_hint: Any = None):
+        self.store = store
+        self.cancel_hint = cancel_hint  # e.g. "the Celery task was revoked": cancel without waiting for a beat
+        self.job = job
+        self.worker_id = worker_id
+        self.settings = settings
+        self.stop_event = stop
+        self.cancel = job.cancel_requested
+        self.lost = False
+        self.timed_out = False
+        self.started = time.monotonic()
+        self.last_progress_write = 0.0
+        self.last_stage: str | None = None
+        self.latest_progress: dict[str, Any] | None = None
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def finish(self) -> None:
+        self._done.set()
+        self._thread.join(5)
+
+    def _write(self, progress: dict | None) -> None:
+        try:
+            owned, cancel = self.store.heartbeat(self.job.id, self.worker_id, self.settings.lease_seconds, progress)
+        except Exception:  # noqa: BLE001 - a database hiccup: try again next beat
+            log.warning("job %s: heartbeat failed", self.job.id)
+            return
+        if not owned:
+            self.lost = True
+        self.cancel = self.cancel or cancel
+
+    def _beat(self) -> None:
+        interval = self.settings.effective_heartbeat_seconds
+        while not self._done.wait(interval):
+            with self._lock:
+                pending = self.latest_progress
+                self.latest_progress = None
+            self._write(pending)
+            if time.monotonic() - self.started > self.settings.job_timeout_seconds:
+                self.timed_out = True
+
+    def progress(self, update: dict) -> None:
+        progress = {
+            "stage": str(update.get("stage", "")),
+            "iteration": int(update.get("iteration", 0) or 0),
+            "loss": None if update.get("loss") is None else float(update["loss"]),
+            "fraction": max(0.0, min(1.0, float(update.get("fraction", 0.0) or 0.0))),
+        }
+        now = time.monotonic()
+        new_stage = progress["stage"] != self.last_stage  # a stage change is written at once (e.g. 'outputs')
+        if new_stage or now - self.last_progress_write >= self.settings.progress_interval_seconds:
+            self.last_progress_write, self.last_stage = now, progress["stage"]
+            self._write(progress)
+        else:
+            with self._lock:
+                self.latest_progress = progress
+
+    def should_stop(self) -> bool:
+        if not self.cancel and self.cancel_hint is not None and self.cancel_hint():
+            self.cancel = True
+        return self.cancel or self.lost or self.timed_out or self.stop_event.is_set()
+
+
+def _problem(job_id: str, status: int, kind: str, title: str, detail: str, **extra: Any) -> dict[str, Any]:
+    body = {"type": TYPE_BASE + kind, "title": title, "status": status, "detail": detail,
+            "instance": f"/v1/registrations/{job_id}"}
+    body.update({k: v for k, v in extra.items() if v is not None})
+    return body
+
+
+def is_store_outage(exc: BaseException) -> bool:
+    """The job database is unreachable or busy (see :func:`service.storage.store.store_outage_errors`)."""
+    return isinstance(exc, store_outage_errors())
+
+
+def with_store_retries(call: Any, settings: ServiceSettings, what: str, job_id: str) -> Any:
+    """``call()`` retried with exponential backoff while the store is out, for at most
+    ``result_save_seconds``: a short database outage must not throw away a finished registration."""
+    deadline = time.monotonic() + settings.result_save_seconds
+    delay = 0.25
+    while True:
+        try:
+            return call()
+        except Exception as exc:
+            if not is_store_outage(exc) or time.monotonic() + delay > deadline:
+                raise
+            log.warning("job %s: %s failed (%s); retrying in %.1f s", job_id, what, type(exc).__name__, delay)
+            time.sleep(delay)
+            delay = min(delay * 2.0, 5.0)
+
+
+class _Finisher:
+    """Guarded end-state writes of one claimed job, each with bounded retries on store outages."""
+
+    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings):
+        self.store, self.job, self.worker_id, self.settings = store, job, worker_id, settings
+
+    def complete(self, status: str, **values: Any) -> str:
+        """``status`` if written, ``'lost'`` if another worker owns the job or the store stayed out."""
+        def write() -> bool:
+            return self.store.complete(self.job.id, self.worker_id, status, attempt=self.job.attempts, **values)
+        try:
+            return status if with_store_retries(write, self.settings, f"saving '{status}'", self.job.id) else "lost"
+        except Exception as exc:  # noqa: BLE001 - the lease expires and the sweeper requeues the job
+            log.error("job %s: could not save '%s' (%s); the attempt is given up", self.job.id, status, type(exc).__name__)
+            return "lost"
+
+    def release(self) -> str:
+        try:
+            with_store_retries(lambda: self.store.release(self.job.id, self.worker_id), self.settings, "release", self.job.id)
+        except Exception as exc:  # noqa: BLE001 - the lease expires and the sweeper requeues the job
+            log.error("job %s: could not release (%s)", self.job.id, type(exc).__name__)
+        return "released"
+
+
+def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
+            cancel_hint: Any = None) -> str:
+    """Run a claimed job to an end state; returns what happened (for logs and tests).
+
+    ``cancel_hint``: optional callable, true when the job was canceled by other means than
+    the job table's flag (the Celery executor passes "this task was revoked")."""
+    control = _JobControl(store, job, worker_id, settings, stop, cancel_hint)
+    finish = _Finisher(store, job, worker_id, settings)
+    out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    log.info("job %s: runs on %s", job.id, _thread_budget())
+    control.start()
+    try:
+        outcome = _register(blobs, job, settings, control, finish, out_dir)
+    except Exception as exc:  # noqa: BLE001 - every failure ends the job in a state
+        outcome = _ended_early(exc, job, settings, control, finish)
+    finally:
+        control.finish()
+        shutil.rmtree(out_dir, ignore_errors=True)
+        try:
+            out_dir.parent.rmdir()
+        except OSError:
+            pass
+    log.info("job %s: %s after %.2f s (attempt %d, %d input bytes)", job.id, outcome, time.monotonic() - started,
+             job.attempts, job.input_bytes)
+    return outcome
+
+
+def _ended_early(exc: Exception, job: JobRecord, settings: ServiceSettings, control: _JobControl,
+                 finish: _Finisher) -> str:
+    """The end state of a job whose run raised ``exc``."""
+    if isinstance(exc, engine.RegistrationCanceled):
+        return _stopped(job, settings, control, finish)
+    if isinstance(exc, PacsError):
+        return finish.complete("failed", error=_problem(job.id, 502, "pacs-error", "PACS error", str(exc),
+                                                        **pacs_problem(exc)))
+    if isinstance(exc, engine.DsaregInputError):
+        return finish.complete("failed", error=_problem(job.id, 422, "invalid-input", "Unprocessable input", str(exc),
+                                                        field=exc.field, accepted=exc.accepted))
+    if is_store_outage(exc):  # not the job's fault: hand it back without using up an attempt
+        log.warning("job %s: the job store is out (%s); releasing the job", job.id, type(exc).__name__)
+        return finish.release()
+    log.error("job %s: internal error", job.id, exc_info=exc)
+    return finish.complete("failed", error=_problem(
+        job.id, 500, "internal-error", "Internal error",
+        f"the registration failed because of an internal error (logged under job {job.id})"))
+
+
+def _thread_budget() -> str:
+    """The CPU threads torch and numba use *on this thread* (both settings are per thread)."""
+    try:
+        import numba
+        import torch
+
+        return f"{torch.get_num_threads()} torch / {numba.get_num_threads()} numba threads"
+    except Exception:  # noqa: BLE001 - informative only
+        return "unknown threads"
+
+
+def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher,
+              out_dir: Path) -> str:
+    """Inputs → one engine call → artifacts and result into the store (both retried across store outages)."""
+    pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
+    if pacs is None:
+        files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.input_limits)
+    else:
+        files = pacs.fetch()
+    result = run_job(files, job.options, out_dir, limits=settings.input_limits, control=control,
+                     label=f"job {job.id}", dicom="best_effort" if pacs is None else "required")
+    if control.lost:
+        return "lost"
+    if pacs is not None:
+        control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
+        result = pacs.store_back(result, out_dir)
+    control.progress({"stage": "saving", "iteration": 0, "loss": None, "fraction": SAVING_FRACTION})
+    artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
+    outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
+    if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete
+        for name, digest in artifacts.items():
+            if not blobs.exists(digest):
+                blobs.put_file(out_dir / name)
+    return outcome
+
+
+def _stopped(job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher) -> str:
+    """The engine stopped early: canceled, lost lease, timed out, or worker shutting down."""
+    if control.lost:
+        return "lost"
+    if control.cancel:
+        return finish.complete("canceled")
+    if control.timed_out:
+        err = _problem(job.id, 500, "job-timeout", "Job timed out",
+                       f"the registration did not finish within {settings.job_timeout_seconds:g} s; "
+                       "try fewer starts, fewer iterations or a smaller working_size_px")
+        return finish.complete("failed", error=err)
+    return finish.release()  # worker shutting down: hand the job back
+
+
+def warm_up() -> None:
+    """Load the engine, its compiled kernels and everything a job imports on first use, by running
+    one tiny registration with all its outputs, before the first job (best effort): a fresh worker's
+    first job otherwise costs ~1.5 CPU-s more than the next ones."""
+    import tempfile
+
+    try:
+        engine.warm_up_renderer()
+        with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-") as work_dir:
+            engine.warm_up_job(Path(work_dir))
+    except Exception:
+        log.warning("warm-up incomplete; the first job will be slower", exc_info=True)
+
+
+def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
+    """Entry point of a worker process.
+
+    ``link``: the read end of the server's :class:`~service.jobs.procwatch.WakeLink` (None for a
+    standalone ``dsareg worker --engine embedded``); its end-of-file, SIGTERM, or the death of
+    ``parent_pid`` stop the worker (a running job is handed back to the queue).
+    """
+    import signal
+
+    from .procwatch import WorkerControl, die_with_parent
+
+    control = WorkerControl()
+    signal.signal(signal.SIGINT, signal.SIG_IGN if link is not None else control.request_stop)
+    signal.signal(signal.SIGTERM, control.request_stop)
+    if parent_pid is not None:
+        die_with_parent(parent_pid)
+    if link is not None:
+        control.watch(link)
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        engine.set_cpu_threads(settings.threads_per_worker or engine.default_cpu_threads(max(1, settings.workers)))
+    except Exception:  # noqa: BLE001
+        log.warning("could not set the worker's CPU threads")
+    warm_up()
+    _claim_loop(settings, index, control)
+
+
+def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
+    """Claim and run jobs until stopped; idle, wait for a wake-up or ``poll_seconds``."""
+    store = SqlJobStore(settings.effective_database_url, create_schema=False)
+    from ..storage.dbblobs import make_blob_store
+
+    blobs = make_blob_store(settings, store.engine, cache=False)
+    worker_id = make_worker_id(index)
+    log.info("worker %s started", worker_id)
+    last_seen = 0.0
+    try:
+        while not control.stop.is_set():
+            now = time.monotonic()
+            if now - last_seen > max(1.0, settings.effective_heartbeat_seconds):
+                try:
+                    store.worker_seen(worker_id, os.getpid())
+                except Exception:  # noqa: BLE001
+                    log.warning("worker %s: store not reachable", worker_id)
+                last_seen = now
+            try:
+                job = store.claim(worker_id, settings.lease_seconds)
+            except Exception:  # noqa: BLE001
+                log.warning("worker %s: claim failed", worker_id)
+                job = None
+            if job is None:
+                control.wait_for_work(settings.poll_seconds)
+                continue
+            log.info("job %s: claimed by %s (attempt %d)", job.id, worker_id, job.attempts)
+            run_one(store, blobs, job, worker_id, settings, control.stop)
+            last_seen = 0.0
+    finally:
+        store.dispose()
+        log.info("worker %s stopped", worker_id)

@@ -1,0 +1,1 @@
+"""PACS: the DICOMweb client (``dicomweb``) and the fetch before / STOW-RS after a job by reference (``dicom_jobs``)."""

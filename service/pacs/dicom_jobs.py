@@ -1,0 +1,91 @@
+"""The PACS side of a job submitted by DICOMweb reference, run by the worker.
+
+A job by reference (``source.dicomweb``) fetches its inputs with QIDO-RS / WADO-RS before the
+engine runs (:meth:`PacsJob.fetch`) and, with ``store_results``, stores the REG and the overlays
+back into the study with STOW-RS after it (:meth:`PacsJob.store_back`); ``result.dicom`` lists
+what was fetched, written and stored. The DICOM results themselves (``reg.dcm``,
+``overlay_{ap,lat}.dcm``, ``loss.dcm``, served under ``/v1/registrations/{id}/dicom/...``) are
+written by the engine for every job (``engine.run_case``).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from .dicomweb import (
+    DicomwebClient,
+    DicomwebRegistrationRequest,
+    PacsError,
+    fetch_inputs,
+    parse_reference,
+    resolve_server,
+)
+from ..engine_adapter import engine, fetched_case_files
+from ..settings import ServiceSettings
+from ..storage.store import JobRecord
+
+REFERENCE_ROLE = "dicomweb"
+STORED_FILES = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))
+
+
+def pacs_job(job: JobRecord, read: Any, settings: ServiceSettings) -> PacsJob | None:
+    """The job's DICOMweb reference (``None`` for a job whose inputs were uploaded)."""
+    refs = [item for item in job.inputs if item.role == REFERENCE_ROLE]
+    return PacsJob(parse_reference(read(refs[0].sha256)), settings) if refs else None
+
+
+class PacsJob:
+    """Fetch the inputs of a job by reference and store its DICOM results back."""
+
+    def __init__(self, reference: DicomwebRegistrationRequest, settings: ServiceSettings):
+        self.reference, self.settings = reference, settings
+        self.source_info: dict[str, Any] = {}
+
+    def _client(self) -> DicomwebClient:
+        source = self.reference.source.dicomweb
+        server = resolve_server(self.settings, source.url)
+        if server is None:  # accepted earlier, since removed from the settings
+            raise PacsError(source.url, "configuration", "no longer one of this server's DICOMweb servers")
+        return DicomwebClient(server, timeout=self.settings.dicomweb_timeout_seconds,
+                              retries=self.settings.dicomweb_retries,
+                              backoff=self.settings.dicomweb_retry_backoff_seconds,
+                              max_bytes=self.settings.max_upload_bytes)
+
+    def fetch(self) -> Any:
+        """The study's AP, LAT and volume instances as ``engine.CaseFiles`` (geometry from the XA headers)."""
+        source = self.reference.source.dicomweb
+        with self._client() as client:
+            fetched = fetch_inputs(client, source)
+        self.source_info = {"server": client.server.url, "study_uid": source.study_uid,
+                            "fetch_seconds": round(fetched.seconds, 3), "requests": fetched.calls}
+        return fetched_case_files(fetched.ap, fetched.lat, fetched.volume, source.frame, fetched.warnings)
+
+    def store_back(self, result: dict, out_dir: Path) -> dict:
+        """Add where the inputs came from to ``result['dicom']`` and, when asked, STOW the REG and overlays."""
+        dicom = result["dicom"]
+        dicom["source"] = self.source_info
+        if not self.reference.store_results:
+            return result
+        source = self.reference.source.dicomweb
+        started = time.perf_counter()
+        try:
+            with self._client() as client:
+                stored = client.store(source.study_uid, [(Path(out_dir) / name).read_bytes() for name in STORED_FILES])
+        except PacsError as exc:
+            exc.mesh_to_world = result["mesh_to_world"]  # the registration itself succeeded
+            raise
+        uids = [dicom["instances"][name]["sop_instance_uid"] for name in STORED_FILES]
+        dicom["stored"] = {"server": client.server.url, "study_uid": source.study_uid, "sop_instance_uids": uids,
+                           "confirmed": sorted(set(uids) & set(stored)) == sorted(set(uids)),
+                           "store_seconds": round(time.perf_counter() - started, 3)}
+        return result
+
+
+def pacs_problem(exc: PacsError) -> dict[str, Any]:
+    """The ``extra`` members of the failed job's problem."""
+    extra = exc.problem_extra()
+    if getattr(exc, "mesh_to_world", None) is not None:
+        extra["mesh_to_world"] = exc.mesh_to_world
+    return extra

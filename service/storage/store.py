@@ -1,0 +1,710 @@
+"""The job store: the single record of every job.
+
+:class:`JobStore` is the interface the API, the workers and the sweeper use;
+:class:`SqlJobStore` implements it on SQLAlchemy Core with portable SQL only (SQLite in
+WAL mode by default, any SQLAlchemy URL by configuration, e.g. PostgreSQL later).
+
+Lease protocol (all transitions are single conditional UPDATEs, so they are atomic
+on any SQL database and never need a lock held across a round trip):
+
+* **claim** — pick the oldest queued job, then ``UPDATE … SET status='running',
+  worker_id=:me, lease_expires_at=now+lease, attempts=attempts+1 WHERE id=:id AND
+  status='queued'``; one row changed means the job is ours, zero means another worker
+  won the race and we try the next candidate.
+* **heartbeat / progress** — ``UPDATE … SET lease_expires_at=… WHERE id=:id AND
+  worker_id=:me AND status='running'``; zero rows means we lost the job (lease
+  expired and it was taken over, or it was deleted) and the worker must stop.
+* **complete** — the same ``WHERE worker_id=:me AND status='running'`` guard, so a job
+  is completed at most once even if a presumed-dead worker comes back.
+* **recover** — running jobs whose lease expired go back to ``queued`` (attempts
+  left) or to ``failed`` with a reason (no attempts left).
+"""
+
+from __future__ import annotations
+
+import abc
+import base64
+import json
+import secrets
+import time
+import uuid
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.exc import IntegrityError
+
+STATUSES = ("queued", "running", "succeeded", "failed", "canceled")
+FINISHED = ("succeeded", "failed", "canceled")
+
+
+def new_job_id() -> str:
+    """Server-made, unguessable, URL-safe (never derived from user input)."""
+    return uuid.uuid4().hex
+
+
+@dataclass
+class InputFile:
+    role: str  # mesh | volume | ap | lat | geometry
+    sha256: str
+    size: int
+    suffix: str  # sanitized extension, e.g. ".obj" (the only part of a client file name kept)
+
+
+@dataclass
+class JobRecord:
+    id: str
+    owner: str
+    status: str
+    created_at: float
+    updated_at: float
+    started_at: float | None = None
+    finished_at: float | None = None
+    attempts: int = 0
+    max_attempts: int = 3
+    worker_id: str | None = None
+    lease_expires_at: float | None = None
+    cancel_requested: bool = False
+    options: dict[str, Any] = field(default_factory=dict)
+    geometry: str | None = None  # canonical geometry JSON; older rows: a preset name or compact JSON (engine_adapter.job_geometry)
+    inputs: list[InputFile] = field(default_factory=list)
+    progress: dict[str, Any] | None = None
+    result: dict[str, Any] | None = None
+    error: dict[str, Any] | None = None
+    artifacts: dict[str, str] = field(default_factory=dict)  # name -> sha256
+    warnings: list[str] = field(default_factory=list)
+    idempotency_key: str | None = None
+    request_hash: str | None = None
+    input_bytes: int = 0
+    callback_url: str | None = None  # set at creation (its delivery state: ``callback``)
+    previous_id: str | None = None  # the job a tracking job started from (``POST …/track``)
+    callback: dict[str, Any] | None = None  # delivery state of the completion callback (read by ``get``)
+
+
+class ConflictError(Exception):
+    """Idempotency key reused with another request body."""
+
+    def __init__(self, existing: JobRecord):
+        super().__init__("idempotency conflict")
+        self.existing = existing
+
+
+class JobStore(abc.ABC):
+    """What the service needs from a job database (see the module docstring for the lease protocol)."""
+
+    @abc.abstractmethod
+    def create(self, job: JobRecord) -> tuple[JobRecord, bool]:
+        """Insert; with an idempotency key already used by ``job.owner``: the existing job and
+        ``False`` if its request hash matches, else :class:`ConflictError`."""
+
+    @abc.abstractmethod
+    def find_idempotent(self, owner: str, key: str) -> JobRecord | None: ...
+
+    @abc.abstractmethod
+    def get(self, job_id: str) -> JobRecord | None: ...
+
+    @abc.abstractmethod
+    def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None) -> tuple[list[JobRecord], str | None]: ...
+
+    @abc.abstractmethod
+    def count_by_status(self) -> dict[str, int]: ...
+
+    @abc.abstractmethod
+    def queued_count(self, owner: str | None = None) -> int: ...
+
+    @abc.abstractmethod
+    def request_cancel(self, job_id: str) -> JobRecord | None: ...
+
+    @abc.abstractmethod
+    def delete(self, job_id: str) -> list[str]:
+        """Remove the job; returns the blob hashes no other job references any more."""
+
+    @abc.abstractmethod
+    def claim(self, worker_id: str, lease_seconds: float) -> JobRecord | None: ...
+
+    def claim_job(self, job_id: str, worker_id: str, lease_seconds: float) -> JobRecord | None:
+        """Claim one given job (same guard as :meth:`claim`); None when it is not queued."""
+        raise NotImplementedError
+
+    def queued_since(self, before: float, limit: int = 1000) -> list[str]:
+        """Ids of queued jobs not updated since ``before`` (oldest first)."""
+        raise NotImplementedError
+
+    @abc.abstractmethod
+    def heartbeat(self, job_id: str, worker_id: str, lease_seconds: float, progress: dict | None = None) -> tuple[bool, bool]:
+        """Extend the lease (and store progress); returns ``(still_owned, cancel_requested)``."""
+
+    @abc.abstractmethod
+    def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
+                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool: ...
+
+    @abc.abstractmethod
+    def release(self, job_id: str, worker_id: str) -> bool:
+        """Give a claimed job back to the queue (worker shutting down), without using up an attempt."""
+
+    @abc.abstractmethod
+    def recover_expired(self) -> tuple[list[str], list[str]]:
+        """Requeue (or fail, when out of attempts) running jobs whose lease expired."""
+
+    @abc.abstractmethod
+    def expired_finished(self, before: float) -> list[str]: ...
+
+    @abc.abstractmethod
+    def referenced_blobs(self) -> set[str]: ...
+
+    @abc.abstractmethod
+    def worker_seen(self, worker_id: str, pid: int) -> None: ...
+
+    @abc.abstractmethod
+    def live_workers(self, since: float) -> int: ...
+
+    @abc.abstractmethod
+    def finished_durations(self) -> list[tuple[str, float]]: ...
+
+    @abc.abstractmethod
+    def events(self, job_id: str) -> list[dict[str, Any]]: ...
+
+    @abc.abstractmethod
+    def ping(self) -> bool:
+        """True when the store accepts a write."""
+
+    # completion callbacks (service/jobs/callbacks.py): at-least-once, claimed with a lease like jobs
+    def due_callbacks(self, now: float, limit: int = 20) -> list[str]:
+        """Jobs that ended whose callback is due (pending and its time has come, or its delivery lease expired)."""
+        raise NotImplementedError
+
+    def claim_callback(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
+        """Take one due delivery (``attempts`` + 1); None when another deliverer has it or it is not due."""
+        raise NotImplementedError
+
+    def finish_callback(self, job_id: str, attempt: int, *, state: str, status_code: int | None,
+                        error: str | None, next_attempt_at: float | None) -> bool:
+        """Record the outcome of delivery ``attempt`` (``delivered``, ``pending`` again, or ``failed``)."""
+        raise NotImplementedError
+
+
+# ---- SQLAlchemy implementation -----------------------------------------------------------
+
+metadata = sa.MetaData()
+
+jobs = sa.Table(
+    "jobs", metadata,
+    sa.Column("id", sa.String(32), primary_key=True),
+    sa.Column("owner", sa.String(64), nullable=False),
+    sa.Column("status", sa.String(16), nullable=False),
+    sa.Column("created_at", sa.Float, nullable=False),
+    sa.Column("updated_at", sa.Float, nullable=False),
+    sa.Column("started_at", sa.Float),
+    sa.Column("finished_at", sa.Float),
+    sa.Column("attempts", sa.Integer, nullable=False, default=0),
+    sa.Column("max_attempts", sa.Integer, nullable=False, default=3),
+    sa.Column("worker_id", sa.String(96)),
+    sa.Column("lease_expires_at", sa.Float),
+    sa.Column("cancel_requested", sa.Boolean, nullable=False, default=False),
+    sa.Column("options", sa.Text, nullable=False),
+    sa.Column("geometry", sa.Text),
+    sa.Column("inputs", sa.Text, nullable=False),
+    sa.Column("progress", sa.Text),
+    sa.Column("result", sa.Text),
+    sa.Column("error", sa.Text),
+    sa.Column("artifacts", sa.Text),
+    sa.Column("warnings", sa.Text),
+    sa.Column("idempotency_key", sa.String(255)),
+    sa.Column("request_hash", sa.String(64)),
+    sa.Column("input_bytes", sa.BigInteger, nullable=False, default=0),
+    sa.UniqueConstraint("owner", "idempotency_key", name="uq_jobs_owner_idempotency"),
+    sa.Index("ix_jobs_status_created", "status", "created_at"),
+    sa.Index("ix_jobs_created", "created_at", "id"),
+)
+
+job_blobs = sa.Table(
+    "job_blobs", metadata,
+    sa.Column("job_id", sa.String(32), nullable=False, index=True),
+    sa.Column("sha256", sa.String(64), nullable=False, index=True),
+    sa.Column("role", sa.String(32), nullable=False),
+)
+
+job_events = sa.Table(
+    "job_events", metadata,
+    sa.Column("seq", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("job_id", sa.String(32), nullable=False, index=True),
+    sa.Column("at", sa.Float, nullable=False),
+    sa.Column("event", sa.String(32), nullable=False),
+    sa.Column("worker_id", sa.String(96)),
+    sa.Column("attempt", sa.Integer),
+)
+
+workers = sa.Table(
+    "workers", metadata,
+    sa.Column("id", sa.String(96), primary_key=True),
+    sa.Column("pid", sa.Integer),
+    sa.Column("last_seen", sa.Float, nullable=False),
+)
+
+job_callbacks = sa.Table(
+    "job_callbacks", metadata,
+    sa.Column("job_id", sa.String(32), primary_key=True),
+    sa.Column("url", sa.Text, nullable=False),
+    sa.Column("delivery_id", sa.String(32), nullable=False),
+    sa.Column("state", sa.String(16), nullable=False),  # pending | delivering | delivered | failed
+    sa.Column("attempts", sa.Integer, nullable=False, default=0),
+    sa.Column("next_attempt_at", sa.Float, nullable=False, default=0.0),
+    sa.Column("lease_until", sa.Float),
+    sa.Column("last_attempt_at", sa.Float),
+    sa.Column("delivered_at", sa.Float),
+    sa.Column("last_status", sa.Integer),
+    sa.Column("last_error", sa.Text),
+    sa.Index("ix_job_callbacks_state", "state", "next_attempt_at"),
+)
+"""One row per job with a ``callback_url`` (a table of its own: databases of earlier versions gain it)."""
+
+job_previous = sa.Table(
+    "job_previous", metadata,
+    sa.Column("job_id", sa.String(32), primary_key=True),
+    sa.Column("previous_id", sa.String(32), nullable=False),
+)
+"""The job a tracking job started from (``Link: rel="previous"``)."""
+
+CALLBACK_COLUMNS = ("url", "delivery_id", "state", "attempts", "next_attempt_at", "last_attempt_at", "delivered_at",
+                    "last_status", "last_error")
+
+probe = sa.Table(
+    "store_probe", metadata,
+    sa.Column("id", sa.Integer, primary_key=True),
+    sa.Column("at", sa.Float, nullable=False),
+)
+
+
+def _dump(value: Any) -> str | None:
+    return None if value is None else json.dumps(value, separators=(",", ":"))
+
+
+def _load(text: str | None, default: Any = None) -> Any:
+    return default if text is None else json.loads(text)
+
+
+def _encode_cursor(created_at: float, job_id: str) -> str:
+    return base64.urlsafe_b64encode(f"{created_at!r}|{job_id}".encode()).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str) -> tuple[float, str]:
+    """Raises ``ValueError`` for a malformed cursor."""
+    padded = cursor + "=" * (-len(cursor) % 4)
+    created, job_id = base64.urlsafe_b64decode(padded.encode()).decode().split("|", 1)
+    if len(job_id) > 32 or not job_id.isalnum():
+        raise ValueError("bad cursor")
+    return float(created), job_id
+
+
+class SqlJobStore(JobStore):
+    def __init__(self, url: str, *, create_schema: bool = True):
+        self.url = url
+        self.is_sqlite = url.startswith("sqlite")
+        kwargs: dict[str, Any] = {"future": True}
+        if self.is_sqlite:
+            kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
+        else:
+            kwargs["pool_pre_ping"] = True
+        self.engine = sa.create_engine(url, **kwargs)
+        self.writer = self.engine
+        if self.is_sqlite:
+            sa.event.listen(self.engine, "connect", _sqlite_pragmas)
+            # BEGIN IMMEDIATE for writes keeps the conditional updates serialized without deadlock retries
+            sa.event.listen(self.engine, "begin", _sqlite_begin)
+        # writes take the database lock up front (BEGIN IMMEDIATE on SQLite), reads do not
+        self.writer = self.engine.execution_options(dsareg_write=True)
+        if create_schema:
+            metadata.create_all(self.engine)
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+    # ---- helpers ---------------------------------------------------------------------------
+    def _row_to_job(self, row: Any) -> JobRecord:
+        m = row._mapping
+        return JobRecord(
+            id=m["id"], owner=m["owner"], status=m["status"], created_at=m["created_at"], updated_at=m["updated_at"],
+            started_at=m["started_at"], finished_at=m["finished_at"], attempts=m["attempts"],
+            max_attempts=m["max_attempts"], worker_id=m["worker_id"], lease_expires_at=m["lease_expires_at"],
+            cancel_requested=bool(m["cancel_requested"]), options=_load(m["options"], {}), geometry=m["geometry"],
+            inputs=[InputFile(**item) for item in _load(m["inputs"], [])], progress=_load(m["progress"]),
+            result=_load(m["result"]), error=_load(m["error"]), artifacts=_load(m["artifacts"], {}) or {},
+            warnings=_load(m["warnings"], []) or [], idempotency_key=m["idempotency_key"],
+            request_hash=m["request_hash"], input_bytes=m["input_bytes"] or 0,
+            callback_url=m.get("cb_url"), previous_id=m.get("previous_id"),
+            callback={name: m.get(f"cb_{name}") for name in CALLBACK_COLUMNS} if m.get("cb_url") else None,
+        )
+
+    def _event(self, conn: Any, job_id: str, event: str, worker_id: str | None = None, attempt: int | None = None) -> None:
+        conn.execute(job_events.insert().values(job_id=job_id, at=time.time(), event=event, worker_id=worker_id, attempt=attempt))
+
+    # ---- API side ----------------------------------------------------------------------------
+    def create(self, job: JobRecord) -> tuple[JobRecord, bool]:
+        values = dict(  # noqa: C408 - column names as keywords
+            id=job.id, owner=job.owner, status="queued", created_at=job.created_at, updated_at=job.created_at,
+            attempts=0, max_attempts=job.max_attempts, cancel_requested=False, options=_dump(job.options),
+            geometry=job.geometry, inputs=_dump([vars(f) for f in job.inputs]), warnings=_dump(job.warnings),
+            idempotency_key=job.idempotency_key, request_hash=job.request_hash, input_bytes=job.input_bytes,
+            artifacts=_dump({}),
+        )
+        try:
+            with self.writer.begin() as conn:
+                conn.execute(jobs.insert().values(**values))
+                for item in job.inputs:
+                    conn.execute(job_blobs.insert().values(job_id=job.id, sha256=item.sha256, role=item.role))
+                if job.callback_url:
+                    conn.execute(job_callbacks.insert().values(
+                        job_id=job.id, url=job.callback_url, delivery_id=uuid.uuid4().hex, state="pending",
+                        attempts=0, next_attempt_at=0.0))
+                if job.previous_id:
+                    conn.execute(job_previous.insert().values(job_id=job.id, previous_id=job.previous_id))
+                self._event(conn, job.id, "queued")
+        except IntegrityError:
+            if job.idempotency_key is None:
+                raise
+            existing = self.find_idempotent(job.owner, job.idempotency_key)
+            if existing is None:
+                raise
+            if existing.request_hash != job.request_hash:
+                raise ConflictError(existing) from None
+            return existing, False
+        stored = self.get(job.id)
+        assert stored is not None
+        return stored, True
+
+    def find_idempotent(self, owner: str, key: str) -> JobRecord | None:
+        with self.engine.connect() as conn:
+            row = conn.execute(sa.select(jobs).where(jobs.c.owner == owner, jobs.c.idempotency_key == key)).first()
+        return None if row is None else self._row_to_job(row)
+
+    def get(self, job_id: str) -> JobRecord | None:
+        """The job, with its callback's delivery state and its previous job (outer joins)."""
+        query = (sa.select(jobs, *(job_callbacks.c[name].label(f"cb_{name}") for name in CALLBACK_COLUMNS),
+                           job_previous.c.previous_id)
+                 .select_from(jobs.outerjoin(job_callbacks, job_callbacks.c.job_id == jobs.c.id)
+                              .outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
+                 .where(jobs.c.id == job_id))
+        with self.engine.connect() as conn:
+            row = conn.execute(query).first()
+        return None if row is None else self._row_to_job(row)
+
+    def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None) -> tuple[list[JobRecord], str | None]:
+        query = sa.select(jobs)
+        if owner is not None:
+            query = query.where(jobs.c.owner == owner)
+        if status is not None:
+            query = query.where(jobs.c.status == status)
+        if cursor:
+            created, job_id = decode_cursor(cursor)
+            query = query.where(sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < job_id)))
+        query = query.order_by(jobs.c.created_at.desc(), jobs.c.id.desc()).limit(limit + 1)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query).fetchall()
+        records = [self._row_to_job(r) for r in rows[:limit]]
+        next_cursor = _encode_cursor(records[-1].created_at, records[-1].id) if len(rows) > limit and records else None
+        return records, next_cursor
+
+    def count_by_status(self) -> dict[str, int]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(jobs.c.status, sa.func.count()).group_by(jobs.c.status)).fetchall()
+        counts = {s: 0 for s in STATUSES}
+        counts.update({status: int(n) for status, n in rows})
+        return counts
+
+    def queued_count(self, owner: str | None = None) -> int:
+        query = sa.select(sa.func.count()).select_from(jobs).where(jobs.c.status == "queued")
+        if owner is not None:
+            query = query.where(jobs.c.owner == owner)
+        with self.engine.connect() as conn:
+            return int(conn.execute(query).scalar_one())
+
+    def request_cancel(self, job_id: str) -> JobRecord | None:
+        now = time.time()
+        with self.writer.begin() as conn:
+            done = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, jobs.c.status == "queued")
+                .values(status="canceled", finished_at=now, updated_at=now, cancel_requested=True)
+            ).rowcount
+            if done:
+                self._event(conn, job_id, "canceled")
+            else:
+                flagged = conn.execute(
+                    jobs.update().where(jobs.c.id == job_id, jobs.c.status == "running", jobs.c.cancel_requested.is_(False))
+                    .values(cancel_requested=True, updated_at=now)
+                ).rowcount
+                if flagged:
+                    self._event(conn, job_id, "cancel_requested")
+        return self.get(job_id)
+
+    def delete(self, job_id: str) -> list[str]:
+        with self.writer.begin() as conn:
+            hashes = {r[0] for r in conn.execute(sa.select(job_blobs.c.sha256).where(job_blobs.c.job_id == job_id))}
+            conn.execute(job_blobs.delete().where(job_blobs.c.job_id == job_id))
+            conn.execute(job_events.delete().where(job_events.c.job_id == job_id))
+            conn.execute(job_callbacks.delete().where(job_callbacks.c.job_id == job_id))
+            conn.execute(job_previous.delete().where(job_previous.c.job_id == job_id))
+            conn.execute(jobs.delete().where(jobs.c.id == job_id))
+            still = set()
+            if hashes:
+                still = {r[0] for r in conn.execute(sa.select(job_blobs.c.sha256).where(job_blobs.c.sha256.in_(hashes)))}
+        return sorted(hashes - still)
+
+    # ---- worker side -------------------------------------------------------------------------
+    def claim(self, worker_id: str, lease_seconds: float) -> JobRecord | None:
+        for _ in range(5):
+            with self.engine.connect() as conn:
+                candidates = conn.execute(
+                    sa.select(jobs.c.id).where(jobs.c.status == "queued").order_by(jobs.c.created_at, jobs.c.id).limit(5)
+                ).scalars().all()
+            if not candidates:
+                return None
+            for job_id in candidates:
+                job = self.claim_job(job_id, worker_id, lease_seconds)
+                if job is not None:
+                    return job
+        return None
+
+    def claim_job(self, job_id: str, worker_id: str, lease_seconds: float) -> JobRecord | None:
+        now = time.time()
+        with self.writer.begin() as conn:
+            won = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, jobs.c.status == "queued").values(
+                    status="running", worker_id=worker_id, lease_expires_at=now + lease_seconds,
+                    attempts=jobs.c.attempts + 1, started_at=sa.func.coalesce(jobs.c.started_at, now),
+                    updated_at=now, progress=None,
+                )
+            ).rowcount
+            if won:
+                attempt = conn.execute(sa.select(jobs.c.attempts).where(jobs.c.id == job_id)).scalar_one()
+                self._event(conn, job_id, "claimed", worker_id, attempt)
+        return self.get(job_id) if won else None
+
+    def queued_since(self, before: float, limit: int = 1000) -> list[str]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(
+                sa.select(jobs.c.id).where(jobs.c.status == "queued", jobs.c.updated_at < before)
+                .order_by(jobs.c.created_at, jobs.c.id).limit(limit)
+            ).scalars())
+
+    def heartbeat(self, job_id: str, worker_id: str, lease_seconds: float, progress: dict | None = None) -> tuple[bool, bool]:
+        now = time.time()
+        values: dict[str, Any] = {"lease_expires_at": now + lease_seconds, "updated_at": now}
+        if progress is not None:
+            values["progress"] = _dump(progress)
+        with self.writer.begin() as conn:
+            owned = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, jobs.c.worker_id == worker_id, jobs.c.status == "running").values(**values)
+            ).rowcount
+            if not owned:
+                return False, False
+            cancel = conn.execute(sa.select(jobs.c.cancel_requested).where(jobs.c.id == job_id)).scalar_one()
+        return True, bool(cancel)
+
+    def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
+                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool:
+        """Finish the job if this worker still owns it.
+
+        With ``attempt``: also when its lease expired meanwhile (e.g. the database was down while
+        the job finished) and the sweeper put it back in the queue, as long as no worker claimed it
+        since (``status='queued' AND attempts=attempt``): the result is kept instead of running the
+        job again, and it still completes at most once.
+        """
+        if status not in FINISHED:
+            raise ValueError(status)
+        now = time.time()
+        owned = sa.and_(jobs.c.worker_id == worker_id, jobs.c.status == "running")
+        if attempt is not None:
+            owned = sa.or_(owned, sa.and_(jobs.c.status == "queued", jobs.c.worker_id.is_(None),
+                                          jobs.c.attempts == attempt, jobs.c.cancel_requested.is_(False)))
+        with self.writer.begin() as conn:
+            done = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, owned).values(
+                    status=status, finished_at=now, updated_at=now, lease_expires_at=None, result=_dump(result),
+                    worker_id=worker_id,
+                    error=_dump(error), artifacts=_dump(artifacts or {}),
+                )
+            ).rowcount
+            if done:
+                for name, digest in (artifacts or {}).items():
+                    conn.execute(job_blobs.insert().values(job_id=job_id, sha256=digest, role=f"artifact:{name}"))
+                attempt = conn.execute(sa.select(jobs.c.attempts).where(jobs.c.id == job_id)).scalar_one()
+                self._event(conn, job_id, status, worker_id, attempt)
+        return bool(done)
+
+    def release(self, job_id: str, worker_id: str) -> bool:
+        now = time.time()
+        with self.writer.begin() as conn:
+            done = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, jobs.c.worker_id == worker_id, jobs.c.status == "running").values(
+                    status="queued", worker_id=None, lease_expires_at=None, attempts=jobs.c.attempts - 1,
+                    updated_at=now, progress=None,
+                )
+            ).rowcount
+            if done:
+                self._event(conn, job_id, "released", worker_id)
+        return bool(done)
+
+    def recover_expired(self) -> tuple[list[str], list[str]]:
+        now = time.time()
+        requeued: list[str] = []
+        failed: list[str] = []
+        with self.engine.connect() as conn:
+            rows = conn.execute(
+                sa.select(jobs.c.id, jobs.c.worker_id, jobs.c.attempts, jobs.c.max_attempts, jobs.c.cancel_requested)
+                .where(jobs.c.status == "running", jobs.c.lease_expires_at < now)
+            ).fetchall()
+        for job_id, worker_id, attempts, max_attempts, cancel in rows:
+            guard = (jobs.c.id == job_id, jobs.c.status == "running", jobs.c.worker_id == worker_id, jobs.c.lease_expires_at < now)
+            with self.writer.begin() as conn:
+                if cancel:
+                    n = conn.execute(jobs.update().where(*guard).values(
+                        status="canceled", finished_at=now, updated_at=now, lease_expires_at=None)).rowcount
+                    if n:
+                        self._event(conn, job_id, "canceled", worker_id, attempts)
+                        failed.append(job_id)
+                elif attempts < max_attempts:
+                    n = conn.execute(jobs.update().where(*guard).values(
+                        status="queued", worker_id=None, lease_expires_at=None, updated_at=now, progress=None)).rowcount
+                    if n:
+                        self._event(conn, job_id, "lease_expired", worker_id, attempts)
+                        requeued.append(job_id)
+                else:
+                    error = {
+                        "type": "https://dsareg.dev/problems/worker-lost", "title": "Worker lost", "status": 500,
+                        "detail": f"no heartbeat from the job's worker within the lease on each of {attempts} attempts "
+                                  "(the worker crashed or was killed, e.g. out of memory, or could not reach the "
+                                  "job database)",
+                        "instance": f"/v1/registrations/{job_id}",
+                    }
+                    n = conn.execute(jobs.update().where(*guard).values(
+                        status="failed", finished_at=now, updated_at=now, lease_expires_at=None, error=_dump(error))).rowcount
+                    if n:
+                        self._event(conn, job_id, "failed", worker_id, attempts)
+                        failed.append(job_id)
+        return requeued, failed
+
+    # ---- maintenance ---------------------------------------------------------------------------
+    def expired_finished(self, before: float) -> list[str]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(
+                sa.select(jobs.c.id).where(jobs.c.status.in_(FINISHED), jobs.c.finished_at < before)
+            ).scalars())
+
+    def referenced_blobs(self) -> set[str]:
+        with self.engine.connect() as conn:
+            return set(conn.execute(sa.select(job_blobs.c.sha256).distinct()).scalars())
+
+    def worker_seen(self, worker_id: str, pid: int) -> None:
+        now = time.time()
+        with self.writer.begin() as conn:
+            n = conn.execute(workers.update().where(workers.c.id == worker_id).values(last_seen=now)).rowcount
+            if not n:
+                conn.execute(workers.insert().values(id=worker_id, pid=pid, last_seen=now))
+            conn.execute(workers.delete().where(workers.c.last_seen < now - 86400))
+
+    def live_workers(self, since: float) -> int:
+        with self.engine.connect() as conn:
+            return int(conn.execute(sa.select(sa.func.count()).select_from(workers).where(workers.c.last_seen >= since)).scalar_one())
+
+    def finished_durations(self) -> list[tuple[str, float]]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(
+                sa.select(jobs.c.status, jobs.c.started_at, jobs.c.finished_at)
+                .where(jobs.c.status.in_(FINISHED), jobs.c.started_at.is_not(None), jobs.c.finished_at.is_not(None))
+            ).fetchall()
+        return [(status, max(0.0, finished - started)) for status, started, finished in rows]
+
+    def events(self, job_id: str) -> list[dict[str, Any]]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(job_events).where(job_events.c.job_id == job_id).order_by(job_events.c.seq)).fetchall()
+        return [dict(r._mapping) for r in rows]
+
+    # ---- completion callbacks ---------------------------------------------------------------
+    def _due(self, now: float):
+        pending = sa.and_(job_callbacks.c.state == "pending", job_callbacks.c.next_attempt_at <= now)
+        abandoned = sa.and_(job_callbacks.c.state == "delivering", job_callbacks.c.lease_until < now)
+        ended = sa.select(jobs.c.id).where(jobs.c.id == job_callbacks.c.job_id, jobs.c.status.in_(FINISHED)).exists()
+        return sa.and_(sa.or_(pending, abandoned), ended)
+
+    def due_callbacks(self, now: float, limit: int = 20) -> list[str]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(sa.select(job_callbacks.c.job_id).where(self._due(now))
+                                     .order_by(job_callbacks.c.next_attempt_at).limit(limit)).scalars())
+
+    def claim_callback(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
+        with self.writer.begin() as conn:
+            won = conn.execute(job_callbacks.update().where(job_callbacks.c.job_id == job_id, self._due(now)).values(
+                state="delivering", lease_until=now + lease_seconds, attempts=job_callbacks.c.attempts + 1,
+                last_attempt_at=now)).rowcount
+            if not won:
+                return None
+            row = conn.execute(sa.select(job_callbacks).where(job_callbacks.c.job_id == job_id)).first()
+        return dict(row._mapping)
+
+    def finish_callback(self, job_id: str, attempt: int, *, state: str, status_code: int | None,
+                        error: str | None, next_attempt_at: float | None) -> bool:
+        if state not in ("delivered", "pending", "failed"):
+            raise ValueError(state)
+        now = time.time()
+        values: dict[str, Any] = {"state": state, "lease_until": None, "last_status": status_code,
+                                  "last_error": None if error is None else error[:500]}
+        if state == "delivered":
+            values["delivered_at"] = now
+        if next_attempt_at is not None:
+            values["next_attempt_at"] = next_attempt_at
+        with self.writer.begin() as conn:
+            done = conn.execute(job_callbacks.update().where(
+                job_callbacks.c.job_id == job_id, job_callbacks.c.state == "delivering",
+                job_callbacks.c.attempts == attempt).values(**values)).rowcount
+        return bool(done)
+
+    def ping(self) -> bool:
+        try:
+            with self.writer.begin() as conn:
+                n = conn.execute(probe.update().where(probe.c.id == 1).values(at=time.time())).rowcount
+                if not n:
+                    conn.execute(probe.insert().values(id=1, at=time.time()))
+            return True
+        except Exception:  # noqa: BLE001 - readiness must answer, not raise
+            return False
+
+
+def _sqlite_begin(conn: Any) -> None:
+    conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("dsareg_write") else "BEGIN")
+
+
+def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
+    # let SQLAlchemy's "begin" event issue BEGIN IMMEDIATE itself
+    dbapi_conn.isolation_level = None
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")
+    cur.execute("PRAGMA synchronous=NORMAL")
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.execute("PRAGMA foreign_keys=ON")
+    cur.close()
+
+
+def store_outage_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions meaning "the job database is unreachable or busy" (connection refused or lost, pool
+    timeout, SQLite locked): answered 503 by the API, retried by workers; not bugs."""
+    return (sa.exc.OperationalError, sa.exc.InterfaceError, sa.exc.TimeoutError)
+
+
+def open_store(url: str) -> JobStore:
+    return SqlJobStore(url)
+
+
+def random_token(n: int = 6) -> str:
+    return secrets.token_hex(n)
+
+
+def iter_chunks(items: Iterable[str], size: int) -> Iterable[list[str]]:
+    chunk: list[str] = []
+    for item in items:
+        chunk.append(item)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk

@@ -1,0 +1,90 @@
+"""The DICOMweb client and request model without a PACS (httpx.MockTransport)."""
+
+from __future__ import annotations
+
+import gzip
+import json
+
+import httpx
+import pytest
+from pydantic import ValidationError
+
+from service.pacs.dicomweb import DicomwebClient, DicomwebRegistrationRequest, PacsError, PacsServer, configured_servers
+
+
+def client(handler, **kwargs) -> DicomwebClient:
+    return DicomwebClient(PacsServer("http://pacs/dicom-web"), transport=httpx.MockTransport(handler), backoff=0.0,
+                          **kwargs)
+
+
+def test_bounded_retries_then_success_or_failure():
+    calls = []
+
+    def flaky(request):
+        calls.append(request.url.path)
+        return httpx.Response(503 if len(calls) < 3 else 200, json=[])
+
+    assert client(flaky, retries=2).search_instances("1.2", "1.3") == [] and len(calls) == 3
+    calls.clear()
+    with pytest.raises(PacsError) as info:
+        client(flaky, retries=1).search_instances("1.2", "1.3")
+    assert (info.value.status, info.value.attempts, info.value.step) == (503, 2, "search instances (QIDO-RS)")
+    assert "http://pacs/dicom-web" in str(info.value)
+
+    def not_found(request):
+        calls.append(1)
+        return httpx.Response(404, text="no such series")
+
+    calls.clear()
+    with pytest.raises(PacsError) as info:
+        client(not_found, retries=5).retrieve_series("1.2", "1.3")
+    assert info.value.status == 404 and info.value.attempts == 1 and len(calls) == 1  # 4xx: not retried
+    assert "no such series" in info.value.detail
+
+
+def test_multipart_gzip_and_byte_cap():
+    def handler(request):
+        if request.url.path.endswith("/instances/1.4"):
+            body = (b"--XyZ\r\nContent-Type: application/dicom\r\n\r\nfirst\r\n"
+                    b"--XyZ\r\nContent-Type: application/dicom\r\n\r\nsec\r\n--ond\r\n--XyZ--\r\n")
+            return httpx.Response(200, content=gzip.compress(body), headers={
+                "Content-Type": 'multipart/related; type="application/dicom"; boundary=XyZ', "Content-Encoding": "gzip"})
+        return httpx.Response(200, content=b"\x00" * 4096, headers={"Content-Type": "application/dicom"})
+
+    with pytest.raises(PacsError, match="expected one instance, got 2"):
+        client(handler).retrieve_instance("1.2", "1.3", "1.4")
+    assert client(handler).retrieve_series("1.2", "1.5") == [b"\x00" * 4096]
+    with pytest.raises(PacsError, match="exceeds 1000 bytes"):
+        client(handler, max_bytes=1000).retrieve_series("1.2", "1.5")
+
+
+def test_stow_reports_refused_instances():
+    def handler(request):
+        assert request.headers["content-type"].startswith('multipart/related; type="application/dicom"; boundary=')
+        return httpx.Response(202, json={"00081198": {"vr": "SQ", "Value": [{"00081197": {"vr": "US", "Value": [272]}}]},
+                                         "00081199": {"vr": "SQ", "Value": [
+                                             {"00081155": {"vr": "UI", "Value": ["1.2.3"]}}]}})
+
+    with pytest.raises(PacsError, match=r"1 instance\(s\) refused \(failure reasons \['272'\]\)"):
+        client(handler).store("1.2", [b"a", b"b"])
+
+
+def test_request_model_checks_uids_frames_and_refuses_credentials():
+    base = {"url": "http://pacs/dicom-web", "study_uid": "1.2.840.1", "ap": {"series_uid": "1.2.3"},
+            "lat": {"series_uid": "1.2.4", "frame": 3}, "volume": {"series_uid": "1.2.5"}}
+    request = DicomwebRegistrationRequest.model_validate({"source": {"dicomweb": base}})
+    assert request.store_results and request.source.dicomweb.frame == 3
+    for bad in ({"study_uid": "1.2/../x"}, {"study_uid": "1.02.3"}, {"ap": {"series_uid": "1.2", "frame": 1}},
+                {"password": "x"}, {"volume": {"series_uid": "1." + "1" * 70}}):
+        with pytest.raises(ValidationError):
+            DicomwebRegistrationRequest.model_validate({"source": {"dicomweb": {**base, **bad}}})
+
+
+def test_configured_servers_from_settings():
+    from service.settings import ServiceSettings
+
+    settings = ServiceSettings(dicomweb_servers=json.dumps(
+        [{"url": "http://a/dicom-web/", "username": "u", "password": "p"}, "http://b/wado"]))
+    servers = configured_servers(settings)
+    assert set(servers) == {"http://a/dicom-web", "http://b/wado"}
+    assert servers["http://a/dicom-web"].auth is not None and servers["http://b/wado"].auth is None

@@ -1,0 +1,80 @@
+import json
+
+import nibabel as nib
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from dsareg_engine.cli import main
+from dsareg_engine.geometry.file import paper_rig
+from dsareg_engine.io.rad import format_rad_header
+from dsareg_engine.io.volume_io import RAS_TO_LPS
+from dsareg_engine.simulation.phantom import make_vessel_phantom
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, build, phantom_volume):
+    folder = tmp_path_factory.mktemp("inputs")
+    phantom = make_vessel_phantom(depth=1)
+    trimesh.Trimesh(phantom.vertices, phantom.faces, process=False).export(str(folder / "tree.stl"))
+    image, _ = build.dsa()
+    (folder / "dsa.png").write_bytes(build.png(image))
+    (folder / "ap.dcm").write_bytes(build.xa(image.astype(np.uint16), primary=-17.0))
+    volume, affine, _ = phantom_volume
+    nib.save(nib.Nifti1Image(volume, RAS_TO_LPS @ affine), str(folder / "cta.nii.gz"))
+    series = folder / "series"
+    series.mkdir()
+    for index, part in enumerate(build.ct_series(volume, affine)):
+        (series / f"slice{index:03d}.dcm").write_bytes(part)
+    (folder / "lat.rad").write_bytes(format_rad_header((40, 30), (0.3, 0.3), "float", np.eye(4), [6.0, 4.5, 1000.0]))
+    (folder / "lat.raw").write_bytes(np.linspace(0, 1, 1200, dtype="<f4").tobytes())
+    (folder / "rig.json").write_text(json.dumps(paper_rig().to_dict()))
+    (folder / "noise.bin").write_bytes(b"\x01\x02" * 100)
+    return folder
+
+
+def test_inspect_every_kind(files, capsys):
+    names = ["tree.stl", "dsa.png", "ap.dcm", "cta.nii.gz", "series", "lat.rad", "rig.json"]
+    assert main(["inspect", *[str(files / n) for n in names]]) == 0
+    out = capsys.readouterr().out
+    assert "kind: mesh (stl)" in out and "faces: " in out
+    assert "kind: image (png)" in out and "geometry: none in the file" in out
+    assert "kind: image (dicom-xa)" in out and "SID 1200.0 mm" in out
+    assert "kind: volume (nifti)" in out and "spacing mm: [0.5, 0.5, 0.5]" in out
+    assert "kind: volume (dicom-series)" in out
+    assert "kind: image (rad)" in out and "SID 1000.0 mm" in out
+    assert "kind: geometry" in out and "angle between views: 90.0 deg" in out
+    assert "PHANTOM" not in out and "Anonymous" not in out
+
+
+def test_inspect_bad_file_exits_2(files, capsys):
+    assert main(["inspect", str(files / "noise.bin")]) == 2
+    assert "not a recognised" in capsys.readouterr().err
+    assert main(["inspect", str(files / "missing.png")]) == 2
+
+
+def test_segment(files, tmp_path, capsys):
+    out = tmp_path / "mask.png"
+    assert main(["segment", str(files / "dsa.png"), "--out", str(out), "--method", "otsu"]) == 0
+    mask = np.asarray(Image.open(out))
+    assert mask.shape == (96, 128) and set(np.unique(mask)) == {0, 255}
+    assert "vessel pixels" in capsys.readouterr().out
+    again = tmp_path / "again.png"
+    assert main(["segment", str(out), "--out", str(again)]) == 0  # a mask stays the same mask
+    np.testing.assert_array_equal(np.asarray(Image.open(again)), mask)
+    assert main(["segment", str(files / "ap.dcm"), "--out", str(tmp_path / "x.png"), "--frame", "two"]) == 2
+
+
+@pytest.mark.parametrize("source", ["cta.nii.gz", "series"])
+def test_mesh(files, tmp_path, capsys, source):
+    out = tmp_path / "vessels.obj"
+    assert main(["mesh", str(files / source), "--out", str(out), "--faces", "3000"]) == 0
+    mesh = trimesh.load(str(out), force="mesh")
+    assert 1000 < len(mesh.faces) <= 3000
+    assert "patient LPS" in capsys.readouterr().out
+
+
+def test_mesh_of_an_image_fails_cleanly(files, tmp_path, capsys):
+    assert main(["mesh", str(files / "dsa.png"), "--out", str(tmp_path / "m.obj")]) == 2
+    assert "volume" in capsys.readouterr().err

@@ -1,0 +1,46 @@
+"""run_case: files in, every output out, the warnings joined once (what the service's workers call)."""
+
+import json
+
+import pytest
+import trimesh
+
+from dsareg_engine.geometry.spec import parse_geometry
+from dsareg_engine.io.case import CaseFiles
+from dsareg_engine.simulation.phantom import make_vessel_phantom
+from dsareg_engine.pipeline import RegistrationCanceled, run_case
+
+QUICK = {"starts": 1, "max_iterations": 5}
+
+
+@pytest.fixture(scope="module")
+def files(build):
+    phantom = make_vessel_phantom(depth=2)
+    mesh = trimesh.Trimesh(phantom.vertices, phantom.faces, process=False).export(file_type="stl")
+    image, _ = build.dsa(height=100, width=100)
+    png = build.png(image)
+    return CaseFiles(ap=png, ap_name="ap.png", lat=png, lat_name="lat.png", mesh=mesh, mesh_name="tree.stl",
+                     geometry=parse_geometry("paper"), warnings=("fetched: the first of 3 instances was used",))
+
+
+def test_the_warnings_join_the_result_once_and_result_json_has_them(files, tmp_path):
+    events = []
+    data = run_case(files, QUICK, tmp_path, progress=events.append, dicom="off")
+    warnings = data["warnings"]
+    assert warnings[0] == files.warnings[0]  # the fetch's notes first, then the case's
+    assert sum("rescaled" in w for w in warnings) == 2  # the 800-px preset on 100-px images, once per view
+    assert len(warnings) == len(set(warnings))
+    assert json.loads((tmp_path / "result.json").read_text())["warnings"] == warnings
+    assert events[0]["stage"] == "start" and "dicom" not in data
+
+
+def test_dicom_results_are_written_and_listed(files, tmp_path):
+    data = run_case(files, QUICK, tmp_path, dicom="required")
+    assert {"reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm"} <= set(data["dicom"]["instances"])
+    assert (tmp_path / "reg.dcm").is_file()
+
+
+def test_a_stop_before_the_start_cancels(files, tmp_path):
+    with pytest.raises(RegistrationCanceled):
+        run_case(files, QUICK, tmp_path, should_stop=lambda: True)
+    assert not (tmp_path / "result.json").exists()
