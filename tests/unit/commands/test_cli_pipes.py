@@ -60,15 +60,12 @@ def test_register_in_a_pipe_writes_lines_and_the_summary_alone_on_stdout(case, t
     out_lines = done.stdout.strip().splitlines()
     assert out_lines and out_lines[0].startswith("verdict "), done.stdout
     assert not [line for line in out_lines if line.startswith(("progress", "warning"))]
-    as_json = dsareg(*register_args(case, tmp_path / "json"), "--json")
-    assert as_json.returncode == 0, as_json.stderr[-2000:]
-    result = json.loads(as_json.stdout)  # nothing else on stdout
-    assert result["verdict"] == result["metrics"]["confidence"]["verdict"]
-    assert json.loads((tmp_path / "json" / "result.json").read_text())["verdict"] == result["verdict"]
 
 
-def test_register_require_ok_fails_a_swapped_pair(case, tmp_path):
-    done = dsareg(*register_args(case, tmp_path / "swapped", swapped=True), "--require", "ok")
+def test_register_require_ok_fails_a_swapped_pair_and_json_is_alone_on_stdout(case, tmp_path):
+    done = dsareg(*register_args(case, tmp_path / "swapped", swapped=True), "--require", "ok", "--json")
     assert done.returncode == 3, (done.returncode, done.stdout, done.stderr[-2000:])
-    assert "below --require ok" in done.stderr and done.stdout.startswith("verdict failed")
-    assert "why: " in done.stdout
+    result = json.loads(done.stdout)  # nothing else on stdout
+    assert result["verdict"] == result["metrics"]["confidence"]["verdict"] == "failed"
+    assert json.loads((tmp_path / "swapped" / "result.json").read_text())["verdict"] == "failed"
+    assert "below --require ok" in done.stderr and "\r" not in done.stderr
