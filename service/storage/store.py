@@ -390,7 +390,8 @@ class SqlJobStore(JobStore):
         return None if row is None else self._row_to_job(row)
 
     def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None) -> tuple[list[JobRecord], str | None]:
-        query = sa.select(jobs)
+        query = sa.select(jobs, job_previous.c.previous_id).select_from(  # summaries link to a previous job
+            jobs.outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
         if owner is not None:
             query = query.where(jobs.c.owner == owner)
         if status is not None:

@@ -168,7 +168,7 @@ def test_oversized_upload_rejected_while_streaming(server):
 
 def test_bad_requests_get_problem_details(server, example_case):
     with server.client() as c:
-        _assert_problem(c.post("/v1/registrations", json={"mesh": "x"}), 415)
+        _assert_problem(c.post("/v1/registrations", json={"mesh": "x"}), 422, field="source")  # issue 21: not 415
         files = {"mesh": ("m.obj", example_case.mesh_obj), "lat": ("l.png", example_case.lat_png)}
         _assert_problem(c.post("/v1/registrations", files=files), 422, field="ap")
         files["ap"] = ("a.png", example_case.ap_png)
