@@ -21,9 +21,11 @@ COMMAND_MODULES = (
     "dsareg_engine.commands.render",
     "dsareg_engine.commands.inputs",
     "dsareg_engine.commands.register",
-    "dsareg_engine.commands.bench",
+    "dsareg_engine.commands.bench_cli",
 )
-"""The engine's own sub-commands (modules with ``add_parser``)."""
+"""The engine's own sub-commands (modules with ``add_parser``). They import only what their arguments need
+(no torch, no numba: ``dsareg --help`` and argument errors take well under a second); the work loads when a
+command runs (``func`` imports it, or is a :func:`~dsareg_engine.commands.deferred.deferred` reference)."""
 
 COMMAND_GROUP = "dsareg.commands"
 """Entry-point group through which other packages contribute sub-commands: each entry point is a

@@ -14,6 +14,7 @@ from . import __version__
 from .api.routes import artifacts, operations, registrations, tracking
 from .api.deps import ServiceContext
 from .api.handlers import install_handlers
+from .api.httpfaults import problem_http_protocol
 from .api.lifespan import make_lifespan
 from .api.prometheus import make_metrics
 from .api.openapi import install_openapi, mount, operation_id
@@ -56,3 +57,9 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     install_docs(app)
     install_openapi(app, settings)
     return app
+
+
+def http_protocol() -> type:
+    """The uvicorn HTTP protocol to serve the app with: h11's, its own 400s (a malformed Content-Length,
+    request line or header, answered before the app runs) as problem+json (:mod:`service.api.httpfaults`)."""
+    return problem_http_protocol()

@@ -43,8 +43,9 @@ class ServiceSettings(BaseSettings):
     # where
     data_dir: Path = Field(Path("./dsareg-data"), description="Inputs, artifacts and the default SQLite database.")
     database_url: str | None = Field(None, description="Any SQLAlchemy URL; default sqlite:///<data_dir>/jobs.sqlite3.")
-    host: str = "127.0.0.1"
-    port: int = 8000
+    host: str = Field("127.0.0.1", description="Address the API binds; anything but loopback needs API keys "
+                      "(without keys the service binds 127.0.0.1 whatever is asked).")
+    port: int = Field(8000, description="TCP port of the API.")
 
     # workers
     workers: int = Field(1, ge=0, le=64, description="Embedded worker processes (0: API only, jobs stay queued).")
@@ -90,6 +91,10 @@ class ServiceSettings(BaseSettings):
     api_key_hashes: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="SHA-256 hex digests of accepted keys."
     )
+    metrics_public: bool | None = Field(
+        None, description="GET /metrics without an API key. Default: public only when no API keys are configured; "
+                          "otherwise it needs a valid key (any). The metrics are service-wide aggregates (jobs by "
+                          "state, queue depth, latency by route template): no key, job id or path appears in them.")
 
     # scale-out (see service/README.md, "Scale-out with Celery")
     executor: Literal["embedded", "celery"] = Field(
@@ -130,7 +135,7 @@ class ServiceSettings(BaseSettings):
     callback_retry_backoff_seconds: float = Field(
         1.0, ge=0.0, description="Delay before the second attempt; doubles each attempt, at most 300 s.")
 
-    log_level: str = "info"
+    log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
 
     @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "callback_allowed", mode="before")
     @classmethod
@@ -166,6 +171,11 @@ class ServiceSettings(BaseSettings):
     @property
     def auth_enabled(self) -> bool:
         return bool(self.api_key_hashes)
+
+    @property
+    def metrics_open(self) -> bool:
+        """Whether /metrics answers without an API key (``metrics_public``, else: no keys configured)."""
+        return (not self.auth_enabled) if self.metrics_public is None else self.metrics_public
 
     @property
     def effective_database_url(self) -> str:

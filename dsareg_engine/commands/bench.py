@@ -1,4 +1,6 @@
-"""``dsareg bench``: benchmarks that print numbers (render speed, Table 1, capture range, robustness)."""
+"""``dsareg bench``: benchmarks that print numbers (render speed, Table 1, capture range, robustness).
+
+The runs; their arguments are in :mod:`dsareg_engine.commands.bench_cli` (parsed without loading torch)."""
 
 from __future__ import annotations
 
@@ -13,93 +15,12 @@ from ..geometry.rig import Rig
 from ..geometry.spec import load_rig
 from ..metrics import mean_distance_mm
 from ..geometry.pose import so3_log
-from ..registration import CONFIGURATIONS, RegistrationOptions, register
+from ..registration import RegistrationOptions, register
 from ..registration.parameterization import PoseIncrement, random_start_poses
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
-from ..simulation.segmentation_errors import CORRUPTIONS, corrupt
+from ..simulation.segmentation_errors import corrupt
+from .bench_cli import GREY_VARIANTS
 from .render import load_mesh_argument
-
-
-def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness, track)",
-        description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
-                    "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
-    which = parser.add_subparsers(dest="bench", required=True)
-    render = which.add_parser("render", help="ms per forward and forward+backward")
-    _add_mesh(render)
-    render.add_argument("--size", type=int, nargs="+", default=[256, 400, 800], help="image sides in px")
-    render.add_argument("--sigma", type=float, nargs="+", default=[0.5, 1.0], help="silhouette edge softness in px")
-    render.add_argument("--batch", type=int, default=1, help="poses rendered at once")
-    render.add_argument("--repeats", type=int, default=20, help="timed runs (the median is printed)")
-    render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"], help="rasterizer (default auto)")
-    render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
-    _add_device(render)
-    render.set_defaults(func=bench_render)
-    for name, func in (("table1", bench_table1), ("capture", bench_capture)):
-        sub = which.add_parser(name, help={"table1": "the paper's Table 1: accuracy per configuration",
-                                           "capture": "capture range: success per initial mTRE bin"}[name])
-        _add_mesh(sub)
-        sub.add_argument("--starts", type=int, default=20, help="random initial poses (table1) / per bin (capture)")
-        sub.add_argument("--seed", type=int, default=0, help="random seed of the initial poses")
-        sub.add_argument("--size", type=int, default=800, help="image side in px")
-        sub.add_argument("--configs", nargs="+", default=list(CONFIGURATIONS), help="configurations to run (default all)")
-        sub.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
-        sub.add_argument("--max-mtre", type=float, default=20.0, help="largest initial mTRE in mm")
-        sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
-        _add_device(sub)
-        sub.set_defaults(func=func)
-    track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
-    _add_mesh(track)
-    track.add_argument("--sequences", type=int, default=5, help="independent motion sequences")
-    track.add_argument("--frames", type=int, default=6, help="motions per sequence")
-    track.add_argument("--seed", type=int, default=0, help="random seed of the motions")
-    track.add_argument("--size", type=int, default=800, help="image side in px")
-    track.add_argument("--rotation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
-                       help="per-frame rotation range (deg, random axis through the mesh centre)")
-    track.add_argument("--translation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
-                       help="per-frame translation range (mm, random direction)")
-    track.add_argument("--options", default="{}", help="extra registration options as JSON")
-    _add_device(track)
-    track.set_defaults(func=bench_track)
-    robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
-    _add_mesh(robust)
-    robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
-    robust.add_argument("--seed", type=int, default=0, help="random seed of the initial poses")
-    robust.add_argument("--size", type=int, default=800, help="image side in px")
-    robust.add_argument("--offset", type=float, nargs=2, default=[10.0, 10.0], metavar=("DEG", "MM"),
-                        help="initial rotation (deg) and translation (mm) offset")
-    robust.add_argument("--corruptions", nargs="+", default=list(CORRUPTIONS), choices=list(CORRUPTIONS),
-                        help="simulated segmentation errors to apply (default all)")
-    robust.add_argument("--grey", nargs="*", default=["dsa", "dsa_binary", "otsu"], choices=["dsa", "dsa_binary", "otsu", "vesselness"],
-                        help="also register from grey-level DSA synthesized from the model (uneven background, noise, "
-                             "catheter), segmented by these methods ('dsa' is what 'auto' fits: sub-pixel vessel coverage; "
-                             "'dsa_binary': its binary mask as before)")
-    robust.add_argument("--grey-variants", nargs="+", default=["default"], choices=list(GREY_VARIANTS),
-                        help="image formation of the grey-level rows (noise, background, contrast law, blur, bit depth)")
-    robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
-    robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
-    _add_device(robust)
-    robust.set_defaults(func=bench_robustness)
-    auto = which.add_parser("autoinit", help="registration with no initial pose on a clinical-like rig (107°, mirrored LAT)")
-    _add_mesh(auto)
-    auto.add_argument("--cases", type=int, default=20, help="random poses (rotation uniform over SO(3))")
-    auto.add_argument("--seed", type=int, default=0, help="random seed of the poses")
-    auto.add_argument("--size", type=int, default=512, help="image side in px")
-    auto.add_argument("--radius", type=float, default=60.0, help="mesh centre within this distance of the isocentre (mm)")
-    auto.add_argument("--options", default="{}", help="extra registration options as JSON")
-    auto.add_argument("--grey", action="store_true",
-                      help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
-    auto.set_defaults(func=bench_autoinit)
-
-
-def _add_mesh(parser) -> None:
-    parser.add_argument("--mesh", metavar="FILE", help="mesh file (default: the built-in phantom)")
-
-
-def _add_device(parser) -> None:
-    parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
-                        help="options.device (auto: CUDA when available; tracking on the CPU)")
 
 
 def _device(requested: str = "auto") -> str:
@@ -301,20 +222,6 @@ def _signal_summary(signals: list[dict]) -> str:
     shift = max(max(abs(v) for v in s["border_shift_px"].values()) for s in signals)
     gaps = [s["runner_up"]["best_fit"] - s["runner_up"]["fit"] for s in signals if s.get("runner_up")]
     return f"{lowest:.3f} / {shift:.2f} / {min(gaps):.3f}" if gaps else f"{lowest:.3f} / {shift:.2f} / none"
-
-
-GREY_VARIANTS = {
-    "default": ({}, 16),
-    "noise2x": ({"noise_sigma": 0.02}, 16),
-    "background2x": ({"background_variation": 0.5}, 16),
-    "background_fine": ({"background_cells": 10}, 16),
-    "saturating": ({"attenuation_per_mm": 0.3}, 16),
-    "faint": ({"attenuation_per_mm": 0.05}, 16),
-    "blur1px": ({"blur_px": 1.0}, 16),
-    "8bit": ({}, 8),
-    "noisefree": ({"noise_sigma": 0.0}, 16),
-}
-"""Grey-level image formations (:class:`~dsareg_engine.simulation.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
 
 
 def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", truth: np.ndarray | None = None) -> dict:

@@ -8,11 +8,7 @@ import sys
 from pathlib import Path
 
 from ..errors import DsaregInputError
-from ..io.case import load_case
-from ..pipeline import write_outputs
-from ..geometry.pose_file import load_pose
-from ..registration import CONFIGURATIONS, register
-from ..registration.options import parse_options
+from ..registration.options import CONFIGURATIONS
 from .failures import geometry_argument, input_file, json_argument, options_help
 from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
 
@@ -71,6 +67,12 @@ def _model_inputs(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..io.case import load_case  # the engine (torch) loads only when a registration runs
+    from ..pipeline import write_outputs
+    from ..geometry.pose_file import load_pose
+    from ..registration import register
+    from ..registration.options import parse_options
+
     options = json_argument(args.options, "--options") or {}
     if not isinstance(options, dict):
         raise DsaregInputError("must be a JSON object", field="--options", accepted='e.g. {"starts": 2}')

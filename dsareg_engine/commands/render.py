@@ -5,13 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-import torch
-
 from ..errors import DsaregInputError
-from ..overlay import write_png
-from ..geometry.pose_file import load_pose
-from ..render import Camera, render_hard_silhouette
 from .failures import geometry_argument, input_file
 
 
@@ -45,6 +39,13 @@ def load_mesh_argument(path: str | None):
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np  # the renderer (torch) loads only when this command runs
+    import torch
+
+    from ..overlay import write_png
+    from ..geometry.pose_file import load_pose
+    from ..render import Camera, render_hard_silhouette
+
     mesh = load_mesh_argument(args.mesh)
     rig = geometry_argument(args.geometry).rig
     pose = load_pose(args.pose) if args.pose else rig.initial_mesh_to_world

@@ -120,6 +120,40 @@ def _png_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def tiff_page_count(data: bytes, cap: int) -> int:
+    """Pages of a TIFF (or BigTIFF) counted from its IFD chain without decoding anything; stops
+    counting past ``cap`` (a 19 MB file can hold 80,000 pages, which Pillow's ``n_frames`` walks in
+    about a minute). A chain that loops or leaves the file ends the count."""
+    big = data[2:4] in (b"+\x00", b"\x00+")
+    order = "<" if data[:2] == b"II" else ">"
+    offset_format, count_format, entry_bytes = ("Q", "Q", 20) if big else ("I", "H", 12)
+    offset_size, count_size = struct.calcsize(offset_format), struct.calcsize(count_format)
+    start = 8 if big else 4
+    if len(data) < start + offset_size:
+        return 0
+    offset = struct.unpack_from(order + offset_format, data, start)[0]
+    seen: set[int] = set()
+    while offset and offset not in seen and offset + count_size <= len(data) and len(seen) <= cap:
+        seen.add(offset)
+        entries = struct.unpack_from(order + count_format, data, offset)[0]
+        next_at = offset + count_size + entries * entry_bytes
+        if next_at + offset_size > len(data):
+            break
+        offset = struct.unpack_from(order + offset_format, data, next_at)[0]
+    return len(seen)
+
+
+def _check_pages(data: bytes, fmt: str, limits: InputLimits, field_name: str) -> int | None:
+    """The page count of a multi-page format from its header (None: single-page formats), refused above the limit."""
+    if fmt != "tiff":
+        return None
+    pages = tiff_page_count(data, limits.max_image_pages)
+    if pages > limits.max_image_pages:
+        raise DsaregInputError(f"has more than {limits.max_image_pages} pages", field=field_name,
+                               accepted=f"a TIFF of at most {limits.max_image_pages} pages (the first is used)")
+    return pages
+
+
 def _read_raster(data, fmt, name, limits, frame, field_name) -> LoadedImage:
     from PIL import Image
 
@@ -134,12 +168,13 @@ def _read_raster(data, fmt, name, limits, frame, field_name) -> LoadedImage:
         if size is None:
             raise DsaregInputError("PNG is truncated (no IHDR header)", field=field_name)
         _check_pixels(size[0], size[1], limits, field_name)
+    pages = _check_pages(data, fmt, limits, field_name)
     try:
         with _warnings.catch_warnings():
             _warnings.simplefilter("error", Image.DecompressionBombWarning)
             image = Image.open(io.BytesIO(data))
             _check_pixels(image.size[0], image.size[1], limits, field_name)  # header only, nothing decoded yet
-            n_frames = int(getattr(image, "n_frames", 1))
+            n_frames = pages or int(getattr(image, "n_frames", 1))  # TIFF: counted from the header above
             if isinstance(frame, int):
                 if not 0 <= frame < n_frames:
                     raise DsaregInputError(f"frame {frame} does not exist ({n_frames} frames)", field=field_name)
@@ -189,6 +224,26 @@ def read_rad_image(
     return LoadedImage(pixels, _is_binary(pixels), geometry, "rad", warnings)
 
 
+def dicom_number(dataset, keyword: str, default, field_name: str, *, kind: type = int):
+    """A numeric DICOM attribute (``default`` when absent or empty); a value that is not a finite number
+    of ``kind`` (``NumberOfFrames "abc"``, ``RescaleSlope "abc"``) is an input error naming the image."""
+    try:
+        value = getattr(dataset, keyword, None)
+    except Exception:  # noqa: BLE001 - pydicom converts lazily: a malformed value raises here
+        value = "(unreadable)"
+    if value is None or value == "":
+        return default
+    try:
+        number = float(value)
+        if not np.isfinite(number) or (kind is int and number != int(number)):
+            raise ValueError
+    except (TypeError, ValueError, OverflowError):
+        raise DsaregInputError(f"the DICOM attribute {keyword} is {str(value)[:40]!r}, not a number", field=field_name,
+                               accepted=f"{keyword} as {'a whole number' if kind is int else 'a finite decimal number'}"
+                               ) from None
+    return kind(number)
+
+
 def read_dicom_image(
     data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, frame: int | str | None = None, field_name: str = "image"
 ) -> LoadedImage:
@@ -201,12 +256,15 @@ def read_dicom_image(
         header = pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=True)
     except Exception as exc:
         raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
-    rows, cols = int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)
+    rows, cols = dicom_number(header, "Rows", 0, field_name), dicom_number(header, "Columns", 0, field_name)
     if rows < 1 or cols < 1:
         raise DsaregInputError("DICOM file has no image (Rows/Columns missing)", field=field_name)
     _check_pixels(cols, rows, limits, field_name)
-    n_frames = int(getattr(header, "NumberOfFrames", 1) or 1)
-    samples = int(getattr(header, "SamplesPerPixel", 1) or 1)
+    n_frames = dicom_number(header, "NumberOfFrames", 1, field_name)
+    samples = dicom_number(header, "SamplesPerPixel", 1, field_name)
+    if n_frames < 1 or samples < 1:
+        raise DsaregInputError(f"declares {n_frames} frames of {samples} samples", field=field_name,
+                               accepted="NumberOfFrames and SamplesPerPixel of at least 1")
     if n_frames * rows * cols * samples * 4 > limits.max_volume_bytes:
         raise DsaregInputError(f"declares {n_frames} frames of {cols}x{rows}, above the size limit", field=field_name)
     try:
@@ -225,8 +283,8 @@ def read_dicom_image(
         stack = stack[None]
     if stack.ndim != 3 or stack.shape[1:] != (rows, cols):
         raise DsaregInputError(f"DICOM pixel data has shape {list(stack.shape)}", field=field_name)
-    slope = float(getattr(dataset, "RescaleSlope", 1.0) or 1.0)
-    intercept = float(getattr(dataset, "RescaleIntercept", 0.0) or 0.0)
+    slope = dicom_number(dataset, "RescaleSlope", 1.0, field_name, kind=float)
+    intercept = dicom_number(dataset, "RescaleIntercept", 0.0, field_name, kind=float)
     stack = stack * slope + intercept
     if str(getattr(dataset, "PhotometricInterpretation", "")).upper() == "MONOCHROME1":
         stack = stack.max() - stack

@@ -16,15 +16,18 @@ class InputLimits:
             from the header before any pixel is decoded (decompression bombs).
         max_volume_bytes: Largest accepted decoded volume (or multi-frame image stack),
             checked from the header's shape × dtype before voxels are read.
+        max_image_pages: Most pages of a multi-page image (TIFF), counted from the header
+            before any page is decoded (only the first, or the chosen one, is used).
     """
 
     max_faces: int = 500_000
     working_faces: int = 20_000
     max_image_pixels: int = 64_000_000
     max_volume_bytes: int = 1 << 30
+    max_image_pages: int = 1000
 
     def __post_init__(self) -> None:
-        for name in ("max_faces", "working_faces", "max_image_pixels", "max_volume_bytes"):
+        for name in ("max_faces", "working_faces", "max_image_pixels", "max_volume_bytes", "max_image_pages"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be positive")
 

@@ -28,6 +28,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from . import rad as rad_format
+from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
 
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -257,8 +258,8 @@ def _dicom_pixels(part: bytes, field_name: str) -> np.ndarray:
         raise
     except Exception as exc:
         raise DsaregInputError(f"DICOM pixel data is unreadable ({str(exc)[:200]})", field=field_name) from None
-    slope = float(getattr(dataset, "RescaleSlope", 1.0) or 1.0)
-    intercept = float(getattr(dataset, "RescaleIntercept", 0.0) or 0.0)
+    slope = dicom_number(dataset, "RescaleSlope", 1.0, field_name, kind=float)
+    intercept = dicom_number(dataset, "RescaleIntercept", 0.0, field_name, kind=float)
     return pixels * slope + intercept
 
 

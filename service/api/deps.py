@@ -16,11 +16,11 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CollectorRegistry, Counter
 
-from ..storage.blobs import BlobStore
 from ..jobs.executor import Executor
 from ..problems import Problem
 from ..settings import ServiceSettings
-from ..storage.store import JobRecord, JobStore
+from ..storage.blobs import BlobStore
+from ..storage.store import JobRecord, JobStore, is_job_id
 from .intake.validation import ValidatorPool
 
 if TYPE_CHECKING:
@@ -75,9 +75,13 @@ Principal = Annotated[str, Depends(principal)]
 
 
 def owned_job(ctx: ServiceContext, job_id: str, who: str) -> JobRecord:
-    job = ctx.store.get(job_id) if len(job_id) <= 64 else None
+    """The job ``job_id`` of the caller; an id that cannot be one (syntax) never reaches the database."""
+    if not is_job_id(job_id):
+        raise Problem(404, "no registration job with this id", kind="job-not-found", field="job_id",
+                      accepted="a job id as returned by POST /v1/registrations (1 to 64 of A-Z a-z 0-9 _ -)")
+    job = ctx.store.get(job_id)
     if job is None:
-        raise Problem(404, f"no registration job with id '{job_id[:64]}'", kind="job-not-found")
+        raise Problem(404, f"no registration job with id '{job_id}'", kind="job-not-found")
     if job.owner != who:
         raise Problem(403, "this job belongs to another API key")
     return job

@@ -107,7 +107,7 @@ def _add_submit(subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from ..app import create_app
+    from ..app import create_app, http_protocol
     from ..settings import load_settings
 
     settings = load_settings(
@@ -121,7 +121,7 @@ def run_serve(args: argparse.Namespace) -> int:
         log.warning("no API keys configured: binding to 127.0.0.1 instead of %s", settings.host)
     app = create_app(settings)
     uvicorn.run(app, host=host, port=settings.port, log_level=settings.log_level.lower(), access_log=False,
-                timeout_graceful_shutdown=10)
+                timeout_graceful_shutdown=10, http=http_protocol())  # bad Content-Length → problem+json
     return 0
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import abc
 import base64
 import json
+import re
 import secrets
 import time
 import uuid
@@ -42,6 +43,16 @@ FINISHED = ("succeeded", "failed", "canceled")
 def new_job_id() -> str:
     """Server-made, unguessable, URL-safe (never derived from user input)."""
     return uuid.uuid4().hex
+
+
+JOB_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+"""What a job id may look like (new ones are 32 hex digits): checked before any id from a request reaches
+the database, so a NUL, an over-long or a non-id string is a plain 404 on every store (PostgreSQL refuses
+NUL in text with a DataError that used to become a 500)."""
+
+
+def is_job_id(text: str) -> bool:
+    return JOB_ID_PATTERN.fullmatch(text) is not None
 
 
 @dataclass

@@ -18,11 +18,12 @@ from fastapi import Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
-from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
 from ...budgets import parse_json_part
+from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
 from ...problems import Problem
 from ...storage.store import InputFile
 from ..deps import ServiceContext
+from .forms import read_body
 from .submission import (
     accepted,
     check_queue,
@@ -44,9 +45,7 @@ def _field(loc) -> str:
 
 
 async def parse_reference(request: Request) -> DicomwebRegistrationRequest:
-    body = await request.body()
-    if len(body) > MAX_REFERENCE_BYTES:
-        raise Problem(413, f"a reference request is at most {MAX_REFERENCE_BYTES} bytes")
+    body = await read_body(request, MAX_REFERENCE_BYTES)  # streamed: never buffered past the limit
     data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
     if not isinstance(data, dict) or "source" not in data:
         raise Problem(422, "a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} is required "

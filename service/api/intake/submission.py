@@ -17,19 +17,20 @@ from fastapi import Request
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
-from ...storage.blobs import safe_suffix
-from ...jobs.callbacks import url_problem
-from ...engine_adapter import check_options, engine, submitted_geometry
 from ...budgets import check_job_cost, parse_json_part
-from ..schemas.jobs import previous_link_header, status_body
+from ...engine_adapter import check_options, engine, submitted_geometry
+from ...jobs.callbacks import url_problem
 from ...problems import Problem
+from ...storage.blobs import safe_suffix
 from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
 from ..deps import ANONYMOUS, ServiceContext
+from ..schemas.jobs import previous_link_header, status_body
+from .forms import MAX_TEXT_PART_BYTES
 
 log = logging.getLogger("dsareg.service")
 
-MAX_GEOMETRY_BYTES = 1 << 20
-MAX_OPTIONS_BYTES = 1 << 20
+MAX_GEOMETRY_BYTES = MAX_TEXT_PART_BYTES
+MAX_OPTIONS_BYTES = MAX_TEXT_PART_BYTES
 MAX_VOLUME_FILES = 4000
 RETRY_AFTER_QUEUED = "2"
 FORM_FIELDS = ("mesh", "volume", "ap", "lat", "geometry", "options", "callback_url")
@@ -243,7 +244,7 @@ def accepted(stored: JobRecord) -> JSONResponse:
 async def submit_form(ctx: ServiceContext, form: Any, who: str, key: str | None) -> Response:
     """A parsed multipart form → 202 with the new job (or 200/409 for an Idempotency-Key replay)."""
     files = form_files(form)
-    geometry, options = form_geometry_and_options(form)
+    geometry, options = await asyncio.to_thread(form_geometry_and_options, form)  # JSON parsing off the event loop
     return await submit_files(ctx, files, geometry, options, who, key, callback_url=form_callback_url(ctx, form))
 
 

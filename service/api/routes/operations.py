@@ -4,12 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from fastapi import Depends, Request
 from fastapi.responses import JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ..schemas.jobs import Health
-from ..deps import Ctx
+from ...problems import Problem, problem_responses
+from ..deps import Ctx, bearer, principal
 from ..openapi import resource_router
+from ..schemas.jobs import Health
 
 router = resource_router("operations")
 
@@ -37,7 +40,16 @@ def readyz(ctx: Ctx) -> Response:
                         headers=None if ready else {"Retry-After": "5"})
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
-            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}, "description": "Prometheus text"}})
-def metrics(ctx: Ctx) -> Response:
+@router.get("/metrics", summary="Prometheus metrics (service-wide aggregates)", response_class=Response,
+            description="Public when `DSAREG_METRICS_PUBLIC` is true, or when it is unset and no API keys are "
+                        "configured; otherwise it needs `Authorization: Bearer <API key>` (any valid key). Only "
+                        "aggregates: no key, job id or request path appears in it.",
+            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}, "description": "Prometheus text"},
+                       **problem_responses(401, 403)})
+def metrics(ctx: Ctx, request: Request, credentials: HTTPAuthorizationCredentials | None = Depends(bearer)) -> Response:  # noqa: B008
+    if not ctx.settings.metrics_open:
+        if not ctx.settings.auth_enabled:
+            raise Problem(403, "metrics are not public on this server (DSAREG_METRICS_PUBLIC=false) and no API keys "
+                               "are configured", field="DSAREG_METRICS_PUBLIC")
+        principal(request, credentials)  # 401 without a valid key
     return Response(generate_latest(ctx.registry), media_type=CONTENT_TYPE_LATEST)

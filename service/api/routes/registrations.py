@@ -7,12 +7,13 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from ..schemas.jobs import JobList, JobStatus, previous_link_header, status_body, summary_body
 from ...problems import Problem, problem_responses
 from ...storage.store import STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
+from ..intake.forms import read_form
+from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
 from ..openapi import resource_router
-from ..intake.submission import MAX_OPTIONS_BYTES, MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+from ..schemas.jobs import JobList, JobStatus, previous_link_header, status_body, summary_body
 
 log = logging.getLogger("dsareg.service")
 
@@ -76,7 +77,7 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
     if not content_type.lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat",
                       accepted="multipart/form-data")
-    form = await request.form(max_files=MAX_VOLUME_FILES + 8, max_fields=20, max_part_size=MAX_OPTIONS_BYTES)
+    form = await read_form(request, max_files=MAX_VOLUME_FILES + 8, max_fields=20)
     try:
         return await submit_form(ctx, form, who, key)
     finally:

@@ -10,6 +10,7 @@ engine), so status, result, overlays, cancel and delete work as for any job.
 
 from __future__ import annotations
 
+import asyncio
 import io
 from typing import Any
 
@@ -17,21 +18,23 @@ from fastapi import Request
 from fastapi.responses import Response
 from starlette.datastructures import FormData, UploadFile
 
-from ...engine_adapter import canonical_geometry
 from ...budgets import parse_json_part
-from ..schemas.jobs import JobStatus
+from ...engine_adapter import canonical_geometry
 from ...problems import Problem, problem_responses
 from ...storage.store import JobRecord
 from ..deps import Ctx, OwnedJob, Principal, ServiceContext
-from ..openapi import resource_router
+from ..intake.forms import read_form
 from ..intake.submission import (
     MAX_OPTIONS_BYTES,
     form_callback_url,
     form_files,
     idempotency_key,
     parse_options_json,
+    read_text_field,
     submit_files,
 )
+from ..openapi import resource_router
+from ..schemas.jobs import JobStatus
 
 router = resource_router("registrations")
 
@@ -70,16 +73,17 @@ TRACK_DOC = {
 }
 
 
-async def _options(previous: JobRecord, form: Any) -> Any:
-    """The new job's options: the previous job's (less INHERITED_OUT), the form's, mode track, its pose."""
+def _options(previous: JobRecord, form: Any) -> Any:
+    """The new job's options: the previous job's (less INHERITED_OUT), the form's, mode track, its pose.
+
+    Blocking (a file part is read, JSON parsed): called in a thread. The part is capped like on
+    ``POST /v1/registrations`` (:func:`service.api.submission.read_text_field`, 1 MiB, UTF-8)."""
     options = {k: v for k, v in previous.options.items() if k not in INHERITED_OUT}
     options_values = form.getlist("options")
     if len(options_values) > 1:
         raise Problem(422, "give options at most once", field="options")
     if options_values:
-        text = options_values[0]
-        if isinstance(text, UploadFile):
-            text = (await text.read()).decode("utf-8", errors="replace")
+        text = read_text_field(options_values[0], "options", MAX_OPTIONS_BYTES)
         if text.strip():
             options.update(parse_json_part(text, "options"))
     options["mode"] = "track"
@@ -105,7 +109,7 @@ async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) 
     key = idempotency_key(request)
     if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files ap and lat", accepted="multipart/form-data")
-    form = await request.form(max_files=6, max_fields=5, max_part_size=MAX_OPTIONS_BYTES)
+    form = await read_form(request, max_files=6, max_fields=5)
     model_files: list[tuple[str, UploadFile]] = []
     try:
         unknown = sorted(set(form.keys()) - {"ap", "lat", "options", "callback_url"})
@@ -113,7 +117,7 @@ async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) 
             raise Problem(422, f"unknown form field(s) {unknown[:5]}; the model and geometry are the job's",
                           field=str(unknown[0])[:64], accepted="ap, lat, options, callback_url")
         callback_url = form_callback_url(ctx, form)
-        options = await _options(previous, form)
+        options = await asyncio.to_thread(_options, previous, form)
         model_files = _model_parts(ctx, previous)
         items: list[tuple[str, Any]] = list(model_files)
         items += [(name, value) for name in ("ap", "lat") for value in form.getlist(name)]

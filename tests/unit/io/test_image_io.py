@@ -150,3 +150,47 @@ def test_multiframe_selection(build):
         read_image(data, "run.dcm", frame=9)
     with pytest.raises(DsaregInputError, match="not understood"):
         read_image(data, "run.dcm", frame="max")
+
+
+# ---- hostile headers: numbers that are not numbers, page counts (counted before decoding) ------
+
+
+@pytest.mark.parametrize(("tag", "vr", "value", "keyword"), [
+    ((0x0028, 0x0008), b"IS", b"abc", "NumberOfFrames"),
+    ((0x0028, 0x0008), b"IS", b"1e999", "NumberOfFrames"),
+    ((0x0028, 0x0008), b"IS", b"-3", "NumberOfFrames"),
+    ((0x0028, 0x1053), b"DS", b"abc", "RescaleSlope"),
+    ((0x0028, 0x1053), b"DS", b"NaN", "RescaleSlope"),
+])
+def test_dicom_numbers_that_are_not_numbers_name_the_image(build, tag, vr, value, keyword):
+    from tests.support.hostile_images import with_dicom_value
+    from pydicom import dcmread
+
+    image, _ = build.dsa()
+    ds = dcmread(io.BytesIO(build.xa(image.astype(np.uint16)[None].repeat(2, axis=0))))
+    ds.RescaleSlope, ds.RescaleIntercept = 1, 0
+    buffer = io.BytesIO()
+    ds.save_as(buffer, enforce_file_format=True)
+    data = with_dicom_value(buffer.getvalue(), tag, vr, value)
+    with pytest.raises(DsaregInputError) as info:
+        read_image(data, "ap.dcm", field_name="ap")
+    assert info.value.field == "ap"
+    assert keyword in info.value.message or "frames" in info.value.message, info.value.message
+
+
+def test_tiff_page_count_is_read_from_the_header_before_decoding():
+    from tests.support.hostile_images import many_page_tiff
+
+    from dsareg_engine.io.image_io import tiff_page_count
+
+    assert tiff_page_count(many_page_tiff(3), 10) == 3
+    assert read_image(many_page_tiff(3), "a.tif").warnings == ["image: 3 pages; the first is used"]
+    data = many_page_tiff(80_000)  # 8 MB; Pillow's n_frames walks it in about a minute
+    started = time.process_time()
+    with pytest.raises(DsaregInputError, match="more than 1000 pages") as info:
+        read_image(data, "a.tif", limits=InputLimits(), field_name="lat")
+    assert info.value.field == "lat"
+    assert time.process_time() - started < 1.0
+    assert read_image(many_page_tiff(5), "a.tif", limits=InputLimits(max_image_pages=5)).kind == "tiff"
+    with pytest.raises(DsaregInputError, match="more than 4 pages"):
+        read_image(many_page_tiff(5), "a.tif", limits=InputLimits(max_image_pages=4))
