@@ -41,25 +41,30 @@ from .errors import DsaregInputError
 
 if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
     from .cli import run_parsed
-    from .commands.failures import CommandFailed, geometry_argument, input_file, json_argument, options_help
+    from .commands.arguments import geometry_argument, input_file, json_argument, options_help
+    from .commands.failures import CommandFailed
+    from .geometry.file import PRESETS, LatFromAp, RigSpec, ViewSpec
     from .commands.progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
-    from .geometry.file import PRESETS
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+    from .io.dicom_xa import c_arm_rotation
     from .io.limits import DEFAULT_LIMITS, InputLimits
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
     from .geometry.pose import validate_rigid
     from .geometry.pose_file import load_pose
     from .registration.options import RegistrationOptions, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
-    from .warmup import warm_up_job
+    from .warmup import warm_up_job, warm_up_renderer
 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
     "parse_options": "dsareg_engine.registration.options",
     "validate_rigid": "dsareg_engine.geometry.pose",
     "PRESETS": "dsareg_engine.geometry.file",
+    "RigSpec": "dsareg_engine.geometry.file",
+    "ViewSpec": "dsareg_engine.geometry.file",
+    "LatFromAp": "dsareg_engine.geometry.file",
     "GeometrySpec": "dsareg_engine.geometry.spec",
     "parse_geometry": "dsareg_engine.geometry.spec",
     "is_canonical_geometry": "dsareg_engine.geometry.spec",
@@ -72,22 +77,24 @@ _LAZY = {
     "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
     "DicomSources": "dsareg_engine.io.dicom_out",
+    "c_arm_rotation": "dsareg_engine.io.dicom_xa",
     "read_sources": "dsareg_engine.io.dicom_out",
     "write_dicom_outputs": "dsareg_engine.io.dicom_out",
     "set_cpu_threads": "dsareg_engine.threads",
     "default_cpu_threads": "dsareg_engine.threads",
     "run_parsed": "dsareg_engine.cli",
     "CommandFailed": "dsareg_engine.commands.failures",
-    "input_file": "dsareg_engine.commands.failures",
-    "options_help": "dsareg_engine.commands.failures",
-    "geometry_argument": "dsareg_engine.commands.failures",
-    "json_argument": "dsareg_engine.commands.failures",
+    "input_file": "dsareg_engine.commands.arguments",
+    "options_help": "dsareg_engine.commands.arguments",
+    "geometry_argument": "dsareg_engine.commands.arguments",
+    "json_argument": "dsareg_engine.commands.arguments",
     "ProgressPrinter": "dsareg_engine.commands.progress_lines",
     "verdict_meets": "dsareg_engine.commands.progress_lines",
     "REQUIRE_CHOICES": "dsareg_engine.commands.progress_lines",
     "VERDICT_NOT_MET_EXIT": "dsareg_engine.commands.progress_lines",
     "load_pose": "dsareg_engine.geometry.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
+    "warm_up_renderer": "dsareg_engine.warmup",
 }
 
 __all__ = [
@@ -109,9 +116,12 @@ __all__ = [
     "DsaregInputError",
     "GeometrySpec",
     "InputLimits",
+    "LatFromAp",
     "ProgressPrinter",
     "RegistrationCanceled",
     "RegistrationOptions",
+    "RigSpec",
+    "c_arm_rotation",
     "default_cpu_threads",
     "geometry_argument",
     "input_file",
@@ -133,6 +143,7 @@ __all__ = [
     "run_parsed",
     "run_registration_case",
     "set_cpu_threads",
+    "ViewSpec",
     "validate_rigid",
     "verdict_meets",
     "warm_up_job",
@@ -181,42 +192,3 @@ def warm_up_parsers() -> None:
     except DsaregInputError:
         pass
 
-
-def warm_up_renderer() -> None:
-    """Load the pipeline and compile the renderer's kernels (both dtypes, forward and backward)."""
-    import numpy as np
-    import torch
-
-    import dsareg_engine.pipeline  # noqa: F401
-
-    from .geometry.rig import ViewGeometry
-    from .render import Camera, render_hard_silhouette, render_soft_silhouette
-
-    view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
-                        principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
-    faces = torch.tensor([[0, 1, 2]])
-    for dtype in (torch.float32, torch.float64):  # Adam stages run in float32, the L-BFGS fit in float64
-        vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
-        pose = torch.eye(4, dtype=dtype)[None]
-        render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
-        render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
-    _warm_up_tracking(view, faces)
-
-
-def _warm_up_tracking(view, faces) -> None:
-    """Compile tracking's kernels (the silhouette Jacobian and the normal equations, float32)."""
-    import numpy as np
-    import torch
-
-    from .render import Camera
-    from .render.jacobian import jacobian_available, jacobian_kernel, soft_log_keep_tangents
-
-    if not jacobian_available(torch.device("cpu")):
-        return
-    vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=torch.float32)
-    tangents = torch.zeros((1, 6, 4, 4), dtype=torch.float32)
-    log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, torch.eye(4)[None], tangents, Camera.from_view(view))
-    target = np.zeros((log_keep.shape[1], log_keep.shape[2] + 1), np.float32)[:, 1:]  # a window: not C-contiguous
-    normal_equations, n_threads = jacobian_kernel("normal_equations")
-    for weight in (np.zeros((0, 0), np.float32), target):
-        normal_equations(log_keep[0], log_keep_tangents[0], target, weight, n_threads, np.zeros((6, 6)), np.zeros(6))

@@ -44,15 +44,20 @@ def phantom_case_files(work_dir: Path, size_px: int = WARM_UP_SIZE_PX) -> dict[s
     return files
 
 
-def warm_up_job(work_dir: Path) -> dict:
+def warm_up_job(work_dir: Path, *, pose_search: bool = False) -> dict:
     """Load, register (``WARM_UP_ITERATIONS`` iterations), write every output and the DICOM results
-    of a tiny phantom case in ``work_dir``, as a job does; returns the result dict."""
+    of a tiny phantom case in ``work_dir``, as a job does; returns the result dict. ``pose_search``:
+    without an initial pose, so the pose search's kernels run too."""
     from .geometry.spec import parse_geometry
     from .io.case import CaseFiles
     from .pipeline import run_case
 
     work_dir = Path(work_dir)
     files = phantom_case_files(work_dir)
+    if pose_search:
+        geometry = json.loads(files["geometry"])
+        geometry.pop("initial_mesh_to_world")
+        files["geometry"] = json.dumps(geometry)
     case_files = CaseFiles(mesh=files["mesh"], mesh_name="mesh.obj", ap=files["ap"], ap_name="ap.png",
                            lat=files["lat"], lat_name="lat.png", geometry=parse_geometry(files["geometry"]))
     return run_case(case_files, {"starts": 1, "max_iterations": WARM_UP_ITERATIONS}, work_dir, label="warm-up",
@@ -60,3 +65,42 @@ def warm_up_job(work_dir: Path) -> dict:
 
 
 __all__ = ["WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "phantom_case_files", "warm_up_job"]
+
+
+def warm_up_renderer() -> None:
+    """Load the pipeline and compile the renderer's kernels (both dtypes, forward and backward)."""
+    import numpy as np
+    import torch
+
+    from . import pipeline  # noqa: F401 - loads the whole job path
+    from .geometry.rig import ViewGeometry
+    from .render import Camera, render_hard_silhouette, render_soft_silhouette
+
+    view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
+                        principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
+    faces = torch.tensor([[0, 1, 2]])
+    for dtype in (torch.float32, torch.float64):  # Adam stages run in float32, the L-BFGS fit in float64
+        vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
+        pose = torch.eye(4, dtype=dtype)[None]
+        render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
+        render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
+    _warm_up_tracking(view, faces)
+
+
+def _warm_up_tracking(view, faces) -> None:
+    """Compile tracking's kernels (the silhouette Jacobian and the normal equations, float32)."""
+    import numpy as np
+    import torch
+
+    from .render import Camera
+    from .render.jacobian import jacobian_available, jacobian_kernel, soft_log_keep_tangents
+
+    if not jacobian_available(torch.device("cpu")):
+        return
+    vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=torch.float32)
+    tangents = torch.zeros((1, 6, 4, 4), dtype=torch.float32)
+    log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, torch.eye(4)[None], tangents, Camera.from_view(view))
+    target = np.zeros((log_keep.shape[1], log_keep.shape[2] + 1), np.float32)[:, 1:]  # a window: not C-contiguous
+    normal_equations, n_threads = jacobian_kernel("normal_equations")
+    for weight in (np.zeros((0, 0), np.float32), target):
+        normal_equations(log_keep[0], log_keep_tangents[0], target, weight, n_threads, np.zeros((6, 6)), np.zeros(6))

@@ -63,3 +63,68 @@ def http_protocol() -> type:
     """The uvicorn HTTP protocol to serve the app with: h11's, its own 400s (a malformed Content-Length,
     request line or header, answered before the app runs) as problem+json (:mod:`service.api.httpfaults`)."""
     return problem_http_protocol()
+
+
+# ---- the DICOM node in its own process (`dsareg dicom-listener`) ---------------------------------
+
+
+def _listener_context(settings: ServiceSettings) -> ServiceContext:
+    """What the listener's submissions need (no HTTP): store, blobs, a validator, the executor."""
+    from prometheus_client import CollectorRegistry, Counter
+
+    from .api.intake.validation import ValidatorPool
+    from .jobs.executor import NoExecutor
+    from .storage.dbblobs import make_blob_store
+    from .storage.store import SqlJobStore
+
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    store = SqlJobStore(settings.effective_database_url)
+    validator = ValidatorPool(settings.validation_processes, settings.validation_timeout_seconds,
+                              settings.validation_memory_mb, threads=settings.threads_per_worker)
+    validator.start()
+    # embedded workers belong to `dsareg serve` (they poll the job table); Celery gets a message
+    executor = make_executor(settings, store) if settings.executor == "celery" else NoExecutor()
+    registry = CollectorRegistry()
+    return ServiceContext(settings=settings, store=store, blobs=make_blob_store(settings, store.engine),
+                          validator=validator, executor=executor, registry=registry,
+                          uploads=Counter("dsareg_dimse_upload_bytes", "unused", registry=registry))
+
+
+def run_dicom_listener(settings: ServiceSettings) -> int:
+    """``dsareg dicom-listener``: the DICOM node alone, until SIGTERM / SIGINT."""
+    import asyncio
+    import logging
+    import signal
+    import threading
+    import time
+
+    from .api.intake.dimse import DimseIntake
+    from .pacs.dimse.listener import DicomListener
+
+    if not settings.dicom_port:
+        logging.getLogger("dsareg.dimse").error("set DSAREG_DICOM_PORT (the listener's TCP port)")
+        return 2
+    ctx = _listener_context(settings)
+    loop = asyncio.new_event_loop()
+    loop_thread = threading.Thread(target=loop.run_forever, name="dimse-submit-loop", daemon=True)
+    loop_thread.start()
+    listener = DicomListener(settings, ctx.store, ctx.blobs, DimseIntake(ctx), loop)
+    stopping = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stopping.set())
+    try:
+        deadline = time.monotonic() + settings.validation_timeout_seconds
+        while not ctx.validator.ready() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        ctx.executor.start()
+        listener.start()
+        print(f"dsareg dicom-listener: {settings.dicom_ae_title} on {settings.dicom_host}:{listener.port}", flush=True)
+        stopping.wait()
+    finally:
+        listener.stop()
+        loop.call_soon_threadsafe(loop.stop)
+        loop_thread.join(5)
+        ctx.executor.stop()
+        ctx.validator.stop()
+        ctx.store.dispose()
+    return 0

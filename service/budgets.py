@@ -4,9 +4,10 @@
   (10,000 levels raise ``RecursionError``) and refuses integers over 4,300 digits with a
   bare ``ValueError``; both used to reach the generic 500 handler. :func:`parse_json_part`
   bounds depth, number length and non-finite constants first and answers 422 naming the part.
-* Options the worker would reject (a non-rigid or NaN ``initial_mesh_to_world``…) and
-  jobs whose estimated cost is above ``max_job_cost`` are refused at submission
-  (:func:`check_options`, :func:`check_job_cost`) instead of failing later in a worker.
+* Jobs whose estimated cost is above ``max_job_cost`` are refused at submission
+  (:func:`check_job_cost`) instead of failing later in a worker; options the worker would reject
+  (a non-rigid or NaN ``initial_mesh_to_world``…) are refused by
+  :func:`service.engine_adapter.check_options`, which asks the engine.
 * Images: :func:`image_decoded_bytes` reads only the header and gives pixels × channels ×
   bytes per sample, so a small file that decodes to gigabytes is refused before decoding
   (see :func:`service.engine_adapter.check_image_budget`, called by :func:`service.engine_adapter.stored_case_files`).

@@ -22,7 +22,6 @@ from dsareg_engine import api as engine
 
 from .storage.blobs import BlobStore
 from .budgets import image_decoded_bytes, parse_json_part
-from .problems import Problem
 
 if TYPE_CHECKING:  # the job store (SQLAlchemy) is not needed to parse the CLI or call the engine
     from .storage.store import InputFile
@@ -37,14 +36,12 @@ def submitted_geometry(text: str | None) -> str | None:
     """A submission's ``geometry`` part → the canonical JSON to store; blank or absent → ``None``.
 
     Parsed once here (a preset name or a JSON object; never a file path, so a client cannot make
-    the server read its own files), with the service's bounded JSON parser; 422 naming the field.
+    the server read its own files), with the service's bounded JSON parser; an unusable geometry raises
+    ``engine.DsaregInputError`` naming the field (the API answers 422: :mod:`service.api.handlers`).
     """
     if text is None or not text.strip():
         return None
-    try:
-        spec = engine.parse_geometry(text, loads=lambda part: parse_json_part(part, "geometry"))
-    except engine.DsaregInputError as exc:
-        raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+    spec = engine.parse_geometry(text, loads=lambda part: parse_json_part(part, "geometry"))
     return spec.to_json()
 
 
@@ -79,15 +76,11 @@ def input_limits(limits: dict[str, int] | None) -> Any:
 
 
 def check_options(options: Any) -> None:
-    """Refuse what the worker would refuse, naming the option (422)."""
+    """Refuse what the worker would refuse: ``engine.DsaregInputError`` naming the option (422 in the API)."""
     for name in ("initial_mesh_to_world", "ground_truth_mesh_to_world"):
         matrix = getattr(options, name, None)
-        if matrix is None:
-            continue
-        try:
+        if matrix is not None:
             engine.validate_rigid(matrix, field=f"options.{name}", allow_mirror=False)
-        except engine.DsaregInputError as exc:
-            raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
 
 
 def check_image_budget(data: bytes, field: str, limit: int) -> None:
@@ -126,6 +119,16 @@ def fetched_case_files(ap: bytes, lat: bytes, volume: list[bytes], frame: Any, w
     """Inputs fetched from a PACS as ``engine.CaseFiles`` (the geometry comes from the XA headers)."""
     return engine.CaseFiles(ap=ap, ap_name="ap.dcm", lat=lat, lat_name="lat.dcm", volume=volume,
                             volume_name="volume.dcm", frame=frame, warnings=tuple(warnings))
+
+
+def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """Degrees between the view directions of two C-arm positions ``(primary°, secondary°)``
+    (the engine's C-arm convention, ``engine.c_arm_rotation``)."""
+    import numpy as np
+
+    beam_at_ap = np.array([0.0, -1.0, 0.0])  # the AP view looks along −y (LPS: anterior)
+    da, db = (engine.c_arm_rotation(p, s) @ beam_at_ap for p, s in (a, b))
+    return float(np.degrees(np.arccos(np.clip(float(da @ db), -1.0, 1.0))))
 
 
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,

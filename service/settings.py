@@ -120,6 +120,34 @@ class ServiceSettings(BaseSettings):
                                                               "timeouts and 408/429/502/503/504.")
     dicomweb_retry_backoff_seconds: float = Field(0.5, ge=0.0, description="First retry delay (doubles each retry).")
 
+    # DICOM node (service/pacs/dimse): DIMSE C-ECHO / C-STORE SCP, jobs from received studies, results by C-STORE
+    dicom_port: int | None = Field(
+        None, ge=1, le=65535, description="DICOM (DIMSE) listener port; unset: no DICOM node in `dsareg serve` "
+                                          "(`dsareg dicom-listener` runs one on its own).")
+    dicom_host: str = Field("127.0.0.1", description="Bind address of the DICOM listener.")
+    dicom_ae_title: str = Field("DSAREG", min_length=1, max_length=16, description="AE title of the DICOM node.")
+    dicom_peers: Annotated[list[Any], NoDecode] = Field(
+        default_factory=list,
+        description='DICOM peers allowed to associate and to receive results: JSON list of {"ae_title", "host", '
+                    '"port"}; an association from any other calling AE title or host is rejected.')
+    dicom_stable_seconds: float = Field(
+        10.0, gt=0.0, description="A received study becomes jobs once no instance of it arrived for this long.")
+    dicom_export: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="AE titles (of dicom_peers) that receive the REG and overlays by C-STORE; "
+                                          "empty: the peer that sent the study.")
+    dicom_export_retries: int = Field(2, ge=0, le=10, description="Retries of a failed C-STORE of the results.")
+    dicom_export_backoff_seconds: float = Field(0.5, ge=0.0, description="First export retry delay (doubles each retry).")
+    dicom_timeout_seconds: float = Field(20.0, gt=0.0, description="Timeout of DIMSE connections, associations and "
+                                                                   "messages (SCU and SCP).")
+    dicom_job_owner_key_hash: str | None = Field(
+        None, description="SHA-256 hex of the API key that owns jobs made from DICOM studies (it sees them in the "
+                          "API); default the first configured key, or anonymous when auth is off.")
+    dicom_job_options: dict[str, Any] = Field(
+        default_factory=dict, description="RegistrationOptions (as in the multipart form) of jobs made from DICOM studies.")
+    min_free_bytes: int = Field(
+        512 * 1024 * 1024, ge=0, description="Free disk space in data_dir below which new DICOM associations are "
+                                             "refused (and C-STORE answers 'out of resources'); 0: no floor.")
+
     # completion callbacks (service/jobs/callbacks.py, docs/api/callbacks.md)
     callback_allowed: Annotated[list[str], NoDecode] = Field(
         default_factory=list,
@@ -137,10 +165,27 @@ class ServiceSettings(BaseSettings):
 
     log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
 
-    @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "callback_allowed", mode="before")
+    @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "dicom_peers", "dicom_export", "callback_allowed",
+                     mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
         return _split_list(value)
+
+    @field_validator("dicom_peers")
+    @classmethod
+    def _peers(cls, value: list[Any]) -> list[dict[str, Any]]:
+        peers = []
+        for index, item in enumerate(value):
+            if not isinstance(item, dict) or not {"ae_title", "host", "port"} <= set(item):
+                raise ValueError(f'dicom_peers[{index}] must be {{"ae_title", "host", "port"}}')
+            title = str(item["ae_title"]).strip()
+            if not 0 < len(title) <= 16 or "\\" in title:
+                raise ValueError(f"dicom_peers[{index}].ae_title must be 1 to 16 characters")
+            port = int(item["port"])
+            if not 0 < port < 65536:
+                raise ValueError(f"dicom_peers[{index}].port must be 1..65535")
+            peers.append({"ae_title": title, "host": str(item["host"]).strip(), "port": port})
+        return peers
 
     @field_validator("api_key_hashes")
     @classmethod
@@ -245,7 +290,7 @@ def settings_to_env(settings: ServiceSettings) -> dict[str, str]:
         value = getattr(settings, name)
         if name == "api_keys" or value is None:
             continue
-        if isinstance(value, list):
+        if isinstance(value, (list, dict)):
             env[f"DSAREG_{name.upper()}"] = json.dumps(value)
         else:
             env[f"DSAREG_{name.upper()}"] = str(value)

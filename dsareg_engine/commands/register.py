@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..errors import DsaregInputError
 from ..registration.options import CONFIGURATIONS
-from .failures import geometry_argument, input_file, json_argument, options_help
+from .arguments import geometry_argument, input_file, json_argument, options_help
 from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
 
 

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import DsaregInputError
-from .failures import geometry_argument, input_file
+from .arguments import geometry_argument, input_file
 
 
 def add_parser(subparsers) -> None:

@@ -39,16 +39,28 @@ Matrix = list[list[float]]
 
 
 class ViewSpec(BaseModel):
-    """One view as written in a geometry file."""
+    """One X-ray view. Either `sid_mm` + `world_to_view` (+ optional `principal_point_px`) or a
+    `projection_matrix`."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
+        "principal_point_px": [399.5, 399.5],
+        "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}]})
 
-    image_size: tuple[PositiveInt, PositiveInt] = Field(description="[width, height] in pixels")
-    pixel_spacing_mm: tuple[PositiveFloat, PositiveFloat] = Field(description="[column, row] spacing at the detector")
-    sid_mm: PositiveFloat | None = Field(None, description="source-to-detector distance")
-    principal_point_px: tuple[float, float] | None = Field(None, description="[u0, v0]; default image centre")
-    world_to_view: Matrix | None = Field(None, description="4x4, orthonormal 3x3 part with det ±1")
-    projection_matrix: Matrix | None = Field(None, description="3x4 world mm → pixels, instead of sid/world_to_view")
+    image_size: tuple[PositiveInt, PositiveInt] = Field(
+        description="[width, height] of the image in pixels.", examples=[[800, 800]])
+    pixel_spacing_mm: tuple[PositiveFloat, PositiveFloat] = Field(
+        description="[column, row] pixel spacing at the detector, mm (DICOM Imager Pixel Spacing).",
+        examples=[[0.3, 0.3]])
+    sid_mm: PositiveFloat | None = Field(None, description="Source-to-detector distance, mm.", examples=[1200.0])
+    principal_point_px: tuple[float, float] | None = Field(
+        None, description="[u0, v0] foot of the central ray on the image, pixels; default the image centre "
+                          "((W-1)/2, (H-1)/2).")
+    world_to_view: Matrix | None = Field(
+        None, description="4x4 rigid transform world mm → view frame (origin at the source, +z along the central "
+                          "ray toward the detector, +x along columns, +y along rows); det may be -1 (mirror).")
+    projection_matrix: Matrix | None = Field(
+        None, description="3x4 world mm → homogeneous pixels, instead of sid_mm + world_to_view.")
 
     @model_validator(mode="after")
     def _one_description(self) -> ViewSpec:
@@ -72,12 +84,13 @@ class ViewSpec(BaseModel):
 
 
 class LatFromAp(BaseModel):
-    """A lateral plane obtained by turning the AP imaging chain about the isocentre."""
+    """The lateral view as the AP imaging chain turned about an axis through the isocentre."""
 
     model_config = ConfigDict(extra="forbid")
-    angle_deg: float
-    axis_world: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    isocentre_world: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    angle_deg: float = Field(description="Rotation angle, degrees (90 for an orthogonal biplane).", examples=[90.0])
+    axis_world: tuple[float, float, float] = Field((0.0, 1.0, 0.0), description="Rotation axis, world frame.")
+    isocentre_world: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Isocentre, world mm.")
 
 
 class RigSpec(BaseModel):
@@ -85,9 +98,10 @@ class RigSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    views: dict[str, ViewSpec]
-    lat_from_ap: LatFromAp | None = None
-    initial_mesh_to_world: Matrix | None = None
+    views: dict[str, ViewSpec] = Field(description="The views by name: `ap` and `lat`.")
+    lat_from_ap: LatFromAp | None = Field(None, description="Derive `lat` from `ap` (then give only `ap`).")
+    initial_mesh_to_world: Matrix | None = Field(
+        None, description="4x4 rigid initial pose mesh mm → world mm where the optimization starts (default identity).")
 
 
 def rig_from_dict(data: Any) -> Rig:

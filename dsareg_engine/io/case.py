@@ -125,27 +125,7 @@ def load_case(
         raise DsaregInputError(
             f"unknown method '{segmentation}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
         )
-    has_mesh = mesh is not None and (len(mesh) > 0 or mesh_name is not None)
-    has_volume = volume is not None
-    if has_mesh == has_volume:
-        raise DsaregInputError(
-            "give exactly one of a mesh or a volume" + (" (both were given)" if has_mesh else ""),
-            field="mesh",
-            accepted="a surface mesh (OBJ/STL/PLY/OFF/GLB) or a 3D volume (NIfTI/NRRD/DICOM/.rad)",
-        )
-    if has_mesh:
-        result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh")
-        surface, kinds["mesh"] = result.mesh, result.format
-        warnings.extend(result.warnings)
-    else:
-        loaded = read_volume(volume, volume_name, limits, field_name="volume")
-        warnings.extend(loaded.warnings)
-        surface = volume_to_mesh(loaded, field_name="volume")
-        kinds["volume"] = loaded.kind
-        if surface.n_faces > limits.working_faces:
-            original = surface.n_faces
-            surface = decimate(surface, limits.working_faces)
-            warnings.append(f"volume: surface decimated from {original} to {surface.n_faces} faces")
+    surface = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings, kinds)
 
     images: dict[str, LoadedImage] = {}
     for name, data, filename in (("ap", ap, ap_name), ("lat", lat, lat_name)):
@@ -162,21 +142,7 @@ def load_case(
     views: dict[str, ViewGeometry] = {}
     for name in VIEW_NAMES:
         image = images[name]
-        if name not in rig.views:
-            raise DsaregInputError(f"the geometry has no '{name}' view", field="geometry.views")
-        view = rig.views[name]
-        width, height = image.image_size
-        if (width, height) != view.image_size:
-            view_aspect = view.width / view.height
-            if abs(width / height - view_aspect) > ASPECT_TOLERANCE * view_aspect:
-                raise DsaregInputError(
-                    f"image is {width}x{height} but the geometry's {name} view is "
-                    f"{view.width}x{view.height} (different aspect ratio)",
-                    field=name,
-                    accepted=f"an image of {view.width}x{view.height} or the same aspect ratio",
-                )
-            warnings.append(f"{name}: geometry {view.width}x{view.height} rescaled to the image's {width}x{height}")
-            view = view.resized(width, height)
+        view = _view_for_image(rig, name, image, warnings)
         method = "mask" if image.is_mask and segmentation == "auto" else segmentation
         targets[name] = vessel_coverage(image.pixels, method, field_name=name)
         masks[name] = binary_mask(targets[name])
@@ -185,6 +151,54 @@ def load_case(
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets)
 
+
+
+def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | list[bytes] | None,
+                  volume_name: str | None, limits: InputLimits, warnings: list[str],
+                  kinds: dict[str, str]) -> TriangleMesh:
+    """The vessel surface from exactly one of a mesh or a volume (segmented, meshed, decimated)."""
+    has_mesh = mesh is not None and (len(mesh) > 0 or mesh_name is not None)
+    has_volume = volume is not None
+    if has_mesh == has_volume:
+        raise DsaregInputError(
+            "give exactly one of a mesh or a volume" + (" (both were given)" if has_mesh else ""),
+            field="mesh",
+            accepted="a surface mesh (OBJ/STL/PLY/OFF/GLB) or a 3D volume (NIfTI/NRRD/DICOM/.rad)",
+        )
+    if has_mesh:
+        result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh")
+        kinds["mesh"] = result.format
+        warnings.extend(result.warnings)
+        return result.mesh
+    loaded = read_volume(volume, volume_name, limits, field_name="volume")
+    warnings.extend(loaded.warnings)
+    surface = volume_to_mesh(loaded, field_name="volume")
+    kinds["volume"] = loaded.kind
+    if surface.n_faces > limits.working_faces:
+        original = surface.n_faces
+        surface = decimate(surface, limits.working_faces)
+        warnings.append(f"volume: surface decimated from {original} to {surface.n_faces} faces")
+    return surface
+
+
+def _view_for_image(rig: Rig, name: str, image: LoadedImage, warnings: list[str]) -> ViewGeometry:
+    """The rig's ``name`` view, rescaled to the image when only the size (not the aspect ratio) differs."""
+    if name not in rig.views:
+        raise DsaregInputError(f"the geometry has no '{name}' view", field="geometry.views")
+    view = rig.views[name]
+    width, height = image.image_size
+    if (width, height) != view.image_size:
+        view_aspect = view.width / view.height
+        if abs(width / height - view_aspect) > ASPECT_TOLERANCE * view_aspect:
+            raise DsaregInputError(
+                f"image is {width}x{height} but the geometry's {name} view is "
+                f"{view.width}x{view.height} (different aspect ratio)",
+                field=name,
+                accepted=f"an image of {view.width}x{view.height} or the same aspect ratio",
+            )
+        warnings.append(f"{name}: geometry {view.width}x{view.height} rescaled to the image's {width}x{height}")
+        view = view.resized(width, height)
+    return view
 
 def _resolve_rig(geometry: GeometrySpec | None, images: dict[str, LoadedImage], warnings: list[str],
                  kinds: dict[str, str]) -> Rig:

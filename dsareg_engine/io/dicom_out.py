@@ -13,6 +13,8 @@ Equipment, Spatial Registration, Common Instance Reference, SOP Common):
 * One Registration Sequence item describes the vessel model's source frame ("B"): the volume's
   ``FrameOfReferenceUID`` when the model came from a DICOM volume (its slices in the item's
   Referenced Image Sequence), a new UID otherwise. Its Matrix Registration holds one RIGID matrix.
+  A second item names the XA images (Referenced Image Sequence) in the Registered RCS itself with
+  an identity matrix, so that every instance of Common Instance Reference is referenced (C.12.2).
 * **Direction.** PS3.3 C.20.2.1.1: the Frame of Reference Transformation Matrix ``AMB``
   "describes how to transform a point (Bx, By, Bz) with respect to RCS B into (Ax, Ay, Az) with
   respect to RCS A", A being the Registered RCS established by this instance. We therefore write
@@ -330,9 +332,36 @@ def build_registration(
     if sources.volume:
         item.ReferencedImageSequence = Sequence([_instance_ref(v) for v in sources.volume])
     item.MatrixRegistrationSequence = Sequence([registration])
-    ds.RegistrationSequence = Sequence([item])
+    items = [item]
+    if sources.xa:
+        items.append(_registered_frame_item(ds.FrameOfReferenceUID, sources.xa))
+    ds.RegistrationSequence = Sequence(items)
     _common_instance_reference(ds, [*sources.xa, *sources.volume], study_uid)
     return ds
+
+
+def _registered_frame_item(frame_uid: str, xa: list):
+    """The second Registration Sequence item: the XA images in the Registered RCS itself (identity).
+
+    PS3.3 C.12.2 lists in Common Instance Reference only instances referenced elsewhere in the
+    object; the XA images are referenced here, as the images whose frame *is* the Registered RCS
+    (an identity RIGID matrix), so a viewer knows which images the model was registered to.
+    """
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    matrix_item = Dataset()
+    matrix_item.FrameOfReferenceTransformationMatrixType = "RIGID"
+    matrix_item.FrameOfReferenceTransformationMatrix = matrix_to_ds(np.eye(4))
+    registration = Dataset()
+    registration.RegistrationTypeCodeSequence = Sequence()
+    registration.MatrixSequence = Sequence([matrix_item])
+    registration.FrameOfReferenceTransformationComment = "XA images: C-arm isocentre LPS frame (identity)"
+    item = Dataset()
+    item.FrameOfReferenceUID = frame_uid
+    item.ReferencedImageSequence = Sequence([_instance_ref(x) for x in xa])
+    item.MatrixRegistrationSequence = Sequence([registration])
+    return item
 
 
 def read_registration_matrix(ds, model_frame_uid: str | None = None) -> np.ndarray:
@@ -405,6 +434,38 @@ def to_bytes(ds) -> bytes:
     return buffer.getvalue()
 
 
+def overlay_derivation(view: str) -> str:
+    """Derivation Description of an overlay: the contour colours are those ``overlay.py`` draws."""
+    from ..overlay import FINAL_BGR, INITIAL_BGR
+
+    initial, final = colour_name(INITIAL_BGR[::-1]), colour_name(FINAL_BGR[::-1])
+    return (f"dsareg overlay, {view.upper()} view: target vessel mask (grey), initial ({initial}) and "
+            f"registered ({final}) model silhouette contours")
+
+
+NAMED_COLOURS_RGB = {"red": (230, 30, 30), "orange": (255, 140, 0), "yellow": (240, 220, 0), "green": (30, 180, 30),
+                     "cyan": (0, 200, 220), "blue": (0, 90, 220), "magenta": (220, 0, 220), "grey": (128, 128, 128)}
+
+
+def colour_name(rgb) -> str:
+    """The nearest of a few plain colour names to ``rgb`` (by hue; grey when unsaturated)."""
+    import colorsys
+
+    r, g, b = (c / 255.0 for c in rgb)
+    hue, _, saturation = colorsys.rgb_to_hls(r, g, b)
+    if saturation < 0.2:
+        return "grey"
+    best, distance = "grey", 2.0
+    for name, ref in NAMED_COLOURS_RGB.items():
+        if name == "grey":
+            continue
+        ref_hue = colorsys.rgb_to_hls(*(c / 255.0 for c in ref))[0]
+        d = min(abs(hue - ref_hue), 1 - abs(hue - ref_hue))
+        if d < distance:
+            best, distance = name, d
+    return best
+
+
 OUTPUT_FILES = {artifacts.REG_DCM: "registration", artifacts.overlay_dcm("ap"): "overlay ap",
                 artifacts.overlay_dcm("lat"): "overlay lat", artifacts.LOSS_DCM: "loss plot"}
 
@@ -445,8 +506,7 @@ def write_dicom_outputs(
             number += 1
             ds = build_secondary_capture(
                 _read_rgb(png), sources, study_uid=study_uid, series_uid=series_uid, instance_number=number,
-                derivation=f"dsareg overlay, {view.upper()} view: target vessel mask (grey), initial (orange) and "
-                           "registered (green) model silhouette contours")
+                derivation=overlay_derivation(view))
             save(artifacts.overlay_dcm(view), ds)
     loss = out_dir / artifacts.LOSS_PNG
     if loss.is_file():

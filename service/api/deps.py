@@ -7,7 +7,6 @@ and checked to belong to the caller (404 / 403 otherwise).
 
 from __future__ import annotations
 
-import hashlib
 import hmac
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Annotated, Any
@@ -18,7 +17,7 @@ from prometheus_client import CollectorRegistry, Counter
 
 from ..jobs.executor import Executor
 from ..problems import Problem
-from ..settings import ServiceSettings
+from ..settings import ServiceSettings, hash_api_key
 from ..storage.blobs import BlobStore
 from ..storage.store import JobRecord, JobStore, is_job_id
 from .intake.validation import ValidatorPool
@@ -61,7 +60,7 @@ def principal(request: Request, credentials: HTTPAuthorizationCredentials | None
         return ANONYMOUS
     if credentials is None or not credentials.credentials:
         raise Problem(401, "send 'Authorization: Bearer <API key>'", headers={"WWW-Authenticate": "Bearer"})
-    digest = hashlib.sha256(credentials.credentials.strip().encode("utf-8")).hexdigest()
+    digest = hash_api_key(credentials.credentials)
     match = None
     for known in ctx.settings.api_key_hashes:  # compare against all, in constant time each
         if hmac.compare_digest(digest, known):

@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
+from ..engine_adapter import engine
 from .httpfaults import allowed_methods
 from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
 from ..storage.store import store_outage_errors
@@ -31,6 +32,12 @@ def route_template(request: Request) -> str:
 
 async def on_problem(request: Request, exc: Problem) -> JSONResponse:
     return problem_response(exc.status, exc.body(request.url.path), exc.headers)
+
+
+async def on_input_error(request: Request, exc: Exception) -> JSONResponse:
+    """The engine refused an input (``DsaregInputError``: message, field, accepted): 422, the one mapping."""
+    problem = Problem(422, exc.message, field=exc.field, accepted=exc.accepted)  # type: ignore[attr-defined]
+    return await on_problem(request, problem)
 
 
 async def on_http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -80,6 +87,7 @@ async def on_internal(request: Request, exc: Exception) -> JSONResponse:
 
 def install_handlers(app: FastAPI) -> None:
     app.add_exception_handler(Problem, on_problem)  # type: ignore[arg-type]
+    app.add_exception_handler(engine.DsaregInputError, on_input_error)
     app.add_exception_handler(StarletteHTTPException, on_http)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, on_validation)  # type: ignore[arg-type]
     app.add_exception_handler(ClientDisconnect, on_disconnect)  # type: ignore[arg-type]

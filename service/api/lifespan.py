@@ -13,10 +13,12 @@ from fastapi import FastAPI
 
 from ..jobs.callbacks import CallbackDeliverer
 from ..storage.dbblobs import make_blob_store
+from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
 from ..settings import ServiceSettings
 from ..jobs.sweeper import Sweeper
 from ..storage.store import SqlJobStore
+from .intake.dimse import DimseIntake
 from .intake.validation import ValidatorPool
 from .schemas.jobs import summary_body
 from .deps import ServiceContext
@@ -54,6 +56,15 @@ def start_callbacks(ctx: ServiceContext) -> CallbackDeliverer:
     return deliverer
 
 
+def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
+    """The DICOM node of ``dsareg serve`` when ``DSAREG_DICOM_PORT`` is set (its jobs go through this API's intake)."""
+    if not ctx.settings.dicom_port:
+        return None
+    listener = DicomListener(ctx.settings, ctx.store, ctx.blobs, DimseIntake(ctx), asyncio.get_running_loop())
+    listener.start()
+    return listener
+
+
 def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: dict[str, ServiceContext | None], *,
                   executor: Executor | None, make_executor: Callable[[ServiceSettings, Any], Executor],
                   start_background: bool):
@@ -72,6 +83,7 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
             ctx.callbacks = start_callbacks(ctx)
+            ctx.extra["dicom_listener"] = _start_dicom_node(ctx)
         log.info("dsareg service ready (%d worker processes, store %s)", settings.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
         try:
@@ -79,6 +91,8 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
         finally:
             if ctx.callbacks:
                 ctx.callbacks.stop()
+            if ctx.extra.get("dicom_listener") is not None:
+                await asyncio.to_thread(ctx.extra["dicom_listener"].stop)
             if ctx.sweeper:
                 ctx.sweeper.stop()
             await asyncio.to_thread(ctx.executor.stop)

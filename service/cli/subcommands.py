@@ -15,6 +15,7 @@ def add_parser(subparsers: Any) -> None:
     """The service's sub-commands (contributed to ``dsareg`` through the ``dsareg.commands`` entry point)."""
     _add_serve(subparsers)
     _add_worker(subparsers)
+    _add_dicom_listener(subparsers)
     _add_submit(subparsers)
 
 
@@ -55,6 +56,31 @@ def _add_worker(subparsers: Any) -> None:
     worker.add_argument("--config", metavar="FILE", help="service settings file (JSON or TOML), as for serve")
     worker.add_argument("--log-level", help="debug, info, warning, error")
     worker.set_defaults(func=run_worker)
+
+
+def _add_dicom_listener(subparsers: Any) -> None:
+    listener = subparsers.add_parser(
+        "dicom-listener", help="run the DICOM node (C-ECHO, C-STORE SCP) in its own process",
+        description="Receive studies over DIMSE (DSAREG_DICOM_PORT, DSAREG_DICOM_AE_TITLE, DSAREG_DICOM_PEERS) and "
+                    "queue their registrations in the shared job store; results go back by C-STORE. Settings as for "
+                    "serve (see docs/pacs/dimse.md). One listener per job database.")
+    listener.add_argument("--port", type=int, help="DICOM TCP port (DSAREG_DICOM_PORT)")
+    listener.add_argument("--ae-title", help="AE title (DSAREG_DICOM_AE_TITLE, default DSAREG)")
+    listener.add_argument("--data-dir", type=Path, help="inputs, artifacts and the default SQLite database")
+    listener.add_argument("--database-url", help="SQLAlchemy URL of the shared job store")
+    listener.add_argument("--config", metavar="FILE", help="service settings file (JSON or TOML), as for serve")
+    listener.add_argument("--log-level", help="debug, info, warning, error")
+    listener.set_defaults(func=run_dicom_listener)
+
+
+def run_dicom_listener(args: argparse.Namespace) -> int:
+    from ..app import run_dicom_listener as run_listener
+    from ..settings import load_settings
+
+    settings = load_settings(args.config, dicom_port=args.port, dicom_ae_title=args.ae_title, data_dir=args.data_dir,
+                             database_url=args.database_url, log_level=args.log_level)
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    return run_listener(settings)
 
 
 def _add_submit(subparsers: Any) -> None:

@@ -37,6 +37,10 @@ class Executor(abc.ABC):
     @abc.abstractmethod
     def alive_workers(self) -> int: ...
 
+    def ready_workers(self) -> int:
+        """Workers that can take a job now (warmed up); ``/readyz`` is 200 only when this is > 0."""
+        return self.alive_workers()
+
     def submit(self, job_id: str) -> None:
         """A job was queued (the API calls this after inserting it)."""
         self.notify()
@@ -79,12 +83,14 @@ class EmbeddedProcessExecutor(Executor):
     it stops the worker) instead of process-shared events, whose internal lock a SIGKILLed
     worker could leave held and so block every later notify."""
 
-    def __init__(self, settings: ServiceSettings, workers: int | None = None):
+    def __init__(self, settings: ServiceSettings, workers: int | None = None, store: Any = None):
         self.settings = settings
+        self.store = store  # to tell warmed-up workers (they register in the store after warm-up) from warming ones
         self.count = settings.workers if workers is None else workers
         self.ctx = mp.get_context("spawn")
         self.links: list[WakeLink | None] = [None] * self.count
         self.processes: list[Any] = [None] * self.count
+        self.spawned_at: list[float] = [0.0] * self.count  # wall time of each process's start
         self.restarts = 0
         self._supervisor: threading.Thread | None = None
         self._halt = threading.Event()
@@ -101,6 +107,7 @@ class EmbeddedProcessExecutor(Executor):
             target=worker_main, args=(self.settings, index, link.child_end(), os.getpid()),
             name=f"dsareg-worker-{index}", daemon=False,
         )
+        self.spawned_at[index] = time.time()
         process.start()
         link.started()
         with self._links_lock:
@@ -138,6 +145,22 @@ class EmbeddedProcessExecutor(Executor):
 
     def alive_workers(self) -> int:
         return sum(1 for p in self.processes if p is not None and p.is_alive())
+
+    def ready_workers(self) -> int:
+        """Live processes that registered in the store since they started: a worker registers only
+        after its warm-up (compiling the kernels: minutes on a fresh install), so a warming worker
+        is alive but not ready. Without a store (tests of the executor alone): the live ones."""
+        if self.store is None:
+            return self.alive_workers()
+        try:
+            seen = self.store.workers_seen_since(min(self.spawned_at, default=0.0))
+        except Exception:  # noqa: BLE001 - the store being out is reported by /readyz's store check
+            return 0
+        return sum(1 for index, p in enumerate(self.processes)
+                   if p is not None and p.is_alive() and seen.get(p.pid, 0.0) >= self.spawned_at[index])
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), "ready_workers": self.ready_workers()}
 
     def pids(self) -> list[int]:
         return [p.pid for p in self.processes if p is not None and p.is_alive()]

@@ -14,4 +14,4 @@ def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
         from .celery.executor import CeleryExecutor
 
         return CeleryExecutor(settings, store)
-    return EmbeddedProcessExecutor(settings) if settings.workers > 0 else NoExecutor()
+    return EmbeddedProcessExecutor(settings, store=store) if settings.workers > 0 else NoExecutor()

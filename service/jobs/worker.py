@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from ..storage.blobs import BlobStore
-from ..pacs.dicom_jobs import pacs_job, pacs_problem
+from ..pacs.dicom_jobs import STORED_FILES, pacs_job, pacs_problem
 from ..pacs.dicomweb import PacsError
+from ..pacs.dimse.export import dimse_job
 from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
@@ -33,7 +34,7 @@ from ..storage.store import JobRecord, JobStore, SqlJobStore, random_token, stor
 
 log = logging.getLogger("dsareg.service.worker")
 
-STORING_FRACTION = 0.985  # STOW-RS of the DICOM results into the PACS (jobs by reference)
+STORING_FRACTION = 0.985  # STOW-RS / C-STORE of the DICOM results into the PACS
 SAVING_FRACTION = 0.99  # artifacts into the blob store, then the result into the job store
 
 
@@ -228,17 +229,21 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
               out_dir: Path) -> str:
     """Inputs → one engine call → artifacts and result into the store (both retried across store outages)."""
     pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
+    dimse = dimse_job(job, blobs.read, settings)  # made from a study received over DIMSE, or None
     if pacs is None:
         files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.input_limits)
     else:
         files = pacs.fetch()
     result = run_job(files, job.options, out_dir, limits=settings.input_limits, control=control,
-                     label=f"job {job.id}", dicom="best_effort" if pacs is None else "required")
+                     label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
     if control.lost:
         return "lost"
     if pacs is not None:
         control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
         result = pacs.store_back(result, out_dir)
+    if dimse is not None:
+        control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
+        result = dimse.export(result, out_dir, STORED_FILES)
     control.progress({"stage": "saving", "iteration": 0, "loss": None, "fraction": SAVING_FRACTION})
     artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
     outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
@@ -269,12 +274,16 @@ def warm_up() -> None:
     first job otherwise costs ~1.5 CPU-s more than the next ones."""
     import tempfile
 
+    started = time.monotonic()
+    log.info("worker warming up: compiling the numba kernels and running one tiny job (minutes on a fresh "
+             "install with an empty kernel cache, a few seconds once cached; `dsareg warmup` fills the cache ahead)")
     try:
         engine.warm_up_renderer()
         with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-") as work_dir:
             engine.warm_up_job(Path(work_dir))
     except Exception:
         log.warning("warm-up incomplete; the first job will be slower", exc_info=True)
+    log.info("worker warmed up in %.1f s; ready for jobs", time.monotonic() - started)
 
 
 def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
@@ -286,8 +295,9 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
     """
     import signal
 
-    from .procwatch import WorkerControl, die_with_parent
+    from .procwatch import WorkerControl, die_with_parent, set_process_name
 
+    set_process_name(f"dsareg-worker{index}")
     control = WorkerControl()
     signal.signal(signal.SIGINT, signal.SIG_IGN if link is not None else control.request_stop)
     signal.signal(signal.SIGTERM, control.request_stop)

@@ -1,1 +1,2 @@
-"""PACS: the DICOMweb client (``dicomweb``) and the fetch before / STOW-RS after a job by reference (``dicom_jobs``)."""
+"""PACS: the DICOMweb client (``dicomweb``) and the fetch before / STOW-RS after a job by reference (``dicom_jobs``);
+the DICOM (DIMSE) node (``dimse``)."""

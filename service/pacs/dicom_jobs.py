@@ -23,6 +23,7 @@ from .dicomweb import (
     resolve_server,
 )
 from ..engine_adapter import engine, fetched_case_files
+from .dimse.pull import pull_job
 from ..settings import ServiceSettings
 from ..storage.store import JobRecord
 
@@ -30,10 +31,12 @@ REFERENCE_ROLE = "dicomweb"
 STORED_FILES = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))
 
 
-def pacs_job(job: JobRecord, read: Any, settings: ServiceSettings) -> PacsJob | None:
-    """The job's DICOMweb reference (``None`` for a job whose inputs were uploaded)."""
+def pacs_job(job: JobRecord, read: Any, settings: ServiceSettings) -> Any:
+    """The job's DICOMweb (:class:`PacsJob`) or DIMSE reference (``None`` for a job whose inputs were uploaded)."""
     refs = [item for item in job.inputs if item.role == REFERENCE_ROLE]
-    return PacsJob(parse_reference(read(refs[0].sha256)), settings) if refs else None
+    if refs:
+        return PacsJob(parse_reference(read(refs[0].sha256)), settings)
+    return pull_job(job, read, settings)  # by DIMSE reference (C-GET), or None
 
 
 class PacsJob:

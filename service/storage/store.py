@@ -170,6 +170,10 @@ class JobStore(abc.ABC):
     @abc.abstractmethod
     def live_workers(self, since: float) -> int: ...
 
+    def workers_seen_since(self, since: float) -> dict[int, float]:
+        """``{pid: last_seen}`` of the workers seen at or after ``since`` (wall time)."""
+        raise NotImplementedError
+
     @abc.abstractmethod
     def finished_durations(self) -> list[tuple[str, float]]: ...
 
@@ -618,6 +622,15 @@ class SqlJobStore(JobStore):
     def live_workers(self, since: float) -> int:
         with self.engine.connect() as conn:
             return int(conn.execute(sa.select(sa.func.count()).select_from(workers).where(workers.c.last_seen >= since)).scalar_one())
+
+    def workers_seen_since(self, since: float) -> dict[int, float]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(workers.c.pid, workers.c.last_seen).where(workers.c.last_seen >= since)).all()
+        seen: dict[int, float] = {}
+        for pid, last_seen in rows:
+            if pid is not None:
+                seen[int(pid)] = max(float(last_seen), seen.get(int(pid), 0.0))
+        return seen
 
     def finished_durations(self) -> list[tuple[str, float]]:
         with self.engine.connect() as conn:

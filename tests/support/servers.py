@@ -153,7 +153,8 @@ class OrthancServer(_ChildServer):
                     "/usr/local/share/orthanc/plugins/libOrthancDicomWeb.so*")
 
     def __init__(self, user: str = "dsareg", password: str = "dsareg-test", lua: str | None = None,
-                 stable_age: int = 2, port: int | None = None):
+                 stable_age: int = 2, port: int | None = None, dicom_modalities: dict | None = None,
+                 dicom_aet: str = "ORTHANC"):
         self.binary = shutil.which("Orthanc")
         plugins = [p for pattern in self.PLUGIN_GLOBS for p in sorted(glob.glob(pattern))]
         self.plugin = plugins[0] if plugins else None
@@ -163,6 +164,7 @@ class OrthancServer(_ChildServer):
         self.dir = Path(tempfile.mkdtemp(prefix="dsareg-orthanc-"))
         self.lua = lua
         self.stable_age = stable_age
+        self.dicom_modalities, self.dicom_aet = dicom_modalities, dicom_aet  # {name: [AET, host, port]}: DIMSE on
         self.process: subprocess.Popen | None = None
 
     @property
@@ -185,6 +187,9 @@ class OrthancServer(_ChildServer):
                          "StudiesMetadata": "Full", "SeriesMetadata": "Full"},
             "SaveJobs": False,
         }
+        if self.dicom_modalities is not None:  # the DICOM server on, and the modalities it may send to
+            config.update({"DicomServerEnabled": True, "DicomAet": self.dicom_aet, "DicomCheckCalledAet": True,
+                           "DicomModalities": self.dicom_modalities, "DicomScpTimeout": 10})
         if self.lua:
             (self.dir / "trigger.lua").write_text(self.lua)
             config["LuaScripts"] = [str(self.dir / "trigger.lua")]

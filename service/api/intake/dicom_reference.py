@@ -20,6 +20,9 @@ from pydantic import ValidationError
 
 from ...budgets import parse_json_part
 from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
+from ...pacs.dimse.pull import ROLE as PULL_ROLE
+from ...pacs.dimse.pull import DimseRegistrationRequest
+from ...pacs.dimse.scp import configured_peers
 from ...problems import Problem
 from ...storage.store import InputFile
 from ..deps import ServiceContext
@@ -44,13 +47,23 @@ def _field(loc) -> str:
     return ".".join(str(part) for part in loc)
 
 
-async def parse_reference(request: Request) -> DicomwebRegistrationRequest:
+async def parse_reference(request: Request) -> DicomwebRegistrationRequest | DimseRegistrationRequest:
     body = await read_body(request, MAX_REFERENCE_BYTES)  # streamed: never buffered past the limit
     data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
     if not isinstance(data, dict) or "source" not in data:
-        raise Problem(422, "a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} is required "
-                           "(or send multipart/form-data with the files mesh (or volume), ap and lat)", field="source",
-                      accepted="application/json with source.dicomweb, or multipart/form-data")
+        raise Problem(422, "a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} (or "
+                           "{\"source\": {\"dimse\": ...}}) is required (or send multipart/form-data with the files "
+                           "mesh (or volume), ap and lat)", field="source",
+                      accepted="application/json with source.dicomweb or source.dimse, or multipart/form-data")
+    if isinstance(data.get("source"), dict) and "dimse" in data["source"]:
+        try:
+            return DimseRegistrationRequest.model_validate(data)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            raise Problem(422, f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
+                          accepted='{"source": {"dimse": {"peer", "study_uid", "ap": {"series_uid"}, '
+                                   '"lat": {"series_uid"}, "volume": {"series_uid"}}}, "options": {}, '
+                                   '"store_results": true}') from None
     try:
         return DicomwebRegistrationRequest.model_validate(data)
     except ValidationError as exc:
@@ -61,21 +74,32 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest:
                       ) from None
 
 
-async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, key: str | None) -> Response:
-    reference = await parse_reference(request)
-    callback_url = checked_callback_url(ctx, reference.callback_url)
+def _stored_reference(ctx: ServiceContext, reference) -> tuple[str, bytes]:
+    """The input role and stored JSON of a checked reference (422 naming the field when its PACS is unknown).
+    The callback URL is the job's, not an input: it is not stored with the reference."""
+    stored_reference = reference.model_copy(update={"options": {}})
+    if isinstance(reference, DimseRegistrationRequest):
+        if reference.source.dimse.peer not in configured_peers(ctx.settings):
+            raise Problem(422, "this DICOM peer is not configured on this registration server (the administrator "
+                               "lists allowed peers in DSAREG_DICOM_PEERS)", field="source.dimse.peer")
+        return PULL_ROLE, stored_reference.model_dump_json(exclude={"callback_url"}).encode()
     server = resolve_server(ctx.settings, reference.source.dicomweb.url)
     if server is None:
         raise Problem(422, "this DICOMweb server is not configured on this registration server "
                            "(the administrator lists allowed servers in DSAREG_DICOMWEB_SERVERS)",
                       field="source.dicomweb.url")
+    stored_reference.source.dicomweb.url = server.url  # normalized
+    return "dicomweb", stored_reference.model_dump_json(exclude={"callback_url"}).encode()
+
+
+async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, key: str | None) -> Response:
+    reference = await parse_reference(request)
+    callback_url = checked_callback_url(ctx, getattr(reference, "callback_url", None))
+    role, text = _stored_reference(ctx, reference)
     options = parse_options_json(json.dumps(reference.options) if reference.options else None)
     options_json = options.model_dump(mode="json")
-    stored_reference = reference.model_copy(update={"options": {}})
-    stored_reference.source.dicomweb.url = server.url  # normalized
-    text = stored_reference.model_dump_json(exclude={"callback_url"}).encode()  # the callback is the job's, not an input
     digest, size = await asyncio.to_thread(ctx.blobs.put_bytes, text)
-    inputs = [InputFile(role="dicomweb", sha256=digest, size=size, suffix=".json")]
+    inputs = [InputFile(role=role, sha256=digest, size=size, suffix=".json")]
     request_hash = fingerprint(inputs, None, options_json, callback_url)
     if (previous := await find_replay(ctx, who, key, request_hash)) is not None:
         return previous
@@ -88,5 +112,5 @@ async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, k
     if not ctx.blobs.exists(digest):
         await asyncio.to_thread(ctx.blobs.put_bytes, text)
     await asyncio.to_thread(ctx.executor.submit, stored.id)
-    log.info("job %s: queued by DICOMweb reference", stored.id)
+    log.info("job %s: queued by %s reference", stored.id, "DIMSE" if role == PULL_ROLE else "DICOMweb")
     return accepted(stored)

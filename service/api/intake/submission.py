@@ -63,12 +63,9 @@ def read_text_field(value: Any, name: str, limit: int) -> str:
 
 
 def parse_options_json(data: Any) -> dict[str, Any]:
-    """Options (a dict, JSON text or None) → the validated, complete options as JSON (422 if invalid)."""
-    DsaregInputError = engine.DsaregInputError
-    try:
-        options = engine.parse_options(data)
-    except DsaregInputError as exc:
-        raise Problem(422, exc.message, field=exc.field, accepted=exc.accepted) from None
+    """Options (a dict, JSON text or None) → the validated, complete options (``engine.DsaregInputError``
+    naming the option if invalid: 422, :mod:`service.api.handlers`)."""
+    options = engine.parse_options(data)
     check_options(options)
     return options
 

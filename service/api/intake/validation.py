@@ -55,7 +55,9 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
     """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
     import signal
 
-    from ...jobs.procwatch import die_with_parent
+    from ...jobs.procwatch import die_with_parent, set_process_name
+
+    set_process_name("dsareg-validate")
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server

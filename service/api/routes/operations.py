@@ -22,18 +22,27 @@ def healthz() -> Health:
     return Health(status="ok")
 
 
-@router.get("/readyz", response_model=Health, summary="Readiness: store writable, a worker alive",
+@router.get("/readyz", response_model=Health, summary="Readiness: store writable, a worker warmed up and idle-able",
+            description="200 when the job store is writable, the input validator is up and at least one worker "
+                        "has finished its warm-up (on a fresh install the first warm-up compiles the numba kernels: "
+                        "minutes on 2 cores; `dsareg warmup` does it ahead). While workers warm up: 503 with "
+                        "`checks.warming` and `checks.workers_ready` / `checks.workers_alive`.",
             responses={503: {"description": "Not ready", "model": Health}})
 def readyz(ctx: Ctx) -> Response:
+    alive = ctx.executor.alive_workers()
+    ready_workers = ctx.executor.ready_workers() if alive else 0
     checks = {
         "store_writable": ctx.store.ping(),
-        "workers_alive": ctx.executor.alive_workers(),
+        "workers_alive": alive,
+        "workers_ready": ready_workers,
         "validator_alive": ctx.validator.alive() if ctx.validator else False,
         "validator_ready": ctx.validator.ready() if ctx.validator else False,
     }
+    if alive and not ready_workers:
+        checks["warming"] = "compiling kernels: workers are warming up (minutes on a fresh install, seconds after)"
     data_ok = Path(ctx.settings.data_dir).is_dir()
     checks["data_dir"] = data_ok
-    ready = (checks["store_writable"] and checks["workers_alive"] > 0 and data_ok
+    ready = (checks["store_writable"] and ready_workers > 0 and data_ok
              and (ctx.validator is None or checks["validator_ready"]))
     body = Health(status="ok" if ready else "unavailable", checks=checks)
     return JSONResponse(body.model_dump(), status_code=200 if ready else 503,

@@ -7,6 +7,7 @@ import logging
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
 
+from ...pacs.dimse.export import dimse_source
 from ...problems import Problem, problem_responses
 from ...storage.store import STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
@@ -18,23 +19,6 @@ from ..schemas.jobs import JobList, JobStatus, previous_link_header, status_body
 log = logging.getLogger("dsareg.service")
 
 router = resource_router("registrations")
-
-MULTIPART_SCHEMA = {
-    "type": "object",
-    "required": ["ap", "lat"],
-    "properties": {
-        "mesh": {"type": "string", "format": "binary", "description": "Vessel surface mesh (OBJ, STL, PLY, VTK…). Give mesh or volume."},
-        "volume": {"type": "array", "items": {"type": "string", "format": "binary"},
-                   "description": "Segmented 3D volume (NIfTI, NRRD, or a DICOM series as several files)."},
-        "ap": {"type": "string", "format": "binary",
-               "description": "AP view: DSA image or vessel mask (PNG, TIFF, DICOM XA…); a .rad + .raw pair as two parts."},
-        "lat": {"type": "string", "format": "binary", "description": "LAT view: DSA image or vessel mask (as ap)."},
-        "geometry": {"type": "string", "description": "Preset name (e.g. 'paper') or geometry JSON (text or file); "
-                                                      "optional when DICOM XA headers carry the geometry."},
-        "options": {"type": "string", "description": "RegistrationOptions as JSON, e.g. {\"starts\": 2}.",
-                    "example": "{\"starts\": 1, \"max_iterations\": 100}"},
-    },
-}
 
 SUBMIT_DOC = {
     "status_code": 202,
@@ -49,7 +33,8 @@ SUBMIT_DOC = {
         "while reusing the key with a different request is a 409."
     ),
     "openapi_extra": {
-        "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": MULTIPART_SCHEMA}}},
+        # the body's schema is written once, in service/api/schemas/payloads.py (multipart_schema, document)
+        "requestBody": {"required": True},
         "parameters": [{"name": "Idempotency-Key", "in": "header", "required": False,
                         "schema": {"type": "string", "minLength": 1, "maxLength": 255, "pattern": r"\S"},
                         "description": "Makes retries of the same submission safe. 1 to 255 characters, at "
@@ -118,9 +103,12 @@ def list_jobs(
 
 @router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",
             responses=problem_responses(401, 403, 404))
-def get_job(job: OwnedJob) -> Response:
+def get_job(ctx: Ctx, job: OwnedJob) -> Response:
     headers = {"Retry-After": RETRY_AFTER_QUEUED} if job.status in ("queued", "running") else {}
-    return JSONResponse(status_body(job), headers={**headers, **previous_link_header(job)})
+    body = status_body(job)
+    if (source := dimse_source(job, ctx.blobs.read)) is not None:
+        body["source"] = source
+    return JSONResponse(body, headers={**headers, **previous_link_header(job)})
 
 
 @router.post("/v1/registrations/{job_id}/cancel", response_model=JobStatus, summary="Cancel a job",

@@ -99,6 +99,9 @@ class JobStatus(BaseModel):
     error: ProblemDetails | None = Field(None, description="Why the job failed (problem details).")
     warnings: list[str] = Field(default_factory=list, description="Notes from reading the inputs.")
     callback: CallbackState | None = Field(None, description="The completion callback, when the job asked for one.")
+    source: dict[str, Any] | None = Field(
+        None, description='Only for a job made from a study received over DIMSE: {"dimse": {"calling_ae", '
+                          '"study_uid", "pairing", "ap", "lat", "volume"}} (absent otherwise).')
     links: JobLinks
 
 
@@ -247,6 +250,8 @@ def status_body(job: JobRecord) -> dict[str, Any]:
 
 def _drop_absent_links(body: dict[str, Any]) -> dict[str, Any]:
     body["links"] = {k: v for k, v in body["links"].items() if v is not None}
+    if body.get("source", 0) is None:
+        del body["source"]
     return body
 
 

@@ -4,8 +4,9 @@ The API keeps its runtime models permissive (a result is the engine's JSON, what
 later versions add); these models *document* the payloads with descriptions, units, examples
 and enums, and :func:`document` puts them into ``/openapi.json``:
 
-* ``components.schemas``: ``RegistrationOptions`` (the engine's own model, so the fields
-  cannot drift), ``GeometryFile`` / ``ViewSpec`` / ``LatFromAp``, ``RegistrationResult`` /
+* ``components.schemas``: ``RegistrationOptions``, ``ViewSpec`` and ``LatFromAp`` (the engine's own
+  models, so the fields cannot drift), ``GeometryFile`` (the engine's ``RigSpec``, its view names spelled
+  out), ``RegistrationResult`` /
   ``ViewResult`` / ``ResultMetrics`` / ``GroundTruthErrors``;
 * the ``POST /v1/registrations`` multipart parts, each with its schema and encoding;
 * ``JobStatus.result`` and ``GET …/result`` point at ``RegistrationResult``.
@@ -22,6 +23,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from ...engine_adapter import engine
+
 Matrix4 = list[list[float]]
 Matrix34 = list[list[float]]
 IDENTITY = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
@@ -31,41 +34,7 @@ REF = "#/components/schemas/{model}"
 # ---- geometry file ---------------------------------------------------------------------------
 
 
-class ViewSpec(BaseModel):
-    """One X-ray view. Either `sid_mm` + `world_to_view` (+ optional `principal_point_px`) or a
-    `projection_matrix`."""
-
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
-        "principal_point_px": [399.5, 399.5],
-        "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}]})
-
-    image_size: tuple[int, int] = Field(description="[width, height] of the image in pixels.", examples=[[800, 800]])
-    pixel_spacing_mm: tuple[float, float] = Field(
-        description="[column, row] pixel spacing at the detector, mm (DICOM Imager Pixel Spacing).",
-        examples=[[0.3, 0.3]])
-    sid_mm: float | None = Field(None, gt=0, description="Source-to-detector distance, mm.", examples=[1200.0])
-    principal_point_px: tuple[float, float] | None = Field(
-        None, description="[u0, v0] foot of the central ray on the image, pixels; default the image centre "
-                          "((W-1)/2, (H-1)/2).")
-    world_to_view: Matrix4 | None = Field(
-        None, description="4x4 rigid transform world mm → view frame (origin at the source, +z along the central "
-                          "ray toward the detector, +x along columns, +y along rows); det may be -1 (mirror).")
-    projection_matrix: Matrix34 | None = Field(
-        None, description="3x4 world mm → homogeneous pixels, instead of sid_mm + world_to_view.")
-
-
-class LatFromAp(BaseModel):
-    """The lateral view as the AP imaging chain turned about an axis through the isocentre."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    angle_deg: float = Field(description="Rotation angle, degrees (90 for an orthogonal biplane).", examples=[90.0])
-    axis_world: tuple[float, float, float] = Field((0.0, 1.0, 0.0), description="Rotation axis, world frame.")
-    isocentre_world: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Isocentre, world mm.")
-
-
-class GeometryFile(BaseModel):
+class GeometryFile(engine.RigSpec):
     """The C-arm geometry (the `geometry` part): two views in world millimetres and the initial pose.
     Instead of JSON, the part may be a preset name (`paper`), or be left out when both images are
     DICOM XA (or `.rad`) files whose headers carry the geometry."""
@@ -75,10 +44,7 @@ class GeometryFile(BaseModel):
                          "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}},
         "lat_from_ap": {"angle_deg": 90.0}, "initial_mesh_to_world": IDENTITY}]})
 
-    views: dict[Literal["ap", "lat"], ViewSpec] = Field(description="The views by name: `ap` and `lat`.")
-    lat_from_ap: LatFromAp | None = Field(None, description="Derive `lat` from `ap` (then give only `ap`).")
-    initial_mesh_to_world: Matrix4 | None = Field(
-        None, description="4x4 rigid initial pose mesh mm → world mm where the optimization starts (default identity).")
+    views: dict[Literal["ap", "lat"], engine.ViewSpec] = Field(description="The views by name: `ap` and `lat`.")
 
 
 # ---- result ---------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 
 import numpy as np
@@ -9,6 +10,7 @@ import pydicom
 import pytest
 from PIL import Image
 
+from dsareg_engine.geometry.pose import make_transform
 from dsareg_engine.io.dicom_out import (
     REG_SOP_CLASS,
     SC_SOP_CLASS,
@@ -17,7 +19,6 @@ from dsareg_engine.io.dicom_out import (
     read_sources,
     write_dicom_outputs,
 )
-from dsareg_engine.geometry.pose import make_transform
 
 
 def _random_rigid(seed: int) -> np.ndarray:
@@ -49,8 +50,12 @@ def test_reg_and_overlays_validate_and_reference_the_study(study, dciodvfy, tmp_
     assert reg.SOPClassUID == REG_SOP_CLASS and reg.Modality == "REG"
     assert reg.StudyInstanceUID == study.study_uid  # joins the source study
     assert (reg.PatientName, reg.PatientID) == ("PHANTOM^DSAREG", "DSAREG-PHANTOM-1")  # copied, not invented
-    # exactly one item: the volume's frame, registered into the C-arm frame of this instance
-    (item,) = reg.RegistrationSequence
+    # the volume's frame registered into the C-arm frame of this instance, then the XA images in that frame
+    item, xa_item = reg.RegistrationSequence
+    assert xa_item.FrameOfReferenceUID == reg.FrameOfReferenceUID
+    assert [r.ReferencedSOPInstanceUID for r in xa_item.ReferencedImageSequence] == [
+        pydicom.dcmread(io.BytesIO(x)).SOPInstanceUID for x in (study.ap, study.lat)]
+    np.testing.assert_array_equal(read_registration_matrix(reg, reg.FrameOfReferenceUID), np.eye(4))
     assert item.FrameOfReferenceUID == study.uids["volume_frame"] != reg.FrameOfReferenceUID
     matrix = item.MatrixRegistrationSequence[0].MatrixSequence[0]
     assert matrix.FrameOfReferenceTransformationMatrixType == "RIGID"
@@ -78,6 +83,48 @@ def test_matrix_round_trip_is_exact(seed, tmp_path):
     write_dicom_outputs(tmp_path, pose, DicomSources(), tmp_path)
     back = read_registration_matrix(pydicom.dcmread(tmp_path / "reg.dcm"))
     np.testing.assert_allclose(back, pose, rtol=0, atol=1e-9 * max(1.0, np.abs(pose).max() / 1000))
+
+
+def test_mesh_model_reg_references_the_xa_images(study, dciodvfy, tmp_path):
+    """A mesh model (no DICOM volume): every instance in Common Instance Reference is referenced (dciodvfy 0 errors)."""
+    _pngs(tmp_path)
+    pose = _random_rigid(3)
+    write_dicom_outputs(tmp_path, pose, read_sources(study.ap, study.lat, None), tmp_path / "dicom")
+    for name in ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm"):
+        assert dciodvfy(tmp_path / "dicom" / name) == [], name
+    reg = pydicom.dcmread(tmp_path / "dicom" / "reg.dcm")
+    model_item, xa_item = reg.RegistrationSequence
+    assert "ReferencedImageSequence" not in model_item
+    np.testing.assert_allclose(read_registration_matrix(reg, model_item.FrameOfReferenceUID), pose, rtol=0, atol=1e-9)
+    referenced = {r.ReferencedSOPInstanceUID for r in xa_item.ReferencedImageSequence}
+    listed = {i.ReferencedSOPInstanceUID for s in reg.ReferencedSeriesSequence for i in s.ReferencedInstanceSequence}
+    assert referenced == listed and len(listed) == 2
+
+
+def test_overlay_derivation_names_the_drawn_colours(study, tmp_path):
+    """The Secondary Capture's Derivation Description names the colours the contours really have."""
+    from dsareg_engine.overlay import overlay_image
+
+    mask = np.zeros((80, 80), bool)
+    mask[20:60, 30:50] = True
+    initial, final = np.roll(mask, 12, axis=1), mask.copy()
+    bgr = overlay_image(mask, initial, None, box=False, min_side=1)
+    rgb_initial = bgr[:80, :, ::-1].reshape(-1, 3).astype(int)
+    bgr = overlay_image(mask, None, final, box=False, min_side=1)
+    rgb_final = bgr[:80, :, ::-1].reshape(-1, 3).astype(int)
+
+    def coloured(rgb):  # the contour pixels: far from grey
+        return rgb[(rgb.max(axis=1) - rgb.min(axis=1)) > 80].mean(axis=0)
+
+    r, g, b = coloured(rgb_initial)
+    assert b > r + 80 and b > g  # blue
+    r, g, b = coloured(rgb_final)
+    assert r > g + 60 > b + 60  # orange: red high, green half, little blue
+    _pngs(tmp_path)
+    write_dicom_outputs(tmp_path, np.eye(4), read_sources(study.ap, study.lat, None), tmp_path / "d")
+    for view in ("ap", "lat"):
+        text = pydicom.dcmread(tmp_path / "d" / f"overlay_{view}.dcm").DerivationDescription
+        assert "initial (blue)" in text and "registered (orange)" in text, text
 
 
 def test_without_dicom_inputs_nothing_is_invented(dciodvfy, tmp_path):

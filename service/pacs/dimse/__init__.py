@@ -1,0 +1,13 @@
+"""The DICOM (DIMSE) node: C-ECHO, C-STORE SCP, jobs from received studies, results by C-STORE.
+
+* :mod:`.scp` — the acceptor (pynetdicom) and its association policy;
+* :mod:`.inbox` — the durable index of received instances;
+* :mod:`.grouping` — biplane pairs and the volume of one study;
+* :mod:`.dispatcher` — stable studies → planned jobs, handed to the API's intake
+  (:mod:`service.api.intake.dimse`, injected: this package never imports the API);
+* :mod:`.pull` — inputs by DIMSE reference (C-GET);
+* :mod:`.export` — the REG and overlays back to the peers by C-STORE (SCU);
+* :mod:`.listener` — the node inside ``dsareg serve`` or alone (``dsareg dicom-listener``).
+
+See ``docs/pacs/dimse.md`` and the conformance statement ``docs/pacs/conformance.md``.
+"""

@@ -1,0 +1,151 @@
+"""The durable index of received instances (table ``dimse_instances`` in the job database).
+
+An instance is first written to the blob store and flushed to disk (``fsync`` of the file and
+its folder), then indexed here, and only then is the C-STORE answered "success": a peer that
+saw success never loses the instance, whatever is killed afterwards.
+
+Rows go through three states:
+
+* ``received``: stored during an association that is still open. An association that ends by
+  A-ABORT (or a dropped connection, or a listener killed mid-association) never commits: its
+  rows are discarded (and their blobs, unless something else references them) — the peer saw
+  the association fail and will send again;
+* ``committed``: the association was released normally; the study waits for
+  ``dicom_stable_seconds`` without a new instance;
+* ``dispatched``: the study's jobs were created (``job_ids`` in :meth:`Inbox.mark_dispatched`).
+
+Restarts: a listener that starts finds the ``received`` rows of associations that died with
+the previous process and discards them (:meth:`discard_stale`); committed studies are grouped
+as usual, and job creation is idempotent per (study, instances), so nothing is run twice.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import sqlalchemy as sa
+
+metadata = sa.MetaData()
+
+instances = sa.Table(
+    "dimse_instances", metadata,
+    sa.Column("sop_instance_uid", sa.String(64), primary_key=True),
+    sa.Column("study_uid", sa.String(64), nullable=False, index=True),
+    sa.Column("series_uid", sa.String(64), nullable=False),
+    sa.Column("sop_class_uid", sa.String(64), nullable=False),
+    sa.Column("sha256", sa.String(64), nullable=False),
+    sa.Column("size", sa.BigInteger, nullable=False),
+    sa.Column("association", sa.String(64), nullable=False, index=True),
+    sa.Column("calling_ae", sa.String(16), nullable=False),
+    sa.Column("state", sa.String(16), nullable=False),  # received | committed | dispatched
+    sa.Column("received_at", sa.Float, nullable=False),
+    sa.Index("ix_dimse_state_study", "state", "study_uid"),
+)
+
+
+@dataclass(frozen=True)
+class StoredInstance:
+    sop_instance_uid: str
+    study_uid: str
+    series_uid: str
+    sop_class_uid: str
+    sha256: str
+    size: int
+    calling_ae: str
+    received_at: float
+
+
+def fsync_file(path: Path) -> None:
+    """Flush a file and the folder entry that names it to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
+
+
+class Inbox:
+    """Received instances by study, on the job store's database (SQLite or PostgreSQL)."""
+
+    def __init__(self, engine: sa.Engine, writer: sa.Engine | None = None):
+        self.engine, self.writer = engine, writer or engine
+        metadata.create_all(engine)
+
+    def add(self, item: StoredInstance, association: str) -> None:
+        """Index one stored instance (a re-sent instance replaces the earlier row)."""
+        values = {**vars(item), "association": association, "state": "received"}
+        with self.writer.begin() as conn:
+            conn.execute(instances.delete().where(instances.c.sop_instance_uid == item.sop_instance_uid))
+            conn.execute(instances.insert().values(**values))
+
+    def commit_association(self, association: str) -> int:
+        """The association was released: its instances join their studies."""
+        with self.writer.begin() as conn:
+            done = conn.execute(instances.update().where(instances.c.association == association,
+                                                         instances.c.state == "received")
+                                .values(state="committed", received_at=time.time()))
+        return done.rowcount
+
+    def discard_association(self, association: str) -> list[str]:
+        """The association was aborted: drop its instances; the blobs no other row uses."""
+        with self.writer.begin() as conn:
+            rows = conn.execute(sa.select(instances.c.sha256).where(
+                instances.c.association == association, instances.c.state == "received")).scalars().all()
+            conn.execute(instances.delete().where(instances.c.association == association,
+                                                  instances.c.state == "received"))
+            still = set(conn.execute(sa.select(instances.c.sha256).where(instances.c.sha256.in_(rows))).scalars())
+        return sorted(set(rows) - still)
+
+    def discard_stale(self, live: set[str], older_than_seconds: float = 0.0) -> list[str]:
+        """Drop ``received`` rows of associations not in ``live`` (they died, or died with an earlier process),
+        those received at least ``older_than_seconds`` ago."""
+        before = time.time() - older_than_seconds
+        with self.engine.connect() as conn:
+            dead = set(conn.execute(sa.select(instances.c.association).where(
+                instances.c.state == "received", instances.c.received_at <= before).distinct()).scalars()) - live
+        orphans: list[str] = []
+        for association in dead:
+            orphans += self.discard_association(association)
+        return orphans
+
+    def stable_studies(self, quiet_seconds: float, now: float | None = None) -> list[str]:
+        """Studies with committed instances and none received in the last ``quiet_seconds``."""
+        now = time.time() if now is None else now
+        with self.engine.connect() as conn:
+            pending = set(conn.execute(sa.select(instances.c.study_uid).where(
+                instances.c.state == "committed").distinct()).scalars())
+            if not pending:
+                return []
+            latest = conn.execute(sa.select(instances.c.study_uid, sa.func.max(instances.c.received_at))
+                                  .where(instances.c.study_uid.in_(pending))
+                                  .group_by(instances.c.study_uid)).all()
+            busy = set(conn.execute(sa.select(instances.c.study_uid).where(
+                instances.c.study_uid.in_(pending), instances.c.state == "received").distinct()).scalars())
+        return sorted(study for study, last in latest if now - last >= quiet_seconds and study not in busy)
+
+    def study(self, study_uid: str) -> list[StoredInstance]:
+        """Every committed or dispatched instance of the study."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(instances).where(
+                instances.c.study_uid == study_uid, instances.c.state.in_(("committed", "dispatched")))).mappings().all()
+        fields = StoredInstance.__dataclass_fields__
+        return [StoredInstance(**{k: row[k] for k in fields}) for row in rows]
+
+    def mark_dispatched(self, study_uid: str, sop_instance_uids: list[str]) -> None:
+        with self.writer.begin() as conn:
+            conn.execute(instances.update().where(instances.c.study_uid == study_uid,
+                                                  instances.c.sop_instance_uid.in_(sop_instance_uids),
+                                                  instances.c.state == "committed").values(state="dispatched"))
+
+    def counts(self) -> dict[str, int]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(sa.select(instances.c.state, sa.func.count()).group_by(instances.c.state)).all()
+        return {state: int(n) for state, n in rows}

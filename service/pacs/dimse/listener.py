@@ -1,0 +1,56 @@
+"""The DICOM node as a whole: the C-STORE SCP, the durable inbox and the study dispatcher.
+
+Two ways to run it (same settings, ``DSAREG_DICOM_*``):
+
+* inside ``dsareg serve`` when ``DSAREG_DICOM_PORT`` is set (started by the API's lifespan):
+  jobs are submitted on the API's event loop with its validator, queue and executor;
+* alone, ``dsareg dicom-listener`` (:func:`service.app.run_dicom_listener`), e.g. next to Celery
+  workers: the same pieces, opened by that process.
+
+The ``intake`` (``submit`` / ``prevalidate`` coroutines, :class:`service.api.intake.dimse.DimseIntake`)
+is given by whoever composes the node. Only one listener per job database: at start it
+discards what associations of an earlier, dead listener left uncommitted.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any
+
+from .dispatcher import StudyDispatcher
+from .inbox import Inbox
+from .scp import StoreScp, start_server
+
+log = logging.getLogger("dsareg.dimse")
+
+
+class DicomListener:
+    def __init__(self, settings: Any, store: Any, blobs: Any, intake: Any, loop: asyncio.AbstractEventLoop):
+        self.settings, self.blobs = settings, blobs
+        self.inbox = Inbox(store.engine, getattr(store, "writer", None))
+        tick = min(0.25, settings.dicom_stable_seconds / 4)
+        self.dispatcher = StudyDispatcher(settings, blobs, self.inbox, intake, loop, tick_seconds=tick,
+                                          housekeeping=lambda: self.scp.sweep())
+        self.scp = StoreScp(settings, self.inbox, blobs, on_commit=self.dispatcher.wake)
+        self.server = None
+
+    def start(self) -> None:
+        orphans = self.inbox.discard_stale(live=set())
+        if orphans:
+            self.blobs.delete(orphans, min_age_seconds=0.0)
+            log.warning("discarded %d instance file(s) of associations an earlier listener left open", len(orphans))
+        self.dispatcher.start()
+        self.server = start_server(self.settings, self.scp)
+        log.info("DICOM node %s listening on %s:%d (%d peers)", self.settings.dicom_ae_title, self.settings.dicom_host,
+                 self.port, len(self.settings.dicom_peers))
+
+    @property
+    def port(self) -> int:
+        return self.server.server_address[1] if self.server is not None else 0
+
+    def stop(self) -> None:
+        if self.server is not None:
+            self.server.shutdown()
+            self.server = None
+        self.dispatcher.stop()

@@ -1,0 +1,182 @@
+"""Inputs by reference over DIMSE: ``{"source": {"dimse": {"peer", "study_uid", "ap", "lat", "volume"}}}``.
+
+The alternative to a DICOMweb reference for a PACS that only speaks DIMSE. The request names a
+peer by AE title (one of ``dicom_peers``: nothing else is reachable); the worker retrieves the
+AP and LAT instances and the volume series with **C-GET** (Study Root, the instances come back
+on the same association, so the peer needs no route back to dsareg) and, with
+``store_results``, stores the REG and overlays back into the peer by C-STORE
+(:mod:`.export`, bounded retries; a failed export is listed in the result, never fails the job).
+A retrieve that fails fails the job with ``pacs-error`` naming the peer, the step and the
+DIMSE status.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from ...engine_adapter import engine, fetched_case_files
+from ..dicomweb import ImageRef, PacsError, VolumeRef, _uid
+from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
+
+ROLE = "dimse-reference"
+GET_MODEL = "1.2.840.10008.5.1.4.1.2.2.3"  # Study Root Query/Retrieve Information Model - GET
+PENDING, SUCCESS = {0xFF00, 0xFF01}, 0x0000
+
+
+class DimseSource(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    peer: str = Field(description="AE title of the PACS; must be one of the server's DSAREG_DICOM_PEERS.",
+                      examples=["ORTHANC"])
+    study_uid: str = Field(description="Study Instance UID of the biplane XA study.")
+    ap: ImageRef
+    lat: ImageRef
+    volume: VolumeRef
+
+    @field_validator("study_uid")
+    @classmethod
+    def check_uid(cls, value):
+        return _uid(value)
+
+    @property
+    def frame(self):
+        return self.ap.frame if self.ap.frame is not None else self.lat.frame
+
+
+class DimseSourceField(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    dimse: DimseSource
+
+
+class DimseRegistrationRequest(BaseModel):
+    """``POST /v1/registrations`` (``application/json``) with inputs retrieved over DIMSE (C-GET)."""
+
+    model_config = ConfigDict(extra="forbid")
+    source: DimseSourceField
+    options: dict[str, Any] = Field(default_factory=dict, description="RegistrationOptions, as in the multipart form.")
+    store_results: bool = Field(True, description="C-STORE the REG and the overlays back to the peer.")
+    callback_url: str | None = Field(
+        None, max_length=2048, description="POSTed the job summary once the job ends (see docs/api/callbacks.md); "
+                                           "must start with one of the server's DSAREG_CALLBACK_ALLOWED prefixes.")
+
+
+class DimsePacsError(PacsError):
+    """A DIMSE retrieve failed: which peer, which step, which DIMSE status."""
+
+    def __init__(self, peer: str, step: str, detail: str, status: int | None = None):
+        self.server, self.step, self.detail, self.status, self.attempts = peer, step, detail, status, 1
+        where = f" (DIMSE status 0x{status:04X})" if status is not None else ""
+        Exception.__init__(self, f"PACS {peer}: {step} failed{where}: {detail}")
+
+    def problem_extra(self) -> dict[str, Any]:
+        return {"peer": self.server, "step": self.step, "dimse_status": self.status}
+
+
+def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str) -> list[bytes]:
+    """The instances a C-GET at ``level`` with ``keys`` returns from peer ``title`` (Part 10 bytes)."""
+    from pydicom.dataset import Dataset
+    from pynetdicom import AE, build_role, evt
+
+    peer = configured_peers(settings).get(title)
+    if peer is None:
+        raise DimsePacsError(title, "configuration", "no longer one of this server's DSAREG_DICOM_PEERS")
+    received: list[bytes] = []
+
+    def on_store(event: Any) -> int:
+        received.append(bytes(event.encoded_dataset(include_meta=True)))
+        return SUCCESS
+
+    ae = AE(ae_title=settings.dicom_ae_title)
+    for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
+        setattr(ae, timeout, settings.dicom_timeout_seconds)
+    ae.add_requested_context(GET_MODEL)
+    syntaxes = decodable_transfer_syntaxes()
+    for sop_class in STORAGE_CLASSES:
+        ae.add_requested_context(sop_class, syntaxes)
+    roles = [build_role(sop_class, scp_role=True) for sop_class in STORAGE_CLASSES]
+    assoc = ae.associate(peer.host, peer.port, ae_title=peer.ae_title, ext_neg=roles,
+                         evt_handlers=[(evt.EVT_C_STORE, on_store)])
+    if not assoc.is_established:
+        raise DimsePacsError(title, step, "association rejected" if assoc.is_rejected else
+                             f"no association with {peer.host}:{peer.port} (connection refused, timed out or aborted)")
+    query = Dataset()
+    query.QueryRetrieveLevel = level
+    for keyword, value in keys.items():
+        setattr(query, keyword, value)
+    final = None
+    try:
+        for status, _identifier in assoc.send_c_get(query, GET_MODEL):
+            code = int(getattr(status, "Status", -1)) if status else None
+            if code not in PENDING:
+                final = code
+    finally:
+        if assoc.is_established:
+            assoc.release()
+    if final not in (SUCCESS, 0xB000) or not received:
+        raise DimsePacsError(title, step, f"{len(received)} instance(s) received", final)
+    return received
+
+
+def _first_by_number(parts: list[bytes]) -> bytes:
+    import io
+
+    import pydicom
+
+    def number(data: bytes) -> float:
+        try:
+            return float(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).InstanceNumber)
+        except Exception:  # noqa: BLE001
+            return float("inf")
+
+    return min(parts, key=number)
+
+
+class DimsePullJob:
+    """Fetch a job's inputs by C-GET and C-STORE its DICOM results back (the worker's PACS-job interface)."""
+
+    def __init__(self, reference: DimseRegistrationRequest, settings: Any):
+        self.reference, self.settings = reference, settings
+        self.source_info: dict[str, Any] = {}
+
+    def fetch(self) -> Any:
+        source = self.reference.source.dimse
+        started = time.perf_counter()
+        warnings, images = [], {}
+        for name in ("ap", "lat"):
+            ref = getattr(source, name)
+            keys = {"StudyInstanceUID": source.study_uid, "SeriesInstanceUID": ref.series_uid}
+            if ref.sop_instance_uid:
+                keys["SOPInstanceUID"] = ref.sop_instance_uid
+            parts = c_get(self.settings, source.peer, "IMAGE" if ref.sop_instance_uid else "SERIES", keys,
+                          f"retrieve {name} (C-GET)")
+            if len(parts) > 1:
+                warnings.append(f"{name}: series has {len(parts)} instances; the first by Instance Number was used "
+                                "(give sop_instance_uid to choose)")
+            images[name] = _first_by_number(parts)
+        volume = c_get(self.settings, source.peer, "SERIES",
+                       {"StudyInstanceUID": source.volume.study_uid or source.study_uid,
+                        "SeriesInstanceUID": source.volume.series_uid}, "retrieve volume (C-GET)")
+        self.source_info = {"dimse": {"peer": source.peer, "study_uid": source.study_uid,
+                                      "fetch_seconds": round(time.perf_counter() - started, 3),
+                                      "instances": 2 + len(volume)}}
+        return fetched_case_files(images["ap"], images["lat"], volume, source.frame, warnings)
+
+    def store_back(self, result: dict, out_dir: Path) -> dict:
+        from .export import export_to
+
+        dicom = result.setdefault("dicom", {})
+        dicom["source"] = self.source_info
+        if self.reference.store_results:
+            names = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))
+            paths = [Path(out_dir) / name for name in names if (Path(out_dir) / name).is_file()]
+            dicom["exported"] = [export_to(self.settings, self.reference.source.dimse.peer, paths)]
+        return result
+
+
+def pull_job(job: Any, read: Any, settings: Any) -> DimsePullJob | None:
+    refs = [item for item in job.inputs if item.role == ROLE]
+    return DimsePullJob(DimseRegistrationRequest.model_validate(json.loads(read(refs[0].sha256))), settings) if refs else None
