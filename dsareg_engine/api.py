@@ -6,7 +6,8 @@ name, so an API process that only validates options never loads the renderer.
 * options: :class:`RegistrationOptions`, :func:`parse_options`, :func:`validate_rigid`, :data:`PRESETS`
 * geometry: :func:`parse_geometry` (the one place a preset name, JSON or a file is told apart) →
   :class:`GeometrySpec`, stored as its canonical JSON (``to_json`` / ``from_json``, :func:`is_canonical_geometry`)
-* a case: :class:`CaseFiles` (inputs as bytes), :func:`load_case_files` / :func:`load_case`, :class:`InputLimits`, :func:`input_limits`
+* a case: :class:`CaseFiles` (inputs as bytes), :func:`load_case_files` / :func:`load_case`, :class:`InputLimits`, :func:`input_limits`;
+  how multi-frame XA runs are read: :class:`ImageReading` (per-view frames, subtraction), :func:`image_reading` (from options)
 * running it: :func:`run_case` (files in, every output written, in one call), :func:`run_registration_case`
   (from a loaded case), :class:`RegistrationCanceled`
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
@@ -47,19 +48,22 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .commands.progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
+    from .io.xa_run import ImageReading
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
     from .io.dicom_xa import c_arm_rotation
     from .io.limits import DEFAULT_LIMITS, InputLimits
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
     from .geometry.pose import validate_rigid
     from .geometry.pose_file import load_pose
-    from .registration.options import RegistrationOptions, parse_options
+    from .registration.options import RegistrationOptions, image_reading, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
     from .warmup import warm_up_job, warm_up_renderer
 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
     "parse_options": "dsareg_engine.registration.options",
+    "image_reading": "dsareg_engine.registration.options",
+    "ImageReading": "dsareg_engine.io.xa_run",
     "validate_rigid": "dsareg_engine.geometry.pose",
     "PRESETS": "dsareg_engine.geometry.file",
     "RigSpec": "dsareg_engine.geometry.file",
@@ -115,6 +119,7 @@ __all__ = [
     "DicomSources",
     "DsaregInputError",
     "GeometrySpec",
+    "ImageReading",
     "InputLimits",
     "LatFromAp",
     "ProgressPrinter",
@@ -125,6 +130,7 @@ __all__ = [
     "default_cpu_threads",
     "geometry_argument",
     "input_file",
+    "image_reading",
     "input_limits",
     "is_canonical_geometry",
     "json_argument",

@@ -40,6 +40,7 @@ class Caption:
         mm_per_px: image pixel size at the vessel's depth (draws the scale bar).
         final_label: legend of the orange contour (animation frames: ``"current"``).
         dice_label: how the Dice is named (animation frames: measured on the smaller preview).
+        frame: which frame of a multi-frame run the image is (e.g. ``"frame 7 of 10 - mask 0,1"``).
     """
 
     view: str | None = None
@@ -51,6 +52,7 @@ class Caption:
     mm_per_px: float | None = None
     final_label: str = "registered"
     dice_label: str = "Dice"
+    frame: str | None = None
 
 
 def display_base(target_mask: np.ndarray, background: np.ndarray | None = None) -> np.ndarray:
@@ -125,7 +127,7 @@ def _caption_band(width: int, caption: Caption, font_px: int, on_image: bool = F
 
     pad = max(6, font_px // 2)
     line = int(font_px * 1.35)
-    lines = 2 + (1 if (caption.job or caption.stage) else 0)
+    lines = 2 + (1 if (caption.job or caption.stage or caption.frame) else 0)
     band = Image.new("RGB", (width, pad * 2 + line * lines), CAPTION_BG[::-1])
     draw = ImageDraw.Draw(band)
     font = _font(font_px)
@@ -162,9 +164,9 @@ def _caption_band(width: int, caption: Caption, font_px: int, on_image: bool = F
         draw.text((x + swatch + 5, y), label, font=font, fill=(230, 230, 230))
         x += swatch + 5 + draw.textlength(label, font=font) + 2 * pad
     # line 3: job / stage
-    if caption.job or caption.stage:
+    if caption.job or caption.stage or caption.frame:
         y += line
-        text = "   ".join(t for t in (caption.stage, caption.job) if t)
+        text = "   ".join(t for t in (caption.stage, caption.frame, caption.job) if t)
         draw.text((pad, y), text, font=font, fill=(200, 200, 200))
     return cv2.cvtColor(np.asarray(band), cv2.COLOR_RGB2BGR)
 

@@ -30,7 +30,7 @@ from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
 from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
-from .registration.options import parse_options
+from .registration.options import image_reading, parse_options
 from .registration.progress import REGISTRATION_SHARE
 from .render import Camera, render_hard_silhouette
 
@@ -65,7 +65,7 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
         RegistrationCanceled: ``should_stop()`` returned True.
     """
     options = options if isinstance(options, RegistrationOptions) else parse_options(options)
-    case = load_case_files(files, options.segmentation, limits)
+    case = load_case_files(files, options.segmentation, limits, reading=image_reading(options))
     if should_stop is not None and should_stop():
         raise RegistrationCanceled("stopped before start")
     if progress is not None:
@@ -121,7 +121,8 @@ def run_registration_case(
     """
     result = register(case.mesh, case.fitted, case.rig, options, progress=progress, should_stop=should_stop)
     return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
-                         images=case.images, label=label, progress=progress, warnings=case.warnings)
+                         images=case.images, label=label, progress=progress, warnings=case.warnings,
+                         readings=case.readings)
 
 
 def verdict_of(data: dict) -> tuple[str, bool | None]:
@@ -152,13 +153,16 @@ def mm_per_pixel_at_mesh(view, mesh_to_view: np.ndarray, mesh=None) -> float | N
 
 def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_dir: Path, mesh=None, rig=None,
                   animation: bool = False, *, images: dict[str, np.ndarray] | None = None, label: str | None = None,
-                  progress: Callable[[dict], None] | None = None, warnings: list[str] | None = None) -> dict:
-    """Write result.json (with ``warnings`` when any), overlays, masks and the loss plot (and the
-    animation) for a finished registration."""
+                  progress: Callable[[dict], None] | None = None, warnings: list[str] | None = None,
+                  readings: dict[str, dict] | None = None) -> dict:
+    """Write result.json (with ``warnings`` when any, and ``image_reading``: what was read from each
+    multi-frame XA run), overlays, masks and the loss plot (and the animation) for a finished registration."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = result.to_dict()
     if warnings:
         data["warnings"] = [str(warning) for warning in warnings]
+    if readings:
+        data["image_reading"] = readings
     report = _outputs_progress(progress, len(result.views) + 2)
     report()
     (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
@@ -166,7 +170,8 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
     for name, view in result.views.items():
         report()
         scale = mm_per_pixel_at_mesh(rig.views[name], view.mesh_to_view, mesh) if rig is not None else None
-        caption = Caption(view=name, dice=view.dice, verdict=verdict, ok=ok, job=label, mm_per_px=scale)
+        caption = Caption(view=name, dice=view.dice, verdict=verdict, ok=ok, job=label, mm_per_px=scale,
+                          frame=frame_text((readings or {}).get(name)))
         background = (images or {}).get(name)
         write_png(out_dir / artifacts.overlay_png(name),
                   overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption))
@@ -195,6 +200,22 @@ def _outputs_progress(progress: Callable[[dict], None] | None, steps: int) -> Ca
         done[0] += 1
 
     return report
+
+
+def frame_text(reading: dict | None) -> str | None:
+    """What the overlay says about the frame used (``None`` for a single image)."""
+    if not reading or reading.get("frames", 1) <= 1:
+        return None
+    if reading.get("combined") == "minip":
+        used = reading.get("frame_indices") or []
+        text = f"MinIP of frames {used[0]}-{used[-1]}" if used else "MinIP"
+    else:
+        text = f"frame {reading.get('frame_index')}"
+    text += f" of {reading['frames']}"
+    if reading.get("run") == "native":
+        masks = reading.get("mask_frame_indices") or []
+        text += f" - mask {','.join(str(m) for m in masks)}"
+    return text
 
 
 MIN_FRAMES = 24

@@ -115,10 +115,18 @@ def stored_case_files(inputs: list[InputFile], geometry: str | None, read: Any,
     return engine.CaseFiles(**parts, geometry=job_geometry(geometry))
 
 
-def fetched_case_files(ap: bytes, lat: bytes, volume: list[bytes], frame: Any, warnings: list[str]) -> Any:
-    """Inputs fetched from a PACS as ``engine.CaseFiles`` (the geometry comes from the XA headers)."""
+def fetched_case_files(ap: bytes, lat: bytes, volume: list[bytes], frames: tuple[Any, Any],
+                       warnings: list[str]) -> Any:
+    """Inputs fetched from a PACS as ``engine.CaseFiles`` (the geometry comes from the XA headers);
+    ``frames``: the (ap, lat) frame choices of the references."""
     return engine.CaseFiles(ap=ap, ap_name="ap.dcm", lat=lat, lat_name="lat.dcm", volume=volume,
-                            volume_name="volume.dcm", frame=frame, warnings=tuple(warnings))
+                            volume_name="volume.dcm", warnings=tuple(warnings),
+                            reading=engine.ImageReading(ap_frame=frames[0], lat_frame=frames[1]))
+
+
+def image_reading_json(options: Any) -> dict[str, Any]:
+    """The options' image reading (frames per view, subtraction) as JSON for the validator."""
+    return vars(engine.image_reading(options))
 
 
 def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
@@ -132,10 +140,12 @@ def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
 
 
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
-                  limits: dict[str, int] | None = None) -> Any:
-    """Read a job's stored inputs as the worker will (the API's validator calls this)."""
+                  limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None) -> Any:
+    """Read a job's stored inputs as the worker will (the API's validator calls this); ``reading``:
+    :func:`image_reading_json` of the job's options."""
     files = stored_case_files(inputs, geometry, read, limits)
-    return engine.load_case_files(files, segmentation, input_limits(limits))
+    return engine.load_case_files(files, segmentation, input_limits(limits),
+                                  reading=engine.ImageReading(**reading) if reading else None)
 
 
 def case_summary(case: Any) -> dict[str, Any]:

@@ -57,7 +57,8 @@ def options_help(extra: str = "") -> str:
 
     parts = []
     for name, info in RegistrationOptions.model_fields.items():
-        default = info.default
+        default = info.get_default(call_default_factory=True)
+        default = default.model_dump() if hasattr(default, "model_dump") else default
         parts.append(f"{name} (default {json.dumps(default)})")
     return ("registration options as JSON text or a JSON file, e.g. '{\"starts\": 2}'" + extra
             + ". Fields: " + "; ".join(parts) + ". Field details: GET /openapi.json (RegistrationOptions) "

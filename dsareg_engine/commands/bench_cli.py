@@ -23,7 +23,7 @@ GREY_VARIANTS = {
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness, track)",
+        "bench", help="benchmarks (render, table1, capture, robustness, track, autoinit, clinical)",
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
@@ -92,6 +92,20 @@ def add_parser(subparsers) -> None:
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
     auto.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_autoinit"))
+    _add_clinical(which)
+
+
+def _add_clinical(which) -> None:
+    """``dsareg bench clinical``: one row per input kind (:data:`dsareg_engine.commands.bench_clinical.CASE_KINDS`)."""
+    sub = which.add_parser("clinical", help="registration from stored clinical inputs, per input kind "
+                                            "(native XA runs, ...), with no geometry file and no initial pose")
+    sub.add_argument("--cases", type=int, default=3, help="cases (seeds) per input kind")
+    sub.add_argument("--seed", type=int, default=0, help="first seed")
+    sub.add_argument("--size", type=int, default=160, help="image side in px")
+    sub.add_argument("--kinds", nargs="*", default=[], help="only the kinds whose name contains one of these words")
+    sub.add_argument("--options", default="{}", help="extra registration options as JSON")
+    sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
+    sub.set_defaults(func=deferred("dsareg_engine.commands.bench_clinical:bench_clinical"))
 
 
 def _add_mesh(parser) -> None:

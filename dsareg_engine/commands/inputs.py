@@ -149,7 +149,35 @@ def describe(path: Path) -> list[str]:
         height, width = image.pixels.shape
         lines += [f"  kind: image ({image.kind}{', mask' if image.is_mask else ''})", f"  size: {width}x{height}"]
         lines.append(f"  geometry: {_view_text(image.geometry) if image.geometry else 'none in the file'}")
+        lines += reading_lines(image.reading)
         lines += [f"  warning: {w}" for w in image.warnings]
+    return lines
+
+
+def reading_lines(reading: dict) -> list[str]:
+    """What ``inspect`` says about a multi-frame XA run (frame indices 0-based)."""
+    if not reading or reading.get("frames", 1) <= 1:
+        return []
+    lines = [f"  frames: {reading['frames']}, {reading['run']} ({reading['why']})"]
+    if reading["run"] == "native":
+        lines.append(f"  pixel intensity: {reading['pixel_intensity_relationship']}, sign {reading['sign']:+d} "
+                     "(subtracted in the log domain)")
+        recipe = reading.get("recipe")
+        if isinstance(recipe, list):
+            for number, item in enumerate(recipe):
+                details = ", ".join(f"{k} {v}" for k, v in item.items() if k != "operation")
+                lines.append(f"  recipe item {number}: {item['operation']} ({details}; DICOM frame numbers)")
+        else:
+            lines.append(f"  recipe: {recipe}")
+        lines.append(f"  mask frames used: {reading['mask_frame_indices']} (0-based)")
+        shift = reading["mask_shift_px"]
+        lines.append(f"  mask moved onto the contrast frame by {shift['total_px']} px (down, right): "
+                     f"recipe {shift['recipe_px']}, patient motion found {shift['found_px']}")
+    if reading.get("combined") == "minip":
+        lines.append(f"  image: MinIP of frames {reading.get('frame_indices')} (0-based)")
+    if reading.get("frame_index") is not None:
+        lines.append(f"  frame used: {reading['frame_index']} (0-based; DICOM frame number {reading['frame_number']}); "
+                     "its geometry is the one shown")
     return lines
 
 

@@ -45,6 +45,10 @@ def add_parser(subparsers) -> None:
                         help='re-register after a small motion from --initial (options.mode "track": fast, one start)')
     parser.add_argument("--ground-truth", type=input_file, metavar="POSE.json",
                         help='pose file {"mesh_to_world": 4x4} of the true pose; adds error metrics (ADD, mTRE...)')
+    for name in ("ap", "lat"):
+        parser.add_argument(f"--{name}-frame", metavar="N|minip",
+                            help=f"multi-frame XA: the {name.upper()} frame to use (0-based) or 'minip' (default: "
+                                 "maximum opacification; native runs are subtracted first); the views may differ")
     parser.add_argument("--options", metavar="JSON|FILE", help=options_help())
     parser.add_argument("--animation", action="store_true", help="also write animation.gif of the optimization")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
@@ -66,12 +70,22 @@ def _model_inputs(args: argparse.Namespace) -> dict:
     return {"volume": parts if len(parts) > 1 else parts[0], "volume_name": paths[0].name}
 
 
+def frame_argument(value: str, flag: str) -> int | str:
+    """``--ap-frame`` / ``--lat-frame``: a 0-based frame index or ``minip``."""
+    if value == "minip":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise DsaregInputError(f"'{value}' is not a frame index", field=flag, accepted="an integer ≥ 0 or 'minip'") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from ..io.case import load_case  # the engine (torch) loads only when a registration runs
     from ..pipeline import write_outputs
     from ..geometry.pose_file import load_pose
     from ..registration import register
-    from ..registration.options import parse_options
+    from ..registration.options import image_reading, parse_options
 
     options = json_argument(args.options, "--options") or {}
     if not isinstance(options, dict):
@@ -83,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
         options["ground_truth_mesh_to_world"] = load_pose(args.ground_truth).tolist()
     if args.animation:
         options["animation"] = True
+    for name in ("ap", "lat"):
+        value = getattr(args, f"{name}_frame")
+        if value is not None:
+            options.setdefault("frames", {})[name] = frame_argument(value, f"--{name}-frame")
     if args.track:
         if not args.initial:
             raise DsaregInputError("--track re-registers from a previous pose: give it with --initial",
@@ -96,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         **model,
         ap=ap_bytes, ap_name=Path(args.ap).name,
         lat=lat_bytes, lat_name=Path(args.lat).name,
-        geometry=geometry, segmentation=parsed.segmentation,
+        geometry=geometry, segmentation=parsed.segmentation, reading=image_reading(parsed),
     )
     printer = ProgressPrinter()
     for warning in case.warnings:
@@ -105,7 +123,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = register(case.mesh, case.fitted, case.rig, parsed, progress=printer.update)
         data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation,
-                             images=case.images, progress=printer.update, warnings=case.warnings)
+                             images=case.images, progress=printer.update, warnings=case.warnings,
+                             readings=case.readings)
     finally:
         printer.close()
     if args.dicom_out:

@@ -15,6 +15,7 @@ from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
 from ..vision.segmentation import SEGMENTATION_METHODS, vessel_coverage
+from .xa_run import ImageReading
 from .volume_io import read_volume, volume_to_mesh
 
 ASPECT_TOLERANCE = 0.01
@@ -36,6 +37,8 @@ class Case:
         kinds: what each input was read as (``{"mesh": "stl", "ap": "dicom-xa", ...}``).
         images: the images as read (``(H, W)`` float, before segmentation), shown under
             the overlays' contours.
+        readings: per view, what was read from a multi-frame XA run (frames and mask frames used,
+            recipe, shift found; :mod:`.xa_run`); empty for other images.
     """
 
     mesh: TriangleMesh
@@ -45,6 +48,7 @@ class Case:
     kinds: dict[str, str] = field(default_factory=dict)
     images: dict[str, np.ndarray] = field(default_factory=dict)
     targets: dict[str, np.ndarray] = field(default_factory=dict)
+    readings: dict[str, dict] = field(default_factory=dict)
 
     @property
     def fitted(self) -> dict[str, np.ndarray]:
@@ -62,7 +66,8 @@ class CaseFiles:
             files, or a ``.rad`` + ``.raw`` pair as a list).
         ap_name, lat_name, mesh_name, volume_name: file names (their suffix helps tell formats), or None.
         geometry: the parsed geometry, or ``None`` to take it from the image headers.
-        frame: multi-frame DICOM: a frame number, ``"minip"``, or ``None`` (maximum opacification).
+        frame: multi-frame DICOM: a frame number, ``"minip"``, or ``None`` (maximum opacification), both views.
+        reading: per-view frames and subtraction settings (:class:`.xa_run.ImageReading`); overrides ``frame``.
         warnings: notes from getting the files (e.g. a DICOMweb fetch), reported before the case's own.
     """
 
@@ -77,13 +82,20 @@ class CaseFiles:
     geometry: GeometrySpec | None = None
     frame: int | str | None = None
     warnings: tuple[str, ...] = ()
+    reading: ImageReading | None = None
 
 
-def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS) -> Case:
-    """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's."""
+def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS,
+                    reading: ImageReading | None = None) -> Case:
+    """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's.
+
+    ``reading`` (e.g. from the job's options) adds to the files' own: frames given by both must agree.
+    """
+    own = files.reading if files.reading is not None else ImageReading.both(files.frame)
     case = load_case(mesh=files.mesh, mesh_name=files.mesh_name, volume=files.volume, volume_name=files.volume_name,
                      ap=files.ap, ap_name=files.ap_name, lat=files.lat, lat_name=files.lat_name,
-                     geometry=files.geometry, segmentation=segmentation, limits=limits, frame=files.frame)
+                     geometry=files.geometry, segmentation=segmentation, limits=limits,
+                     reading=own.merged(reading))
     case.warnings[:0] = list(files.warnings)
     return case
 
@@ -102,6 +114,7 @@ def load_case(
     segmentation: str = "auto",
     limits: InputLimits = DEFAULT_LIMITS,
     frame: int | str | None = None,
+    reading: ImageReading | None = None,
 ) -> Case:
     """Read, validate and segment the inputs of one case.
 
@@ -114,7 +127,9 @@ def load_case(
             images (DICOM XA tags or ``.rad`` headers).
         segmentation: ``"auto"``, ``"otsu"``, ``"vesselness"`` or ``"mask"``.
         frame: for multi-frame DICOM: a frame number, ``"minip"``, or ``None``
-            (maximum opacification).
+            (maximum opacification), both views.
+        reading: per-view frames and the subtraction of native runs (:class:`.xa_run.ImageReading`);
+            when given, ``frame`` is not used.
 
     Raises:
         DsaregInputError: with ``field`` naming the input at fault.
@@ -128,10 +143,11 @@ def load_case(
     surface = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings, kinds)
 
     images: dict[str, LoadedImage] = {}
+    reading = reading if reading is not None else ImageReading.both(frame)
     for name, data, filename in (("ap", ap, ap_name), ("lat", lat, lat_name)):
         if data is None or len(data) == 0:
             raise DsaregInputError("the image is missing or empty", field=name, accepted="a DSA image or a mask")
-        images[name] = read_image(data, filename, limits, frame=frame, field_name=name)
+        images[name] = read_image(data, filename, limits, field_name=name, reading=reading.for_view(name))
         kinds[name] = images[name].kind
         warnings.extend(images[name].warnings)
 
@@ -149,7 +165,8 @@ def load_case(
         views[name] = view
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
-                images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets)
+                images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
+                readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading})
 
 
 

@@ -62,7 +62,7 @@ class XaGeometry:
     warnings: list[str] = field(default_factory=list)
 
 
-def _find(dataset, keyword: str, frame: int | None = None):
+def find_tag(dataset, keyword: str, frame: int | None = None):
     """A tag from the top level, the per-frame or the shared functional groups (nested one level)."""
     if keyword in dataset:
         value = dataset.data_element(keyword).value
@@ -104,17 +104,17 @@ def _float(value, keyword: str, field_name: str) -> float:
 def xa_geometry(dataset, frame: int | None = None, *, field_name: str = "image") -> XaGeometry | None:
     """The geometry tags of ``dataset`` (a pydicom Dataset), or ``None`` when any is missing."""
     warnings: list[str] = []
-    values = {keyword: _find(dataset, keyword, frame) for keyword in GEOMETRY_TAGS}
+    values = {keyword: find_tag(dataset, keyword, frame) for keyword in GEOMETRY_TAGS}
     if values["ImagerPixelSpacing"] is None:
-        spacing = _find(dataset, "PixelSpacing", frame)
+        spacing = find_tag(dataset, "PixelSpacing", frame)
         if spacing is not None:
             values["ImagerPixelSpacing"] = spacing
             warnings.append(f"{field_name}: no ImagerPixelSpacing; PixelSpacing used as the detector spacing")
     if values["DistanceSourceToPatient"] is None:
-        iso = _find(dataset, "DistanceSourceToIsocenter", frame)
+        iso = find_tag(dataset, "DistanceSourceToIsocenter", frame)
         if iso is not None:
             values["DistanceSourceToPatient"] = iso
-    rows, cols = _find(dataset, "Rows"), _find(dataset, "Columns")
+    rows, cols = find_tag(dataset, "Rows"), find_tag(dataset, "Columns")
     if any(value is None for value in values.values()) or rows is None or cols is None:
         return None
     spacing = [_float(x, "ImagerPixelSpacing", field_name) for x in values["ImagerPixelSpacing"]]
@@ -177,7 +177,7 @@ def view_from_xa(
     """``(view or None, warnings)`` from an XA dataset; ``None`` when geometry tags are missing."""
     found = xa_geometry(dataset, frame, field_name=field_name)
     if found is None:
-        missing = [k for k in GEOMETRY_TAGS if _find(dataset, k, frame) is None]
+        missing = [k for k in GEOMETRY_TAGS if find_tag(dataset, k, frame) is None]
         return None, [f"{field_name}: DICOM lacks geometry tags {missing}"]
     view = view_from_angles(
         found.primary_deg, found.secondary_deg, found.sid_mm, found.sod_mm, found.pixel_spacing_mm, found.image_size

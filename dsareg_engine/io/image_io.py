@@ -6,10 +6,12 @@ few hundred bytes can declare 50,000 × 50,000 pixels). Images come back as floa
 higher values are brighter on every input. ``is_mask`` is true when the pixels take
 at most two values (an exported segmentation).
 
-Multi-frame DICOM XA: ``frame`` picks a frame (0-based), ``None`` picks the frame of
-maximum vessel opacification (the frame furthest below the per-pixel brightest
-value over the run, i.e. most contrast in the vessels, which are dark), and
-``"minip"`` takes the per-pixel minimum over all frames.
+Multi-frame DICOM XA: a native (unsubtracted) run is subtracted by its recipe in the log
+domain, with the patient motion corrected (:mod:`.xa_run`). A subtracted run is read as
+stored: ``frame`` picks a frame (0-based), ``None`` picks the frame of maximum vessel
+opacification (the frame furthest below the per-pixel brightest value over the run, i.e.
+most contrast in the vessels, which are dark), and ``"minip"`` takes the per-pixel minimum
+over all frames.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from ..errors import DsaregInputError
 from ..geometry.rig import ViewGeometry
 from . import rad as rad_format
 from .limits import DEFAULT_LIMITS, InputLimits
+from .xa_run import RunReading
 
 _ACCEPTED = "PNG, TIFF, JPEG, DICOM (XA), or a .rad header with its .raw"
 
@@ -38,6 +41,7 @@ class LoadedImage:
     geometry: ViewGeometry | None
     kind: str
     warnings: list[str] = field(default_factory=list)
+    reading: dict = field(default_factory=dict)  # multi-frame XA: what was read and done (xa_run)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -83,16 +87,22 @@ def read_image(
     *,
     frame: int | str | None = None,
     field_name: str = "image",
+    reading: RunReading | None = None,
 ) -> LoadedImage:
     """Read one 2D image; a list of two parts is a ``.rad`` header and its ``.raw``.
+
+    ``reading`` (multi-frame DICOM XA): frame choice and subtraction of native runs
+    (:class:`.xa_run.RunReading`; default: ``frame``, automatic subtraction).
 
     Raises:
         DsaregInputError: empty, truncated, unknown format, too many pixels, no pixel data.
     """
+    if reading is not None:
+        frame = reading.frame
     if isinstance(data, (list, tuple)):
         parts = [bytes(p) for p in data]
         if len(parts) == 1:
-            return read_image(parts[0], name, limits, frame=frame, field_name=field_name)
+            return read_image(parts[0], name, limits, frame=frame, field_name=field_name, reading=reading)
         headers = [p for p in parts if rad_format.looks_like_rad(p[:4096])]
         if len(parts) != 2 or len(headers) != 1:
             raise DsaregInputError("give one image file, or a .rad header and its .raw", field=field_name)
@@ -106,7 +116,7 @@ def read_image(
     if fmt in ("png", "jpeg", "tiff"):
         return _read_raster(data, fmt, name, limits, frame, field_name)
     if fmt == "dicom":
-        return read_dicom_image(data, limits, frame=frame, field_name=field_name)
+        return read_dicom_image(data, limits, frame=frame, field_name=field_name, reading=reading)
     if fmt == "rad":
         raise DsaregInputError("a .rad header needs its .raw file too (send both)", field=field_name)
     if name and name.lower().endswith(".raw"):
@@ -245,12 +255,18 @@ def dicom_number(dataset, keyword: str, default, field_name: str, *, kind: type 
 
 
 def read_dicom_image(
-    data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, frame: int | str | None = None, field_name: str = "image"
+    data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, frame: int | str | None = None, field_name: str = "image",
+    reading: RunReading | None = None,
 ) -> LoadedImage:
-    """A 2D image (and its C-arm geometry when the tags are there) from DICOM XA."""
+    """A 2D image (and its C-arm geometry when the tags are there) from DICOM XA.
+
+    A multi-frame run is read by :func:`.xa_run.read_run` (``reading``; default: ``frame`` with
+    automatic subtraction of native runs); the geometry comes from the frame used.
+    """
     import pydicom
 
     from .dicom_xa import view_from_xa
+    from .xa_run import read_run, run_kind, subtracted_record
 
     try:
         header = pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=True)
@@ -286,37 +302,47 @@ def read_dicom_image(
     slope = dicom_number(dataset, "RescaleSlope", 1.0, field_name, kind=float)
     intercept = dicom_number(dataset, "RescaleIntercept", 0.0, field_name, kind=float)
     stack = stack * slope + intercept
+    reading = reading if reading is not None else RunReading(frame=frame)
+    native = read_run(stack, dataset, reading, field_name)
+    if native is not None:
+        pixels, chosen, record, warnings = native.pixels, native.geometry_frame, native.record, native.warnings
+    else:
+        pixels, chosen, warnings = _stored_frame(stack, dataset, reading.frame, field_name)
+        record = subtracted_record(len(stack), chosen, reading.frame, "single frame" if len(stack) == 1 else
+                                   "read as stored" if reading.subtraction == "off" else run_kind(dataset, stack)[1])
+    geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
+    warnings.extend(geometry_warnings)
+    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+    return LoadedImage(
+        pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings,
+        reading=record,
+    )
+
+
+def _stored_frame(stack: np.ndarray, dataset, frame, field_name: str) -> tuple[np.ndarray, int | None, list[str]]:
+    """A subtracted run (or one frame) as stored: ``(pixels, frame used, warnings)``."""
     if str(getattr(dataset, "PhotometricInterpretation", "")).upper() == "MONOCHROME1":
         stack = stack.max() - stack
     warnings: list[str] = []
     if frame == "minip":
-        pixels = stack.min(axis=0)
-        chosen = None
-    elif isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
+        return stack.min(axis=0), None, warnings
+    if isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
         if not 0 <= frame < len(stack):
             raise DsaregInputError(
                 f"frame {frame} does not exist ({len(stack)} frames)",
                 field=field_name,
                 accepted=f"0..{len(stack) - 1}, or 'minip'",
             )
-        chosen = int(frame)
-        pixels = stack[chosen]
-    elif frame is None:
+        return stack[int(frame)], int(frame), warnings
+    if frame is None:
         chosen = max_opacification_frame(stack)
-        pixels = stack[chosen]
         if len(stack) > 1:
             warnings.append(f"{field_name}: frame {chosen} of {len(stack)} used (maximum vessel opacification)")
-    else:
-        raise DsaregInputError(
-            f"frame option {frame!r} is not understood",
-            field=field_name,
-            accepted="a frame number, 'minip', or nothing (maximum opacification)",
-        )
-    geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
-    warnings.extend(geometry_warnings)
-    pixels = np.ascontiguousarray(pixels, dtype=np.float32)
-    return LoadedImage(
-        pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings
+        return stack[chosen], chosen, warnings
+    raise DsaregInputError(
+        f"frame option {frame!r} is not understood",
+        field=field_name,
+        accepted="a frame number, 'minip', or nothing (maximum opacification)",
     )
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -11,6 +11,18 @@ from ..errors import DsaregInputError
 Configuration = Literal["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"]
 CONFIGURATIONS: tuple[str, ...] = ("ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap")
 Matrix4 = list[list[float]]
+FrameIndex = Annotated[int, Field(ge=0, le=100000)] | Literal["minip"] | None
+
+
+class FrameChoice(BaseModel):
+    """Which frame of a multi-frame XA run each view uses (0-based frame indices)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    ap: FrameIndex = Field(None, description="AP: a 0-based frame index, 'minip' (native runs: the MinIP of the "
+                           "subtracted arterial phase; subtracted runs: of all frames), or null for the frame of "
+                           "maximum vessel opacification.")
+    lat: FrameIndex = Field(None, description="LAT: as ap.")
 
 
 class RegistrationOptions(BaseModel):
@@ -66,8 +78,31 @@ class RegistrationOptions(BaseModel):
         "auto", description="How DSA images become vessel masks (inputs that are masks are used as they are; "
         "auto = 'dsa': flattened background, border at a fraction of the local vessel contrast)."
     )
+    frames: FrameChoice = Field(default_factory=FrameChoice, description="Multi-frame XA runs: the frame each "
+                                "view uses (the two views may differ); the result's image_reading says which were used.")
+    subtraction: Literal["auto", "off"] = Field(
+        "auto", description="Multi-frame XA runs: 'auto' subtracts native (unsubtracted) runs in the log domain, by "
+        "their Mask Subtraction Sequence or, without one, with the frames before contrast arrives as the mask; "
+        "'off' reads every run as stored.")
+    motion_correction: bool = Field(
+        True, description="Native XA runs: move the mask onto the contrast frame by the patient motion measured on "
+        "the background (a sub-pixel translation; reported in image_reading.*.mask_shift_px).")
     animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available (tracking: the CPU, faster there).")
+
+
+def image_reading(options: RegistrationOptions):
+    """The options' image reading (:class:`dsareg_engine.io.xa_run.ImageReading`)."""
+    from ..io.xa_run import ImageReading
+
+    return ImageReading(ap_frame=options.frames.ap, lat_frame=options.frames.lat, subtraction=options.subtraction,
+                        motion_correction=options.motion_correction)
+
+
+def _is_union_tag(part) -> bool:
+    """Pydantic names the member of a union it tried (``constrained-int``, ``literal['minip']``); not a field."""
+    text = str(part)
+    return any(c in text for c in "-[('") or text in ("int", "str", "float", "bool", "none")
 
 
 def parse_options(data: dict | str | bytes | None) -> RegistrationOptions:
@@ -84,7 +119,7 @@ def parse_options(data: dict | str | bytes | None) -> RegistrationOptions:
         return RegistrationOptions.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
-        location = ".".join(str(part) for part in first["loc"])
+        location = ".".join(str(part) for part in first["loc"] if not _is_union_tag(part))
         raise DsaregInputError(
             first["msg"],
             field=f"options.{location}" if location else "options",

@@ -1,3 +1,5 @@
 """Synthetic data for benchmarks, tests, the warm-up and the examples: vessel phantoms (``phantom``), phantom
-studies (``phantom_study``), grey DSA from a mask (``synthetic_dsa``), a clinical-like rig (``clinical_rig``) and
-segmentation errors (``segmentation_errors``). Nothing on the clinical path imports this package."""
+studies (``phantom_study``), grey DSA from a mask (``synthetic_dsa``), a clinical-like rig (``clinical_rig``),
+segmentation errors (``segmentation_errors``), and native (unsubtracted) XA runs from two generators that differ
+(``native_run``: what they share; ``native_run_skull``; ``native_run_texture``). Nothing on the clinical path
+imports this package."""

@@ -63,7 +63,7 @@ class PacsJob:
             fetched = fetch_inputs(client, source)
         self.source_info = {"server": client.server.url, "study_uid": source.study_uid,
                             "fetch_seconds": round(fetched.seconds, 3), "requests": fetched.calls}
-        return fetched_case_files(fetched.ap, fetched.lat, fetched.volume, source.frame, fetched.warnings)
+        return fetched_case_files(fetched.ap, fetched.lat, fetched.volume, source.frames, fetched.warnings)
 
     def store_back(self, result: dict, out_dir: Path) -> dict:
         """Add where the inputs came from to ``result['dicom']`` and, when asked, STOW the REG and overlays."""

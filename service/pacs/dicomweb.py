@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import httpx
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 UID_PATTERN = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
 RETRIABLE_STATUS = {408, 429, 502, 503, 504}
@@ -50,7 +50,8 @@ class ImageRef(BaseModel):
     series_uid: str = Field(description="Series Instance UID of the XA (or other image) series.")
     sop_instance_uid: str | None = Field(None, description="The instance; default the series' first (by Instance Number).")
     frame: int | Literal["minip"] | None = Field(
-        None, description="Multi-frame XA: 0-based frame, 'minip', or null for maximum opacification.")
+        None, description="Multi-frame XA: 0-based frame, 'minip', or null for maximum opacification (per view: "
+        "the two references may name different frames; options.frames, if it names one too, must agree).")
 
     @field_validator("series_uid", "sop_instance_uid")
     @classmethod
@@ -90,15 +91,10 @@ class DicomwebSource(BaseModel):
     def check_uid(cls, value):
         return _uid(value)
 
-    @model_validator(mode="after")
-    def _frames(self) -> DicomwebSource:
-        if self.ap.frame is not None and self.lat.frame is not None and self.ap.frame != self.lat.frame:
-            raise ValueError("ap.frame and lat.frame must be equal when both are given (one frame rule serves both views)")
-        return self
-
     @property
-    def frame(self):
-        return self.ap.frame if self.ap.frame is not None else self.lat.frame
+    def frames(self) -> tuple[int | str | None, int | str | None]:
+        """The (ap, lat) frame choices."""
+        return self.ap.frame, self.lat.frame
 
 
 class Source(BaseModel):

@@ -38,6 +38,9 @@ from sqlalchemy.exc import IntegrityError
 
 STATUSES = ("queued", "running", "succeeded", "failed", "canceled")
 FINISHED = ("succeeded", "failed", "canceled")
+DECISIONS = ("approved", "rejected")
+REVIEW_FILTERS = ("none", *DECISIONS)
+"""``list(review=…)``: jobs never reviewed, or whose latest review has this decision."""
 
 
 def new_job_id() -> str:
@@ -91,6 +94,7 @@ class JobRecord:
     callback_url: str | None = None  # set at creation (its delivery state: ``callback``)
     previous_id: str | None = None  # the job a tracking job started from (``POST …/track``)
     callback: dict[str, Any] | None = None  # delivery state of the completion callback (read by ``get``)
+    review: dict[str, Any] | None = None  # {"decision", "comment", "by", "at" (epoch s)}: the latest review
 
 
 class ConflictError(Exception):
@@ -116,7 +120,13 @@ class JobStore(abc.ABC):
     def get(self, job_id: str) -> JobRecord | None: ...
 
     @abc.abstractmethod
-    def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None) -> tuple[list[JobRecord], str | None]: ...
+    def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,
+             review: str | None = None) -> tuple[list[JobRecord], str | None]: ...
+
+    @abc.abstractmethod
+    def review(self, job_id: str, decision: str, comment: str, by: str) -> JobRecord | None:
+        """Record a review on a finished job (replacing an earlier one; each is a ``reviewed`` event);
+        None when the job is not finished (or gone)."""
 
     @abc.abstractmethod
     def count_by_status(self) -> dict[str, int]: ...
@@ -228,6 +238,9 @@ jobs = sa.Table(
     sa.Column("idempotency_key", sa.String(255)),
     sa.Column("request_hash", sa.String(64)),
     sa.Column("input_bytes", sa.BigInteger, nullable=False, default=0),
+    # added later: databases made before gain them on start (upgrade_schema); nullable for that reason
+    sa.Column("review_decision", sa.String(16)),
+    sa.Column("review", sa.Text),
     sa.UniqueConstraint("owner", "idempotency_key", name="uq_jobs_owner_idempotency"),
     sa.Index("ix_jobs_status_created", "status", "created_at"),
     sa.Index("ix_jobs_created", "created_at", "id"),
@@ -248,6 +261,7 @@ job_events = sa.Table(
     sa.Column("event", sa.String(32), nullable=False),
     sa.Column("worker_id", sa.String(96)),
     sa.Column("attempt", sa.Integer),
+    sa.Column("detail", sa.Text),  # added later (JSON, e.g. a review's decision and reviewer); nullable
 )
 
 workers = sa.Table(
@@ -331,6 +345,7 @@ class SqlJobStore(JobStore):
         self.writer = self.engine.execution_options(dsareg_write=True)
         if create_schema:
             metadata.create_all(self.engine)
+            upgrade_schema(self.engine)
 
     def dispose(self) -> None:
         self.engine.dispose()
@@ -347,12 +362,14 @@ class SqlJobStore(JobStore):
             result=_load(m["result"]), error=_load(m["error"]), artifacts=_load(m["artifacts"], {}) or {},
             warnings=_load(m["warnings"], []) or [], idempotency_key=m["idempotency_key"],
             request_hash=m["request_hash"], input_bytes=m["input_bytes"] or 0,
-            callback_url=m.get("cb_url"), previous_id=m.get("previous_id"),
+            review=_load(m["review"]), callback_url=m.get("cb_url"), previous_id=m.get("previous_id"),
             callback={name: m.get(f"cb_{name}") for name in CALLBACK_COLUMNS} if m.get("cb_url") else None,
         )
 
-    def _event(self, conn: Any, job_id: str, event: str, worker_id: str | None = None, attempt: int | None = None) -> None:
-        conn.execute(job_events.insert().values(job_id=job_id, at=time.time(), event=event, worker_id=worker_id, attempt=attempt))
+    def _event(self, conn: Any, job_id: str, event: str, worker_id: str | None = None, attempt: int | None = None,
+               detail: dict | None = None) -> None:
+        conn.execute(job_events.insert().values(job_id=job_id, at=time.time(), event=event, worker_id=worker_id,
+                                                attempt=attempt, detail=_dump(detail)))
 
     # ---- API side ----------------------------------------------------------------------------
     def create(self, job: JobRecord) -> tuple[JobRecord, bool]:
@@ -404,13 +421,18 @@ class SqlJobStore(JobStore):
             row = conn.execute(query).first()
         return None if row is None else self._row_to_job(row)
 
-    def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None) -> tuple[list[JobRecord], str | None]:
+    def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,
+             review: str | None = None) -> tuple[list[JobRecord], str | None]:
         query = sa.select(jobs, job_previous.c.previous_id).select_from(  # summaries link to a previous job
             jobs.outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
         if owner is not None:
             query = query.where(jobs.c.owner == owner)
         if status is not None:
             query = query.where(jobs.c.status == status)
+        if review == "none":
+            query = query.where(jobs.c.review_decision.is_(None))
+        elif review is not None:
+            query = query.where(jobs.c.review_decision == review)
         if cursor:
             created, job_id = decode_cursor(cursor)
             query = query.where(sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < job_id)))
@@ -452,6 +474,20 @@ class SqlJobStore(JobStore):
                 if flagged:
                     self._event(conn, job_id, "cancel_requested")
         return self.get(job_id)
+
+    def review(self, job_id: str, decision: str, comment: str, by: str) -> JobRecord | None:
+        if decision not in DECISIONS:
+            raise ValueError(decision)
+        now = time.time()
+        record = {"decision": decision, "comment": comment, "by": by, "at": now}
+        with self.writer.begin() as conn:
+            done = conn.execute(
+                jobs.update().where(jobs.c.id == job_id, jobs.c.status.in_(FINISHED))
+                .values(review_decision=decision, review=_dump(record), updated_at=now)
+            ).rowcount
+            if done:
+                self._event(conn, job_id, "reviewed", detail=record)
+        return self.get(job_id) if done else None
 
     def delete(self, job_id: str) -> list[str]:
         with self.writer.begin() as conn:
@@ -693,6 +729,30 @@ class SqlJobStore(JobStore):
             return True
         except Exception:  # noqa: BLE001 - readiness must answer, not raise
             return False
+
+
+def upgrade_schema(engine: sa.engine.Engine) -> list[str]:
+    """Add the columns this version's tables have and an existing database lacks (``ALTER TABLE … ADD
+    COLUMN``, nullable ones only, portable to SQLite and PostgreSQL); returns ``table.column`` added."""
+    added: list[str] = []
+    existing = sa.inspect(engine)
+    for table in metadata.sorted_tables:
+        have = {c["name"] for c in existing.get_columns(table.name)}
+        for column in table.columns:
+            if column.name in have:
+                continue
+            if not column.nullable:
+                raise RuntimeError(f"the job database lacks {table.name}.{column.name}, which cannot be added")
+            kind = column.type.compile(dialect=engine.dialect)
+            try:
+                with engine.begin() as conn:
+                    conn.exec_driver_sql(f'ALTER TABLE {table.name} ADD COLUMN "{column.name}" {kind}')
+            except sa.exc.DBAPIError:  # another process (API, worker) added it at the same moment
+                if column.name not in {c["name"] for c in sa.inspect(engine).get_columns(table.name)}:
+                    raise
+                continue
+            added.append(f"{table.name}.{column.name}")
+    return added
 
 
 def _sqlite_begin(conn: Any) -> None:

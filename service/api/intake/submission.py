@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ...budgets import check_job_cost, parse_json_part
-from ...engine_adapter import check_options, engine, submitted_geometry
+from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry
 from ...jobs.callbacks import url_problem
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
@@ -179,6 +179,7 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         return []
     outcome = await ctx.validator.validate({
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
+        "reading": image_reading_json(options),
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
         "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
     })

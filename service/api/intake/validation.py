@@ -52,7 +52,7 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root"}``."""
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading"}``."""
     import signal
 
     from ...jobs.procwatch import die_with_parent, set_process_name
@@ -100,7 +100,8 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
         try:
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
-            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"))
+            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
+                                 request.get("reading"))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
@@ -246,7 +247,7 @@ class ValidatorPool:
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:

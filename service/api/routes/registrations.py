@@ -9,7 +9,7 @@ from fastapi.responses import JSONResponse, Response
 
 from ...pacs.dimse.export import dimse_source
 from ...problems import Problem, problem_responses
-from ...storage.store import STATUSES, decode_cursor
+from ...storage.store import REVIEW_FILTERS, STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
 from ..intake.forms import read_form
 from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
@@ -69,18 +69,22 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
         await form.close()
 
 
-def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | None) -> dict:
+def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | None,
+              review: str | None = None) -> dict:
     if status is not None and status not in STATUSES:
         raise Problem(422, f"unknown status '{status[:20]}'", field="status", accepted=", ".join(STATUSES))
+    if review is not None and review not in REVIEW_FILTERS:
+        raise Problem(422, f"unknown review state '{review[:20]}'", field="review", accepted=", ".join(REVIEW_FILTERS))
     if cursor:
         try:
             decode_cursor(cursor)
         except Exception:  # noqa: BLE001
             raise Problem(400, "the cursor is not valid; use next_cursor from a previous page", field="cursor") from None
-    records, next_cursor = ctx.store.list(owner=who, status=status, limit=limit, cursor=cursor)
+    records, next_cursor = ctx.store.list(owner=who, status=status, limit=limit, cursor=cursor, review=review)
     next_link = None
     if next_cursor:
-        next_link = f"/v1/registrations?limit={limit}&cursor={next_cursor}" + (f"&status={status}" if status else "")
+        next_link = (f"/v1/registrations?limit={limit}&cursor={next_cursor}" + (f"&status={status}" if status else "")
+                     + (f"&review={review}" if review else ""))
     return {"items": [summary_body(r) for r in records], "next_cursor": next_cursor, "links": {"next": next_link}}
 
 
@@ -95,10 +99,12 @@ def list_jobs(
         None, max_length=200,
         description="Opaque paging token: exactly the `next_cursor` of the previous page (URL-safe base64 "
                     "without padding, at most 200 characters). Any other value → 400 with field `cursor`."),
+    review: str | None = Query(None, description="Only jobs never reviewed (none) or whose latest review is "
+                                                 "approved / rejected.", json_schema_extra={"enum": list(REVIEW_FILTERS)}),
     *,
     who: Principal,
 ) -> Response:
-    return JSONResponse(list_page(ctx, who, status, limit, cursor))
+    return JSONResponse(list_page(ctx, who, status, limit, cursor, review))
 
 
 @router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",

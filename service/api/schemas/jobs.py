@@ -11,6 +11,7 @@ from ...engine_adapter import engine
 from ...problems import ProblemDetails
 from .payloads import Verdict
 from ...storage.store import JobRecord
+from .review import Review, review_model
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
 STATUS_TEXT = ("The job's state. `succeeded` means the job ran to the end and has a result; whether to trust the pose "
@@ -102,6 +103,8 @@ class JobStatus(BaseModel):
     source: dict[str, Any] | None = Field(
         None, description='Only for a job made from a study received over DIMSE: {"dimse": {"calling_ae", '
                           '"study_uid", "pairing", "ap", "lat", "volume"}} (absent otherwise).')
+    review: Review | None = Field(None, description="A person's latest review (POST /v1/registrations/{id}/review); "
+                                                    "null until then.")
     links: JobLinks
 
 
@@ -129,6 +132,7 @@ class JobSummary(BaseModel):
                                                         "failed, in plain words (empty when ok).")
     dice: dict[str, float] | None = Field(None, description="Dice per view of the registered silhouette.")
     error: str | None = Field(None, description="Title and detail of the problem, for failed jobs.")
+    review: Review | None = Field(None, description="A person's latest review; null until then.")
     links: JobLinks
 
 
@@ -239,7 +243,8 @@ def job_status(job: JobRecord) -> JobStatus:
         started_at=iso(job.started_at), finished_at=iso(job.finished_at), attempts=job.attempts,
         cancel_requested=job.cancel_requested, progress=_progress(job), result=result,
         error=ProblemDetails(**job.error) if job.error and job.status == "failed" else None,
-        warnings=job.warnings, callback=_callback_state(job), links=job_links(job.id, job),
+        warnings=job.warnings, callback=_callback_state(job), review=review_model(job.review),
+        links=job_links(job.id, job),
     )
 
 
@@ -285,7 +290,7 @@ def job_summary(job: JobRecord) -> JobSummary:
         finished_at=iso(job.finished_at), seconds=seconds, progress=_progress(job),
         converged=metrics.get("converged") if isinstance(metrics.get("converged"), bool) else None,
         verdict=_verdict(result) if result else None, reasons=_reasons(result) if result else None,
-        dice=dice or None, error=error, links=links,
+        dice=dice or None, error=error, review=review_model(job.review), links=links,
     )
 
 

@@ -228,6 +228,44 @@ class DicomResult(BaseModel):
     stored: DicomStored | None = None
 
 
+class MaskShift(BaseModel):
+    """How far the mask was moved onto the contrast frame, ``[down, right]`` px."""
+
+    model_config = ConfigDict(extra="allow")
+
+    recipe_px: list[float] = Field(description="From the run's Mask Sub-pixel Shift (0 when it has none).")
+    found_px: list[float] = Field(description="The patient motion measured on the background.")
+    total_px: list[float] = Field(description="Applied in all (recipe + found).")
+
+
+class ImageReadingRecord(BaseModel):
+    """What was read from one multi-frame XA run (frame indices are 0-based, frame numbers 1-based as in DICOM)."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "frames": 10, "run": "native", "why": "it carries a Mask Subtraction Sequence",
+        "pixel_intensity_relationship": "LIN", "sign": 1,
+        "recipe": [{"operation": "AVG_SUB", "frames": "3-10", "mask_frame_numbers": [1, 2]}],
+        "frame_index": 7, "frame_number": 8, "combined": "single", "frame_indices": [7],
+        "mask_frame_indices": [0, 1], "mask_frame_numbers": [1, 2],
+        "mask_shift_px": {"recipe_px": [0, 0], "found_px": [0.45, -0.41], "total_px": [0.45, -0.41]}}]})
+
+    frames: int = Field(description="Frames in the run.")
+    run: Literal["native", "subtracted", "single frame"] = Field(
+        description="native: stored unsubtracted and subtracted here; subtracted: read as stored.")
+    why: str = Field(description="What told native from subtracted (tags, or the content).")
+    frame_index: int | None = Field(None, description="The frame used (a MinIP: the peak frame, whose geometry applies).")
+    frame_number: int | None = Field(None, description="The same, 1-based.")
+    combined: Literal["single", "minip"] | None = Field(None, description="One frame, or a MinIP of frame_indices.")
+    frame_indices: list[int] | None = Field(None, description="The frames combined.")
+    mask_frame_indices: list[int] | None = Field(None, description="Native runs: the mask frames subtracted.")
+    mask_frame_numbers: list[int] | None = Field(None, description="The same, 1-based.")
+    recipe: Any | None = Field(None, description="Native runs: the Mask Subtraction Sequence items as read, or how "
+                               "the mask was found without one.")
+    pixel_intensity_relationship: str | None = Field(None, description="LIN, LOG or DISP, as read.")
+    sign: int | None = Field(None, description="Pixel Intensity Relationship Sign as applied.")
+    mask_shift_px: MaskShift | None = None
+
+
 class RegistrationResult(BaseModel):
     """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
     `succeeded` only ran to the end. Later versions may add fields; clients must ignore unknown ones."""
@@ -245,6 +283,8 @@ class RegistrationResult(BaseModel):
     views: dict[str, ViewResult] = Field(description="Per view (`ap`, `lat`).")
     metrics: ResultMetrics
     warnings: list[str] | None = Field(None, description="Notes from reading the inputs (decimation, resizing...).")
+    image_reading: dict[str, ImageReadingRecord] | None = Field(
+        None, description="Per view, what was read from a multi-frame XA run (frames, mask frames, recipe, shift).")
     verdict: Verdict | None = Field(
         None, description="= metrics.confidence.verdict: ok (use the pose), check (look at the overlays first), "
                           "failed (do not use it). Null only for results of versions before the verdict.")

@@ -73,8 +73,11 @@ def test_request_model_checks_uids_frames_and_refuses_credentials():
     base = {"url": "http://pacs/dicom-web", "study_uid": "1.2.840.1", "ap": {"series_uid": "1.2.3"},
             "lat": {"series_uid": "1.2.4", "frame": 3}, "volume": {"series_uid": "1.2.5"}}
     request = DicomwebRegistrationRequest.model_validate({"source": {"dicomweb": base}})
-    assert request.store_results and request.source.dicomweb.frame == 3
-    for bad in ({"study_uid": "1.2/../x"}, {"study_uid": "1.02.3"}, {"ap": {"series_uid": "1.2", "frame": 1}},
+    assert request.store_results and request.source.dicomweb.frames == (None, 3)
+    per_view = {**base, "ap": {"series_uid": "1.2", "frame": 1}, "lat": {"series_uid": "1.2.4", "frame": "minip"}}
+    assert DicomwebRegistrationRequest.model_validate(
+        {"source": {"dicomweb": per_view}}).source.dicomweb.frames == (1, "minip")  # each view its own frame
+    for bad in ({"study_uid": "1.2/../x"}, {"study_uid": "1.02.3"}, {"ap": {"series_uid": "1.2", "frame": -1}},
                 {"password": "x"}, {"volume": {"series_uid": "1." + "1" * 70}}):
         with pytest.raises(ValidationError):
             DicomwebRegistrationRequest.model_validate({"source": {"dicomweb": {**base, **bad}}})

@@ -1,0 +1,349 @@
+"""A multi-frame XA run → the one DSA image registration fits, and a record of how it was made.
+
+**Native or subtracted.** A run is *native* (stored unsubtracted; the viewer subtracts) when it
+carries a Mask Subtraction Sequence (:mod:`.xa_recipe`) or Recommended Viewing Mode (0028,1090)
+``SUB``; *subtracted* when its Image Type or Derivation Description says so. Otherwise its content
+decides: a native run shows the same anatomy (bone edges, texture) in every frame, so the
+band-passed first frame stands far above the frame-to-frame noise (ratio > ``STATIC_RATIO``); a
+subtracted run's pre-contrast frames are noise. Subtracted runs (and ``subtraction="off"``) are
+read as before: the frame of maximum vessel opacification, a given frame, or the MinIP of all frames.
+
+**Native runs, in the log domain.** Pixel Intensity Relationship (0028,1040) ``LIN`` (values ∝
+X-ray intensity): ``log(value)``; ``LOG``: the values as they are; ``DISP``: as ``LOG``, with a
+warning (a display curve is not a logarithm). Its sign (0028,1041) ``−1`` (higher values = less
+intensity) is turned around first, so that in the log domain more attenuation is always lower.
+The DSA image of contrast frame ``n`` is ``D_n = log C_n − log M_n`` (0 where nothing changed,
+negative in the vessels: vessels dark, as the readers deliver DSA), with ``M_n`` the recipe's
+mask (moved by its Mask Sub-pixel Shift) or, without a recipe, the mean of the frames before
+contrast arrives. The mask is then moved onto the contrast frame by the patient motion found on
+the background (:mod:`dsareg_engine.vision.xa_motion`); the move is recorded.
+
+**Which frame.** ``None``: the contrast frame of maximum opacification (the largest integrated
+darkening ``Σ max(0, −D − 3σ)``); ``"minip"``: the per-pixel minimum of ``D`` over the arterial
+phase (from the first contrast frame reaching 30 % of the peak's opacification up to the peak);
+an integer: that frame (0-based). The geometry is read from the frame used (the peak frame for a
+MinIP) — enhanced XA stores positioner angles per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..errors import DsaregInputError
+from ..vision.xa_motion import MotionSettings, estimate_shift, shift_image
+from .xa_recipe import SubtractionItem, parse_recipe
+
+STATIC_RATIO = 4.0
+ARTERIAL_FRACTION = 0.3
+ARRIVAL_FRACTION = 0.01
+ARRIVAL_NOISE = 4.0
+CONTRAST_SIGMAS = 5.0
+SUBTRACTIONS = ("auto", "off")
+
+
+@dataclass(frozen=True)
+class RunReading:
+    """How a multi-frame run is read.
+
+    Attributes:
+        frame: ``None`` (maximum opacification), ``"minip"``, or a 0-based frame index.
+        subtraction: ``"auto"``: native runs are subtracted (recipe, or masks found); ``"off"``: frames as stored.
+        motion_correction: estimate and correct the mask ↔ contrast shift on native runs.
+    """
+
+    frame: int | str | None = None
+    subtraction: str = "auto"
+    motion_correction: bool = True
+
+
+@dataclass(frozen=True)
+class ImageReading:
+    """How a case's two images are read: a frame choice per view, and the subtraction settings.
+
+    Attributes:
+        ap_frame, lat_frame: per view, as :attr:`RunReading.frame`.
+        subtraction, motion_correction: as in :class:`RunReading`, for both views.
+    """
+
+    ap_frame: int | str | None = None
+    lat_frame: int | str | None = None
+    subtraction: str = "auto"
+    motion_correction: bool = True
+
+    @classmethod
+    def both(cls, frame: int | str | None) -> ImageReading:
+        return cls(ap_frame=frame, lat_frame=frame)
+
+    def for_view(self, name: str) -> RunReading:
+        return RunReading(frame=getattr(self, f"{name}_frame", None), subtraction=self.subtraction,
+                          motion_correction=self.motion_correction)
+
+    def merged(self, other: ImageReading | None, field_prefix: str = "options.frames") -> ImageReading:
+        """``other``'s frames where this one has none (a frame given twice, differently, is refused);
+        ``other``'s subtraction settings."""
+        if other is None:
+            return self
+        frames = {}
+        for name in ("ap", "lat"):
+            mine, theirs = getattr(self, f"{name}_frame"), getattr(other, f"{name}_frame")
+            if mine is not None and theirs is not None and mine != theirs:
+                raise DsaregInputError(f"the {name} frame is given twice ({mine!r} and {theirs!r})",
+                                       field=f"{field_prefix}.{name}", accepted="one frame choice per view")
+            frames[f"{name}_frame"] = mine if mine is not None else theirs
+        return ImageReading(**frames, subtraction=other.subtraction, motion_correction=other.motion_correction)
+
+
+@dataclass
+class RunImage:
+    """The image made from a run: ``pixels`` ``(H, W)`` float32, the frame whose geometry applies,
+    ``record`` (JSON-ready: what was read and done) and warnings."""
+
+    pixels: np.ndarray
+    geometry_frame: int | None
+    record: dict
+    warnings: list[str] = field(default_factory=list)
+
+
+# ---- native or subtracted ----------------------------------------------------------------------
+
+
+def _band(image: np.ndarray) -> np.ndarray:
+    image = image.astype(np.float32)
+    return cv2.GaussianBlur(image, (0, 0), 1.0) - cv2.GaussianBlur(image, (0, 0), 4.0)
+
+
+def _robust_std(values: np.ndarray) -> float:
+    values = values.ravel()
+    return float(1.4826 * np.median(np.abs(values - np.median(values))))
+
+
+def static_ratio(stack: np.ndarray) -> float:
+    """Band-passed structure of an early frame over the frame-to-frame noise (the quietest
+    adjacent pair of the first four frames): large when anatomy is in every frame."""
+    pairs = range(min(3, len(stack) - 1))
+    noise, first = min((_robust_std(_band(stack[i + 1] - stack[i])) / np.sqrt(2.0), i) for i in pairs)
+    structure = float(np.std(_band(stack[first])))
+    if structure <= 0:
+        return 0.0
+    return structure / max(noise, 1e-6 * float(np.abs(stack[first]).mean()) + 1e-12)
+
+
+def run_kind(dataset, stack: np.ndarray) -> tuple[str, str]:
+    """``("native" | "subtracted", why)``."""
+    if "MaskSubtractionSequence" in dataset:
+        return "native", "it carries a Mask Subtraction Sequence"
+    mode = str(getattr(dataset, "RecommendedViewingMode", "") or "").strip().upper()
+    if mode == "SUB":
+        return "native", "Recommended Viewing Mode is SUB"
+    image_type = "\\".join(str(v) for v in (getattr(dataset, "ImageType", None) or [])).upper()
+    derivation = str(getattr(dataset, "DerivationDescription", "") or "").upper()
+    if "SUBTRACT" in image_type or "SUBTRACT" in derivation:
+        return "subtracted", "its Image Type / Derivation Description says subtracted"
+    ratio = static_ratio(stack)
+    if ratio > STATIC_RATIO:
+        return "native", f"anatomy in every frame (structure {ratio:.0f}x the frame-to-frame noise)"
+    return "subtracted", f"no anatomy common to the frames (structure {ratio:.1f}x the noise)"
+
+
+# ---- the log domain --------------------------------------------------------------------------------
+
+
+def log_domain(stack: np.ndarray, dataset, field_name: str) -> tuple[np.ndarray, dict, list[str]]:
+    """``(log-intensity stack, {"relationship", "sign"}, warnings)``; ``stack`` after the rescale."""
+    from .dicom_xa import find_tag  # top level, else the (enhanced XA) functional groups
+
+    warnings: list[str] = []
+    relationship = str(find_tag(dataset, "PixelIntensityRelationship") or "").strip().upper()
+    if relationship not in ("LIN", "LOG", "DISP"):
+        warnings.append(f"{field_name}: Pixel Intensity Relationship is '{relationship[:8] or 'missing'}'; "
+                        "read as LIN (values proportional to X-ray intensity)")
+        relationship = "LIN"
+    sign_value = find_tag(dataset, "PixelIntensityRelationshipSign")
+    monochrome1 = str(getattr(dataset, "PhotometricInterpretation", "")).upper() == "MONOCHROME1"
+    sign = int(sign_value) if sign_value in (1, -1) else (-1 if monochrome1 else 1)
+    if relationship == "DISP":
+        warnings.append(f"{field_name}: Pixel Intensity Relationship DISP (display values): subtracted as if LOG")
+    if relationship == "LIN":
+        top = float(2 ** int(getattr(dataset, "BitsStored", 16) or 16) - 1)
+        intensity = stack if sign > 0 else top - stack
+        logs = np.log(np.maximum(intensity, 1.0)).astype(np.float32)
+    else:
+        logs = (stack if sign > 0 else -stack).astype(np.float32)
+    return logs, {"pixel_intensity_relationship": relationship, "sign": sign}, warnings
+
+
+# ---- masks ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Pair:
+    """What frame ``frame`` is subtracted with: contrast frames averaged, mask frames averaged, mask shift."""
+
+    frame: int
+    contrast: tuple[int, ...]
+    masks: tuple[int, ...]
+    shift_px: tuple[float, float] = (0.0, 0.0)
+
+
+def recipe_pairs(items: list[SubtractionItem], n_frames: int) -> dict[int, Pair]:
+    """Every frame the recipe subtracts (the first item naming a frame wins)."""
+    pairs: dict[int, Pair] = {}
+    for item in items:
+        for frame in item.frames:
+            masks = item.mask_of(frame)
+            if frame in pairs or not masks or frame in masks or not all(0 <= m < n_frames for m in masks):
+                continue
+            last = min(frame + item.contrast_averaging, item.frames[-1] + 1, n_frames)
+            pairs[frame] = Pair(frame, tuple(range(frame, last)), masks, item.mask_shift_px)
+    return pairs
+
+
+def opacification(difference: np.ndarray) -> float:
+    """Integrated darkening beyond the noise: ``Σ max(0, −D − 3σ)`` (σ: robust spread of ``D``)."""
+    sigma = _robust_std(difference)
+    return float(np.maximum(0.0, -difference - 3.0 * sigma).sum())
+
+
+def found_pairs(logs: np.ndarray, field_name: str) -> tuple[dict[int, Pair], int]:
+    """No recipe: the mask is the mean of the frames before contrast arrives; ``(pairs, arrival)``."""
+    small = logs[:, ::2, ::2] if max(logs.shape[1:]) > 256 else logs
+    scores = np.array([0.0] + [opacification(small[n] - small[0]) for n in range(1, len(small))])
+    if scores.max() <= 0:
+        raise DsaregInputError("no frame of the native run shows contrast (every frame looks like the first)",
+                               field=field_name, accepted="a run whose later frames show contrast-filled vessels")
+    quiet = float(scores[1:].min())  # the quietest frame: noise (and motion) only
+    arrival = int(np.argmax(scores > max(ARRIVAL_FRACTION * scores.max(), ARRIVAL_NOISE * quiet)))
+    masks = tuple(range(max(1, arrival)))
+    return {n: Pair(n, (n,), masks) for n in range(max(1, arrival), len(logs))}, max(1, arrival)
+
+
+def _difference(logs: np.ndarray, pair: Pair, step: int = 1) -> np.ndarray:
+    contrast = logs[list(pair.contrast), ::step, ::step].mean(axis=0)
+    mask = logs[list(pair.masks), ::step, ::step].mean(axis=0)
+    shift = (pair.shift_px[0] / step, pair.shift_px[1] / step)
+    return contrast - shift_image(mask, shift)
+
+
+# ---- one image from the run ---------------------------------------------------------------------------
+
+
+def _frame_scores(logs: np.ndarray, pairs: dict[int, Pair]) -> dict[int, float]:
+    step = 2 if max(logs.shape[1:]) > 256 else 1
+    return {n: opacification(_difference(logs, pair, step)) for n, pair in pairs.items()}
+
+
+def _corrected(logs: np.ndarray, pair: Pair, reading: RunReading, warnings: list[str], field_name: str
+               ) -> tuple[np.ndarray, dict]:
+    """``D`` of one pair with the mask moved by the recipe's shift and the motion found; the move."""
+    contrast = logs[list(pair.contrast)].mean(axis=0)
+    mask = shift_image(logs[list(pair.masks)].mean(axis=0), pair.shift_px)
+    found = (0.0, 0.0)
+    if reading.motion_correction:
+        found, _ = estimate_shift(mask, contrast, MotionSettings())
+        if found == (0.0, 0.0):
+            warnings.append(f"{field_name}: no patient motion could be estimated for frame {pair.frame}")
+        mask = shift_image(mask, found)
+    total = (pair.shift_px[0] + found[0], pair.shift_px[1] + found[1])
+    move = {"recipe_px": [round(v, 4) for v in pair.shift_px], "found_px": [round(v, 4) for v in found],
+            "total_px": [round(v, 4) for v in total]}
+    return (contrast - mask).astype(np.float32), move
+
+
+def _choose(scores: dict[int, float], reading: RunReading, pairs: dict[int, Pair], n_frames: int,
+            field_name: str) -> tuple[int, list[int]]:
+    """``(frame whose geometry applies, frames combined)``."""
+    if isinstance(reading.frame, (int, np.integer)) and not isinstance(reading.frame, bool):
+        frame = int(reading.frame)
+        if not 0 <= frame < n_frames:
+            raise DsaregInputError(f"frame {frame} does not exist ({n_frames} frames)", field=field_name,
+                                   accepted=f"0..{n_frames - 1}, 'minip', or nothing (maximum opacification)")
+        if frame not in pairs:
+            raise DsaregInputError(
+                f"frame {frame} is not a contrast frame of the subtraction (contrast frames "
+                f"{min(pairs)}..{max(pairs)}, 0-based)", field=field_name, accepted="a contrast frame")
+        return frame, [frame]
+    peak = max(scores, key=scores.get)
+    if reading.frame == "minip":
+        phase = [n for n in sorted(scores) if n <= peak and scores[n] >= ARTERIAL_FRACTION * scores[peak]]
+        first = phase[0]
+        return peak, [n for n in sorted(scores) if first <= n <= peak]
+    return peak, [peak]
+
+
+def _check_contrast(image: np.ndarray, field_name: str, frames: list[int]) -> None:
+    sigma = _robust_std(image)
+    smooth = cv2.GaussianBlur(image, (0, 0), 1.0)
+    dark = int((smooth < -CONTRAST_SIGMAS * max(sigma, 1e-6) / 2.0).sum())
+    if dark < max(20, int(5e-4 * image.size)):
+        raise DsaregInputError(
+            f"no contrast found: the subtracted frame {frames[-1]} shows no vessels above the noise",
+            field=field_name, accepted="a run with contrast-filled vessels in its contrast frames")
+
+
+def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field_name: str) -> RunImage:
+    """The DSA image of a native run (see the module docstring)."""
+    logs, intensity, warnings = log_domain(stack, dataset, field_name)
+    items = parse_recipe(dataset, len(stack), field_name=field_name)
+    record: dict = {"frames": len(stack), "run": "native", "why": why, **intensity}
+    if items:
+        pairs = recipe_pairs(items, len(stack))
+        record["recipe"] = [item.describe() for item in items]
+        if not pairs:
+            raise DsaregInputError("the Mask Subtraction Sequence subtracts no frame", field=f"{field_name}.MaskSubtractionSequence")
+    else:
+        pairs, arrival = found_pairs(logs, field_name)
+        record["recipe"] = f"none in the file: mask = the frames before contrast arrives (frame index {arrival})"
+    scores = _frame_scores(logs, pairs)
+    geometry_frame, used = _choose(scores, reading, pairs, len(stack), field_name)
+    images, moves = [], {}
+    for frame in used:
+        image, moves[frame] = _corrected(logs, pairs[frame], reading, warnings, field_name)
+        images.append(image)
+    pixels = np.min(images, axis=0) if len(images) > 1 else images[0]
+    _check_contrast(pixels, field_name, used)
+    pair = pairs[geometry_frame]
+    record.update({
+        "frame_index": geometry_frame, "frame_number": geometry_frame + 1,
+        "combined": "minip" if reading.frame == "minip" else "single",
+        "frame_indices": used, "mask_frame_indices": list(pair.masks),
+        "mask_frame_numbers": [m + 1 for m in pair.masks], "contrast_frame_indices": list(pair.contrast),
+        "mask_shift_px": moves[geometry_frame], "motion_correction": reading.motion_correction,
+        "shift_convention": "mask moved by (down, right) px onto the contrast frame",
+    })
+    if len(used) > 1:
+        record["mask_shift_px_per_frame"] = {str(f): moves[f]["total_px"] for f in used}
+    text = "MinIP of frames " + ", ".join(str(f) for f in used) if len(used) > 1 else f"frame {geometry_frame}"
+    move = moves[geometry_frame]["total_px"]
+    warnings.append(f"{field_name}: native run of {len(stack)} frames ({why}): {text} minus mask frame(s) "
+                    f"{', '.join(str(m) for m in pair.masks)} in the log domain, mask moved by "
+                    f"({move[0]:+.2f}, {move[1]:+.2f}) px (down, right) (0-based frame indices)")
+    return RunImage(pixels, geometry_frame, record, warnings)
+
+
+def read_run(stack: np.ndarray, dataset, reading: RunReading, field_name: str) -> RunImage | None:
+    """A native run's DSA image, or ``None`` for a subtracted run (read as stored by the caller).
+
+    ``stack``: ``(N, H, W)`` after the rescale, before any MONOCHROME1 inversion.
+    """
+    if reading.subtraction not in SUBTRACTIONS:
+        raise DsaregInputError(f"subtraction '{reading.subtraction}' is not understood",
+                               field="options.subtraction", accepted=", ".join(SUBTRACTIONS))
+    if len(stack) < 2 or reading.subtraction == "off":
+        return None
+    kind, why = run_kind(dataset, stack)
+    if kind != "native":
+        return None
+    return read_native(stack, dataset, reading, why, field_name)
+
+
+def subtracted_record(n_frames: int, chosen: int | None, frame, why: str) -> dict:
+    """The record of a run read as stored."""
+    record: dict = {"frames": n_frames, "run": "subtracted" if n_frames > 1 else "single frame", "why": why}
+    if frame == "minip":
+        record.update({"combined": "minip", "frame_indices": list(range(n_frames))})
+    elif chosen is not None:
+        record.update({"frame_index": chosen, "frame_number": chosen + 1, "combined": "single"})
+    return record

@@ -1,0 +1,39 @@
+"""``POST /v1/registrations/{job_id}/review``: a person approves or rejects a finished job.
+
+The latest review is on the job (``review``); every review is a ``reviewed`` event in the job's
+audit log (``job_events``), so a later review replaces the shown one without losing the earlier.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi.responses import JSONResponse, Response
+
+from ...problems import Problem, problem_responses
+from ..deps import Ctx, OwnedJob, Principal
+from ..openapi import resource_router
+from ..schemas.jobs import JobStatus, status_body
+from ..schemas.review import ReviewRequest, reviewer_label
+
+log = logging.getLogger("dsareg.service")
+
+router = resource_router("registrations")
+
+
+@router.post(
+    "/v1/registrations/{job_id}/review", response_model=JobStatus, summary="Approve or reject a finished job",
+    description="Records a person's decision (`approved` / `rejected`) and comment on a finished job "
+                "(succeeded, failed or canceled) and answers the job with its `review`. A later review replaces "
+                "the earlier one on the job; each stays in the job's audit log. A queued or running job gives 409.",
+    responses=problem_responses(401, 403, 404, 409, 422),
+)
+def review_job(body: ReviewRequest, ctx: Ctx, job: OwnedJob, who: Principal) -> Response:
+    if job.status in ("queued", "running"):
+        raise Problem(409, f"the job has not finished ({job.status}); review it once it has", kind="job-not-finished",
+                      extra={"job_status": job.status})
+    reviewed = ctx.store.review(job.id, body.decision, body.comment, reviewer_label(who))
+    if reviewed is None:  # deleted meanwhile (a finished job never becomes unfinished)
+        raise Problem(404, f"no registration job with id '{job.id}'", kind="job-not-found")
+    log.info("job %s: reviewed (%s)", job.id, body.decision)
+    return JSONResponse(status_body(reviewed))

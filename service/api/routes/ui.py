@@ -1,0 +1,47 @@
+"""``/ui/``: the review page, static files shipped in the package (:mod:`service.api.ui`).
+
+The files hold no job data (the page fetches it from the API with the person's key), so they are
+served without authentication, with a Content-Security-Policy that keeps the page to this origin.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+
+from fastapi import APIRouter
+from fastapi.responses import RedirectResponse, Response
+
+from ...problems import Problem
+
+router = APIRouter(include_in_schema=False)
+
+FILES = {"index.html": "text/html; charset=utf-8", "app.js": "text/javascript; charset=utf-8",
+         "app.css": "text/css; charset=utf-8"}
+HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; object-src 'none'; "
+                               "base-uri 'none'; frame-ancestors 'none'; form-action 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+    "Cache-Control": "no-cache",
+}
+
+
+def _read(name: str) -> bytes:
+    return resources.files("service.api.ui").joinpath("static", name).read_bytes()
+
+
+@router.get("/ui")
+def ui_root() -> Response:
+    return RedirectResponse("/ui/", status_code=308)
+
+
+@router.get("/ui/")
+def ui_index() -> Response:
+    return Response(_read("index.html"), media_type=FILES["index.html"], headers=HEADERS)
+
+
+@router.get("/ui/{name}")
+def ui_file(name: str) -> Response:
+    if name not in FILES:
+        raise Problem(404, f"no file '{name[:40]}' in the review page", accepted=", ".join(sorted(FILES)))
+    return Response(_read(name), media_type=FILES[name], headers=HEADERS)

@@ -1,0 +1,272 @@
+// dsareg review page: list of jobs -> one job -> approve / reject. Plain JavaScript, no build step,
+// nothing loaded from outside this service. The API key stays in sessionStorage (this tab only) and
+// goes out as "Authorization: Bearer"; images are fetched with it and shown through object URLs.
+"use strict";
+
+const KEY = "dsareg.apiKey";
+const VERDICT_WORDS = {
+  ok: "ok: the model matches both views; a look is still advised before use.",
+  check: "check: something is doubtful (see the reasons); look at the overlays before using the pose.",
+  failed: "failed: the registration did not find a credible pose; do not use it.",
+};
+let objectUrls = [];
+let blinkTimer = null;
+
+function el(tag, attrs, ...children) {
+  const node = document.createElement(tag);
+  for (const [name, value] of Object.entries(attrs || {})) {
+    if (value === null || value === undefined || value === false) continue;
+    if (name.startsWith("on")) node.addEventListener(name.slice(2), value);
+    else node.setAttribute(name, value === true ? "" : String(value));
+  }
+  for (const child of children.flat(Infinity)) {
+    if (child === null || child === undefined) continue;
+    node.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+  return node;
+}
+
+function headers(extra) {
+  const key = sessionStorage.getItem(KEY);
+  return Object.assign(key ? { Authorization: "Bearer " + key } : {}, extra || {});
+}
+
+async function api(path, options) {
+  const response = await fetch(path, Object.assign({}, options, { headers: headers((options || {}).headers) }));
+  const body = (response.headers.get("content-type") || "").includes("json") ? await response.json() : null;
+  if (!response.ok) {
+    const detail = body && (body.detail || body.title) ? body.detail || body.title : response.statusText;
+    throw new Error(`${response.status}: ${detail}`);
+  }
+  return body;
+}
+
+async function image(path) {
+  const response = await fetch(path, { headers: headers() });
+  if (!response.ok) throw new Error(`${path}: ${response.status}`);
+  const url = URL.createObjectURL(await response.blob());
+  objectUrls.push(url);
+  return url;
+}
+
+function say(text, isError) {
+  const message = document.getElementById("message");
+  message.textContent = text || "";
+  message.className = isError ? "error" : "";
+}
+
+function badge(text, kind) {
+  if (!text) return el("span", { class: "muted" }, "—");
+  return el("span", { class: "badge " + String(kind || text).split(" ")[0] }, text);
+}
+
+function reviewBadge(review) {
+  return review ? badge(review.decision) : badge("not reviewed", "none");
+}
+
+function clearView() {
+  objectUrls.forEach((url) => URL.revokeObjectURL(url));
+  objectUrls = [];
+  if (blinkTimer) clearInterval(blinkTimer);
+  blinkTimer = null;
+  const view = document.getElementById("view");
+  view.replaceChildren();
+  return view;
+}
+
+// ---- the list ---------------------------------------------------------------------------------
+
+const filters = { verdict: "", status: "", review: "" };
+
+function select(name, label, choices) {
+  const id = "filter-" + name;
+  const control = el("select", { id, name, onchange: (e) => { filters[name] = e.target.value; showList(); } },
+    choices.map(([value, text]) => el("option", { value, selected: filters[name] === value }, text)));
+  return el("label", { for: id }, label, control);
+}
+
+function jobRow(job) {
+  const dice = job.dice ? Object.entries(job.dice).map(([v, d]) => `${v} ${d.toFixed(3)}`).join(", ") : "";
+  return el("tr", {},
+    el("td", { class: "id" }, el("a", { href: "#/job/" + job.id }, job.id.slice(0, 12))),
+    el("td", {}, (job.created_at || "").replace("T", " ").slice(0, 19)),
+    el("td", {}, badge(job.status)),
+    el("td", {}, badge(job.verdict)),
+    el("td", {}, dice),
+    el("td", {}, reviewBadge(job.review)));
+}
+
+async function showList() {
+  const view = clearView();
+  document.title = "Jobs · dsareg review";
+  view.append(el("h2", {}, "Registration jobs"), el("div", { class: "filters" },
+    select("verdict", "Verdict", [["", "any"], ["ok", "ok"], ["check", "check"], ["failed", "failed"]]),
+    select("status", "Status", [["", "any"], ["succeeded", "succeeded"], ["failed", "failed"], ["running", "running"],
+      ["queued", "queued"], ["canceled", "canceled"]]),
+    select("review", "Review", [["", "any"], ["none", "not reviewed"], ["approved", "approved"], ["rejected", "rejected"]]),
+    el("button", { type: "button", onclick: showList }, "Refresh")));
+  const query = new URLSearchParams({ limit: "100" });
+  if (filters.status) query.set("status", filters.status);
+  if (filters.review) query.set("review", filters.review);
+  try {
+    const page = await api("/v1/registrations?" + query);
+    const items = page.items.filter((job) => !filters.verdict || job.verdict === filters.verdict);
+    say(`${items.length} job${items.length === 1 ? "" : "s"}` + (page.next_cursor ? " (newest 100 only)" : ""));
+    view.append(el("table", { id: "jobs" },
+      el("caption", { class: "muted" }, "Newest first. Open a job to look at it and review it."),
+      el("thead", {}, el("tr", {}, ["Job", "Created (UTC)", "Status", "Verdict", "Dice", "Review"].map(
+        (h) => el("th", { scope: "col" }, h)))),
+      el("tbody", {}, items.map(jobRow))));
+  } catch (error) {
+    say("Could not load the jobs: " + error.message + (String(error.message).startsWith("401") ? " — enter an API key above." : ""), true);
+  }
+}
+
+// ---- one job ----------------------------------------------------------------------------------
+
+function rotationDeg(m) {
+  const trace = m[0][0] + m[1][1] + m[2][2];
+  return (Math.acos(Math.max(-1, Math.min(1, (trace - 1) / 2))) * 180) / Math.PI;
+}
+
+function metricsList(job) {
+  const result = job.result || {};
+  const metrics = result.metrics || {};
+  const rows = [];
+  for (const [name, v] of Object.entries(result.views || {})) {
+    if (typeof v.dice === "number") rows.push([`Dice ${name}`, v.dice.toFixed(3)]);
+  }
+  const pose = result.mesh_to_world;
+  if (pose) {
+    rows.push(["Pose translation (mm)", [pose[0][3], pose[1][3], pose[2][3]].map((x) => x.toFixed(1)).join(", ")]);
+    rows.push(["Pose rotation (deg)", rotationDeg(pose).toFixed(2)]);
+  }
+  if (typeof metrics.loss === "number") rows.push(["Final loss", metrics.loss.toPrecision(3)]);
+  if (metrics.reason) rows.push(["Optimizer stopped", metrics.reason]);
+  if (job.started_at && job.finished_at) {
+    rows.push(["Run time (s)", ((Date.parse(job.finished_at) - Date.parse(job.started_at)) / 1000).toFixed(1)]);
+  }
+  return el("dl", { class: "metrics" }, rows.map(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
+}
+
+function verdictSection(job) {
+  const confidence = ((job.result || {}).metrics || {}).confidence || {};
+  const reasons = confidence.reasons || [];
+  const words = VERDICT_WORDS[confidence.verdict] || (job.error ? "The job failed: " + job.error.detail : "No verdict.");
+  return el("section", { "aria-labelledby": "verdict-h" }, el("h3", { id: "verdict-h" }, "Verdict ", badge(confidence.verdict)),
+    el("p", {}, words),
+    reasons.length ? el("ul", { class: "reasons" }, reasons.map((r) => el("li", {}, r))) : null,
+    job.warnings && job.warnings.length ? [el("h3", {}, "Warnings"),
+      el("ul", { class: "warnings" }, job.warnings.map((w) => el("li", {}, w)))] : null);
+}
+
+function viewsSection(job) {
+  const links = job.links;
+  const views = ["ap", "lat"].filter((v) => links["overlay_" + v]);
+  if (!views.length) return null;
+  const figures = views.map((v) => {
+    const img = el("img", { alt: `${v.toUpperCase()} view: overlay of the registered model on the DSA`, "data-view": v });
+    const caption = el("figcaption", {}, `${v.toUpperCase()}: overlay`);
+    return { v, img, caption, figure: el("figure", {}, img, caption), urls: {} };
+  });
+  let showing = "overlay";
+  const show = (kind) => {
+    showing = kind;
+    for (const f of figures) {
+      if (f.urls[kind]) f.img.src = f.urls[kind];
+      f.img.alt = `${f.v.toUpperCase()} view: ` + (kind === "overlay" ? "overlay of the registered model on the DSA" : "vessel mask used for the registration");
+      f.caption.textContent = `${f.v.toUpperCase()}: ${kind === "overlay" ? "overlay" : "vessel mask"}`;
+    }
+    toggle.setAttribute("aria-pressed", kind === "mask" ? "true" : "false");
+  };
+  const toggle = el("button", { type: "button", id: "toggle-masks", "aria-pressed": "false",
+    onclick: () => show(showing === "overlay" ? "mask" : "overlay") }, "Show masks");
+  const blink = el("button", { type: "button", id: "blink", "aria-pressed": "false", onclick: () => {
+    if (blinkTimer) { clearInterval(blinkTimer); blinkTimer = null; blink.setAttribute("aria-pressed", "false"); show("overlay"); return; }
+    blink.setAttribute("aria-pressed", "true");
+    blinkTimer = setInterval(() => show(showing === "overlay" ? "mask" : "overlay"), 700);
+  } }, "Blink");
+  for (const f of figures) {
+    image(links["overlay_" + f.v]).then((url) => { f.urls.overlay = url; if (showing === "overlay") f.img.src = url; })
+      .catch((e) => say(e.message, true));
+    if (links["mask_" + f.v]) image(links["mask_" + f.v]).then((url) => { f.urls.mask = url; }).catch(() => {});
+  }
+  return el("section", { "aria-labelledby": "views-h" }, el("h3", { id: "views-h" }, "Views"),
+    el("div", { class: "toolbar" }, toggle, blink), el("div", { class: "views" }, figures.map((f) => f.figure)));
+}
+
+function plotFigure(link, alt, caption) {
+  if (!link) return null;
+  const img = el("img", { alt });
+  image(link).then((url) => { img.src = url; }).catch(() => {});
+  return el("figure", { class: "plot" }, img, el("figcaption", {}, caption));
+}
+
+function reviewSection(job) {
+  const finished = !["queued", "running"].includes(job.status);
+  const current = job.review
+    ? el("p", { id: "review-state" }, "Reviewed: ", reviewBadge(job.review), ` by ${job.review.by} at ${job.review.at.replace("T", " ").slice(0, 19)}`,
+      job.review.comment ? el("br") : null, job.review.comment ? `“${job.review.comment}”` : null)
+    : el("p", { id: "review-state" }, reviewBadge(null));
+  const comment = el("textarea", { id: "comment", name: "comment", maxlength: 2000, disabled: !finished });
+  const send = async (decision) => {
+    try {
+      const updated = await api(`/v1/registrations/${job.id}/review`, { method: "POST",
+        headers: { "Content-Type": "application/json" }, body: JSON.stringify({ decision, comment: comment.value }) });
+      say(`Saved: ${decision}.`);
+      document.getElementById("review-state").replaceWith(reviewSection(updated).querySelector("#review-state"));
+    } catch (error) { say("The review was not saved: " + error.message, true); }
+  };
+  return el("section", { "aria-labelledby": "review-h", class: "review-form" }, el("h3", { id: "review-h" }, "Review"), current,
+    finished ? null : el("p", { class: "muted" }, "The job has not finished; it can be reviewed once it has."),
+    el("label", { for: "comment" }, "Comment (optional, at most 2000 characters)"), comment,
+    el("div", { class: "actions" },
+      el("button", { type: "button", class: "approve", id: "approve", disabled: !finished, onclick: () => send("approved") }, "Approve"),
+      el("button", { type: "button", class: "reject", id: "reject", disabled: !finished, onclick: () => send("rejected") }, "Reject")));
+}
+
+async function showJob(id) {
+  const view = clearView();
+  let job;
+  try { job = await api("/v1/registrations/" + encodeURIComponent(id)); } catch (error) {
+    view.append(el("p", {}, el("a", { href: "#/" }, "← All jobs")));
+    say("Could not load the job: " + error.message, true);
+    return;
+  }
+  say("");
+  document.title = `Job ${id.slice(0, 8)} · dsareg review`;
+  view.append(el("p", {}, el("a", { href: "#/" }, "← All jobs")),
+    el("h2", {}, "Job ", el("code", {}, id), " ", badge(job.status)),
+    el("div", { class: "job" },
+      el("div", {}, viewsSection(job), el("div", { class: "views" },
+        plotFigure(job.links.loss_plot, "Loss per iteration of the registration", "Loss per iteration"),
+        plotFigure(job.links.animation, "Animation of the registration converging", "Animation"))),
+      el("div", {}, reviewSection(job), verdictSection(job), el("h3", {}, "Metrics"), metricsList(job))));
+}
+
+// ---- the key and the router ---------------------------------------------------------------------
+
+function keyState() {
+  document.getElementById("key-state").textContent = sessionStorage.getItem(KEY) ? "key set for this tab" : "no key";
+}
+
+function route() {
+  const match = location.hash.match(/^#\/job\/([A-Za-z0-9_-]{1,64})$/);
+  if (match) showJob(match[1]); else showList();
+  document.getElementById("main").focus({ preventScroll: true });
+}
+
+document.addEventListener("DOMContentLoaded", () => {
+  document.getElementById("key-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const input = document.getElementById("api-key");
+    if (input.value.trim()) sessionStorage.setItem(KEY, input.value.trim());
+    input.value = "";
+    keyState();
+    route();
+  });
+  document.getElementById("forget-key").addEventListener("click", () => { sessionStorage.removeItem(KEY); keyState(); route(); });
+  keyState();
+  window.addEventListener("hashchange", route);
+  route();
+});

@@ -1,0 +1,141 @@
+"""Native XA runs → DSA (both run generators): native vs subtracted, recipe, masks found, motion, frames, refusals."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pydicom
+import pytest
+
+from dsareg_engine.errors import DsaregInputError
+from dsareg_engine.io.image_io import read_image
+from dsareg_engine.io.xa_run import RunReading
+from dsareg_engine.simulation.native_run import to_bytes
+from dsareg_engine.simulation.native_run_skull import SkullRunSettings, make_skull_run
+from dsareg_engine.simulation.native_run_texture import TextureRunSettings, make_texture_run
+
+SIZE = 96
+
+
+@pytest.fixture(scope="module")
+def skull():
+    return make_skull_run(0, SkullRunSettings(size_px=SIZE))
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return make_texture_run(0, TextureRunSettings(size_px=SIZE))
+
+
+def _vessel_correlation(pixels: np.ndarray, vessels: np.ndarray) -> float:
+    return float(np.corrcoef(-pixels.ravel(), vessels.ravel())[0, 1])
+
+
+def test_recipe_run_is_subtracted_in_the_log_domain_with_motion_corrected(skull):
+    image = read_image(skull.files["ap"], "ap.dcm", field_name="ap")
+    record = image.reading
+    assert record["run"] == "native" and "Mask Subtraction Sequence" in record["why"]
+    assert record["recipe"][0]["operation"] == "AVG_SUB" and record["mask_frame_numbers"] == [1, 2]
+    assert record["frame_index"] == skull.peak_frame and record["pixel_intensity_relationship"] == "LIN"
+    np.testing.assert_allclose(record["mask_shift_px"]["found_px"], skull.motion_px["ap"], atol=0.08)
+    # the DSA image is the vessels, not the skull: it follows the true path length
+    assert _vessel_correlation(image.pixels, skull.vessels["ap"]) > 0.9
+    native_frame = pydicom.dcmread(io.BytesIO(skull.files["ap"])).pixel_array[skull.peak_frame].astype(float)
+    assert _vessel_correlation(native_frame, skull.vessels["ap"]) < 0.5  # what was registered before
+    np.testing.assert_allclose(image.geometry.world_to_view, skull.rig.views["ap"].world_to_view, atol=1e-6)
+
+
+def test_motion_correction_improves_the_background(skull):
+    corrected = read_image(skull.files["lat"], "lat.dcm", reading=RunReading()).pixels
+    raw = read_image(skull.files["lat"], "lat.dcm", reading=RunReading(motion_correction=False)).pixels
+    background = skull.vessels["lat"] == 0
+    assert np.std(corrected[background]) < 0.8 * np.std(raw[background])
+
+
+def test_run_without_recipe_is_told_native_and_its_masks_found(texture):
+    image = read_image(texture.files["lat"], "lat.dcm", field_name="lat")
+    record = image.reading
+    assert record["run"] == "native" and "anatomy in every frame" in record["why"]
+    assert record["mask_frame_indices"] == list(texture.mask_frames)
+    assert record["pixel_intensity_relationship"] == "LOG" and record["sign"] == -1  # from the shared groups
+    assert record["frame_index"] == texture.peak_frame
+    np.testing.assert_allclose(record["mask_shift_px"]["found_px"], texture.motion_px["lat"], atol=0.1)
+    assert _vessel_correlation(image.pixels, texture.vessels["lat"]) > 0.9
+
+
+def test_enhanced_xa_geometry_comes_from_the_frame_used(texture):
+    """The mask frames record the C-arm still settling; the peak frame's angles are the true ones."""
+    image = read_image(texture.files["ap"], "ap.dcm")
+    np.testing.assert_allclose(image.geometry.world_to_view, texture.rig.views["ap"].world_to_view, atol=1e-6)
+    first = read_image(texture.files["ap"], "ap.dcm", reading=RunReading(subtraction="off", frame=0))
+    turn = first.geometry.world_to_view[:3, :3] @ texture.rig.views["ap"].world_to_view[:3, :3].T
+    assert np.degrees(np.arccos(np.clip((np.trace(turn) - 1) / 2, -1, 1))) == pytest.approx(0.6, abs=0.01)
+
+
+def test_frame_choice_minip_and_refusals(skull):
+    chosen = read_image(skull.files["ap"], "ap.dcm", reading=RunReading(frame=5))
+    assert chosen.reading["frame_index"] == 5 and chosen.reading["frame_indices"] == [5]
+    minip = read_image(skull.files["ap"], "ap.dcm", reading=RunReading(frame="minip"))
+    assert minip.reading["combined"] == "minip" and minip.reading["frame_index"] == skull.peak_frame
+    assert minip.reading["frame_indices"][-1] == skull.peak_frame and len(minip.reading["frame_indices"]) > 1
+    with pytest.raises(DsaregInputError, match="not a contrast frame") as info:
+        read_image(skull.files["ap"], "ap.dcm", reading=RunReading(frame=1), field_name="ap")
+    assert info.value.field == "ap"
+    with pytest.raises(DsaregInputError, match="does not exist"):
+        read_image(skull.files["ap"], "ap.dcm", reading=RunReading(frame=10))
+    off = read_image(skull.files["ap"], "ap.dcm", reading=RunReading(subtraction="off"))
+    assert off.reading["run"] == "subtracted" and off.reading["why"] == "read as stored"
+
+
+def _edited(data: bytes, edit) -> bytes:
+    dataset = pydicom.dcmread(io.BytesIO(data))
+    edit(dataset)
+    return to_bytes(dataset)
+
+
+def test_run_without_contrast_is_refused(skull):
+    def no_contrast(dataset):
+        frames = dataset.pixel_array.copy()
+        frames[:] = frames[0]
+        dataset.PixelData = frames.tobytes()
+
+    for data in (_edited(skull.files["ap"], no_contrast),
+                 _edited(skull.files["ap"], lambda d: (no_contrast(d), delattr(d, "MaskSubtractionSequence")))):
+        with pytest.raises(DsaregInputError, match="contrast") as info:
+            read_image(data, "ap.dcm", field_name="ap")
+        assert info.value.field == "ap"
+
+
+def test_recipe_naming_missing_frames_is_refused(skull):
+    def bad(dataset):
+        dataset.MaskSubtractionSequence[0].MaskFrameNumbers = [1, 14]
+
+    with pytest.raises(DsaregInputError, match="frame 14, which does not exist") as info:
+        read_image(_edited(skull.files["lat"], bad), "lat.dcm", field_name="lat")
+    assert info.value.field == "lat.MaskSubtractionSequence[0].MaskFrameNumbers"
+
+
+def test_tid_recipe(skull):
+    """TID with offset 6: the mask of frame 7 is frame 1 (0-based), a mask frame of the run."""
+    def tid(dataset):
+        item = dataset.MaskSubtractionSequence[0]
+        item.MaskOperation, item.TIDOffset, item.ApplicableFrameRange = "TID", 6, [8, 8]
+        del item.MaskFrameNumbers
+
+    image = read_image(_edited(skull.files["ap"], tid), "ap.dcm")
+    assert image.reading["frame_index"] == 7 and image.reading["mask_frame_indices"] == [1]
+    assert _vessel_correlation(image.pixels, skull.vessels["ap"]) > 0.85
+
+
+def test_subtracted_runs_are_read_as_before(skull):
+    """A subtracted multi-frame run (no anatomy; vessels appearing) keeps today's frame choice."""
+    frames = np.full((5, 40, 50), 3000.0)
+    for k, strength in enumerate((0.0, 0.3, 0.7, 1.0, 0.5)):
+        frames[k, 18:22, 5:45] -= 1500 * strength
+    dataset = pydicom.dcmread(io.BytesIO(skull.subtracted["ap"]))
+    dataset.Rows, dataset.Columns, dataset.NumberOfFrames = 40, 50, 5
+    dataset.PixelData = frames.astype(np.uint16).tobytes()
+    image = read_image(to_bytes(dataset), "run.dcm")
+    assert image.reading["run"] == "subtracted" and image.reading["frame_index"] == 3
+    np.testing.assert_array_equal(image.pixels, frames[3])
