@@ -52,6 +52,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
     from .io.dicom_xa import c_arm_rotation
     from .io.limits import DEFAULT_LIMITS, InputLimits
+    from .io.volume_kind import VolumeReading
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
     from .geometry.pose import validate_rigid
     from .geometry.pose_file import load_pose
@@ -77,6 +78,7 @@ _LAZY = {
     "InputLimits": "dsareg_engine.io.limits",
     "DEFAULT_LIMITS": "dsareg_engine.io.limits",
     "load_case": "dsareg_engine.io.case",
+    "VolumeReading": "dsareg_engine.io.volume_kind",
     "run_registration_case": "dsareg_engine.pipeline",
     "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
@@ -126,6 +128,7 @@ __all__ = [
     "RegistrationCanceled",
     "RegistrationOptions",
     "RigSpec",
+    "VolumeReading",
     "c_arm_rotation",
     "default_cpu_threads",
     "geometry_argument",

@@ -26,6 +26,7 @@ import torch
 from . import artifacts
 from .io.case import Case, CaseFiles, load_case_files
 from .io.limits import DEFAULT_LIMITS, InputLimits
+from .io.volume_kind import VolumeReading
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
@@ -65,7 +66,8 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
         RegistrationCanceled: ``should_stop()`` returned True.
     """
     options = options if isinstance(options, RegistrationOptions) else parse_options(options)
-    case = load_case_files(files, options.segmentation, limits, reading=image_reading(options))
+    case = load_case_files(files, options.segmentation, limits, reading=image_reading(options),
+                           volume_reading=VolumeReading.from_options(options))
     if should_stop is not None and should_stop():
         raise RegistrationCanceled("stopped before start")
     if progress is not None:
@@ -122,7 +124,7 @@ def run_registration_case(
     result = register(case.mesh, case.fitted, case.rig, options, progress=progress, should_stop=should_stop)
     return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
                          images=case.images, label=label, progress=progress, warnings=case.warnings,
-                         readings=case.readings)
+                         readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
 
 
 def verdict_of(data: dict) -> tuple[str, bool | None]:
@@ -154,11 +156,14 @@ def mm_per_pixel_at_mesh(view, mesh_to_view: np.ndarray, mesh=None) -> float | N
 def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_dir: Path, mesh=None, rig=None,
                   animation: bool = False, *, images: dict[str, np.ndarray] | None = None, label: str | None = None,
                   progress: Callable[[dict], None] | None = None, warnings: list[str] | None = None,
-                  readings: dict[str, dict] | None = None) -> dict:
-    """Write result.json (with ``warnings`` when any, and ``image_reading``: what was read from each
-    multi-frame XA run), overlays, masks and the loss plot (and the animation) for a finished registration."""
+                  readings: dict[str, dict] | None = None, volume: dict | None = None) -> dict:
+    """Write result.json (with ``warnings`` when any, ``image_reading``: what was read from each multi-frame XA
+    run, and ``volume``: what was read from a volume input), overlays, masks and the loss plot (and the
+    animation) for a finished registration."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = result.to_dict()
+    if volume:
+        data["volume"] = volume
     if warnings:
         data["warnings"] = [str(warning) for warning in warnings]
     if readings:

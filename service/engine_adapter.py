@@ -129,6 +129,12 @@ def image_reading_json(options: Any) -> dict[str, Any]:
     return vars(engine.image_reading(options))
 
 
+def volume_reading(options: Any) -> dict[str, Any]:
+    """The options that decide how a volume is read (kind, vessel window), as the validator request carries them."""
+    return {"kind": options.volume_kind, "vessel_min": options.volume_vessel_min,
+            "vessel_max": options.volume_vessel_max}
+
+
 def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
     """Degrees between the view directions of two C-arm positions ``(primary°, secondary°)``
     (the engine's C-arm convention, ``engine.c_arm_rotation``)."""
@@ -140,12 +146,14 @@ def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
 
 
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
-                  limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None) -> Any:
+                  limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None,
+                  volume: dict[str, Any] | None = None) -> Any:
     """Read a job's stored inputs as the worker will (the API's validator calls this); ``reading``:
-    :func:`image_reading_json` of the job's options."""
+    :func:`image_reading_json` of the job's options; ``volume``: :func:`volume_reading` of them."""
     files = stored_case_files(inputs, geometry, read, limits)
     return engine.load_case_files(files, segmentation, input_limits(limits),
-                                  reading=engine.ImageReading(**reading) if reading else None)
+                                  reading=engine.ImageReading(**reading) if reading else None,
+                                  volume_reading=engine.VolumeReading(**(volume or {})))
 
 
 def case_summary(case: Any) -> dict[str, Any]:

@@ -29,6 +29,7 @@ TITLES = {
     429: "Too many requests",
     500: "Internal server error",
     503: "Service unavailable",
+    507: "Insufficient storage",
 }
 
 
@@ -97,7 +98,7 @@ def _default_kind(status: int) -> str:
     return {
         400: "bad-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed",
         409: "conflict", 413: "payload-too-large", 415: "unsupported-media-type", 422: "invalid-input",
-        429: "too-many-requests", 500: "internal-error", 503: "unavailable",
+        429: "too-many-requests", 500: "internal-error", 503: "unavailable", 507: "insufficient-storage",
     }.get(status, "error")
 
 
@@ -134,6 +135,7 @@ def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         429: "This API key already has 200 queued jobs; retry later.",
         500: "An internal error occurred; it has been logged.",
         503: "The job queue is full (1000 queued); retry later.",
+        507: "The server's data disk is nearly full (200 MiB free, 256 MiB are kept free); retry later.",
     }
     out: dict[int | str, dict[str, Any]] = {}
     for code in codes:
@@ -142,7 +144,7 @@ def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
             "description": TITLES.get(code, "Error"),
             "content": {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/ProblemDetails"}, "example": example}},
         }
-        if code in (429, 503):
+        if code in (429, 503, 507):
             out[code]["headers"] = {"Retry-After": {"description": "Seconds to wait.", "schema": {"type": "integer"}}}
         if code == 401:
             out[code]["headers"] = {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}}

@@ -81,6 +81,22 @@ class ServiceSettings(BaseSettings):
         120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
                                    "(exponential backoff) before giving up the attempt.")
     job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
+    min_free_bytes: int = Field(
+        256 * 1024 * 1024, ge=0,
+        description="Free disk space the data directory keeps: a submission that would leave less is refused "
+                    "(507 + Retry-After) before anything is written, and a worker does not claim jobs below it; "
+                    "0: no floor (a full disk is still a 507, never a 500).")
+
+    # deadlines on the job database (service/storage/dbtimeouts.py): a frozen database is a fast 503
+    sqlite_busy_timeout_seconds: float = Field(
+        1.0, gt=0.0, description="SQLite: how long a write waits for the database lock (a writer frozen with "
+                                 "the lock → 503 + Retry-After after this long).")
+    db_connect_timeout_seconds: float = Field(1.0, gt=0.0, description="PostgreSQL: time to open a connection.")
+    db_statement_timeout_seconds: float = Field(
+        1.0, gt=0.0, description="PostgreSQL: statement_timeout of the session, and the client-side deadline "
+                                 "(+0.25 s) of one statement when the server does not answer at all.")
+    db_lock_timeout_seconds: float = Field(0.5, gt=0.0, description="PostgreSQL: lock_timeout of the session.")
+    db_pool_timeout_seconds: float = Field(1.0, gt=0.0, description="Wait for a free pooled database connection.")
 
     # retention
     retention_hours: float = Field(168.0, gt=0.0, description="Finished jobs and their files are removed after this.")
@@ -109,6 +125,9 @@ class ServiceSettings(BaseSettings):
     redispatch_after_seconds: float = Field(
         60.0, gt=0.0, description="A queued job not picked up this long is sent to the broker again (executor=celery).")
     task_max_retries: int = Field(5, ge=0, le=50, description="Retries of a Celery task on a transient store error.")
+    broker_publish_timeout_seconds: float = Field(
+        0.5, gt=0.0, description="Longest a submission waits for the broker (executor=celery): a down or frozen "
+                                 "broker leaves the job queued in the table and the sweeper re-sends it.")
 
     # DICOMweb (service/pacs/dicomweb.py): the only PACS a request may name, with their credentials
     dicomweb_servers: Annotated[list[Any], NoDecode] = Field(

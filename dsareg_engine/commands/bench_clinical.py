@@ -81,6 +81,16 @@ CASE_KINDS: list[CaseKind] = [
 ]
 
 
+def _volume_rows() -> list[CaseKind]:
+    """The CTA / TOF-MRA rows (:mod:`.bench_clinical_volumes`): a head series as the model, the XA pair."""
+    from .bench_clinical_volumes import VOLUME_CASE_KINDS
+
+    return [CaseKind(name, description, build) for name, description, build in VOLUME_CASE_KINDS]
+
+
+CASE_KINDS += _volume_rows()
+
+
 def run_one(case: ClinicalCase, options: dict) -> dict:
     """Load and register one case as ``dsareg register`` does; ADD, verdict, wall and CPU seconds."""
     from ..io.case import load_case_files

@@ -19,6 +19,7 @@ def add_parser(subparsers) -> None:
         metavar="FILE",
         help="mesh, volume (a DICOM series folder, or a .rad with its .raw), image, or geometry JSON",
     )
+    _add_volume_reading(inspect)
     inspect.set_defaults(func=_inspect)
 
     segment = subparsers.add_parser("segment", help="segment the vessels of a DSA image into a PNG mask")
@@ -34,7 +35,29 @@ def add_parser(subparsers) -> None:
     mesh.add_argument("volume", metavar="VOLUME", help="NIfTI, NRRD, DICOM (file or series folder), or .rad (+ .raw)")
     mesh.add_argument("--out", required=True, metavar="MESH.obj", help="output mesh (OBJ, STL, PLY by suffix)")
     mesh.add_argument("--faces", type=int, default=None, help="face budget (default: the working budget)")
+    _add_volume_reading(mesh)
+    mesh.add_argument("--mip", metavar="PICTURE.png", default=None,
+                      help="where to write the MIP picture of the kept vessel voxels over the volume "
+                           "(default: beside --out, named <out>_mip.png)")
     mesh.set_defaults(func=_mesh)
+
+
+def _add_volume_reading(parser) -> None:
+    from ..io.volume_kind import VOLUME_KINDS
+
+    parser.add_argument("--volume-kind", choices=VOLUME_KINDS, default="auto",
+                        help="cta, mra (TOF), 3d-dsa (already subtracted), or auto: from the DICOM tags and values")
+    parser.add_argument("--vessel-min", type=float, default=None, metavar="VALUE",
+                        help="lowest vessel value (HU for CTA, intensity otherwise; default: estimated)")
+    parser.add_argument("--vessel-max", type=float, default=None, metavar="HU",
+                        help="CTA: HU from which a voxel is bone (default 700)")
+
+
+def _volume_reading(args: argparse.Namespace):
+    from ..io.volume_kind import VolumeReading
+
+    return VolumeReading(getattr(args, "volume_kind", "auto"), getattr(args, "vessel_min", None),
+                         getattr(args, "vessel_max", None))
 
 
 # ---- reading files from disk (the readers themselves only see bytes) -------------------
@@ -77,8 +100,8 @@ def _frame(value: str | None):
 # ---- inspect --------------------------------------------------------------------------------
 
 
-def describe(path: Path) -> list[str]:
-    """Lines describing one input file (what ``dsareg inspect`` prints)."""
+def describe(path: Path, reading=None) -> list[str]:
+    """Lines describing one input file (what ``dsareg inspect`` prints); ``reading``: how to read a volume's vessels."""
     from ..geometry.spec import parse_geometry
     from ..io import rad
     from ..io.image_io import detect_image_format, read_image
@@ -143,6 +166,7 @@ def describe(path: Path) -> list[str]:
             f"  spacing mm: {[round(s, 4) for s in volume.spacing_mm]}",
             f"  intensity: [{float(volume.data.min()):.4g}, {float(volume.data.max()):.4g}]",
         ]
+        lines += _vessel_lines(volume, reading, field_name)
         lines += [f"  warning: {w}" for w in volume.warnings]
     else:
         image = read_image(data, path.name, field_name=field_name)
@@ -152,6 +176,24 @@ def describe(path: Path) -> list[str]:
         lines += reading_lines(image.reading)
         lines += [f"  warning: {w}" for w in image.warnings]
     return lines
+
+
+def _vessel_lines(volume, reading, field_name: str) -> list[str]:
+    """What the vessel reader keeps of a volume (or why it refuses it)."""
+    from ..io.volume_vessels import extract_vessels
+
+    try:
+        readout = extract_vessels(volume, reading, field_name=field_name).readout
+    except DsaregInputError as exc:
+        return [f"  vessels: refused: {exc.message}"]
+    window = f"{readout.vessel_min:.0f}" + (f" to {readout.vessel_max:.0f}" if readout.vessel_max is not None else " and up")
+    levels = ", ".join(f"{name} {value:.0f}" for name, value in (("tissue", readout.tissue_level),
+                                                                 ("vessels", readout.vessel_level)) if value is not None)
+    return [f"  volume kind: {readout.kind} ({readout.kind_source})",
+            f"  vessel window: {window} {readout.unit}" + (f" (estimated {levels})" if levels else "")
+            + ("" if readout.surface == "level" else f"; surface at each vessel's {readout.surface}"),
+            f"  voxels kept: {readout.voxels_kept} of {readout.voxels_total} in {readout.components} component(s); "
+            f"{readout.faces} faces"]
 
 
 def reading_lines(reading: dict) -> list[str]:
@@ -190,7 +232,7 @@ def _view_text(view) -> str:
 
 def _inspect(args: argparse.Namespace) -> int:
     for name in args.files:
-        print("\n".join(describe(Path(name))))
+        print("\n".join(describe(Path(name), _volume_reading(args))))
     return 0
 
 
@@ -217,16 +259,28 @@ def _segment(args: argparse.Namespace) -> int:
 def _mesh(args: argparse.Namespace) -> int:
     from ..io.limits import DEFAULT_LIMITS
     from ..io.mesh_io import decimate
-    from ..io.volume_io import read_volume, volume_to_mesh
+    from ..io.volume_io import read_volume
+    from ..io.volume_picture import mip_picture
+    from ..io.volume_vessels import extract_vessels
+    from ..overlay import write_png
 
     path = Path(args.volume)
     volume = read_volume(_file_parts(path, "volume"), path.name)
-    mesh = volume_to_mesh(volume)
+    extraction = extract_vessels(volume, _volume_reading(args))
+    mesh = extraction.mesh
     budget = args.faces or DEFAULT_LIMITS.working_faces
     extracted = mesh.n_faces
     mesh = decimate(mesh, budget)
     mesh.save(args.out)
+    out = Path(args.out)
+    picture = Path(args.mip) if args.mip else out.with_name(out.stem + "_mip.png")
+    readout = extraction.readout
+    write_png(picture, mip_picture(volume.data, volume.affine, extraction.kept,
+                                   f"{readout.kind}: {readout.voxels_kept} vessel voxels kept (red), {extracted} faces"
+                                   + ("; MIP without what was set aside (bone / scalp)"
+                                      if extraction.excluded is not None else ""), extraction.excluded))
     for warning in volume.warnings:
         print(f"warning: {warning}")
-    print(f"{args.out}: {mesh.n_faces} faces (extracted {extracted}), world = patient LPS mm")
+    print(f"volume: {readout.text()}")
+    print(f"{args.out}: {mesh.n_faces} faces (extracted {extracted}), world = patient LPS mm; picture {picture}")
     return 0

@@ -25,8 +25,9 @@ def add_parser(subparsers) -> None:
     model.add_argument("--mesh", type=input_file, metavar="FILE",
                        help="vessel surface mesh in mm (OBJ, STL, PLY, OFF, GLB)")
     model.add_argument("--volume", nargs="+", metavar="FILE|DIR",
-                       help="3D angiography volume instead of a mesh: one file (NIfTI, NRRD, DICOM), "
-                            "every file of a DICOM series, or the series' folder")
+                       help="3D volume instead of a mesh: one file (NIfTI, NRRD, DICOM), every file of a DICOM "
+                            "series, or the series' folder; a CTA, TOF-MRA or 3D-DSA (told from its tags; override "
+                            "with --options '{\"volume_kind\": \"cta\"}', volume_vessel_min / volume_vessel_max)")
     parser.add_argument("--ap", required=True, type=input_file, metavar="FILE",
                         help="AP DSA image or vessel mask (PNG, TIFF, JPEG, DICOM XA, .rad with its .raw)")
     parser.add_argument("--lat", required=True, type=input_file, metavar="FILE", help="LAT image or mask (as --ap)")
@@ -82,6 +83,7 @@ def frame_argument(value: str, flag: str) -> int | str:
 
 def run(args: argparse.Namespace) -> int:
     from ..io.case import load_case  # the engine (torch) loads only when a registration runs
+    from ..io.volume_kind import VolumeReading
     from ..pipeline import write_outputs
     from ..geometry.pose_file import load_pose
     from ..registration import register
@@ -115,16 +117,19 @@ def run(args: argparse.Namespace) -> int:
         ap=ap_bytes, ap_name=Path(args.ap).name,
         lat=lat_bytes, lat_name=Path(args.lat).name,
         geometry=geometry, segmentation=parsed.segmentation, reading=image_reading(parsed),
+        volume_reading=VolumeReading.from_options(parsed),
     )
     printer = ProgressPrinter()
     for warning in case.warnings:
         printer.message(f"warning: {warning}")
+    if case.volume is not None:
+        printer.message(f"volume: {case.volume.text()}; {case.volume.faces} faces extracted")
     out = Path(args.out)
     try:
         result = register(case.mesh, case.fitted, case.rig, parsed, progress=printer.update)
         data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation,
                              images=case.images, progress=printer.update, warnings=case.warnings,
-                             readings=case.readings)
+                             readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
     finally:
         printer.close()
     if args.dicom_out:

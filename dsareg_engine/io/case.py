@@ -16,7 +16,9 @@ from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
 from ..vision.segmentation import SEGMENTATION_METHODS, vessel_coverage
 from .xa_run import ImageReading
-from .volume_io import read_volume, volume_to_mesh
+from .volume_io import read_volume
+from .volume_kind import VolumeReading
+from .volume_vessels import VolumeReadout, extract_vessels
 
 ASPECT_TOLERANCE = 0.01
 
@@ -39,6 +41,7 @@ class Case:
             the overlays' contours.
         readings: per view, what was read from a multi-frame XA run (frames and mask frames used,
             recipe, shift found; :mod:`.xa_run`); empty for other images.
+        volume: for a volume input, what was read from it (kind, thresholds, voxels kept).
     """
 
     mesh: TriangleMesh
@@ -49,6 +52,7 @@ class Case:
     images: dict[str, np.ndarray] = field(default_factory=dict)
     targets: dict[str, np.ndarray] = field(default_factory=dict)
     readings: dict[str, dict] = field(default_factory=dict)
+    volume: VolumeReadout | None = None
 
     @property
     def fitted(self) -> dict[str, np.ndarray]:
@@ -86,7 +90,7 @@ class CaseFiles:
 
 
 def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS,
-                    reading: ImageReading | None = None) -> Case:
+                    reading: ImageReading | None = None, volume_reading: VolumeReading | None = None) -> Case:
     """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's.
 
     ``reading`` (e.g. from the job's options) adds to the files' own: frames given by both must agree.
@@ -95,7 +99,7 @@ def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputL
     case = load_case(mesh=files.mesh, mesh_name=files.mesh_name, volume=files.volume, volume_name=files.volume_name,
                      ap=files.ap, ap_name=files.ap_name, lat=files.lat, lat_name=files.lat_name,
                      geometry=files.geometry, segmentation=segmentation, limits=limits,
-                     reading=own.merged(reading))
+                     reading=own.merged(reading), volume_reading=volume_reading)
     case.warnings[:0] = list(files.warnings)
     return case
 
@@ -115,6 +119,7 @@ def load_case(
     limits: InputLimits = DEFAULT_LIMITS,
     frame: int | str | None = None,
     reading: ImageReading | None = None,
+    volume_reading: VolumeReading | None = None,
 ) -> Case:
     """Read, validate and segment the inputs of one case.
 
@@ -130,6 +135,7 @@ def load_case(
             (maximum opacification), both views.
         reading: per-view frames and the subtraction of native runs (:class:`.xa_run.ImageReading`);
             when given, ``frame`` is not used.
+        volume_reading: how to read vessels from a volume (kind, thresholds); ``None`` = detect.
 
     Raises:
         DsaregInputError: with ``field`` naming the input at fault.
@@ -140,7 +146,8 @@ def load_case(
         raise DsaregInputError(
             f"unknown method '{segmentation}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
         )
-    surface = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings, kinds)
+    surface, volume_readout = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings, kinds,
+                                            volume_reading)
 
     images: dict[str, LoadedImage] = {}
     reading = reading if reading is not None else ImageReading.both(frame)
@@ -166,14 +173,17 @@ def load_case(
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
-                readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading})
+                readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
+                volume=volume_readout)
 
 
 
 def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | list[bytes] | None,
                   volume_name: str | None, limits: InputLimits, warnings: list[str],
-                  kinds: dict[str, str]) -> TriangleMesh:
-    """The vessel surface from exactly one of a mesh or a volume (segmented, meshed, decimated)."""
+                  kinds: dict[str, str], volume_reading: VolumeReading | None = None,
+                  ) -> tuple[TriangleMesh, VolumeReadout | None]:
+    """The vessel surface from exactly one of a mesh or a volume (read by its kind, meshed, decimated), and for a
+    volume what was read from it."""
     has_mesh = mesh is not None and (len(mesh) > 0 or mesh_name is not None)
     has_volume = volume is not None
     if has_mesh == has_volume:
@@ -186,16 +196,17 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
         result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh")
         kinds["mesh"] = result.format
         warnings.extend(result.warnings)
-        return result.mesh
+        return result.mesh, None
     loaded = read_volume(volume, volume_name, limits, field_name="volume")
     warnings.extend(loaded.warnings)
-    surface = volume_to_mesh(loaded, field_name="volume")
+    extraction = extract_vessels(loaded, volume_reading, field_name="volume")
+    surface = extraction.mesh
     kinds["volume"] = loaded.kind
     if surface.n_faces > limits.working_faces:
         original = surface.n_faces
         surface = decimate(surface, limits.working_faces)
         warnings.append(f"volume: surface decimated from {original} to {surface.n_faces} faces")
-    return surface
+    return surface, extraction.readout
 
 
 def _view_for_image(rig: Rig, name: str, image: LoadedImage, warnings: list[str]) -> ViewGeometry:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import gzip
 import io
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,6 +46,7 @@ class Volume:
     affine: np.ndarray
     kind: str
     warnings: list[str] = field(default_factory=list)
+    tags: dict[str, str] = field(default_factory=dict)  # DICOM: what tells CTA / MRA / 3D-DSA apart
 
     @property
     def spacing_mm(self) -> tuple[float, float, float]:
@@ -381,7 +383,24 @@ def read_dicom_series(
             raise DsaregInputError("a DICOM slice has pixel data of the wrong size", field=field_name)
     voxels = np.stack([slices[i].T for i in order], axis=2).astype(np.float32)  # [i=col, j=row, k]
     affine = _series_affine(positions, row_dir, col_dir, spacing, field_name)
-    return Volume(voxels, affine, kind)
+    return Volume(voxels, affine, kind, tags=_identity_tags(first))
+
+
+IDENTITY_TAGS = ("Modality", "SOPClassUID", "ImageType", "SeriesDescription", "ContrastBolusAgent", "AngioFlag",
+                 "SequenceName", "ScanningSequence", "RescaleType")
+"""The tags :mod:`dsareg_engine.io.volume_kind` reads to tell the kind of a volume."""
+
+
+def _identity_tags(dataset) -> dict[str, str]:
+    tags = {}
+    for keyword in IDENTITY_TAGS:
+        value = _nested(dataset, keyword, 0)
+        if value is None or value == "":
+            continue
+        is_list = isinstance(value, Sequence) and not isinstance(value, (str, bytes))
+        text = "\\".join(str(v) for v in value) if is_list else str(value)
+        tags[keyword] = text[:200]
+    return tags
 
 
 # ---- .rad + .raw ---------------------------------------------------------------------------
@@ -424,7 +443,6 @@ def volume_to_mesh(
     """
     from scipy import ndimage
     from skimage.filters import threshold_otsu
-    from skimage.measure import marching_cubes
 
     if isinstance(volume, Volume):
         affine_vox_to_world = volume.affine if affine_vox_to_world is None else affine_vox_to_world
@@ -445,7 +463,16 @@ def volume_to_mesh(
         )
     smooth = ndimage.gaussian_filter(voxels, smoothing_sigma_vox) if smoothing_sigma_vox > 0 else voxels
     level = float(threshold_otsu(smooth))
-    inside = smooth > level
+    mask = largest_components(smooth > level, min_component_fraction, max_components, field_name=field_name)
+    return surface_from_mask(smooth, mask, level, affine, field_name=field_name)
+
+
+def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05, max_components: int = 8, *,
+                       field_name: str = "volume") -> np.ndarray:
+    """The connected components of ``inside`` (6-connected) bigger than ``min_component_fraction`` of the
+    largest, at most ``max_components`` of them."""
+    from scipy import ndimage
+
     labels, count = ndimage.label(inside)
     if count == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
@@ -455,10 +482,20 @@ def volume_to_mesh(
     mask = np.isin(labels, kept)
     if mask.sum() < 8:
         raise DsaregInputError("only a few isolated voxels lie above the threshold", field=field_name)
+    return mask
+
+
+def surface_from_mask(smooth: np.ndarray, mask: np.ndarray, level: float, affine: np.ndarray, *,
+                      field_name: str = "volume") -> TriangleMesh:
+    """Marching cubes of ``smooth`` at ``level`` around the kept voxels ``mask`` (elsewhere: the field's floor),
+    enclosed cavities filled; vertices mapped through ``affine`` to world mm, normals outward."""
+    from scipy import ndimage
+    from skimage.measure import marching_cubes
+
     floor = float(smooth.min())
     field = np.where(ndimage.binary_dilation(mask, iterations=2), smooth, floor)
     cavities = ndimage.binary_fill_holes(mask) & ~mask  # a vessel lumen has no enclosed voids
-    field[cavities] = float(smooth.max())
+    field[cavities] = max(float(smooth.max()), level + 1.0)
     field = np.pad(field, 1, constant_values=floor)
     vertices, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
     if len(faces) == 0:

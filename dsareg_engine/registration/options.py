@@ -87,6 +87,16 @@ class RegistrationOptions(BaseModel):
     motion_correction: bool = Field(
         True, description="Native XA runs: move the mask onto the contrast frame by the patient motion measured on "
         "the background (a sub-pixel translation; reported in image_reading.*.mask_shift_px).")
+    volume_kind: Literal["auto", "cta", "mra", "3d-dsa"] = Field(
+        "auto", description="What a volume input is: cta (CT in HU: vessels in a HU window, bone removed), mra "
+        "(TOF-MRA: bright vessels, scalp fat and skull excluded), 3d-dsa (already subtracted: Otsu threshold); "
+        "auto = from the DICOM tags (Modality, Image Type, Contrast/Bolus Agent) and the values. Reported as "
+        "result volume.kind.")
+    volume_vessel_min: float | None = Field(
+        None, description="Lowest vessel value in the volume (HU for CTA, intensity for MRA / 3D-DSA); null = "
+        "estimated halfway between tissue and vessels.")
+    volume_vessel_max: float | None = Field(
+        None, description="CTA: HU from which a voxel is bone (default 700); ignored for other kinds.")
     animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available (tracking: the CPU, faster there).")
 

@@ -12,9 +12,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from ..engine_adapter import engine
-from .httpfaults import allowed_methods
 from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
+from ..storage.diskspace import RETRY_AFTER_SECONDS as DISK_RETRY_AFTER
+from ..storage.diskspace import DiskFull, is_disk_full
 from ..storage.store import store_outage_errors
+from .httpfaults import allowed_methods
 
 log = logging.getLogger("dsareg.service")
 
@@ -78,7 +80,17 @@ async def on_store_unavailable(request: Request, exc: Exception) -> JSONResponse
                             {"Retry-After": STORE_RETRY_AFTER})
 
 
+async def on_disk_full(request: Request, exc: Exception) -> JSONResponse:
+    """No room on the data disk (below ``min_free_bytes``, or ENOSPC mid-write): 507 + Retry-After."""
+    log.warning("disk full on %s %s: %s", request.method, route_template(request), type(exc).__name__)
+    detail = exc.detail if isinstance(exc, DiskFull) else "the server's data disk is full; retry later"
+    return problem_response(507, problem_body(507, detail, kind="insufficient-storage", instance=request.url.path),
+                            {"Retry-After": str(DISK_RETRY_AFTER)})
+
+
 async def on_internal(request: Request, exc: Exception) -> JSONResponse:
+    if is_disk_full(exc):  # ENOSPC raised by a write not wrapped as DiskFull: a known condition, not a bug
+        return await on_disk_full(request, exc)
     log.error("internal error on %s %s: %s", request.method, route_template(request), type(exc).__name__,
               exc_info=exc)
     return problem_response(500, problem_body(500, "an internal error occurred; it has been logged",
@@ -91,6 +103,7 @@ def install_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, on_http)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, on_validation)  # type: ignore[arg-type]
     app.add_exception_handler(ClientDisconnect, on_disconnect)  # type: ignore[arg-type]
+    app.add_exception_handler(DiskFull, on_disk_full)
     for outage in store_outage_errors():
         app.add_exception_handler(outage, on_store_unavailable)
     app.add_exception_handler(Exception, on_internal)

@@ -17,7 +17,7 @@ from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
 from ..settings import ServiceSettings
 from ..jobs.sweeper import Sweeper
-from ..storage.store import SqlJobStore
+from ..storage.store import store_for
 from .intake.dimse import DimseIntake
 from .intake.validation import ValidatorPool
 from .schemas.jobs import summary_body
@@ -30,7 +30,7 @@ log = logging.getLogger("dsareg.service")
 def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: Executor | None,
                   make_executor: Callable[[ServiceSettings, Any], Executor], start_background: bool) -> ServiceContext:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    store = SqlJobStore(settings.effective_database_url)
+    store = store_for(settings)
     blobs = make_blob_store(settings, store.engine)
     validator = None
     if start_background:

@@ -27,10 +27,11 @@ from ..storage.blobs import BlobStore
 from ..pacs.dicom_jobs import STORED_FILES, pacs_job, pacs_problem
 from ..pacs.dicomweb import PacsError
 from ..pacs.dimse.export import dimse_job
+from ..storage.diskspace import has_room, is_disk_full
 from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
-from ..storage.store import JobRecord, JobStore, SqlJobStore, random_token, store_outage_errors
+from ..storage.store import JobRecord, JobStore, random_token, store_for, store_outage_errors
 
 log = logging.getLogger("dsareg.service.worker")
 
@@ -157,9 +158,10 @@ class _Finisher:
             log.error("job %s: could not save '%s' (%s); the attempt is given up", self.job.id, status, type(exc).__name__)
             return "lost"
 
-    def release(self) -> str:
+    def release(self, reason: str | None = None) -> str:
         try:
-            with_store_retries(lambda: self.store.release(self.job.id, self.worker_id), self.settings, "release", self.job.id)
+            with_store_retries(lambda: self.store.release(self.job.id, self.worker_id, reason=reason), self.settings,
+                               "release", self.job.id)
         except Exception as exc:  # noqa: BLE001 - the lease expires and the sweeper requeues the job
             log.error("job %s: could not release (%s)", self.job.id, type(exc).__name__)
         return "released"
@@ -174,11 +176,11 @@ def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, s
     control = _JobControl(store, job, worker_id, settings, stop, cancel_hint)
     finish = _Finisher(store, job, worker_id, settings)
     out_dir = blobs.job_work_dir(job.id) / f"{job.attempts}-{random_token(4)}"
-    out_dir.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     log.info("job %s: runs on %s", job.id, _thread_budget())
     control.start()
     try:
+        out_dir.mkdir(parents=True, exist_ok=True)  # may itself find the disk full
         outcome = _register(blobs, job, settings, control, finish, out_dir)
     except Exception as exc:  # noqa: BLE001 - every failure ends the job in a state
         outcome = _ended_early(exc, job, settings, control, finish)
@@ -199,6 +201,10 @@ def _ended_early(exc: Exception, job: JobRecord, settings: ServiceSettings, cont
     """The end state of a job whose run raised ``exc``."""
     if isinstance(exc, engine.RegistrationCanceled):
         return _stopped(job, settings, control, finish)
+    if is_disk_full(exc):  # not the job's fault either: hand it back, claimed again once there is room
+        log.warning("job %s: no space left on the data disk for its outputs; released without using an attempt",
+                    job.id)
+        return finish.release(reason="disk_full")
     if isinstance(exc, PacsError):
         return finish.complete("failed", error=_problem(job.id, 502, "pacs-error", "PACS error", str(exc),
                                                         **pacs_problem(exc)))
@@ -212,6 +218,25 @@ def _ended_early(exc: Exception, job: JobRecord, settings: ServiceSettings, cont
     return finish.complete("failed", error=_problem(
         job.id, 500, "internal-error", "Internal error",
         f"the registration failed because of an internal error (logged under job {job.id})"))
+
+
+class DiskFloor:
+    """Whether the data disk has room for a job's outputs (``min_free_bytes``); says so at WARNING once
+    a minute while it has not (the job stays queued: nothing is claimed that could not be written)."""
+
+    def __init__(self, settings: ServiceSettings):
+        self.path = Path(settings.data_dir)
+        self.floor = settings.min_free_bytes
+        self.last_warning = 0.0
+
+    def check(self) -> bool:
+        if has_room(self.path, self.floor):
+            return True
+        if time.monotonic() - self.last_warning > 60.0:
+            self.last_warning = time.monotonic()
+            log.warning("the data disk has less than %d MiB free: no job is claimed until there is room",
+                        self.floor // (1 << 20))
+        return False
 
 
 def _thread_budget() -> str:
@@ -316,11 +341,12 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
 
 def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
     """Claim and run jobs until stopped; idle, wait for a wake-up or ``poll_seconds``."""
-    store = SqlJobStore(settings.effective_database_url, create_schema=False)
+    store = store_for(settings, create_schema=False)
     from ..storage.dbblobs import make_blob_store
 
     blobs = make_blob_store(settings, store.engine, cache=False)
     worker_id = make_worker_id(index)
+    room = DiskFloor(settings)
     log.info("worker %s started", worker_id)
     last_seen = 0.0
     try:
@@ -332,11 +358,12 @@ def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
                 except Exception:  # noqa: BLE001
                     log.warning("worker %s: store not reachable", worker_id)
                 last_seen = now
-            try:
-                job = store.claim(worker_id, settings.lease_seconds)
-            except Exception:  # noqa: BLE001
-                log.warning("worker %s: claim failed", worker_id)
-                job = None
+            job = None
+            if room.check():
+                try:
+                    job = store.claim(worker_id, settings.lease_seconds)
+                except Exception:  # noqa: BLE001
+                    log.warning("worker %s: claim failed", worker_id)
             if job is None:
                 control.wait_for_work(settings.poll_seconds)
                 continue

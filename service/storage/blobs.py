@@ -16,6 +16,8 @@ import time
 from pathlib import Path
 from typing import BinaryIO
 
+from .diskspace import DiskFull, is_disk_full
+
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 _SUFFIX_PART = re.compile(r"^[A-Za-z0-9]{1,8}$")
 CHUNK = 1 << 20
@@ -86,8 +88,12 @@ class BlobStore:
             hexdigest = digest.hexdigest()
             self._adopt(tmp, hexdigest)
             return hexdigest, size
+        except OSError as exc:
+            if is_disk_full(exc):
+                raise DiskFull("the server's data disk is full; retry later") from exc
+            raise
         finally:
-            tmp.unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)  # a partial file never stays behind
 
     def put_bytes(self, data: bytes) -> tuple[str, int]:
         hexdigest = hashlib.sha256(data).hexdigest()
@@ -95,9 +101,16 @@ class BlobStore:
             os.utime(self.path(hexdigest))
             return hexdigest, len(data)
         fd, name = tempfile.mkstemp(dir=self.tmp_dir, prefix="put-")
-        with os.fdopen(fd, "wb") as out:
-            out.write(data)
-        self._adopt(Path(name), hexdigest)
+        try:
+            with os.fdopen(fd, "wb") as out:
+                out.write(data)
+            self._adopt(Path(name), hexdigest)
+        except OSError as exc:
+            if is_disk_full(exc):
+                raise DiskFull("the server's data disk is full; retry later") from exc
+            raise
+        finally:
+            Path(name).unlink(missing_ok=True)
         return hexdigest, len(data)
 
     def put_file(self, path: Path) -> tuple[str, int]:

@@ -29,6 +29,7 @@ from typing import BinaryIO
 import sqlalchemy as sa
 
 from .blobs import BlobStore
+from .dbtimeouts import bulk_statements
 
 blob_metadata = sa.MetaData()
 
@@ -67,13 +68,14 @@ class DatabaseBlobStore(BlobStore):
                 return
         try:
             with self.engine.begin() as conn:
+                bulk_statements(conn)
                 conn.execute(blob_data.insert().values(sha256=digest, size=len(data), created_at=now, data=data))
         except sa.exc.IntegrityError:  # a concurrent writer stored the same content
             pass
 
     def _db_read(self, digest: str) -> bytes | None:
         with self.engine.connect() as conn:
-            data = conn.execute(sa.select(blob_data.c.data).where(blob_data.c.sha256 == digest)).scalar()
+            data = bulk_statements(conn).execute(sa.select(blob_data.c.data).where(blob_data.c.sha256 == digest)).scalar()
         if data is None:
             return None
         data = bytes(data)

@@ -36,6 +36,8 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
 
+from .dbtimeouts import StoreTimeouts, engine_kwargs, install_postgres_deadlines, sqlite_busy_pragma
+
 STATUSES = ("queued", "running", "succeeded", "failed", "canceled")
 FINISHED = ("succeeded", "failed", "canceled")
 DECISIONS = ("approved", "rejected")
@@ -161,8 +163,9 @@ class JobStore(abc.ABC):
                  error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool: ...
 
     @abc.abstractmethod
-    def release(self, job_id: str, worker_id: str) -> bool:
-        """Give a claimed job back to the queue (worker shutting down), without using up an attempt."""
+    def release(self, job_id: str, worker_id: str, *, reason: str | None = None) -> bool:
+        """Give a claimed job back to the queue (worker shutting down, disk full), without using up an
+        attempt; ``reason`` (e.g. ``disk_full``) is kept in the job's ``released`` event name."""
 
     @abc.abstractmethod
     def recover_expired(self) -> tuple[list[str], list[str]]:
@@ -327,18 +330,16 @@ def decode_cursor(cursor: str) -> tuple[float, str]:
 
 
 class SqlJobStore(JobStore):
-    def __init__(self, url: str, *, create_schema: bool = True):
+    def __init__(self, url: str, *, create_schema: bool = True, timeouts: StoreTimeouts | None = None):
         self.url = url
         self.is_sqlite = url.startswith("sqlite")
-        kwargs: dict[str, Any] = {"future": True}
-        if self.is_sqlite:
-            kwargs["connect_args"] = {"timeout": 30, "check_same_thread": False}
-        else:
-            kwargs["pool_pre_ping"] = True
-        self.engine = sa.create_engine(url, **kwargs)
+        self.timeouts = timeouts or StoreTimeouts()
+        self.engine = sa.create_engine(url, future=True, **engine_kwargs(url, self.timeouts))
         self.writer = self.engine
+        install_postgres_deadlines(self.engine, self.timeouts)
         if self.is_sqlite:
-            sa.event.listen(self.engine, "connect", _sqlite_pragmas)
+            busy = sqlite_busy_pragma(self.timeouts)
+            sa.event.listen(self.engine, "connect", lambda dbapi_conn, record: _sqlite_pragmas(dbapi_conn, record, busy))
             # BEGIN IMMEDIATE for writes keeps the conditional updates serialized without deadlock retries
             sa.event.listen(self.engine, "begin", _sqlite_begin)
         # writes take the database lock up front (BEGIN IMMEDIATE on SQLite), reads do not
@@ -584,7 +585,7 @@ class SqlJobStore(JobStore):
                 self._event(conn, job_id, status, worker_id, attempt)
         return bool(done)
 
-    def release(self, job_id: str, worker_id: str) -> bool:
+    def release(self, job_id: str, worker_id: str, *, reason: str | None = None) -> bool:
         now = time.time()
         with self.writer.begin() as conn:
             done = conn.execute(
@@ -594,7 +595,7 @@ class SqlJobStore(JobStore):
                 )
             ).rowcount
             if done:
-                self._event(conn, job_id, "released", worker_id)
+                self._event(conn, job_id, f"released:{reason}"[:32] if reason else "released", worker_id)
         return bool(done)
 
     def recover_expired(self) -> tuple[list[str], list[str]]:
@@ -759,13 +760,13 @@ def _sqlite_begin(conn: Any) -> None:
     conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("dsareg_write") else "BEGIN")
 
 
-def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
+def _sqlite_pragmas(dbapi_conn: Any, _record: Any, busy_pragma: str) -> None:
     # let SQLAlchemy's "begin" event issue BEGIN IMMEDIATE itself
     dbapi_conn.isolation_level = None
     cur = dbapi_conn.cursor()
     cur.execute("PRAGMA journal_mode=WAL")
     cur.execute("PRAGMA synchronous=NORMAL")
-    cur.execute("PRAGMA busy_timeout=30000")
+    cur.execute(busy_pragma)  # short: a writer frozen with the lock must not hang requests (dbtimeouts)
     cur.execute("PRAGMA foreign_keys=ON")
     cur.close()
 
@@ -778,6 +779,12 @@ def store_outage_errors() -> tuple[type[BaseException], ...]:
 
 def open_store(url: str) -> JobStore:
     return SqlJobStore(url)
+
+
+def store_for(settings: Any, *, create_schema: bool = True) -> SqlJobStore:
+    """The job store of ``settings`` with its database timeouts."""
+    return SqlJobStore(settings.effective_database_url, create_schema=create_schema,
+                       timeouts=StoreTimeouts.from_settings(settings))
 
 
 def random_token(n: int = 6) -> str:

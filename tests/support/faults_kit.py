@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import errno
+import json
 import os
+import shutil
+import signal
 import socket
+import subprocess
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import httpx
+import pytest
+
 from tests.support.service_testkit import ExampleCase, submit
 
 NEXT_POST_SECONDS = 1.0
@@ -109,3 +118,142 @@ def partial_multipart(port: int, declared: int, sent: bytes) -> socket.socket:
 
 MULTIPART_START = (b"--XyZ\r\nContent-Disposition: form-data; name=\"mesh\"; filename=\"m.obj\"\r\n"
                    b"Content-Type: application/octet-stream\r\n\r\n")
+
+
+# ---- freezes, deadlines and full disks (issue 20) ----------------------------------------------
+
+ANSWER_SECONDS = 2.0  # every request during a fault is answered within this (success, or 503/507 + Retry-After)
+
+
+def timed(call: Callable[[], httpx.Response]) -> tuple[httpx.Response, float]:
+    started = time.monotonic()
+    response = call()
+    return response, time.monotonic() - started
+
+
+def assert_answered(response: httpx.Response, took: float, ok: tuple[int, ...] = (200, 202),
+                    refusals: tuple[int, ...] = (503, 507), what: str = "", problem: bool = True) -> None:
+    """Answered in time: a success, or a refusal with a positive Retry-After (and problem+json, except
+    for ``problem=False``: ``/readyz`` answers its checks)."""
+    status = response.status_code
+    record_answer(what, status, took)
+    assert took < ANSWER_SECONDS, (what, status, f"{took:.2f} s")
+    if status in ok:
+        return
+    assert status in refusals, (what, status, response.text[:300])
+    media = "application/problem+json" if problem else "application/json"
+    assert response.headers["content-type"].startswith(media), (what, response.headers)
+    assert int(response.headers.get("retry-after", "0")) > 0, (what, response.headers)
+
+
+def record_answer(what: str, status: int, took: float) -> None:
+    """With ``DSAREG_FAULT_REPORT=<file>``: one JSON line per request answered during a fault
+    (docs/benchmarks/reliability.md is made from these)."""
+    target = os.environ.get("DSAREG_FAULT_REPORT")
+    if target:
+        test = os.environ.get("PYTEST_CURRENT_TEST", "").split(" ")[0]
+        with open(target, "a") as out:
+            out.write(json.dumps({"test": test, "what": what, "status": status, "seconds": round(took, 3)}) + "\n")
+
+
+def process_state(pid: int) -> str | None:
+    info = _stat(pid)
+    return None if info is None else info[0]
+
+
+def cpu_ticks(pid: int) -> int:
+    """utime + stime of ``pid`` (clock ticks); -1 when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return -1
+    return int(fields[11]) + int(fields[12])
+
+
+def start_ticks(pid: int) -> int:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return int(fields[19])
+
+
+def stop(pids: Iterable[int], timeout: float = 5.0) -> None:
+    """SIGSTOP each pid and wait until the kernel shows it stopped."""
+    pids = list(pids)
+    for pid in pids:
+        os.kill(pid, signal.SIGSTOP)
+    deadline = time.monotonic() + timeout
+    while any(process_state(pid) not in ("T", "t", None) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.005)
+
+
+def resume(pids: Iterable[int]) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+
+
+@contextlib.contextmanager
+def frozen(pids: Iterable[int]):
+    """The processes SIGSTOPped for the block, SIGCONTed after (whatever happens)."""
+    pids = list(pids)
+    stop(pids)
+    try:
+        yield pids
+    finally:
+        resume(pids)
+
+
+def spawn_children(pid: int) -> set[int]:
+    """Descendants of ``pid`` started by multiprocessing's spawn (workers, validators), not its resource tracker."""
+    found = set()
+    for child in running(descendants(pid)):
+        try:
+            cmdline = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmdline:
+            found.add(child)
+    return found
+
+
+@contextlib.contextmanager
+def tmpfs(path: Path, size_bytes: int):
+    """A real, small tmpfs mounted at ``path`` for the block (we are root in CI); skips when not permitted."""
+    path.mkdir(parents=True, exist_ok=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_bytes}", "tmpfs", str(path)],
+                          capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or done.returncode}): disk-full faults need one")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "-l", str(path)], capture_output=True, check=False)
+
+
+def fill_disk(path: Path, leave_bytes: int = 0) -> Path:
+    """A ballast file under ``path`` leaving about ``leave_bytes`` free (0: until the filesystem says ENOSPC)."""
+    ballast = path / f"ballast-{len(list(path.glob('ballast-*')))}"
+    chunk = b"\0" * (1 << 20)
+    with open(ballast, "wb") as out:
+        try:
+            while True:
+                free = shutil.disk_usage(path).free
+                if free <= leave_bytes:
+                    break
+                out.write(chunk[:max(4096, min(len(chunk), free - leave_bytes))] if leave_bytes else chunk)
+                out.flush()
+        except OSError as exc:
+            if exc.errno != errno.ENOSPC:
+                raise
+    return ballast
+
+
+def empty_disk(path: Path) -> None:
+    for ballast in path.glob("ballast-*"):
+        ballast.unlink()
+
+
+def variant(case: ExampleCase, n: int) -> ExampleCase:
+    """The same case with a mesh of other bytes (a comment line): a new content hash, so a new parse."""
+    return dataclasses.replace(case, mesh_obj=case.mesh_obj + f"\n# variant {n}\n".encode())

@@ -18,10 +18,11 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ...budgets import check_job_cost, parse_json_part
-from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry
+from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry, volume_reading
 from ...jobs.callbacks import url_problem
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
+from ...storage.diskspace import ensure_room
 from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
 from ..deps import ANONYMOUS, ServiceContext
 from ..schemas.jobs import previous_link_header, status_body
@@ -180,12 +181,16 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
     outcome = await ctx.validator.validate({
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
         "reading": image_reading_json(options),
+        "volume_reading": volume_reading(options),
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
         "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
     })
     if outcome.unavailable:
         raise Problem(503, "the registration engine is not available on this server", kind="engine-unavailable",
                       headers={"Retry-After": "60"})
+    if outcome.busy:
+        raise Problem(503, outcome.message or "input validation is temporarily unavailable", kind="validator-unavailable",
+                      headers={"Retry-After": str(ctx.validator.RETRY_AFTER_SECONDS)})
     if not outcome.ok:
         raise Problem(422, outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
     views = (outcome.summary or {}).get("views") or {}
@@ -251,6 +256,8 @@ async def submit_files(ctx: ServiceContext, files: dict[str, list[UploadFile]], 
                        previous_id: str | None = None) -> Response:
     """Checked file parts, canonical geometry JSON and parsed options → 202 with the new job (or a replay)."""
     options_json = options.model_dump(mode="json")
+    upload_bytes = sum(upload.size or 0 for uploads in files.values() for upload in uploads)
+    await asyncio.to_thread(ensure_room, ctx.blobs.root, ctx.settings.min_free_bytes, upload_bytes)  # 507 before writing
     inputs, sources = await store_uploads(ctx, files)
     request_hash = fingerprint(inputs, geometry, options_json, callback_url)
     total = sum(f.size for f in inputs)

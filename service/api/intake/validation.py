@@ -11,7 +11,8 @@ the worker will run (:func:`service.engine_adapter.load_job_case`: the same
   and replaced, and the request gets a 422 naming the time limit;
 * an address-space limit (``validation_memory_mb`` on top of what the warmed-up
   process already uses): a decompression bomb fails with MemoryError → 422;
-* crash containment: a dead process is replaced, the request gets a 422.
+* crash containment: a dead or frozen process is replaced by a warm spare within
+  ``WATCH_SECONDS`` and the request is sent once more to it (see :class:`ValidatorPool`).
 
 The processes import the engine once at start (warm), so a validation costs only the
 parse itself. The worker parses again from the same blobs (the ``Case`` is not
@@ -52,7 +53,8 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading"}``."""
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
+    "volume_reading"}``."""
     import signal
 
     from ...jobs.procwatch import die_with_parent, set_process_name
@@ -101,7 +103,7 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
             case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
-                                 request.get("reading"))
+                                 request.get("reading"), request.get("volume_reading"))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
@@ -150,9 +152,25 @@ class ValidationOutcome:
     accepted: str | None = None
     unavailable: bool = False
     internal: bool = False
+    busy: bool = False  # no validator could take the request now (503 + Retry-After)
+
+
+WATCH_SECONDS = 0.2  # how often a waiting request (and the watchdog) looks at its validator's process
+WATCHDOG_SECONDS = 0.5
+
+
+def process_state(pid: int) -> str | None:
+    """The kernel's state letter of ``pid`` (``R``, ``S``, ``T`` stopped…), None when it is gone (Linux)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return None
 
 
 class _Slot:
+    """One validator process and its pipe."""
+
     def __init__(self, ctx: Any, memory_mb: int, threads: int):
         self.ctx = ctx
         self.memory_mb = memory_mb
@@ -173,21 +191,50 @@ class _Slot:
         self.conn = parent
         self.ready = False
 
+    def adopt(self, other: _Slot) -> None:
+        """Take ``other``'s (warm) process; ours must have been killed."""
+        self.process, self.conn, self.ready = other.process, other.conn, other.ready
+        other.process, other.conn, other.ready = None, None, False
+
+    def health(self) -> str:
+        """``ok``, ``frozen`` (stopped by a signal or a debugger) or ``dead``."""
+        if self.process is None or self.conn is None or not self.process.is_alive():
+            return "dead"
+        state = process_state(self.process.pid)
+        if state is None or state in "ZX":
+            return "dead"
+        return "frozen" if state in "Tt" else "ok"
+
+    def _receive(self, deadline: float) -> Any:
+        """The next message from the process, watching it meanwhile: raises ``TimeoutError`` past the
+        deadline, ``_Unhealthy`` as soon as the process is found dead or frozen."""
+        assert self.conn is not None
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError
+            if self.conn.poll(min(WATCH_SECONDS, left)):
+                return self.conn.recv()
+            health = self.health()
+            if health != "ok":
+                raise _Unhealthy(health)
+
     def wait_ready(self, timeout: float) -> bool:
         if self.ready:
             return True
         assert self.conn is not None
-        if self.conn.poll(timeout):
-            try:
+        if timeout <= 0:
+            if self.conn.poll(0):
                 self.conn.recv()
                 self.ready = True
-            except (EOFError, OSError):
-                return False
-        return self.ready
+            return self.ready
+        self._receive(time.monotonic() + timeout)
+        self.ready = True
+        return True
 
     def kill(self) -> None:
         if self.process is not None and self.process.is_alive():
-            self.process.kill()
+            self.process.kill()  # SIGKILL ends a stopped process too
             self.process.join(5)
         if self.conn is not None:
             self.conn.close()
@@ -201,58 +248,77 @@ class _Slot:
             return self.ready  # busy with a request: it was ready
         try:
             return self.conn is not None and self.wait_ready(0)
+        except (EOFError, OSError):
+            return False
         finally:
             self.lock.release()
 
-    def call(self, request: dict, timeout: float) -> dict | None:
-        with self.lock:
-            return self._call(request, timeout)
-
-    def _call(self, request: dict, timeout: float) -> dict | None:
-        """Blocking; ``None`` on timeout or crash (the process is then replaced)."""
+    def call(self, request: dict, timeout: float) -> tuple[dict | None, str | None]:
+        """``(reply, None)``, or ``(None, why)`` with why ``timeout``, ``dead`` or ``frozen`` (the process is
+        then killed; the pool gives the slot a fresh one). Blocking; the caller holds ``lock``."""
         deadline = time.monotonic() + timeout
         try:
-            if self.process is None or not self.process.is_alive():
-                self.kill()
-                self.start()
-            if not self.wait_ready(max(0.1, deadline - time.monotonic()) + 120.0):
-                raise TimeoutError
+            if self.health() != "ok":
+                raise _Unhealthy(self.health())
+            self.wait_ready(max(0.1, deadline - time.monotonic()) + 120.0)  # start-up is not the request's time
             assert self.conn is not None
             self.conn.send(request)
-            if not self.conn.poll(max(0.0, deadline - time.monotonic())):
-                raise TimeoutError
-            reply = self.conn.recv()
-            if reply.get("recycle"):  # memory the allocator keeps after a MemoryError: start afresh
-                self.kill()
-                self.start()
-            return reply
-        except (TimeoutError, EOFError, OSError, BrokenPipeError):
-            self.kill()
-            self.start()
-            return None
+            return self._receive(deadline), None
+        except _Unhealthy as exc:
+            why = exc.health
+        except TimeoutError:
+            why = "timeout"
+        except (EOFError, OSError, BrokenPipeError):
+            why = "dead"
+        self.kill()
+        return None, why
+
+
+class _Unhealthy(Exception):
+    def __init__(self, health: str):
+        super().__init__(health)
+        self.health = health
 
 
 class ValidatorPool:
-    """Successful outcomes are cached by request content (inputs are content-addressed, so
-    the same hashes + geometry + segmentation + limits parse the same way)."""
+    """Validator processes plus one warm spare, and a watchdog.
+
+    A validator found dead or frozen (SIGSTOP) — by the request waiting on it (checked every
+    ``WATCH_SECONDS``) or by the watchdog while idle — is killed and its slot takes the warm
+    spare at once (a new spare starts once that request is answered), so a request is not kept waiting on
+    a process that will not answer, nor on a cold start: the request in flight is sent again to
+    the fresh process; if that one dies too the input is what kills parsers (422 naming the
+    largest input); if it freezes too, 503 + Retry-After.
+
+    Successful outcomes are cached by request content (inputs are content-addressed, so
+    the same hashes + geometry + segmentation + volume reading + limits parse the same way)."""
 
     CACHE_SIZE = 512
+    RETRY_AFTER_SECONDS = 5
 
     def __init__(self, processes: int, timeout_seconds: float, memory_mb: int, threads: int = 1):
         self.ctx = mp.get_context("spawn")
         self.timeout = timeout_seconds
         self.slots = [_Slot(self.ctx, memory_mb, threads) for _ in range(processes)]
+        self.spare = _Slot(self.ctx, memory_mb, threads)
+        self.replaced = 0
+        self._spare_lock = threading.Lock()
+        self._halt = threading.Event()
+        self._watchdog = threading.Thread(target=self._watch, name="validator-watchdog", daemon=True)
         self._free: asyncio.Queue[_Slot] | None = None
         self._cache: OrderedDict[str, ValidationOutcome] = OrderedDict()
 
     @staticmethod
     def _cache_key(request: dict) -> str:
-        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading")}
+        fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading",
+                                              "volume_reading")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:
         for slot in self.slots:
             slot.start()
+        self.spare.start()
+        self._watchdog.start()
 
     def _queue(self) -> asyncio.Queue:
         if self._free is None:
@@ -260,6 +326,67 @@ class ValidatorPool:
             for slot in self.slots:
                 self._free.put_nowait(slot)
         return self._free
+
+    def _refill(self, slot: _Slot, why: str, *, spare_now: bool = True) -> None:
+        """``slot`` (its process killed) takes the warm spare; a new spare starts now, or (``spare_now=False``,
+        a request is about to be sent again) after that request, so its warm-up does not compete with it."""
+        with self._spare_lock:
+            if self._halt.is_set():
+                return
+            if self.spare.health() == "ok":
+                slot.adopt(self.spare)
+            else:
+                self.spare.kill()
+                slot.start()
+            if spare_now:
+                self.spare.start()
+            self.replaced += 1
+        log.warning("validator replaced (%s); pid %s takes over", why, slot.process.pid if slot.process else None)
+
+    def _watch(self) -> None:
+        """Idle validators (and the spare) found dead or frozen are replaced before a request meets them."""
+        while not self._halt.wait(WATCHDOG_SECONDS):
+            for slot in self.slots:
+                if not slot.lock.acquire(blocking=False):
+                    continue  # busy: the request waiting on it watches it
+                try:
+                    health = slot.health()
+                    if health != "ok" and not self._halt.is_set():
+                        slot.kill()
+                        self._refill(slot, f"{health} while idle")
+                finally:
+                    slot.lock.release()
+            with self._spare_lock:  # a missing spare (process None) is started by the request that used it
+                if not self._halt.is_set() and self.spare.process is not None and self.spare.health() != "ok":
+                    self.spare.kill()
+                    self.spare.start()
+
+    def _ensure_spare(self) -> None:
+        with self._spare_lock:
+            if not self._halt.is_set() and self.spare.process is None:
+                self.spare.start()
+
+    def _run(self, slot: _Slot, request: dict) -> tuple[dict | None, str | None]:
+        """One request on ``slot`` (in a thread), sent once more to a fresh process when its validator
+        died or froze under it."""
+        with slot.lock:
+            try:
+                reply, why = slot.call(request, self.timeout)
+                if why is not None:
+                    self._refill(slot, why, spare_now=False)
+                    if why in ("dead", "frozen"):
+                        reply, second = slot.call(request, self.timeout)
+                        if second is not None:
+                            self._refill(slot, second, spare_now=False)
+                            why = "dead twice" if second == "dead" else second
+                        else:
+                            why = None
+                elif reply is not None and reply.get("recycle"):  # memory the allocator keeps after a MemoryError
+                    slot.kill()
+                    self._refill(slot, "recycled after MemoryError")
+            finally:
+                self._ensure_spare()
+        return reply, why
 
     async def validate(self, request: dict) -> ValidationOutcome:
         key = self._cache_key(request)
@@ -279,15 +406,13 @@ class ValidatorPool:
         slot = await free.get()
         try:
             started = time.monotonic()
-            reply = await asyncio.to_thread(slot.call, request, self.timeout)
+            reply, why = await asyncio.to_thread(self._run, slot, request)
             log.info("validation took %.2f s", time.monotonic() - started)
         finally:
             free.put_nowait(slot)
-        if reply is None:
-            return ValidationOutcome(
-                ok=False, message=f"the inputs could not be parsed within {self.timeout:g} s (or crashed the parser)",
-                accepted="well-formed mesh/volume and image files",
-            )
+        if why is not None:
+            return self._failed(why, request)
+        assert reply is not None
         if reply.get("ok"):
             return ValidationOutcome(ok=True, summary=reply.get("summary") or {})
         if reply.get("unavailable"):
@@ -298,6 +423,15 @@ class ValidatorPool:
                                      accepted="well-formed mesh/volume and image files")
         return ValidationOutcome(ok=False, message=reply.get("message"), field=reply.get("field"), accepted=reply.get("accepted"))
 
+    def _failed(self, why: str, request: dict) -> ValidationOutcome:
+        if why == "frozen":  # two validators stopped in a row: a machine problem, not the input's
+            return ValidationOutcome(ok=False, busy=True, message="input validation is temporarily unavailable")
+        if why == "timeout":
+            return ValidationOutcome(ok=False, message=f"the inputs could not be parsed within {self.timeout:g} s",
+                                     field=_largest_input(request), accepted="smaller or simpler inputs")
+        return ValidationOutcome(ok=False, message="the inputs crashed the parser on two fresh processes",
+                                 field=_largest_input(request), accepted="well-formed mesh/volume and image files")
+
     def ready(self) -> bool:
         """Every parser process started and warmed up (so a submission is not kept waiting on imports)."""
         return all(slot.check_ready() for slot in self.slots)
@@ -305,14 +439,22 @@ class ValidatorPool:
     def alive(self) -> bool:
         return any(s.process is not None and s.process.is_alive() for s in self.slots)
 
+    def spare_ready(self) -> bool:
+        """The spare has warmed up (a validator lost now is replaced without a cold start)."""
+        return self.spare.check_ready()
+
     def stop(self) -> None:
-        for slot in self.slots:
+        self._halt.set()
+        if self._watchdog.is_alive():
+            self._watchdog.join(5)
+        everyone = [*self.slots, self.spare]
+        for slot in everyone:
             try:
                 if slot.conn is not None:
                     slot.conn.send(None)
             except (OSError, BrokenPipeError):
                 pass
-        for slot in self.slots:
+        for slot in everyone:
             if slot.process is not None:
                 slot.process.join(2)
             slot.kill()

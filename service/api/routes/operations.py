@@ -29,14 +29,18 @@ def healthz() -> Health:
                         "`checks.warming` and `checks.workers_ready` / `checks.workers_alive`.",
             responses={503: {"description": "Not ready", "model": Health}})
 def readyz(ctx: Ctx) -> Response:
-    alive = ctx.executor.alive_workers()
-    ready_workers = ctx.executor.ready_workers() if alive else 0
+    store_ok = ctx.store.ping()
+    # workers are counted in the database (Celery's alive, everyone's ready): not asked again when it just
+    # failed (one deadline, not three)
+    alive = ctx.executor.alive_workers() if store_ok or ctx.settings.executor == "embedded" else 0
+    ready_workers = ctx.executor.ready_workers() if alive and store_ok else 0
     checks = {
-        "store_writable": ctx.store.ping(),
+        "store_writable": store_ok,
         "workers_alive": alive,
         "workers_ready": ready_workers,
         "validator_alive": ctx.validator.alive() if ctx.validator else False,
         "validator_ready": ctx.validator.ready() if ctx.validator else False,
+        "validator_spare_ready": ctx.validator.spare_ready() if ctx.validator else False,
     }
     if alive and not ready_workers:
         checks["warming"] = "compiling kernels: workers are warming up (minutes on a fresh install, seconds after)"

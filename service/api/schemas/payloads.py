@@ -266,6 +266,25 @@ class ImageReadingRecord(BaseModel):
     mask_shift_px: MaskShift | None = None
 
 
+class VolumeRead(BaseModel):
+    """What was read from a volume input: its kind, the vessel window, the voxels kept."""
+
+    model_config = ConfigDict(extra="allow")
+
+    kind: Literal["cta", "mra", "3d-dsa"] = Field(description="How the volume was read.")
+    kind_source: str = Field(description="Why: the DICOM tags / values that decided, or `options.volume_kind`.")
+    unit: Literal["HU", "intensity"]
+    vessel_min: float = Field(description="Lowest vessel value kept (HU or intensity).")
+    vessel_max: float | None = Field(None, description="CTA: the bone level (HU); voxels above it are bone.")
+    tissue_level: float | None = Field(None, description="Estimated background tissue level.")
+    vessel_level: float | None = Field(None, description="Estimated vessel level.")
+    voxels_kept: int = Field(description="Vessel voxels kept.")
+    voxels_total: int = Field(description="Voxels in the volume.")
+    components: int = Field(description="Connected vessel components kept.")
+    surface: str = Field("level", description="`level` (at vessel_min) or `local half maximum` (MRA).")
+    faces: int = Field(description="Faces of the extracted surface, before decimation to the working budget.")
+
+
 class RegistrationResult(BaseModel):
     """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
     `succeeded` only ran to the end. Later versions may add fields; clients must ignore unknown ones."""
@@ -289,6 +308,7 @@ class RegistrationResult(BaseModel):
         None, description="= metrics.confidence.verdict: ok (use the pose), check (look at the overlays first), "
                           "failed (do not use it). Null only for results of versions before the verdict.")
     dicom: DicomResult | None = Field(None, description="The DICOM objects written (and fetched/stored in a PACS).")
+    volume: VolumeRead | None = Field(None, description="For a volume input: what was read from it.")
 
 
 # ---- putting them into the OpenAPI document -----------------------------------------------

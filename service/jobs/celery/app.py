@@ -55,6 +55,7 @@ def celery_config(settings: ServiceSettings) -> dict[str, Any]:
         "task_time_limit": int(timeout + 300),
         # publishing must not hang a request when the broker is down: a couple of quick
         # retries, then the job stays queued in the table and the sweeper re-sends it
+        # (the API side bounds every socket wait too: publisher_config)
         "task_publish_retry": True,
         "task_publish_retry_policy": {"max_retries": 2, "interval_start": 0, "interval_step": 0.2, "interval_max": 0.5},
         "broker_connection_timeout": 2.0,
@@ -67,6 +68,32 @@ def celery_config(settings: ServiceSettings) -> dict[str, Any]:
     }
 
 
+def publisher_config(settings: ServiceSettings) -> dict[str, Any]:
+    """The API side's broker bounds: a publish (or revoke, or queue-length probe) on a down or
+    frozen Redis gives up within about ``broker_publish_timeout_seconds``.
+
+    A frozen Redis accepts TCP connections (the kernel does) and never answers, so without a
+    socket timeout redis-py waits forever and kombu's retry policy never gets to count; here
+    every connect and every command waits at most a quarter of the budget, and the publish is
+    tried twice (the second attempt reconnects: a Redis restart leaves a dead pooled connection
+    that fails at once). The job is already in the table; the sweeper re-sends it
+    (``CeleryExecutor.maintain``). Worker processes keep the defaults (long BRPOP polls).
+    """
+    step = settings.broker_publish_timeout_seconds / 4.0
+    return {
+        "broker_transport_options": {
+            **celery_config(settings)["broker_transport_options"],
+            "socket_timeout": step, "socket_connect_timeout": step,
+            # kombu's own reconnect loop (Connection.ensure_connection): one quick retry
+            "max_retries": 1, "interval_start": 0, "interval_step": step, "interval_max": step,
+        },
+        "broker_connection_timeout": step,
+        "broker_connection_max_retries": 1,
+        "task_publish_retry_policy": {"max_retries": 1, "interval_start": 0, "interval_step": step,
+                                      "interval_max": step},
+    }
+
+
 def make_celery(settings: ServiceSettings, task: Callable[..., Any] | None = None):
     """The Celery app; ``task`` (the worker's task body) is registered as ``TASK_NAME`` on the worker side.
 
@@ -76,6 +103,8 @@ def make_celery(settings: ServiceSettings, task: Callable[..., Any] | None = Non
 
     app = Celery("dsareg", set_as_current=False)
     app.conf.update(celery_config(settings))
+    if task is None:  # the API side only publishes: bounded waits on the broker
+        app.conf.update(publisher_config(settings))
     if task is not None:
         app.task(name=TASK_NAME, bind=True, acks_late=True, reject_on_worker_lost=True,
                  max_retries=settings.task_max_retries)(task)

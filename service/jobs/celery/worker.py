@@ -22,13 +22,14 @@ class _WorkerState:
 
     def __init__(self, settings: ServiceSettings):
         from ...storage.dbblobs import make_blob_store
-        from ...storage.store import SqlJobStore
-        from ..worker import make_worker_id
+        from ...storage.store import store_for
+        from ..worker import DiskFloor, make_worker_id
 
         self.settings = settings
-        self.store = SqlJobStore(settings.effective_database_url, create_schema=False)
+        self.store = store_for(settings, create_schema=False)
         self.blobs = make_blob_store(settings, self.store.engine, cache=False)
         self.worker_id = make_worker_id(0)
+        self.room = DiskFloor(settings)
         self.stop = threading.Event()  # set on warm shutdown: the running job is released
         self._beat = threading.Thread(target=self._seen_loop, name="worker-seen", daemon=True)
         self._beat.start()
@@ -81,6 +82,9 @@ def _run_job_task(self: Any, job_id: str) -> str:
     settings: ServiceSettings = self.app.dsareg_settings
     state = _state(settings)
     apply_thread_budget(settings)
+    if not state.room.check():  # no room for the outputs: leave it queued; the API's sweeper re-sends it
+        log.info("job %s: left queued while the data disk is below its floor", job_id)
+        return "deferred"
     try:
         job = state.store.claim_job(job_id, state.worker_id, settings.lease_seconds)
     except (OperationalError, DBAPIError) as exc:

@@ -351,3 +351,37 @@ def test_generated_client_submits_by_reference_and_reads_the_verdict(service, or
         assert job.result.dicom.source.study_uid == uploaded.study_uid
     finally:
         forget_generated_client(tmp_path)
+
+
+def _series_uid(data: bytes) -> str:
+    return pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SeriesInstanceUID
+
+
+def test_a_cta_series_by_reference_is_read_as_cta(service, orthanc):
+    """A CTA head (skull, skull base) and its XA pair in the PACS: the worker reads the referenced series as a CTA;
+    read as already subtracted it keeps the head and the job fails naming the volume (never a wrong ok)."""
+    from dsareg_engine.simulation.synthetic_volumes import make_volume_case
+
+    case = make_volume_case("cta", "b", voxel_mm=1.2, depth=2, image_px=160, pixel_spacing_mm=0.9,
+                            min_head_mm=(30.0, 30.0, 40.0))
+    with httpx.Client(base_url=orthanc.url, auth=(orthanc.user, orthanc.password), timeout=30) as client:
+        for data in (case.ap, case.lat, *case.volume.parts):
+            assert client.post("/instances", content=data).status_code == 200
+    source = {"url": orthanc.dicomweb_url, "study_uid": case.volume.study_uid,
+              "ap": {"series_uid": _series_uid(case.ap)}, "lat": {"series_uid": _series_uid(case.lat)},
+              "volume": {"series_uid": _series_uid(case.volume.parts[0])}}
+    options = {**OPTIONS, "initialization": "given", "initial_mesh_to_world": np.eye(4).tolist(),
+               "ground_truth_mesh_to_world": case.mesh_to_world.tolist()}
+    with service.client() as client:
+        good = client.post("/v1/registrations", json={"source": {"dicomweb": source}, "options": options,
+                                                      "store_results": False})
+        bad = client.post("/v1/registrations", json={"source": {"dicomweb": source}, "store_results": False,
+                                                     "options": {**options, "volume_kind": "3d-dsa"}})
+        assert good.status_code == 202 and bad.status_code == 202, (good.text, bad.text)
+        job = wait_for(client, good.json()["id"], timeout=300)
+        failed = wait_for(client, bad.json()["id"], timeout=300)
+    assert job["status"] == "succeeded", job
+    assert job["result"]["volume"]["kind"] == "cta" and job["result"]["volume"]["voxels_kept"] > 100
+    assert job["result"]["metrics"]["ground_truth"]["add_mm"] < 1.0, job["result"]["metrics"]["ground_truth"]
+    assert failed["status"] == "failed", failed
+    assert "far more than vessels" in json.dumps(failed["error"]) and "volume" in json.dumps(failed["error"])

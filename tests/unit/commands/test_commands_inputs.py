@@ -78,3 +78,33 @@ def test_mesh(files, tmp_path, capsys, source):
 def test_mesh_of_an_image_fails_cleanly(files, tmp_path, capsys):
     assert main(["mesh", str(files / "dsa.png"), "--out", str(tmp_path / "m.obj")]) == 2
     assert "volume" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def cta_folder(tmp_path_factory):
+    from dsareg_engine.simulation.synthetic_volumes import make_cta_head
+
+    folder = tmp_path_factory.mktemp("cta")
+    head = make_cta_head("a", voxel_mm=1.2, depth=2, min_head_mm=(30.0, 30.0, 40.0))
+    for index, part in enumerate(head.parts):
+        (folder / f"slice{index:03d}.dcm").write_bytes(part)
+    return folder
+
+
+def test_inspect_and_mesh_say_what_was_read_from_a_cta(cta_folder, tmp_path, capsys):
+    assert main(["inspect", str(cta_folder)]) == 0
+    text = capsys.readouterr().out
+    assert "volume kind: cta (Modality CT with air" in text and "vessel window:" in text and "HU" in text
+    kept = int(text.split("voxels kept: ")[1].split()[0])
+    assert 300 < kept < 3000
+    out = tmp_path / "vessels.obj"
+    assert main(["mesh", str(cta_folder), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "volume: cta" in text and f"{kept} of" in text
+    picture = np.asarray(Image.open(tmp_path / "vessels_mip.png"))
+    red = (picture[..., 0] > 120) & (picture[..., 2] < 120) & (picture[..., 1] < 120)
+    assert 200 < red.sum() < 0.2 * red.size  # the kept voxels are drawn, and only they
+    # read as already subtracted (today's reading) the head is refused, with the way out named
+    assert main(["mesh", str(cta_folder), "--out", str(tmp_path / "bad.obj"), "--volume-kind", "3d-dsa"]) == 2
+    error = capsys.readouterr().err
+    assert "far more than vessels" in error and "volume_kind" in error and "Traceback" not in error

@@ -1,0 +1,123 @@
+"""Is a set of kept voxels shaped like vessels? Refuses a closed shell, a plate (skull, slab), far too many voxels.
+
+Vessels are tubes: thin across in two directions, long in one. Bone and skin read by a wrong threshold
+are plates (thin in one direction: the skull, a skull-base slab) or a closed shell around the head.
+:func:`shape_measures` measures, on the kept voxels:
+
+* ``enclosed_ratio``: volume with enclosed cavities filled ÷ kept volume (a shell encloses many times itself);
+* ``plate_fraction``: of the ridge voxels (local maxima of the mask smoothed over ``HESSIAN_SIGMA_MM``, on
+  a grid no finer than ``SHAPE_GRID_MM``), the share whose Hessian has one strong curvature and two weak
+  ones (a plate) rather than two strong (a tube);
+* ``solid_fraction``: the share of ridge voxels with no strong curvature at all (inside a mass far wider
+  than the scale: a head's tissue read as "vessel");
+* ``kept_fraction``: kept voxels ÷ all voxels.
+
+:func:`check_vessel_shape` refuses the implausible with an error naming the volume and saying what was kept.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import DsaregInputError
+
+SHAPE_GRID_MM = 1.0
+HESSIAN_SIGMA_MM = 1.5
+MAX_ENCLOSED_RATIO = 1.5
+MAX_PLATE_FRACTION = 0.5
+MAX_SOLID_FRACTION = 0.5
+MAX_KEPT_FRACTION = {"cta": 0.03, "mra": 0.03, "3d-dsa": 0.2}
+RIDGE_TOLERANCE = 0.97
+MIN_KEPT_VOXELS = 8
+
+
+def _coarse(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mask as a fraction on a grid no finer than SHAPE_GRID_MM (block means)."""
+    factors = np.maximum(1, np.floor(SHAPE_GRID_MM / spacing).astype(int))
+    if np.all(factors == 1):
+        return mask.astype(np.float32), spacing
+    shape = np.array(mask.shape) // factors * factors
+    trimmed = mask[: shape[0], : shape[1], : shape[2]].astype(np.float32)
+    blocks = trimmed.reshape(shape[0] // factors[0], factors[0], shape[1] // factors[1], factors[1],
+                             shape[2] // factors[2], factors[2])
+    return blocks.mean(axis=(1, 3, 5)), spacing * factors
+
+
+def crop_to(mask: np.ndarray, margin: int = 1) -> np.ndarray:
+    """``mask`` cut to its bounding box plus ``margin`` voxels (the same components, holes and ridges)."""
+    box = np.argwhere(mask)
+    if len(box) == 0:
+        return mask
+    low, high = np.maximum(box.min(0) - margin, 0), box.max(0) + margin + 1
+    return mask[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+
+
+def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, float]:
+    """(plate share, solid share) of the structure's ridge voxels (see the module text); (0, 0) if empty."""
+    from scipy import ndimage
+
+    box = np.argwhere(mask)
+    if len(box) == 0:
+        return 0.0, 0.0
+    low, high = np.maximum(box.min(0) - 6, 0), box.max(0) + 7
+    cropped = mask[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+    grid, grid_spacing = _coarse(cropped, np.asarray(spacing, float))
+    sigma = HESSIAN_SIGMA_MM / grid_spacing
+    smooth = ndimage.gaussian_filter(grid, sigma)
+    ridge = (smooth >= RIDGE_TOLERANCE * ndimage.maximum_filter(smooth, 3)) & (smooth > 0.2)
+    if not ridge.any():
+        return 0.0, 0.0
+    hessian = np.empty((int(ridge.sum()), 3, 3), np.float32)
+    for a in range(3):
+        for b in range(a, 3):
+            order = [0, 0, 0]
+            order[a] += 1
+            order[b] += 1
+            value = ndimage.gaussian_filter(grid, sigma, order=order)[ridge] / (grid_spacing[a] * grid_spacing[b])
+            hessian[:, a, b] = hessian[:, b, a] = value
+    magnitudes = np.sort(np.abs(np.linalg.eigvalsh(hessian)), axis=1)  # ascending |λ|
+    strong = magnitudes[:, 2] > 0.05 / HESSIAN_SIGMA_MM**2  # else: inside a mass wider than the scale
+    plate = strong & (magnitudes[:, 1] < 0.3 * magnitudes[:, 2])
+    return float(plate.mean()), float((~strong).mean())
+
+
+def shape_measures(mask: np.ndarray, spacing) -> dict[str, float]:
+    from scipy import ndimage
+
+    kept = int(mask.sum())
+    filled = int(ndimage.binary_fill_holes(crop_to(mask)).sum()) if kept else 0
+    plate, solid = curvature_shares(mask, np.asarray(spacing, float))
+    return {"kept_fraction": kept / mask.size, "enclosed_ratio": filled / max(kept, 1), "plate_fraction": plate,
+            "solid_fraction": solid}
+
+
+def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = "volume") -> dict[str, float]:
+    """Raise :class:`DsaregInputError` when the kept voxels cannot be vessels; else the measures."""
+    what = readout.text() if readout is not None else "the kept voxels"
+    kind = getattr(readout, "kind", "3d-dsa")
+    accepted = ("a vessel model: set options.volume_kind (cta, mra, 3d-dsa) or the vessel window "
+                "(options.volume_vessel_min / volume_vessel_max) to what the volume is")
+    if int(mask.sum()) < MIN_KEPT_VOXELS:
+        raise DsaregInputError(f"no vessels in the window: {what}", field=field_name, accepted=accepted)
+    measures = shape_measures(mask, spacing)
+    limit = MAX_KEPT_FRACTION.get(kind, 0.5)
+    if measures["kept_fraction"] > limit:
+        raise DsaregInputError(
+            f"keeps {100 * measures['kept_fraction']:.1f}% of the volume, far more than vessels "
+            f"(at most {100 * limit:.0f}% for {kind}): {what}", field=field_name, accepted=accepted)
+    if measures["enclosed_ratio"] > MAX_ENCLOSED_RATIO:
+        raise DsaregInputError(
+            f"the kept voxels form a closed shell (enclosing {measures['enclosed_ratio']:.1f}× their own volume: "
+            f"bone or skin, not vessels): {what}", field=field_name, accepted=accepted)
+    if measures["plate_fraction"] > MAX_PLATE_FRACTION:
+        raise DsaregInputError(
+            f"the kept voxels are plate-shaped ({100 * measures['plate_fraction']:.0f}% of them; vessels are "
+            f"tubes: a skull or slab, not vessels): {what}", field=field_name, accepted=accepted)
+    if measures["solid_fraction"] > MAX_SOLID_FRACTION:
+        raise DsaregInputError(
+            f"the kept voxels are mostly a solid mass far wider than a head's arteries "
+            f"({100 * measures['solid_fraction']:.0f}% of their mid voxels): {what}", field=field_name, accepted=accepted)
+    return measures
+
+
+__all__ = ["check_vessel_shape", "curvature_shares", "shape_measures"]

@@ -1,0 +1,308 @@
+"""The vessel surface of a volume, read by its kind (CTA, TOF-MRA, 3D-DSA), and a record of what was read.
+
+:func:`extract_vessels` is the one entry point: kind (detected or given, :mod:`.volume_kind`) → the kept
+vessel voxels → a shape check (:mod:`.vessel_shape`) → marching cubes (:func:`.volume_io.surface_from_mask`).
+
+* **3D-DSA** (already subtracted): Otsu threshold of the lightly smoothed volume, largest components —
+  exactly :func:`.volume_io.volume_to_mesh`.
+* **CTA** (HU): bone = above ``vessel_max`` (700 HU); voxels within a partial-volume band of bone
+  (``PV_BAND_MM`` plus a voxel) seed vessels only where they are a plateau in the window (a lumen: the
+  carotid in its canal), never on the steep ramp of a bone surface; vessels = the HU window above the
+  surface level (halfway between soft tissue and the vessels' own HU), connected components from the
+  largest, then regrown into the band through voxels with no tissue-level voxel within two (the lumen's wall
+  where a vessel touches bone, not the partial-volume layer of a bone surface). For the surface, voxels in the band are read as a blend
+  of vessel and bone (their vessel fraction), so bone never makes a surface and a vessel in a bony
+  canal keeps its wall.
+* **TOF-MRA**: the head (above an Otsu air level, holes filled slice by slice); a shell
+  ``MRA_SHELL_MM`` deep under the head's outer surface (skin, scalp fat, skull) is excluded; vessels =
+  the bright voxels above the level halfway between brain and vessels, seeded by the brightest, with
+  connected components from the largest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..errors import DsaregInputError
+from ..mesh import TriangleMesh
+from .vessel_shape import check_vessel_shape, crop_to
+from .volume_io import Volume, largest_components, surface_from_mask
+from .volume_kind import VolumeReading, detect_volume_kind
+
+DEFAULT_BONE_HU = 700.0
+PV_BAND_MM = 1.0
+PLATEAU_FRACTION = 0.3  # CTA: near bone, a lumen's gradient stays below this × (vessel − tissue) per mm
+SOFT_TISSUE_HU = (-150.0, 150.0)
+MRA_SHELL_MM = 7.0
+MRA_EXTENT = 0.4  # MRA: vessel voxels reach down to tissue + this × (vessel − tissue)
+LOCAL_PEAK_MM = 5.0
+SMOOTHING_SIGMA_VOX = 0.5
+
+
+@dataclass
+class VolumeReadout:
+    """What was read from a volume (reported by ``dsareg inspect``, ``dsareg mesh`` and the result).
+
+    Attributes:
+        kind: ``"cta"``, ``"mra"`` or ``"3d-dsa"``; ``kind_source``: why (the tags, or ``options``).
+        unit: ``"HU"`` (CTA) or ``"intensity"``.
+        vessel_min: the lowest vessel level kept; ``vessel_max``: CTA's bone level (else None).
+        surface: where the surface lies: ``"level"`` (at ``vessel_min``) or ``"local half maximum"``
+            (MRA: each vessel's own half maximum over the tissue).
+        tissue_level, vessel_level: the estimated background tissue and vessel levels.
+        voxels_kept, voxels_total: vessel voxels kept, voxels in the volume; components kept.
+        faces: faces of the extracted surface (before any decimation).
+    """
+
+    kind: str
+    kind_source: str
+    unit: str
+    vessel_min: float
+    vessel_max: float | None
+    tissue_level: float | None
+    vessel_level: float | None
+    voxels_kept: int
+    voxels_total: int
+    components: int
+    surface: str = "level"
+    faces: int = 0
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        for key in ("vessel_min", "vessel_max", "tissue_level", "vessel_level"):
+            if out[key] is not None:
+                out[key] = round(float(out[key]), 1)
+        return out
+
+    def text(self) -> str:
+        window = f"{self.vessel_min:.0f}" + (f" to {self.vessel_max:.0f}" if self.vessel_max is not None else " and up")
+        surface = "" if self.surface == "level" else f", surface at each vessel's {self.surface}"
+        return (f"{self.kind} ({self.kind_source}); vessel window {window} {self.unit}{surface}; "
+                f"{self.voxels_kept} of {self.voxels_total} voxels kept in {self.components} component(s)")
+
+
+@dataclass
+class VesselExtraction:
+    mesh: TriangleMesh
+    readout: VolumeReadout
+    kept: np.ndarray  # bool, the volume's shape: the vessel voxels the surface encloses
+    excluded: np.ndarray | None = None  # bool: what was set aside (CTA bone + band, the MRA scalp shell)
+
+
+def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, field_name: str = "volume") -> VesselExtraction:
+    """The vessel surface (world mm) of ``volume`` read as its kind, with the readout.
+
+    Raises:
+        DsaregInputError: no vessels in the window, or a kept shape implausible for vessels (``field_name``).
+    """
+    from scipy import ndimage
+
+    reading = reading or VolumeReading()
+    voxels = _finite(volume.data, field_name)
+    if reading.kind == "auto":
+        kind, source = detect_volume_kind(volume.tags, voxels)
+    else:
+        kind, source = reading.kind, "given: volume_kind"
+    spacing = np.asarray(volume.spacing_mm)
+    smooth = ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
+    if kind == "cta":
+        field, mask, levels, excluded = _cta(smooth, spacing, reading, field_name)
+    elif kind == "mra":
+        field, mask, levels, excluded = _mra(smooth, volume.affine, spacing, reading, field_name)
+    else:
+        (field, mask, levels), excluded = _dsa3d(smooth, reading, field_name), None
+    unit = "HU" if kind == "cta" else "intensity"
+    labels_count = int(ndimage.label(crop_to(mask))[1])
+    readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
+                            levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(mask.size), labels_count,
+                            "local half maximum" if "low" in levels else "level")
+    check_vessel_shape(mask, spacing, readout, field_name=field_name)
+    mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
+    readout.faces = mesh.n_faces
+    return VesselExtraction(mesh, readout, mask, excluded)
+
+
+def _finite(data: np.ndarray, field_name: str) -> np.ndarray:
+    voxels = np.asarray(data, dtype=np.float32)
+    if voxels.ndim != 3 or min(voxels.shape) < 2:
+        raise DsaregInputError(f"needs a 3D volume, got shape {list(voxels.shape)}", field=field_name)
+    if not np.all(np.isfinite(voxels)):
+        fill = float(np.nanmin(voxels)) if np.isfinite(voxels).any() else 0.0
+        voxels = np.nan_to_num(voxels, nan=fill, posinf=0.0, neginf=0.0)
+    if float(voxels.max()) - float(voxels.min()) <= 0:
+        raise DsaregInputError("is constant: no vessels in it", field=field_name,
+                               accepted="a CTA, TOF-MRA or 3D-DSA volume (vessels brighter than their surroundings)")
+    return voxels
+
+
+def _no_vessels(what: str, field_name: str, kind: str) -> DsaregInputError:
+    return DsaregInputError(f"no vessels found: {what}", field=field_name,
+                            accepted=f"a {kind} volume with contrast-filled vessels; or set options.volume_kind / "
+                                     "options.volume_vessel_min / options.volume_vessel_max")
+
+
+def _dsa3d(smooth: np.ndarray, reading: VolumeReading, field_name: str):
+    from skimage.filters import threshold_otsu
+
+    level = float(reading.vessel_min) if reading.vessel_min is not None else float(threshold_otsu(smooth))
+    mask = largest_components(smooth > level, field_name=field_name)
+    return smooth, mask, {"min": level}
+
+
+def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str):
+    from scipy import ndimage
+
+    bone_hu = float(reading.vessel_max) if reading.vessel_max is not None else DEFAULT_BONE_HU
+    bone = smooth > bone_hu
+    soft = (smooth > SOFT_TISSUE_HU[0]) & (smooth < SOFT_TISSUE_HU[1])
+    if soft.sum() < 100:
+        raise _no_vessels(f"no soft tissue between {SOFT_TISSUE_HU[0]:.0f} and {SOFT_TISSUE_HU[1]:.0f} HU "
+                          "(is this a CT in HU?)", field_name, "CTA")
+    tissue = float(np.median(smooth[soft]))
+    distance_to_bone = ndimage.distance_transform_edt(~bone, sampling=spacing) if bone.any() else np.full(smooth.shape, np.inf)
+    band = PV_BAND_MM + float(spacing.max())
+    near_bone = distance_to_bone <= band
+    candidates = (smooth > tissue + 100.0) & (smooth < bone_hu) & ~near_bone
+    if reading.vessel_min is not None:
+        level = float(reading.vessel_min)
+        vessel = None
+    else:
+        if candidates.sum() < 8:
+            raise _no_vessels(f"no voxels between {tissue + 100:.0f} and {bone_hu:.0f} HU away from bone",
+                              field_name, "CTA")
+        vessel = float(np.percentile(smooth[candidates], 75))
+        level = (tissue + vessel) / 2.0
+    window = (smooth > level) & (smooth < bone_hu)
+    if (window & ~near_bone).sum() < 8:
+        raise _no_vessels(f"no voxels in the window {level:.0f} to {bone_hu:.0f} HU away from bone", field_name, "CTA")
+    peak = vessel if vessel is not None else float(np.percentile(smooth[window & ~near_bone], 75))
+    # near bone, only a plateau in the window is a lumen (a vessel in a bony canal); a partial-volume voxel
+    # at a bone surface sits on a steep ramp from tissue to bone
+    seeds = window & ~near_bone
+    seeds |= _plateau(smooth, window & near_bone, spacing, PLATEAU_FRACTION * (peak - tissue))
+    core = largest_components(seeds, field_name=field_name)
+    # regrow into the band only through voxels with no tissue-level voxel near: the lumen and wall of a vessel
+    # in a bony canal (vessel and bone around), not the partial-volume layer of a bone surface (tissue beside)
+    enclosed = ndimage.minimum_filter(smooth, size=5) > level  # no tissue within 2 voxels
+    steps = int(np.ceil(PV_BAND_MM / float(spacing.min()))) + 1  # the wall beside bone: the lumen is seeded
+    mask = ndimage.binary_dilation(core, iterations=steps, mask=core | (window & enclosed))
+    field = _partial_volume_field(smooth, near_bone | bone, tissue, peak, bone, bone_hu)
+    field[(near_bone | bone) & ~mask] = np.minimum(field[(near_bone | bone) & ~mask], tissue)  # no surface there
+    return field, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
+
+
+def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gradient_per_mm: float) -> np.ndarray:
+    """The voxels of ``where`` whose gradient (central differences, per mm) is below ``max_gradient_per_mm``."""
+    index = np.nonzero(where)
+    squared = np.zeros(len(index[0]), np.float32)
+    for axis in range(3):
+        up, down = list(index), list(index)
+        up[axis] = np.minimum(index[axis] + 1, smooth.shape[axis] - 1)
+        down[axis] = np.maximum(index[axis] - 1, 0)
+        squared += ((smooth[tuple(up)] - smooth[tuple(down)]) / (2.0 * spacing[axis])) ** 2
+    out = np.zeros(smooth.shape, bool)
+    out[index] = np.sqrt(squared) < max_gradient_per_mm
+    return out
+
+
+def _partial_volume_field(smooth, near_bone, tissue: float, vessel: float, bone: np.ndarray, bone_hu: float):
+    """Near bone, a voxel brighter than the vessels is read as vessel blended with bone: its vessel fraction
+    mapped back onto the tissue → vessel scale; bone itself reads as tissue (it makes no surface)."""
+    bone_level = float(np.median(smooth[bone])) if bone.any() else bone_hu
+    field = smooth.copy()
+    blend = near_bone & (smooth > vessel)
+    bone_fraction = np.clip((smooth[blend] - vessel) / max(bone_level - vessel, 1.0), 0.0, 1.0)
+    field[blend] = tissue + (1.0 - bone_fraction) * (vessel - tissue)
+    return field
+
+
+def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """Inside the head: above an Otsu level between air and tissue, holes filled in 3D and slice by slice."""
+    from scipy import ndimage
+    from skimage.filters import threshold_otsu
+
+    sample = smooth[::2, ::2, ::2]
+    level = float(threshold_otsu(sample[sample < np.percentile(sample, 99.0)]))
+    head = ndimage.binary_closing(smooth > 0.5 * level, iterations=2)
+    axial = int(np.argmax(np.abs(affine[2, :3])))  # the voxel axis closest to patient z
+    filled = ndimage.binary_fill_holes(head)
+    moved = np.moveaxis(filled, axial, 0)
+    for index in range(moved.shape[0]):
+        moved[index] = ndimage.binary_fill_holes(moved[index])
+    return filled
+
+
+def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str):
+    from scipy import ndimage
+
+    head = _head_mask(smooth, affine)
+    depth = ndimage.distance_transform_edt(head, sampling=spacing)
+    interior = depth > MRA_SHELL_MM
+    if interior.sum() < 1000:
+        raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
+    values = smooth[interior]
+    tissue, spread = _mode_and_upper_spread(values)
+    bright = values[values > tissue + 6.0 * spread]
+    if reading.vessel_min is not None:
+        level, vessel = float(reading.vessel_min), None
+    else:
+        if bright.size < 8:
+            raise _no_vessels(f"nothing inside the head brighter than the tissue ({tissue:.0f}) by 6 spreads "
+                              f"({6 * spread:.0f})", field_name, "MRA")
+        vessel = float(np.percentile(bright, 75))
+        level = (tissue + vessel) / 2.0
+    low = level if reading.vessel_min is not None else tissue + MRA_EXTENT * (vessel - tissue)
+    candidates = interior & (smooth > low)
+    if candidates.sum() < 8:
+        raise _no_vessels(f"no voxels above {low:.0f} inside the head", field_name, "MRA")
+    peak = vessel if vessel is not None else float(np.percentile(smooth[candidates], 75))
+    seeds = candidates & (smooth > tissue + 0.75 * (peak - tissue))
+    labels, _ = ndimage.label(candidates)
+    seeded = np.isin(labels, np.unique(labels[seeds & (labels > 0)]))
+    mask = largest_components(seeded, field_name=field_name)
+    if reading.vessel_min is not None:
+        return smooth, mask, {"min": level, "tissue": tissue, "vessel": peak}, ~interior
+    field = _local_half_maximum(smooth, mask, tissue, spacing, level)
+    # what crosses its own half maximum, connected to the bright vessels: drops texture blobs that reached
+    # the vessels through voxels below half the vessels' own contrast
+    labels, _ = ndimage.label(mask & (field > level))
+    mask = largest_components(np.isin(labels, np.unique(labels[seeds & (labels > 0)])), field_name=field_name)
+    return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak}, ~interior
+
+
+def _mode_and_upper_spread(values: np.ndarray) -> tuple[float, float]:
+    """The most common value (the brain; the skull and CSF left inside the shell are darker) and the
+    spread of the values above it (σ of a Gaussian: 1.4826 × their median distance from the mode)."""
+    low, high = np.percentile(values, [0.5, 99.5])
+    counts, edges = np.histogram(values, bins=256, range=(float(low), float(high)))
+    from scipy import ndimage
+
+    mode_bin = int(np.argmax(ndimage.gaussian_filter1d(counts.astype(float), 2.0)))
+    mode = float((edges[mode_bin] + edges[mode_bin + 1]) / 2.0)
+    above = values[values > mode] - mode
+    return mode, 1.4826 * float(np.median(above)) if above.size else 0.0
+
+
+def _local_half_maximum(smooth: np.ndarray, mask: np.ndarray, tissue: float, spacing: np.ndarray,
+                        level: float) -> np.ndarray:
+    """A field whose ``level`` crossing is each vessel's own half maximum over the tissue (in-flow signal
+    fades along the tree, and thin vessels peak lower after blur): the tissue → local-peak scale mapped
+    onto tissue → 2 × (level − tissue), near the kept voxels (their bounding box)."""
+    from scipy import ndimage
+
+    box = np.argwhere(mask)
+    pad = 4
+    low, high = np.maximum(box.min(0) - pad, 0), np.minimum(box.max(0) + pad + 1, mask.shape)
+    region = tuple(slice(a, b) for a, b in zip(low, high))
+    size = np.maximum(3, np.round(LOCAL_PEAK_MM / spacing).astype(int) | 1)
+    local = ndimage.maximum_filter(np.where(mask[region], smooth[region], tissue), size=tuple(size))
+    local = ndimage.maximum_filter(local, size=3)  # reach the voxels just outside the kept ones
+    field = np.full(smooth.shape, tissue, np.float32)
+    scale = np.maximum(local - tissue, 1e-3)
+    field[region] = tissue + (smooth[region] - tissue) / scale * 2.0 * (level - tissue)
+    return field
+
+
+__all__ = ["VesselExtraction", "VolumeReadout", "extract_vessels"]

@@ -1,0 +1,52 @@
+"""The shape check: vessels (tubes) pass; a closed shell, a plate, a solid mass, too many voxels are refused."""
+
+import numpy as np
+import pytest
+
+from dsareg_engine.errors import DsaregInputError
+from dsareg_engine.io.vessel_shape import check_vessel_shape, shape_measures
+from dsareg_engine.io.volume_vessels import VolumeReadout
+
+SPACING = (1.0, 1.0, 1.0)
+
+
+def _readout(kind="cta"):
+    return VolumeReadout(kind, "test", "HU", 150.0, 700.0, 40.0, 350.0, 0, 0, 1)
+
+
+def _grid(n=64):
+    return np.stack(np.meshgrid(*[np.arange(n, dtype=float) - n / 2] * 3, indexing="ij"), -1)
+
+
+def test_the_phantom_tree_passes(phantom_volume):
+    volume, _, pitch = phantom_volume
+    measures = check_vessel_shape(volume > 400, (pitch,) * 3, _readout("3d-dsa"))
+    assert measures["plate_fraction"] < 0.1 and measures["solid_fraction"] < 0.1, measures
+
+
+def test_a_closed_shell_is_refused():
+    radius = np.linalg.norm(_grid(), axis=-1)
+    shell = (radius > 24) & (radius < 27)  # a skull-like shell, 3 mm thick
+    with pytest.raises(DsaregInputError, match="closed shell") as info:
+        check_vessel_shape(shell, SPACING, _readout("3d-dsa"))
+    assert info.value.field == "volume" and "volume_kind" in info.value.accepted
+
+
+def test_a_plate_and_a_solid_mass_are_refused():
+    grid = _grid()
+    slab = (np.abs(grid[..., 2]) < 2.5) & (np.abs(grid[..., 0]) < 25) & (np.abs(grid[..., 1]) < 25)  # 5 mm slab
+    assert shape_measures(slab, SPACING)["plate_fraction"] > 0.8
+    with pytest.raises(DsaregInputError, match="plate"):
+        check_vessel_shape(slab, SPACING, _readout("3d-dsa"))
+    ball = np.linalg.norm(grid, axis=-1) < 20  # a 40 mm mass: the head's tissue read as "vessel"
+    with pytest.raises(DsaregInputError, match="solid mass"):
+        check_vessel_shape(ball, SPACING, _readout("3d-dsa"))
+
+
+def test_too_many_voxels_or_none_are_refused():
+    grid = _grid(40)
+    tube = np.linalg.norm(grid[..., :2], axis=-1) < 10  # a 20 mm tube filling 20 % of a small volume
+    with pytest.raises(DsaregInputError, match="far more than vessels"):
+        check_vessel_shape(tube, SPACING, _readout("cta"))
+    with pytest.raises(DsaregInputError, match="no vessels in the window"):
+        check_vessel_shape(np.zeros((10, 10, 10), bool), SPACING, _readout("cta"))

@@ -1,0 +1,110 @@
+"""Vessel models from CTA and TOF-MRA heads (skull, skull base, scalp fat) and their registration.
+
+On the code before volume kinds, the CTA head's Otsu + marching cubes kept the head itself (41 % of the
+volume; a 368,752-face surface at 0.5 mm in the issue), so the model was not the vessels and the
+registration ended 160 mm off; the MRA the same (scalp fat, brain).
+"""
+
+import json
+from functools import cache
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from dsareg_engine.errors import DsaregInputError
+from dsareg_engine.io.case import CaseFiles, load_case
+from dsareg_engine.io.volume_io import Volume, read_volume
+from dsareg_engine.io.volume_kind import VolumeReading
+from dsareg_engine.io.volume_vessels import extract_vessels
+from dsareg_engine.pipeline import run_case
+from dsareg_engine.simulation.synthetic_volumes import make_volume_case
+
+VOXEL_MM = 1.0  # coarse, in a narrow head: ~2 MB series, about a CPU second to make and to read
+SMALL_HEAD_MM = (30.0, 30.0, 40.0)
+
+
+@cache
+def _case(kind: str, variant: str):
+    return make_volume_case(kind, variant, voxel_mm=VOXEL_MM, depth=2, image_px=160, pixel_spacing_mm=0.9,
+                            min_head_mm=SMALL_HEAD_MM)
+
+
+@cache
+def _read(kind: str, variant: str):
+    volume = read_volume(_case(kind, variant).volume.parts)
+    return volume, extract_vessels(volume)
+
+
+def _distances(mesh, tree):
+    samples, _ = trimesh.sample.sample_surface(trimesh.Trimesh(tree.vertices, tree.faces, process=False), 20_000,
+                                               seed=1)
+    model_to_truth = cKDTree(samples).query(mesh.vertices)[0]
+    truth_to_model = cKDTree(mesh.vertices).query(samples)[0]
+    return model_to_truth, truth_to_model
+
+
+@pytest.mark.parametrize("kind, variant", [("cta", "a"), ("cta", "b"), ("mra", "a"), ("mra", "b")])
+def test_a_head_yields_a_vessel_only_model(kind, variant):
+    case = _case(kind, variant)
+    extraction = _read(kind, variant)[1]
+    readout = extraction.readout
+    assert readout.kind == kind, readout.kind_source
+    model_to_truth, truth_to_model = _distances(extraction.mesh, case.volume.tree)
+    # every part of the model is on the vessels (no skull, slab, scalp fat or brain), within ~2 voxels ...
+    assert np.percentile(model_to_truth, 99) < 2.0 * VOXEL_MM, np.percentile(model_to_truth, [50, 99, 100])
+    assert np.median(model_to_truth) < 0.7 * VOXEL_MM
+    # ... and the whole tree is there (the trunk through the skull-base slab included)
+    assert np.percentile(truth_to_model, 95) < 1.5 * VOXEL_MM, np.percentile(truth_to_model, [50, 95, 100])
+    assert readout.components == 1 and readout.voxels_kept < 0.002 * readout.voxels_total
+    assert 1000 < readout.faces < 10_000
+
+
+def test_the_carotid_canal_is_kept_through_the_skull_base():
+    case = _case("cta", "a")
+    mesh = _read("cta", "a")[1].mesh
+    tree = case.volume.tree.vertices
+    low = tree[:, 2].min()
+    slab = (mesh.vertices[:, 2] > low + 6.0) & (mesh.vertices[:, 2] < low + 12.0)  # inside the 900 HU slab
+    assert slab.sum() > 20
+    # the surface there is the lumen's wall: close to the tree, not the slab's faces (a plane 80 mm wide)
+    assert np.ptp(mesh.vertices[slab, 0]) < 10.0 and np.ptp(mesh.vertices[slab, 1]) < 10.0
+
+
+@pytest.mark.parametrize("kind, variant", [("cta", "a"), ("mra", "b")])
+def test_the_head_registers_through_the_whole_job(kind, variant, tmp_path):
+    case = _case(kind, variant)
+    files = CaseFiles(ap=case.ap, ap_name="ap.dcm", lat=case.lat, lat_name="lat.dcm", volume=case.volume.parts,
+                      volume_name="volume.dcm")
+    options = {"initialization": "given", "initial_mesh_to_world": np.eye(4).tolist(), "starts": 1,
+               "ground_truth_mesh_to_world": case.mesh_to_world.tolist()}
+    data = run_case(files, options, tmp_path, dicom="off")
+    assert data["metrics"]["ground_truth"]["add_mm"] < 0.5, data["metrics"]["ground_truth"]
+    assert data["metrics"]["confidence"]["verdict"] == "ok", data["metrics"]["confidence"]
+    written = json.loads((tmp_path / "result.json").read_text())["volume"]
+    assert written["kind"] == kind and written["voxels_kept"] > 500 and written["faces"] > 1000
+    assert written["vessel_min"] > written["tissue_level"]
+
+
+def test_override_reads_the_same_series_as_another_kind():
+    volume, extraction = _read("cta", "a")
+    given = extract_vessels(volume, VolumeReading("cta", vessel_min=250.0, vessel_max=800.0)).readout
+    assert given.kind_source.startswith("given") and given.vessel_min == 250.0 and given.vessel_max == 800.0
+    auto = extraction.readout
+    assert given.voxels_kept < auto.voxels_kept  # a higher floor keeps fewer voxels
+    with pytest.raises(DsaregInputError) as info:  # today's reading (Otsu) keeps the head: refused
+        extract_vessels(volume, VolumeReading("3d-dsa"))
+    assert info.value.field == "volume" and "far more than vessels" in info.value.message
+
+
+def test_a_cta_without_contrast_in_the_window_is_refused():
+    volume = _read("cta", "a")[0]
+    data = volume.data.copy()
+    data[(data > 100) & (data < 700)] = 40.0  # the vessels (and every partial-volume voxel) become tissue
+    with pytest.raises(DsaregInputError, match="no vessels") as info:
+        extract_vessels(Volume(data, volume.affine, volume.kind, tags=volume.tags))
+    assert info.value.field == "volume"
+    with pytest.raises(DsaregInputError, match="no vessels"):
+        load_case(volume=_case("cta", "a").volume.parts, ap=_case("cta", "a").ap, lat=_case("cta", "a").lat,
+                  volume_reading=VolumeReading("cta", vessel_min=2000.0, vessel_max=3000.0))
