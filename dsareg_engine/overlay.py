@@ -17,6 +17,8 @@ import numpy as np
 
 INITIAL_BGR = (200, 110, 0)  # blue
 FINAL_BGR = (0, 110, 255)  # orange
+UNMATCHED_BGR = (200, 40, 200)  # magenta: model parts with no vessel under them
+UNMATCHED_ALPHA = 0.55
 BACKGROUND_GREY = 236
 TARGET_GREY = 120
 CAPTION_BG = (40, 40, 40)
@@ -53,6 +55,8 @@ class Caption:
     final_label: str = "registered"
     dice_label: str = "Dice"
     frame: str | None = None
+    unmatched_label: str | None = None
+    """Legend of the magenta fill (model parts outside the vessels), when the overlay shows one."""
 
 
 def display_base(target_mask: np.ndarray, background: np.ndarray | None = None) -> np.ndarray:
@@ -153,8 +157,10 @@ def _caption_band(width: int, caption: Caption, font_px: int, on_image: bool = F
     x = pad
     swatch = max(8, font_px - 2)
     target = ("DSA image", (60, 60, 60)) if on_image else ("target vessels", (TARGET_GREY,) * 3)
-    for label, colour, filled in ((target[0], target[1], True),
-                                  ("initial", INITIAL_BGR[::-1], False), (caption.final_label, FINAL_BGR[::-1], False)):
+    entries = [(target[0], target[1], True), ("initial", INITIAL_BGR[::-1], False), (caption.final_label, FINAL_BGR[::-1], False)]
+    if caption.unmatched_label:
+        entries.append((caption.unmatched_label, UNMATCHED_BGR[::-1], True))
+    for label, colour, filled in entries:
         top = y + (font_px - swatch) // 2 + 2
         if filled:
             draw.rectangle((x, top, x + swatch, top + swatch), fill=colour, outline=(220, 220, 220))
@@ -201,6 +207,7 @@ def overlay_image(
     min_side: int = MIN_SIDE_PX,
     box: tuple[int, int, int, int] | None | bool = None,
     display_side: int | None = None,
+    unmatched: np.ndarray | None = None,
 ) -> np.ndarray:
     """A BGR uint8 overlay: the region of the vessels (enlarged ×k when small), a caption band under it.
 
@@ -214,6 +221,8 @@ def overlay_image(
             (:func:`crop_box`); False: the whole image.
         display_side: scale the region so its longest side has this many pixels (animation
             frames of equal size) instead of a whole enlargement factor.
+        unmatched: ``(H, W)`` bool model pixels with no vessel under them (partial visibility),
+            filled in magenta under the contours.
     """
     caption = caption or Caption()
     if box is None:
@@ -236,6 +245,9 @@ def overlay_image(
         size = (max(1, round(base.shape[1] * factor)), max(1, round(base.shape[0] * factor)))
         base = cv2.resize(base, size, interpolation=interpolation)
     image = cv2.cvtColor(base, cv2.COLOR_GRAY2BGR)
+    if unmatched is not None and unmatched[region].any():
+        fill = cv2.resize(unmatched[region].astype(np.uint8), (image.shape[1], image.shape[0]), interpolation=cv2.INTER_NEAREST) > 0
+        image[fill] = (UNMATCHED_ALPHA * np.array(UNMATCHED_BGR) + (1 - UNMATCHED_ALPHA) * image[fill]).astype(np.uint8)
     height, width = image.shape[:2]
     thickness = max(1, min(max(1, round(factor)), round(max(height, width) / 400)))
     for mask, colour in ((initial, INITIAL_BGR), (final, FINAL_BGR)):

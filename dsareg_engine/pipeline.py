@@ -32,6 +32,7 @@ from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
 from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
 from .registration.options import image_reading, parse_options
+from .registration.partial import PARTIAL_UNMATCHED, unmatched_pixels
 from .registration.progress import REGISTRATION_SHARE
 from .render import Camera, render_hard_silhouette
 
@@ -175,11 +176,15 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
     for name, view in result.views.items():
         report()
         scale = mm_per_pixel_at_mesh(rig.views[name], view.mesh_to_view, mesh) if rig is not None else None
+        unmatched = unmatched_pixels(view.silhouette, masks[name])
+        shown = unmatched if unmatched.sum() >= PARTIAL_UNMATCHED * max(1, view.silhouette.sum()) else None
         caption = Caption(view=name, dice=view.dice, verdict=verdict, ok=ok, job=label, mm_per_px=scale,
-                          frame=frame_text((readings or {}).get(name)))
+                          frame=frame_text((readings or {}).get(name)),
+                          unmatched_label=None if shown is None else "unfilled")
         background = (images or {}).get(name)
         write_png(out_dir / artifacts.overlay_png(name),
-                  overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption))
+                  overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption,
+                                unmatched=shown))
         write_png(out_dir / artifacts.mask_png(name), masks[name].astype(np.uint8) * 255)
     report()
     write_png(out_dir / artifacts.LOSS_PNG, loss_figure(result.loss_history, title=f"Loss per iteration{' - ' + label if label else ''}"))

@@ -330,3 +330,91 @@ def bench_track(args: argparse.Namespace) -> int:
           f"{np.median(wall):.0f} / {np.percentile(wall, 90):.0f} | {np.median(cpu):.0f} | "
           f"{sum(r['converged'] for r in rows)}/{len(rows)} |")
     return 0
+
+
+def _partial_cases(mesh, args: argparse.Namespace):
+    """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
+    from ..simulation.partial_filling import early_filling, extra_territory, full_visibility, selective_injection
+    from ..geometry.vessel_tree import vessel_tree
+
+    tree = vessel_tree(mesh)
+    rng = np.random.default_rng(args.seed)
+    rows = []
+    for kind in args.kinds:
+        if kind == "full":
+            rows.append(("full", 1.0, lambda: full_visibility(mesh)))
+        elif kind == "extra_territory":
+            rows.append(("extra_territory", None, lambda: extra_territory(mesh, tree)))
+        else:
+            for fraction in args.fractions:
+                if kind == "early_filling":
+                    rows.append((kind, fraction, lambda f=fraction: early_filling(mesh, f, tree)))
+                else:
+                    rows.append((kind, fraction, lambda f=fraction: selective_injection(mesh, f, rng, tree)))
+    if not args.no_safety:
+        rows += [("wrong_tree", None, "wrong_tree"), ("swapped_views", None, "swapped_views"),
+                 ("swapped_views+early_filling", 0.5, "swapped_early")]
+    return rows
+
+
+def _partial_case(mesh, rig, rng, case, args):
+    """``(model, masks, visible fraction, true pose)`` of one case of a ``bench partial`` row."""
+    from ..simulation.clinical_rig import random_visible_pose, render_masks
+    from ..simulation.partial_filling import early_filling
+    from ..simulation.phantom import make_vessel_phantom
+
+    if isinstance(case, str):
+        truth = random_visible_pose(mesh, rig, rng, 40.0)
+        if case == "wrong_tree":
+            return mesh, render_masks(make_vessel_phantom(seed=args.seed + 7), rig, truth), 1.0, truth
+        visible = mesh if case == "swapped_views" else early_filling(mesh, 0.5).visible
+        masks = render_masks(visible, rig, truth)
+        swapped = {"ap": _fit_size(masks["lat"], masks["ap"].shape), "lat": _fit_size(masks["ap"], masks["lat"].shape)}
+        return mesh, swapped, visible.n_faces / mesh.n_faces, truth
+    made = case()
+    truth = random_visible_pose(made.model, rig, rng, 40.0)
+    return made.model, render_masks(made.visible, rig, truth), made.visible_fraction, truth
+
+
+def _fit_size(mask: np.ndarray, shape) -> np.ndarray:
+    return mask if mask.shape == shape else np.zeros(shape, bool)
+
+
+def bench_partial(args: argparse.Namespace) -> int:
+    """Partial visibility: success / ADD / verdict per visible fraction, and the confusion table."""
+    from ..simulation.clinical_rig import clinical_biplane_rig
+
+    mesh = load_mesh_argument(args.mesh)
+    rig = clinical_biplane_rig(args.size)
+    rng = np.random.default_rng(args.seed + 1)
+    extra = json.loads(args.options)
+    print(f"mesh {mesh.n_faces} faces, clinical rig {args.size}x{args.size} px, {args.cases} cases per row, no initial pose, "
+          f"true masks of the visible part, options {extra}")
+    print("| row | visible fraction | success (ADD < 1 mm) | ADD mm median / max | verdicts ok / check / failed "
+          "| partial reason | median CPU s |")
+    print("|---|---|---|---|---|---|---|")
+    confusion = {(right, verdict): 0 for right in (True, False) for verdict in ("ok", "check", "failed")}
+    for name, _, case in _partial_cases(mesh, args):
+        rows = []
+        for index in range(args.cases):
+            model, masks, fraction, truth = _partial_case(mesh, rig, rng, case, args)
+            options = RegistrationOptions(seed=args.seed + index, **extra, ground_truth_mesh_to_world=truth.tolist())
+            cpu = time.process_time()
+            result = register(model, masks, rig, options)
+            confidence = result.metrics["confidence"]
+            add = result.metrics["ground_truth"]["add_mm"]
+            right = add < 1.0 and name != "wrong_tree"
+            confusion[(right, confidence["verdict"])] += 1
+            rows.append({"add": add, "right": right, "verdict": confidence["verdict"], "cpu": time.process_time() - cpu,
+                         "fraction": fraction,
+                         "partial": any("do not show" in reason for reason in confidence["reasons"])})
+        add = np.array([row["add"] for row in rows])
+        verdicts = " / ".join(str(sum(row["verdict"] == v for row in rows)) for v in ("ok", "check", "failed"))
+        print(f"| {name} | {np.mean([row['fraction'] for row in rows]):.2f} | {np.mean([row['right'] for row in rows]) * 100:.0f} % | "
+              f"{np.median(add):.3f} / {add.max():.3f} | {verdicts} | {sum(row['partial'] for row in rows)}/{len(rows)} | "
+              f"{np.median([row['cpu'] for row in rows]):.1f} |", flush=True)
+    print("\n| pose \\ verdict | ok | check | failed |\n|---|---|---|---|")
+    for right in (True, False):
+        print(f"| {'right (ADD < 1 mm)' if right else 'wrong (ADD ≥ 1 mm, or another tree)'} | "
+              + " | ".join(str(confusion[(right, v)]) for v in ("ok", "check", "failed")) + " |")
+    return 0

@@ -23,7 +23,7 @@ GREY_VARIANTS = {
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness, track, autoinit, clinical)",
+        "bench", help="benchmarks (render, table1, capture, robustness, track, autoinit, partial, clinical)",
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
     which = parser.add_subparsers(dest="bench", required=True)
@@ -92,6 +92,19 @@ def add_parser(subparsers) -> None:
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
     auto.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_autoinit"))
+    partial = which.add_parser("partial", help="no initial pose, images showing part of the model (early filling, "
+                               "one injected branch, a model with an extra territory) plus safety cases")
+    _add_mesh(partial)
+    partial.add_argument("--cases", type=int, default=4, help="random poses per row")
+    partial.add_argument("--seed", type=int, default=0, help="random seed of the poses and injection points")
+    partial.add_argument("--size", type=int, default=512, help="image side in px")
+    partial.add_argument("--fractions", type=float, nargs="+", default=[0.4, 0.5, 0.6],
+                         help="visible fractions of the model's faces (early filling and one branch)")
+    partial.add_argument("--kinds", nargs="+", default=["full", "early_filling", "selective_injection", "extra_territory"],
+                         choices=["full", "early_filling", "selective_injection", "extra_territory"], help="rows to run")
+    partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
+    partial.add_argument("--options", default="{}", help="extra registration options as JSON")
+    partial.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_partial"))
     _add_clinical(which)
 
 

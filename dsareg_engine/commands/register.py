@@ -51,6 +51,13 @@ def add_parser(subparsers) -> None:
                             help=f"multi-frame XA: the {name.upper()} frame to use (0-based) or 'minip' (default: "
                                  "maximum opacification; native runs are subtracted first); the views may differ")
     parser.add_argument("--options", metavar="JSON|FILE", help=options_help())
+    region = parser.add_mutually_exclusive_group()
+    region.add_argument("--region-box", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+                        help="register only the model's part inside this box (model frame, mm): what the run injected")
+    region.add_argument("--region-sphere", type=float, nargs=4, metavar=("X", "Y", "Z", "R"),
+                        help="register only the model's part inside this sphere (model frame, mm)")
+    region.add_argument("--region-branch", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="register only the branch nearest this point (model frame, mm) and what lies downstream of it")
     parser.add_argument("--animation", action="store_true", help="also write animation.gif of the optimization")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     parser.add_argument("--dicom-out", metavar="DIR",
@@ -99,6 +106,12 @@ def run(args: argparse.Namespace) -> int:
         options["ground_truth_mesh_to_world"] = load_pose(args.ground_truth).tolist()
     if args.animation:
         options["animation"] = True
+    if args.region_box:
+        options["region"] = {"box_mm": [args.region_box[:3], args.region_box[3:]]}
+    elif args.region_sphere:
+        options["region"] = {"sphere": {"centre_mm": args.region_sphere[:3], "radius_mm": args.region_sphere[3]}}
+    elif args.region_branch:
+        options["region"] = {"branch_near_mm": args.region_branch}
     for name in ("ap", "lat"):
         value = getattr(args, f"{name}_frame")
         if value is not None:

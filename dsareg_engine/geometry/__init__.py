@@ -1,5 +1,6 @@
 """Geometry: the imaging conventions of one view and a biplane rig (``rig``), rigid transforms (``pose``),
-geometry and pose files (``file``, ``pose_file``) and the one parsed, canonical geometry value (``spec``).
+geometry and pose files (``file``, ``pose_file``), the one parsed, canonical geometry value (``spec``) and the
+vessel model read as a tree: inflow, geodesic distances, branches, regions to register with (``vessel_tree``).
 
 ``from dsareg_engine.geometry import Rig`` keeps working: the rig's names are re-exported here.
 """

@@ -18,6 +18,13 @@ Signals, all measured by the solver (``metrics.confidence.signals``):
 * ``outside_fraction``: fraction of the model's vertices projecting outside each image;
   what is outside is unconstrained.
 * ``reason``: the optimizer's stop (iteration limit = did not settle).
+* ``unmatched_fraction`` / ``uncovered_fraction`` per view: the share of the model's silhouette
+  farther than 2 px from any vessel, and of the vessels farther than 2 px from the silhouette
+  (:mod:`.partial`). Together they tell the three ways a fit can fall short apart: part of the
+  model unmatched in *every* view while the vessels are all explained, consistently across the
+  views, is a model holding vessels the run did not fill (partial visibility: ``check``, the pose
+  is usable); vessels left uncovered while the model is all matched is the run showing vessels the
+  model lacks; both at once is a wrong pose. ``partial_loss``: the fit used the trimmed loss.
 
 Thresholds (:class:`ConfidenceThresholds`) were calibrated on the robustness studies; see the
 README's calibration table.
@@ -51,6 +58,14 @@ class ConfidenceThresholds:
     fit_tolerance_px: float = 3.0
     border_shift_px: float = 1.5
     outside_fraction: float = 0.25
+    partial_unmatched: float = 0.1
+    """Partial visibility: at least this share of the silhouette unmatched in every view ..."""
+    partial_uncovered: float = 0.05
+    """... at most this share of the vessels uncovered in every view ..."""
+    partial_consistency: float = 0.25
+    """... and the views' unmatched shares within this of each other."""
+    missing_uncovered: float = 0.1
+    """The images show vessels the model lacks: at least this share uncovered in a view whose silhouette is matched."""
 
 
 def runner_up(poses: np.ndarray, losses: np.ndarray, points: np.ndarray, distinct_mm: float) -> tuple[int, float] | None:
@@ -94,11 +109,17 @@ def assess(signals: dict, thresholds: ConfidenceThresholds = ConfidenceThreshold
     runner_up: dict | None, border_shift_px: {view: float}, outside_fraction: {view: float},
     stopped_on_tolerance: bool}."""
     failed, check = [], []
+    partial = _partial_visibility(signals, thresholds)
+    if partial is not None:
+        check.append(partial)
     for name, value in signals["dice"].items():
+        if partial is not None:
+            break  # the low overlap is the unfilled model's, explained above
         if value < thresholds.failed_dice:
-            failed.append(f"{name}: the model's silhouette overlaps the vessels poorly (dice {value:.2f})")
+            failed.append(f"{name}: the model's silhouette overlaps the vessels poorly (dice {value:.2f}); "
+                          f"{_why_low(signals, name, thresholds)}")
         elif value < thresholds.check_dice:
-            check.append(f"{name}: partial overlap (dice {value:.2f}); missing or extra vessels, or a wrong pose")
+            check.append(f"{name}: partial overlap (dice {value:.2f}); {_why_low(signals, name, thresholds)}")
     other = signals.get("runner_up")
     if other is not None and other["best_fit"] - other["fit"] < thresholds.ambiguous_fit_gap:
         check.append(f"ambiguous: a different pose {other['distance_mm']:.0f} mm away fits almost as well "
@@ -114,3 +135,34 @@ def assess(signals: dict, thresholds: ConfidenceThresholds = ConfidenceThreshold
         check.append("the optimizer hit its iteration limit before the pose settled")
     verdict = "failed" if failed else "check" if check else "ok"
     return {"verdict": verdict, "reasons": failed + check, "signals": signals}
+
+
+def _partial_visibility(signals: dict, thresholds: ConfidenceThresholds) -> str | None:
+    """The partial-visibility reason, or None: every view's vessels explained, part of the model
+    unmatched in every view, by similar shares."""
+    unmatched, uncovered = signals.get("unmatched_fraction"), signals.get("uncovered_fraction")
+    if not unmatched or not uncovered or len(unmatched) < 2:
+        return None  # one view cannot tell unfilled branches from a pose slid along its ray
+    if not (all(value >= thresholds.partial_unmatched for value in unmatched.values())
+            and all(value <= thresholds.partial_uncovered for value in uncovered.values())
+            and max(unmatched.values()) - min(unmatched.values()) <= thresholds.partial_consistency):
+        return None
+    shares = " / ".join(f"{name} {value:.0%}" for name, value in unmatched.items())
+    return (f"the model has vessels the images do not show ({shares} of its silhouette outside the vessels, "
+            "consistently across views) while every vessel shown is matched: partial filling or a model larger "
+            "than the run; the pose fits the filled vessels")
+
+
+def _why_low(signals: dict, name: str, thresholds: ConfidenceThresholds) -> str:
+    """Which way a view's overlap falls short: vessels the model lacks, model parts outside the vessels, or both."""
+    unmatched = (signals.get("unmatched_fraction") or {}).get(name)
+    uncovered = (signals.get("uncovered_fraction") or {}).get(name)
+    if unmatched is None or uncovered is None:
+        return "missing or extra vessels, or a wrong pose"
+    if uncovered >= thresholds.missing_uncovered and unmatched < thresholds.partial_unmatched:
+        return f"the images show vessels the model lacks ({uncovered:.0%} of the vessels unmatched)"
+    if unmatched >= thresholds.partial_unmatched and uncovered <= thresholds.partial_uncovered:
+        return (f"{unmatched:.0%} of the model outside the vessels in this view only; "
+                "a wrong pose or a vessel the run did not fill")
+    return (f"a wrong pose ({unmatched:.0%} of the model outside the vessels and "
+            f"{uncovered:.0%} of the vessels unmatched)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import DsaregInputError
 
@@ -23,6 +23,40 @@ class FrameChoice(BaseModel):
                            "subtracted arterial phase; subtracted runs: of all frames), or null for the frame of "
                            "maximum vessel opacification.")
     lat: FrameIndex = Field(None, description="LAT: as ap.")
+
+
+FiniteMm = Annotated[float, Field(allow_inf_nan=False)]
+Point3 = Annotated[list[FiniteMm], Field(min_length=3, max_length=3)]
+
+
+class SphereRegion(BaseModel):
+    """A sphere in the model frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    centre_mm: Point3 = Field(description="Centre [x, y, z] (model frame, mm).")
+    radius_mm: FiniteMm = Field(gt=0, description="Radius (mm).")
+
+
+class ModelRegion(BaseModel):
+    """The part of the model a run injected (model frame, mm): exactly one of a box, a sphere or the
+    branch nearest a point (that branch and everything downstream of it, from the model's inflow)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    box_mm: Annotated[list[Point3], Field(min_length=2, max_length=2)] | None = Field(
+        None, description="Opposite corners [[x0, y0, z0], [x1, y1, z1]] of an axis-aligned box.")
+    sphere: SphereRegion | None = Field(None, description="A sphere.")
+    branch_near_mm: Point3 | None = Field(None, description="A point [x, y, z] near the injected branch: the branch "
+                                          "nearest it and what lies downstream of it (the inflow is guessed: the "
+                                          "thickest vessel's far end from the model's centre).")
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> ModelRegion:
+        given = [name for name in ("box_mm", "sphere", "branch_near_mm") if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of box_mm, sphere, branch_near_mm")
+        return self
 
 
 class RegistrationOptions(BaseModel):
@@ -63,6 +97,9 @@ class RegistrationOptions(BaseModel):
         "the border exactly on the model's surface); reported as metrics.border_shift_px.",
     )
     initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
+    region: ModelRegion | None = Field(
+        None, description="Register only this part of the model (what the run injected, when the model holds more "
+        "vessels than the images show); without it partial visibility is detected from the images.")
     initialization: Literal["auto", "given", "search"] = Field(
         "auto",
         description="Where the starts come from: 'given' = the initial pose (request, else geometry, else identity) "

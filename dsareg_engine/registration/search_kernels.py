@@ -61,3 +61,28 @@ def splat_overlap(points, turns, offsets, intrinsics, target, out):
                 count += 1.0
         out[b, 0] = overlap
         out[b, 1] = count
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def splat_images(points, turns, offsets, intrinsics, reach, out):
+    """out[b] = 1 on the pixels within ``reach`` px (a square) of a point of candidate ``b``, 0 elsewhere.
+
+    out (B, H, W) float32, overwritten; points outside the image count nothing.
+    """
+    fx, fy, u0, v0 = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    height, width = out.shape[1], out.shape[2]
+    for b in prange(turns.shape[0]):
+        m = turns[b]
+        for row in range(height):
+            for col in range(width):
+                out[b, row, col] = 0.0
+        for n in range(points.shape[0]):
+            px, py, pz = points[n, 0], points[n, 1], points[n, 2]
+            x = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + offsets[b, 0]
+            y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + offsets[b, 1]
+            z = max(m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + offsets[b, 2], 1.0)
+            col = int(np.floor(u0 + fx * x / z + 0.5))
+            row = int(np.floor(v0 + fy * y / z + 0.5))
+            for r in range(max(row - reach, 0), min(row + reach + 1, height)):
+                for c in range(max(col - reach, 0), min(col + reach + 1, width)):
+                    out[b, r, c] = 1.0

@@ -14,7 +14,7 @@ import hashlib
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -27,11 +27,13 @@ from ..geometry.pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from ..render.jacobian import jacobian_available
 from ..vision.vessel_target import binary_mask, is_coverage
+from ..geometry.vessel_tree import select_region
 from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
-from .initialization import GIVEN_INITIALIZATION, resolve_initialization, search_initial_poses
+from .initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .options import RegistrationOptions
+from .partial import looks_partial, match_fractions, trimmed_weight
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .progress import ProgressPlan
 from .result import RegistrationResult, ViewResult
@@ -140,6 +142,8 @@ class _Problem:
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
         self.windows: dict[tuple[str, float], tuple[int, int, int, int]] = {}
         """Per (view, scale): the pixel window ``(x0, y0, x1, y1)`` the loss is evaluated in (see set_windows)."""
+        self.partial = False
+        """Partial visibility (see :mod:`.partial`): background far from the vessels weighs little in the loss."""
 
     def _footprint(self, view, poses: np.ndarray) -> np.ndarray:
         """Pixel bounding box ``(u_min, v_min, u_max, v_max)`` of the mesh's vertices under all ``poses`` in ``view``."""
@@ -205,12 +209,15 @@ class _Problem:
 
     def target(self, view_name: str, stage: Stage, dtype: torch.dtype) -> ViewTarget:
         shift = self.border_shift_px[view_name]
-        key = (view_name, stage.scale, stage.blur_px, dtype, shift)
+        key = (view_name, stage.scale, stage.blur_px, dtype, shift, self.partial)
         if key not in self._targets:
             target = level_target(
                 self.targets[view_name], self.rig.views[view_name], stage.scale, stage.blur_px,
                 self.options.thin_vessel_weighting, dtype, shift, self.signed_distance(view_name) if shift else None,
             )
+            if self.partial:
+                trimmed = torch.as_tensor(trimmed_weight(target.target.numpy()), dtype=dtype)
+                target.weight = trimmed if target.weight is None else target.weight * trimmed
             target.target = target.target.to(self.device)
             if target.weight is not None:
                 target.weight = target.weight.to(self.device)
@@ -232,6 +239,17 @@ class _Problem:
             silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
             self.border_shift_px[name] = update_border_shift(
                 self.targets[name], silhouette, self.border_shift_px[name], self.signed_distance(name))
+
+    def match_fractions(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> dict[str, dict]:
+        """Per view the unmatched / uncovered fractions (:func:`.partial.match_fractions`) of the full mesh at ``mesh_to_world``."""
+        vertices, faces = self.mesh_tensors(torch.float64)
+        fractions = {}
+        for name in views:
+            view = self.rig.views[name]
+            pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
+            silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
+            fractions[name] = match_fractions(silhouette, self.masks[name])
+        return fractions
 
     def view_inputs(self, name: str, stage: Stage, dtype: torch.dtype) -> tuple[Camera, torch.Tensor, torch.Tensor | None, int]:
         """The stage's camera, target ``(h, w)`` and weight ``(h, w)`` or None, cut to its window if it has
@@ -388,8 +406,71 @@ def register(
     """
     options = options or RegistrationOptions()
     device = _resolve_device(options.device, options.mode)
+    if options.region is not None:
+        mesh = select_region(mesh, options.region)
     with _torch_threads(1 if device.type == "cpu" else torch.get_num_threads()):
         return _register(mesh, masks, rig, options, device, progress, should_stop, target_points)
+
+
+@dataclass
+class _Setup:
+    """What one registration runs: the problem, its views, the stage list (fixed before the first
+    stage runs) and the starts."""
+
+    problem: _Problem
+    used_views: tuple[str, ...]
+    initial: np.ndarray
+    searched: Initialization | None
+    """The pose search's :class:`~.initialization.Initialization`, or None when the starts came from a given pose."""
+    stages: list[Stage]
+    starts: np.ndarray
+    tracking: bool
+
+
+@dataclass
+class _Run:
+    """The stage runner's state, carried from stage to stage: the live starts and the kept start's history."""
+
+    poses: np.ndarray
+    pose_history: list[np.ndarray]
+    frames: list[tuple[str, int, np.ndarray]]
+    iterations: dict[str, int] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+    loss_history: list[tuple[str, list[float]]] = field(default_factory=list)
+    starts_agreeing: int = 1
+    other: dict | None = None
+    """Confidence's runner-up (see :func:`_runner_up`), measured when the batched stages hand over."""
+    outcome: _StageOutcome | None = None
+    final_loss: float = float("nan")
+    partial_checked: bool = False
+
+
+class _Reporter:
+    """The runners' per-iteration callback: cancellation, animation snapshots and progress events.
+
+    :meth:`begin` names the stage and the increment/delta being optimized before a runner starts,
+    so every name the callback reads is set before it is called.
+    """
+
+    def __init__(self, plan: ProgressPlan, options: RegistrationOptions, progress: ProgressCallback | None,
+                 should_stop: Callable[[], bool] | None):
+        self.plan, self.options, self.progress, self.should_stop = plan, options, progress, should_stop
+        self.stage_index = 0
+        self.snapshots: list[tuple[int, np.ndarray]] = []
+        self.increment: PoseIncrement | None = None
+        self.delta: torch.Tensor | None = None
+
+    def begin(self, stage_index: int, increment: PoseIncrement, delta: torch.Tensor) -> None:
+        self.stage_index, self.increment, self.delta, self.snapshots = stage_index, increment, delta, []
+
+    def __call__(self, stage: Stage, iteration: int, loss: float) -> None:
+        if self.should_stop is not None and self.should_stop():
+            raise RegistrationCanceled("registration canceled")
+        if self.options.animation:  # every start's pose at this iteration, for the animation
+            self.snapshots.append((iteration, self.increment.poses(self.delta.detach())))
+        if self.progress is not None and (iteration % 5 == 0 or iteration == 1):
+            fraction = self.plan.fraction(self.stage_index, iteration)
+            self.progress({"stage": stage.name, "iteration": iteration, "loss": loss, "fraction": fraction})
 
 
 def _register(
@@ -402,6 +483,16 @@ def _register(
     should_stop: Callable[[], bool] | None,
     target_points: np.ndarray | None,
 ) -> RegistrationResult:
+    setup = _prepare(mesh, masks, rig, options, device)
+    reporter = _Reporter(ProgressPlan(setup.stages, len(setup.starts)), options, progress, should_stop)
+    started = time.perf_counter()
+    run = _run_stages(setup, options, reporter)
+    return _summary(setup, run, options, time.perf_counter() - started, target_points)
+
+
+def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options: RegistrationOptions,
+             device: torch.device) -> _Setup:
+    """Check the inputs, find or draw the starts, and build the problem and its stage list."""
     used_views = ("ap", "lat") if options.configuration not in ("ap", "lat") else (options.configuration,)
     _check_inputs(masks, rig, used_views)
     initial = rig.initial_mesh_to_world
@@ -412,6 +503,7 @@ def _register(
     if searched is not None:
         initial = searched.poses[0]
     problem = _Problem(mesh, targets, rig, options, device, initial)
+    problem.partial = searched is not None and searched.method == "search+coverage"
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -423,124 +515,128 @@ def _register(
                             options.max_iterations, options.coarse_to_fine, options.refine)
     )
     stages = [Stage(**{**vars(stage), "scale": stage.scale * final_scale}) for stage in schedule]
-
     starts = searched.poses if searched is not None else random_start_poses(
         initial, problem.centre, 1 if tracking else options.starts, options.start_spread_deg, options.start_spread_mm,
         options.seed)
-    plan = ProgressPlan(stages, len(starts))
-    current = {"index": 0, "snapshots": []}
-    started = time.perf_counter()
+    return _Setup(problem, used_views, initial, searched, stages, starts, tracking)
 
-    def report(stage: Stage, iteration: int, loss: float) -> None:
-        if should_stop is not None and should_stop():
-            raise RegistrationCanceled("registration canceled")
-        if options.animation:  # every start's pose at this iteration, for the animation
-            current["snapshots"].append((iteration, increment.poses(delta.detach())))
-        if progress is not None and (iteration % 5 == 0 or iteration == 1):
-            fraction = plan.fraction(current["index"], iteration)
-            progress({"stage": stage.name, "iteration": iteration, "loss": loss, "fraction": fraction})
 
-    poses = starts
-    iterations: dict[str, int] = {}
-    seconds: dict[str, float] = {}
-    loss_history: list[tuple[str, list[float]]] = []
-    pose_history: list[np.ndarray] = [starts[0]]
-    frames: list[tuple[str, int, np.ndarray]] = [("initial", 0, initial)]
-    starts_agreeing = 1
-    other = None
-    outcome: _StageOutcome | None = None
-    final_loss = float("nan")
-    finest_scale = max(stage.scale for stage in stages)
-    planned_stages = len(stages)
-    for index, stage in enumerate(stages):
+def _run_stages(setup: _Setup, options: RegistrationOptions, reporter: _Reporter) -> _Run:
+    """Run the stage list in order; then, when the final border re-measurement moved (see
+    :func:`_border_moved`), the final stage once more as ``<name>:again``."""
+    run = _Run(poses=setup.starts, pose_history=[setup.starts[0]], frames=[("initial", 0, setup.initial)])
+    finest_scale = max(stage.scale for stage in setup.stages)
+    for index, stage in enumerate(setup.stages):
+        _run_stage(setup, run, reporter, options, index, stage, finest_scale)
+    last = setup.stages[-1]
+    if not setup.tracking and _border_moved(setup.problem, options, last, setup.used_views, run.poses[0]):
+        again = Stage(**{**vars(last), "name": f"{last.name}:again"})
+        _run_stage(setup, run, reporter, options, len(setup.stages), again, finest_scale)
+    return run
+
+
+def _run_stage(setup: _Setup, run: _Run, reporter: _Reporter, options: RegistrationOptions, index: int, stage: Stage,
+               finest_scale: float) -> None:
+    """One stage on ``run.poses``: border update, start pruning, windowing, the optimizer, bookkeeping.
+    ``index`` is the stage's place in ``setup.stages`` (``len(setup.stages)`` for the extra final run)."""
+    problem, planned = setup.problem, len(setup.stages)
+    problem.windows.clear()
+    if stage.add_initial_starts:
+        run.poses = np.concatenate([run.poses, setup.starts])
+    # Fine stages only, and not in the single-view phase of a sequential configuration: one
+    # view's depth is loose there, and a border measured at a wrong magnification costs the
+    # two-view stages extra iterations to undo.
+    fine = index > 0 and stage.scale >= 0.5 * finest_scale and set(stage.views) == set(setup.used_views) and index < planned
+    if fine and not (problem.partial or setup.tracking or run.partial_checked):
+        # The first fine stage: does a live start explain every vessel with part of the model unmatched?
+        run.partial_checked = True
+        problem.partial = any(looks_partial(problem.match_fractions(pose, stage.views)) for pose in run.poses)
+    if options.border_correction and fine:
+        problem.update_border_shifts(run.pose_history[-1], stage.views)
+    if not stage.all_starts and len(run.poses) > 1:
+        run.other = _runner_up(problem, stage, run.poses)
+        run.poses, run.starts_agreeing = _keep_best(problem, stage, run.poses)
+    dtype = torch.float64 if (stage.optimizer == "lbfgs" if stage.float64 is None else stage.float64) else torch.float32
+    increment = PoseIncrement(run.poses, problem.centre, problem.radius_mm)
+    # Fine levels with one start (every tracking stage) evaluate the loss in a window.
+    windowed = len(run.poses) == 1 and (setup.tracking or stage.scale >= 0.5 * finest_scale)
+    if windowed:
+        problem.set_windows(stage, run.poses, dtype)
+    delta, outcome = _optimize(problem, stage, increment, dtype, reporter, min(index, planned - 1))
+    if windowed and not problem.windows_hold(stage, increment.poses(delta.detach()), dtype):
+        # The pose left its window (a large step): redo the stage on the whole image.
         problem.windows.clear()
-        if stage.add_initial_starts:
-            poses = np.concatenate([poses, starts])
-        # Fine stages only, and not in the single-view phase of a sequential configuration: one
-        # view's depth is loose there, and a border measured at a wrong magnification costs the
-        # two-view stages extra iterations to undo.
-        if (options.border_correction and index > 0 and stage.scale >= 0.5 * finest_scale
-                and set(stage.views) == set(used_views) and index < planned_stages):
-            problem.update_border_shifts(pose_history[-1], stage.views)
-        if not stage.all_starts and len(poses) > 1:
-            other = _runner_up(problem, stage, poses)
-            poses, starts_agreeing = _keep_best(problem, stage, poses)
-        dtype = torch.float64 if (stage.optimizer == "lbfgs" if stage.float64 is None else stage.float64) else torch.float32
-        increment = PoseIncrement(poses, problem.centre, problem.radius_mm)
-        delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
-        runner = _RUNNERS[stage.optimizer]
-        # Fine levels with one start (every tracking stage) evaluate the loss in a window.
-        windowed = len(poses) == 1 and (tracking or stage.scale >= 0.5 * finest_scale)
-        if windowed:
-            problem.set_windows(stage, poses, dtype)
-        current["index"], current["snapshots"] = min(index, planned_stages - 1), []
-        outcome = runner(problem, stage, increment, delta, dtype, report)
-        if windowed and not problem.windows_hold(stage, increment.poses(delta.detach()), dtype):
-            # The pose left its window (a large step): redo the stage on the whole image.
-            problem.windows.clear()
-            delta = torch.zeros((len(poses), 6), dtype=torch.float64, requires_grad=True)
-            current["snapshots"] = []
-            outcome = runner(problem, stage, increment, delta, dtype, report)
-        poses = increment.poses(delta.detach())
-        if outcome.final_loss is not None and len(poses) == 1:
-            per_start = torch.tensor([outcome.final_loss])
-        else:
-            with torch.no_grad():
-                per_start = problem.loss(torch.as_tensor(poses), stage, dtype)
-        best_index = int(torch.argmin(per_start))
-        final_loss = float(per_start[best_index])
-        iterations[stage.name] = outcome.iterations
-        seconds[stage.name] = round(outcome.seconds, 4)
-        loss_history.append((stage.name, outcome.losses))
-        pose_history.append(poses[best_index])
-        frames.extend((stage.name, it, snapshot[best_index]) for it, snapshot in current["snapshots"])
-        if progress is not None:
-            progress({"stage": stage.name, "iteration": outcome.iterations, "loss": final_loss,
-                      "fraction": plan.stage_done(min(index, planned_stages - 1))})
-        if index == len(stages) - 1 and len(poses) > 1:
-            poses, starts_agreeing = _keep_best(problem, stage, poses)
-        elif len(poses) > 1 and index + 1 < len(stages) and not stages[index + 1].add_initial_starts:
-            # Starts that reached the same pose need not all be carried on: keep the best of each group.
-            poses, agreeing = _distinct(problem, poses, per_start.detach().cpu().numpy())
-            starts_agreeing = agreeing if len(poses) == 1 else starts_agreeing
-        if index == planned_stages - 1 and not tracking and _border_moved(problem, options, stage, used_views, poses[0]):
-            stages.append(Stage(**{**vars(stage), "name": f"{stage.name}:again"}))
-    estimate = poses[0]
-    total_seconds = time.perf_counter() - started
+        delta, outcome = _optimize(problem, stage, increment, dtype, reporter, min(index, planned - 1))
+    run.poses, run.outcome = increment.poses(delta.detach()), outcome
+    if outcome.final_loss is not None and len(run.poses) == 1:
+        per_start = torch.tensor([outcome.final_loss])
+    else:
+        with torch.no_grad():
+            per_start = problem.loss(torch.as_tensor(run.poses), stage, dtype)
+    best_index = int(torch.argmin(per_start))
+    run.final_loss = float(per_start[best_index])
+    run.iterations[stage.name] = outcome.iterations
+    run.seconds[stage.name] = round(outcome.seconds, 4)
+    run.loss_history.append((stage.name, outcome.losses))
+    run.pose_history.append(run.poses[best_index])
+    run.frames.extend((stage.name, it, snapshot[best_index]) for it, snapshot in reporter.snapshots)
+    if reporter.progress is not None:
+        reporter.progress({"stage": stage.name, "iteration": outcome.iterations, "loss": run.final_loss,
+                           "fraction": reporter.plan.stage_done(min(index, planned - 1))})
+    if index >= planned - 1 and len(run.poses) > 1:
+        run.poses, run.starts_agreeing = _keep_best(problem, stage, run.poses)
+    elif len(run.poses) > 1 and index + 1 < planned and not setup.stages[index + 1].add_initial_starts:
+        # Starts that reached the same pose need not all be carried on: keep the best of each group.
+        run.poses, agreeing = _distinct(problem, run.poses, per_start.detach().cpu().numpy())
+        run.starts_agreeing = agreeing if len(run.poses) == 1 else run.starts_agreeing
 
+
+def _optimize(problem: _Problem, stage: Stage, increment: PoseIncrement, dtype: torch.dtype, reporter: _Reporter,
+              progress_index: int) -> tuple[torch.Tensor, _StageOutcome]:
+    """Run the stage's optimizer from a zero increment; returns the final increment ``(B, 6)`` and the outcome."""
+    delta = torch.zeros((len(increment.base), 6), dtype=torch.float64, requires_grad=True)
+    reporter.begin(progress_index, increment, delta)
+    return delta, _RUNNERS[stage.optimizer](problem, stage, increment, delta, dtype, reporter)
+
+
+def _summary(setup: _Setup, run: _Run, options: RegistrationOptions, total_seconds: float,
+             target_points: np.ndarray | None) -> RegistrationResult:
+    """The result: the kept pose, per-view overlaps, and metrics (stages, convergence, confidence, ground truth)."""
+    problem, used_views, initial = setup.problem, setup.used_views, setup.initial
+    mesh, rig = problem.mesh, problem.rig
+    estimate = run.poses[0]
     view_results = _view_results(problem, initial, estimate)
-    converged, reason = _convergence(outcome, view_results)
+    converged, reason = _convergence(run.outcome, view_results)
     metrics = {
-        "loss": final_loss,
-        "iterations": iterations,
-        "seconds": {**seconds, "total": round(total_seconds, 4)},
-        "device": str(device),
+        "loss": run.final_loss,
+        "iterations": run.iterations,
+        "seconds": {**run.seconds, "total": round(total_seconds, 4)},
+        "device": str(problem.device),
         "converged": converged,
         "reason": reason,
-        "starts": len(starts),
-        "starts_agreeing": starts_agreeing,
-        "initialization": searched.metrics() if searched is not None else GIVEN_INITIALIZATION,
+        "starts": len(setup.starts),
+        "starts_agreeing": run.starts_agreeing,
+        "initialization": setup.searched.metrics() if setup.searched is not None else GIVEN_INITIALIZATION,
         "configuration": options.configuration,
     }
-    if tracking:
+    points = mesh.vertices if target_points is None else target_points
+    if setup.tracking:
         metrics["mode"] = "track"
-        metrics["motion"] = motion_between(initial, estimate, mesh.vertices if target_points is None else target_points)
+        metrics["motion"] = motion_between(initial, estimate, points)
     if options.border_correction:
         metrics["border_shift_px"] = {name: round(problem.border_shift_px[name], 4) for name in used_views}
-    metrics["confidence"] = _confidence(problem, estimate, view_results, other, outcome, used_views)
+    metrics["confidence"] = _confidence(problem, estimate, view_results, run.other, run.outcome, used_views)
     if len(used_views) == 1:
         metrics["warnings"] = [
-            f"single-view registration ({used_views[0]}): translation along that view's central ray and "
-            "out-of-plane rotation are only weakly determined by one silhouette; check the pose with the "
-            "other view (its dice is reported when its mask is given) or register with both views"
+            (f"single-view registration ({used_views[0]}): translation along that view's central ray and "
+             "out-of-plane rotation are only weakly determined by one silhouette; check the pose with the "
+             "other view (its dice is reported when its mask is given) or register with both views")
         ]
     if options.ground_truth_mesh_to_world is not None:
         truth = validate_rigid(options.ground_truth_mesh_to_world, field="options.ground_truth_mesh_to_world", allow_mirror=False)
         metrics["ground_truth"] = ground_truth_errors(estimate, truth, rig.views, mesh.vertices, target_points)
-        metrics["ground_truth"]["initial_mtre_mm"] = mean_distance_mm(
-            initial, truth, mesh.vertices if target_points is None else target_points
-        )
-    return RegistrationResult(estimate, initial, view_results, metrics, loss_history, pose_history, frames)
+        metrics["ground_truth"]["initial_mtre_mm"] = mean_distance_mm(initial, truth, points)
+    return RegistrationResult(estimate, initial, view_results, metrics, run.loss_history, run.pose_history, run.frames)
 
 
 def _border_moved(problem: _Problem, options: RegistrationOptions, stage: Stage, used_views, pose: np.ndarray) -> bool:
@@ -658,7 +754,15 @@ def _confidence(problem, estimate, views, other, outcome, used_views) -> dict:
         "border_shift_px": {name: round(problem.border_shift_px[name], 3) for name in used_views},
         "outside_fraction": {name: round(outside_fraction(problem.rig.views[name], world), 4) for name in used_views},
         "stopped_on_tolerance": outcome is not None and outcome.stopped_by == "tolerance",
+        **_match_signals({name: match_fractions(views[name].silhouette, problem.masks[name]) for name in used_views}),
+        "partial_loss": problem.partial,
     })
+
+
+def _match_signals(fractions: dict[str, dict]) -> dict:
+    """``unmatched_fraction`` / ``uncovered_fraction`` per view, rounded (see :mod:`.partial`)."""
+    return {f"{key}_fraction": {name: round(value[key], 4) for name, value in fractions.items()}
+            for key in ("unmatched", "uncovered")}
 
 
 def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) -> dict[str, ViewResult]:

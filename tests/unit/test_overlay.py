@@ -134,3 +134,31 @@ def test_animation_last_frame_shows_the_dice_of_the_result(tmp_path, monkeypatch
         assert caption.dice == result.views[caption.view].dice and caption.dice_label == "Dice", caption
     previews = [c for c in captions[:-len(result.views)] if c.dice_label == "preview Dice"]
     assert previews and any(c.dice != result.views[c.view].dice for c in previews)
+
+
+def test_unmatched_model_parts_are_filled_in_their_own_colour(tmp_path):
+    from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+    from dsareg_engine.overlay import UNMATCHED_BGR, write_png
+    from dsareg_engine.simulation.partial_filling import early_filling
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
+    from dsareg_engine.registration.partial import unmatched_pixels
+
+    mesh = make_vessel_phantom()
+    case = early_filling(mesh, 0.5)
+    rig = clinical_biplane_rig(256)
+    truth = random_visible_pose(mesh, rig, np.random.default_rng(0), 40.0)
+    vessels, model = render_masks(case.visible, rig, truth)["ap"], render_masks(mesh, rig, truth)["ap"]
+    unmatched = unmatched_pixels(model, vessels)
+    assert unmatched.sum() > 0.1 * model.sum() and not (unmatched & vessels).any()
+    image = overlay_image(vessels, model, model, caption=Caption(view="ap", unmatched_label="unfilled"),
+                          unmatched=unmatched)
+    plain = overlay_image(vessels, model, model, caption=Caption(view="ap"))
+    write_png(tmp_path / "overlay_ap.png", image)
+    assert UNMATCHED_BGR[0] - UNMATCHED_BGR[1] > 100 and UNMATCHED_BGR[2] - UNMATCHED_BGR[1] > 100
+
+    def magenta(picture):  # blue and red well above green: neither the grey vessels, nor blue, nor orange contours
+        b, g, r = (picture[..., k].astype(int) for k in range(3))
+        return int(((b - g > 50) & (r - g > 50)).sum())
+
+    assert magenta(image) > magenta(plain) + 5 * unmatched.sum()  # the fill, enlarged by the overlay's zoom
+    assert magenta(plain) == 0

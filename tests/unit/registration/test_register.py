@@ -122,3 +122,20 @@ def test_registration_tolerates_simulated_segmentation_errors(phantom, synthetic
     assert all((noisy[view] != masks[view]).sum() > 0.3 * masks[view].sum() for view in masks)
     result = register(phantom, noisy, rig, RegistrationOptions(ground_truth_mesh_to_world=np.eye(4).tolist()))
     assert result.metrics["ground_truth"]["add_mm"] < 1.0
+
+
+def test_stage_runner_runs_the_fixed_stage_list_then_the_again_stage(phantom, synthetic_case):
+    import torch
+
+    from dsareg_engine.registration import solver
+
+    rig, masks = synthetic_case(phantom, 160, 3.0, 3.0)
+    options = RegistrationOptions(starts=2, max_iterations=30)
+    names = [stage.name for stage in solver._prepare(phantom, masks, rig, options, torch.device("cpu")).stages]
+    result = register(phantom, masks, rig, options)
+    ran = list(result.metrics["iterations"])
+    assert ran[:len(names)] == names and all(name.endswith(":again") for name in ran[len(names):])
+    assert len(ran) <= len(names) + 1
+    repeated = register(phantom, masks, rig, options)
+    assert np.array_equal(repeated.mesh_to_world, result.mesh_to_world)
+    assert repeated.metrics["iterations"] == result.metrics["iterations"]

@@ -1,0 +1,48 @@
+"""Simulated partial visibility: early filling, one injected branch, a model with an extra territory."""
+
+import numpy as np
+import pytest
+
+from dsareg_engine.geometry.vessel_tree import vessel_tree
+from dsareg_engine.simulation.partial_filling import early_filling, extra_territory, selective_injection
+from dsareg_engine.simulation.phantom import make_vessel_phantom
+
+
+@pytest.fixture(scope="module")
+def phantom_tree():
+    mesh = make_vessel_phantom()
+    return mesh, vessel_tree(mesh)
+
+
+@pytest.mark.parametrize("fraction", [0.4, 0.6])
+def test_early_filling_keeps_the_faces_nearest_the_inflow(phantom_tree, fraction):
+    mesh, tree = phantom_tree
+    case = early_filling(mesh, fraction, tree)
+    assert case.visible_fraction == pytest.approx(fraction, abs=0.02)
+    assert case.visible.n_faces == pytest.approx(fraction * mesh.n_faces, rel=0.05)
+    inflow = mesh.vertices[tree.inflow]
+    assert np.min(np.linalg.norm(case.visible.vertices - inflow, axis=1)) < 1e-9  # the inflow is filled
+    # every visible vertex is nearer the inflow (along the tree) than every hidden one, to within a face
+    distance = tree.distances_from(tree.inflow)
+    visible = np.isin(np.round(mesh.vertices, 9).view("f8,f8,f8"), np.round(case.visible.vertices, 9).view("f8,f8,f8")).ravel()
+    assert distance[visible].max() <= distance[~visible].min() + 3.0
+
+
+def test_selective_injection_is_one_branch_away_from_the_inflow(phantom_tree):
+    mesh, tree = phantom_tree
+    case = selective_injection(mesh, 0.3, np.random.default_rng(1), tree)
+    assert case.visible_fraction == pytest.approx(0.3, abs=0.1)
+    inflow = mesh.vertices[tree.inflow]
+    assert np.min(np.linalg.norm(case.visible.vertices - inflow, axis=1)) > 10.0
+
+
+def test_extra_territory_doubles_the_model_and_shows_the_original(phantom_tree):
+    mesh, tree = phantom_tree
+    case = extra_territory(mesh, tree)
+    assert case.model.n_faces == 2 * mesh.n_faces and case.visible is mesh and case.visible_fraction == 0.5
+    copy = case.model.vertices[len(mesh.vertices):]
+    assert np.linalg.norm(copy.mean(axis=0) - mesh.centroid) > 10.0  # the copy spreads away from the original
+    a, b, c = (case.model.vertices[case.model.faces[mesh.n_faces:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    outward = ((a + b + c) / 3 - copy.mean(axis=0))
+    assert np.mean(np.sum(normals * outward, axis=1) > 0) > 0.5  # the mirrored copy still winds outward
