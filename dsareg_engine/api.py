@@ -45,6 +45,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .commands.arguments import geometry_argument, input_file, json_argument, options_help
     from .commands.failures import CommandFailed
     from .geometry.file import PRESETS, LatFromAp, RigSpec, ViewSpec
+    from .commands.progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.xa_run import ImageReading
@@ -93,6 +94,10 @@ _LAZY = {
     "options_help": "dsareg_engine.commands.arguments",
     "geometry_argument": "dsareg_engine.commands.arguments",
     "json_argument": "dsareg_engine.commands.arguments",
+    "ProgressPrinter": "dsareg_engine.commands.progress_lines",
+    "verdict_meets": "dsareg_engine.commands.progress_lines",
+    "REQUIRE_CHOICES": "dsareg_engine.commands.progress_lines",
+    "VERDICT_NOT_MET_EXIT": "dsareg_engine.commands.progress_lines",
     "load_pose": "dsareg_engine.geometry.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
     "warm_up_renderer": "dsareg_engine.warmup",
@@ -106,6 +111,8 @@ __all__ = [
     "LOSS_DCM",
     "LOSS_PNG",
     "PRESETS",
+    "REQUIRE_CHOICES",
+    "VERDICT_NOT_MET_EXIT",
     "REGISTRATION_FILES",
     "REG_DCM",
     "RESULT_JSON",
@@ -117,6 +124,7 @@ __all__ = [
     "ImageReading",
     "InputLimits",
     "LatFromAp",
+    "ProgressPrinter",
     "RegistrationCanceled",
     "RegistrationOptions",
     "RigSpec",
@@ -146,6 +154,7 @@ __all__ = [
     "set_cpu_threads",
     "ViewSpec",
     "validate_rigid",
+    "verdict_meets",
     "warm_up_job",
     "warm_up_parsers",
     "warm_up_renderer",

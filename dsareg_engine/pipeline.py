@@ -41,6 +41,9 @@ __all__ = ["RegistrationCanceled", "run_case", "run_registration_case", "write_o
 log = logging.getLogger(__name__)
 
 
+DICOM_FRACTION = 0.98
+"""Progress while the DICOM results are written (after the PNGs and the animation)."""
+
 DicomOutputs = Literal["off", "best_effort", "required"]
 """DICOM results of :func:`run_case`: none; written when possible (a failure becomes a warning); or
 required (a failure raises: the caller stores them in a PACS)."""
@@ -72,6 +75,8 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
         progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
     data = run_registration_case(case, options, out_dir, progress=progress, should_stop=should_stop, label=label)
     if dicom != "off":
+        if progress is not None:
+            progress({"stage": "dicom", "iteration": 0, "loss": None, "fraction": DICOM_FRACTION})
         _write_dicom(files, data, Path(out_dir), required=dicom == "required")
     return data
 
@@ -164,11 +169,12 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
         data["warnings"] = [str(warning) for warning in warnings]
     if readings:
         data["image_reading"] = readings
-    if progress is not None:
-        progress({"stage": "outputs", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE})
+    report = _outputs_progress(progress, len(result.views) + 2)
+    report()
     (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
     verdict, ok = verdict_of(data)
     for name, view in result.views.items():
+        report()
         scale = mm_per_pixel_at_mesh(rig.views[name], view.mesh_to_view, mesh) if rig is not None else None
         unmatched = unmatched_pixels(view.silhouette, masks[name])
         shown = unmatched if unmatched.sum() >= PARTIAL_UNMATCHED * max(1, view.silhouette.sum()) else None
@@ -180,12 +186,30 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
                   overlay_image(masks[name], view.initial_silhouette, view.silhouette, background, caption=caption,
                                 unmatched=shown))
         write_png(out_dir / artifacts.mask_png(name), masks[name].astype(np.uint8) * 255)
+    report()
     write_png(out_dir / artifacts.LOSS_PNG, loss_figure(result.loss_history, title=f"Loss per iteration{' - ' + label if label else ''}"))
     if animation and mesh is not None and rig is not None:
         if progress is not None:
-            progress({"stage": "animation", "iteration": 0, "loss": None, "fraction": REGISTRATION_SHARE + 0.01})
+            progress({"stage": "animation", "iteration": 0, "loss": None, "fraction": OUTPUTS_DONE})
         write_animation(out_dir / artifacts.ANIMATION_GIF, result, masks, mesh, rig, images=images, label=label)
     return data
+
+
+OUTPUTS_DONE = REGISTRATION_SHARE + 0.5 * (1.0 - REGISTRATION_SHARE)
+"""Progress when the PNGs are written; the animation, the DICOM results and storing fill the rest."""
+
+
+def _outputs_progress(progress: Callable[[dict], None] | None, steps: int) -> Callable[[], None]:
+    """A ``report()`` that moves the stage ``outputs`` from REGISTRATION_SHARE to OUTPUTS_DONE in ``steps`` calls."""
+    done = [0]
+
+    def report() -> None:
+        if progress is not None:
+            fraction = REGISTRATION_SHARE + (OUTPUTS_DONE - REGISTRATION_SHARE) * done[0] / max(1, steps - 1)
+            progress({"stage": "outputs", "iteration": done[0], "loss": None, "fraction": min(OUTPUTS_DONE, fraction)})
+        done[0] += 1
+
+    return report
 
 
 def frame_text(reading: dict | None) -> str | None:
@@ -258,10 +282,8 @@ def write_animation(path: Path, result: RegistrationResult, masks: dict[str, np.
         for name in result.views:
             small = small_views[name]
             current = _silhouette(vertices, faces, small, pose)
-            text = stage if stage in ("initial", "registered") else f"stage {stage}, iteration {iteration}"
-            caption = Caption(view=name, dice=dice(current, targets[name]), stage=f"{number + 1}/{len(sequence)}  {text}",
-                              final_label="registered" if stage == "registered" else "current",
-                              dice_label="preview Dice")
+            caption = frame_caption(result, name, stage, iteration, f"{number + 1}/{len(sequence)}",
+                                    dice(current, targets[name]))
             panels.append(overlay_image(targets[name], initials[name], current, backgrounds[name], caption=caption,
                                         box=boxes[name], display_side=max_side))
         height = max(p.shape[0] for p in panels)
@@ -269,6 +291,19 @@ def write_animation(path: Path, result: RegistrationResult, masks: dict[str, np.
         frames.append(Image.fromarray(cv2.cvtColor(np.concatenate(panels, axis=1), cv2.COLOR_BGR2RGB)))
         durations.append(1200 if number in (0, len(sequence) - 1) else 150)
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=durations, loop=0, optimize=False)
+
+
+def frame_caption(result: RegistrationResult, view: str, stage: str, iteration: int, counter: str,
+                  preview_dice: float) -> Caption:
+    """The caption of one animation frame. Frames along the way show the Dice of their downscaled
+    preview; the registered frame shows the result's own (full-resolution) Dice, the number the
+    result reports, so the last frame and ``result.views[view].dice`` agree."""
+    text = stage if stage in ("initial", "registered") else f"stage {stage}, iteration {iteration}"
+    if stage == "registered":
+        return Caption(view=view, dice=result.views[view].dice, stage=f"{counter}  {text}", final_label="registered",
+                       dice_label="Dice")
+    return Caption(view=view, dice=preview_dice, stage=f"{counter}  {text}", final_label="current",
+                   dice_label="preview Dice")
 
 
 def _silhouette(vertices, faces, view, pose: np.ndarray) -> np.ndarray:

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
+from . import __version__
 from .api.routes import artifacts, operations, registrations, review, tracking, ui
 from .api.deps import ServiceContext
-from .api.intake.dicom_reference import document_json_submission
 from .api.handlers import install_handlers
 from .api.httpfaults import problem_http_protocol
 from .api.lifespan import make_lifespan
@@ -26,9 +26,12 @@ from .problems import problem_responses
 from .settings import ServiceSettings
 
 DESCRIPTION = (
-    "Registers a 3D vessel model to biplane DSA images. Submit a job with `POST /v1/registrations`, "
-    "poll the `Location` it returns, then fetch the result and overlays. Errors are "
-    "`application/problem+json` (RFC 9457)."
+    "Registers a 3D vessel model to biplane DSA images. Submit a job with `POST /v1/registrations` "
+    "(multipart files, or JSON with the inputs by DICOMweb reference), poll the `Location` it returns (or give a "
+    "`callback_url`), then fetch the result and overlays.\n\n"
+    "**`succeeded` means the job ran; the `verdict` says whether to trust the pose**: `ok` use it, `check` look at "
+    "the overlays first, `failed` do not use it (`result.verdict` = `result.metrics.confidence.verdict`, with "
+    "`reasons` in plain words). Errors are `application/problem+json` (RFC 9457)."
 )
 
 
@@ -39,7 +42,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
                              start_background=start_background)
     app = FastAPI(
         title="dsareg registration service",
-        version="1.0.0",
+        version=__version__,  # pyproject.toml's version (service/__init__.py)
         description=DESCRIPTION,
         lifespan=lifespan,
         responses=problem_responses(500),
@@ -51,7 +54,6 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
     mount(app, registrations.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
-    document_json_submission(app)
     install_docs(app)
     install_openapi(app, settings)
     return app

@@ -167,9 +167,25 @@ class ServiceSettings(BaseSettings):
         512 * 1024 * 1024, ge=0, description="Free disk space in data_dir below which new DICOM associations are "
                                              "refused (and C-STORE answers 'out of resources'); 0: no floor.")
 
+    # completion callbacks (service/jobs/callbacks.py, docs/api/callbacks.md)
+    callback_allowed: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="URL prefixes a job's callback_url must start with (JSON list or comma-separated), e.g. "
+                    "https://ris.example.org/hooks/; empty: callbacks are refused (422). Scheme, host and port must "
+                    "match exactly and the path at a '/' boundary.")
+    callback_secret: str = Field(
+        "", repr=False, description="Key of the X-Dsareg-Signature HMAC-SHA256 of every callback body; required "
+                                    "when callback_allowed is set.")
+    callback_timeout_seconds: float = Field(10.0, gt=0.0, description="Timeout of one callback POST.")
+    callback_max_attempts: int = Field(10, ge=1, le=50, description="Delivery attempts of one callback before it "
+                                                                    "is marked failed.")
+    callback_retry_backoff_seconds: float = Field(
+        1.0, ge=0.0, description="Delay before the second attempt; doubles each attempt, at most 300 s.")
+
     log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
 
-    @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "dicom_peers", "dicom_export", mode="before")
+    @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "dicom_peers", "dicom_export", "callback_allowed",
+                     mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
         return _split_list(value)
@@ -200,6 +216,13 @@ class ServiceSettings(BaseSettings):
                 raise ValueError("api_key_hashes must be SHA-256 hex digests (64 hex characters)")
             out.append(item)
         return out
+
+    @model_validator(mode="after")
+    def _callback_secret(self) -> ServiceSettings:
+        if self.callback_allowed and not self.callback_secret.strip():
+            raise ValueError("callback_secret (DSAREG_CALLBACK_SECRET) is required when callback_allowed is set: "
+                             "every callback is signed with it")
+        return self
 
     @model_validator(mode="after")
     def _hash_plain_keys(self) -> ServiceSettings:

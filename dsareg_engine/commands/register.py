@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 from pathlib import Path
 
 from ..errors import DsaregInputError
 from ..registration.options import CONFIGURATIONS
 from .arguments import geometry_argument, input_file, json_argument, options_help
+from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
 
 
 def add_parser(subparsers) -> None:
@@ -15,8 +18,9 @@ def add_parser(subparsers) -> None:
         "register", help="register a mesh to AP/LAT images on this machine; writes result.json and overlays",
         description="Register a vessel mesh to a biplane pair (AP and LAT) without a server. Writes result.json, "
                     "overlay_{ap,lat}.png, mask_{ap,lat}.png, loss.png (and animation.gif) into --out and prints a "
-                    "one-line summary.",
-        epilog="Exit status: 0 done (also when not converged: read the summary), 1 failed, 2 usage or input error.")
+                    "summary on stdout (progress and warnings go to stderr: a line per stage when it is not a terminal).",
+        epilog="Exit status: 0 done (also when not converged: read the summary), 1 failed, 2 usage or input error, "
+               f"{VERDICT_NOT_MET_EXIT} the verdict is below --require.")
     model = parser.add_mutually_exclusive_group(required=True)
     model.add_argument("--mesh", type=input_file, metavar="FILE",
                        help="vessel surface mesh in mm (OBJ, STL, PLY, OFF, GLB)")
@@ -58,6 +62,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     parser.add_argument("--dicom-out", metavar="DIR",
                         help="also write reg.dcm (Spatial Registration) and overlay_{ap,lat}.dcm (Secondary Capture) here")
+    parser.add_argument("--json", action="store_true", help="print the result JSON on stdout instead of the summary")
+    parser.add_argument("--require", choices=REQUIRE_CHOICES,
+                        help=f"exit {VERDICT_NOT_MET_EXIT} unless the verdict is at least this (ok, or check = ok or check)")
     parser.set_defaults(func=run)
 
 
@@ -125,36 +132,51 @@ def run(args: argparse.Namespace) -> int:
         geometry=geometry, segmentation=parsed.segmentation, reading=image_reading(parsed),
         volume_reading=VolumeReading.from_options(parsed),
     )
+    printer = ProgressPrinter()
     for warning in case.warnings:
-        print(f"warning: {warning}")
+        printer.message(f"warning: {warning}")
     if case.volume is not None:
-        print(f"volume: {case.volume.text()}; {case.volume.faces} faces extracted")
-
-    def show(event: dict) -> None:
-        print(f"\r{event['stage']:>14} it {event['iteration']:4d} loss {event['loss']:.5f}", end="", flush=True)
-
-    result = register(case.mesh, case.fitted, case.rig, parsed, progress=show)
-    print()
+        printer.message(f"volume: {case.volume.text()}; {case.volume.faces} faces extracted")
     out = Path(args.out)
-    write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation, images=case.images,
-                  readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
+    try:
+        result = register(case.mesh, case.fitted, case.rig, parsed, progress=printer.update)
+        data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation,
+                             images=case.images, progress=printer.update, warnings=case.warnings,
+                             readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
+    finally:
+        printer.close()
     if args.dicom_out:
         from ..io.dicom_out import read_sources, write_dicom_outputs
 
         sources = read_sources(ap_bytes, lat_bytes, model.get("volume"))
         written = write_dicom_outputs(out, result.mesh_to_world, sources, Path(args.dicom_out))
-        print(f"DICOM: {', '.join(sorted(written))} -> {args.dicom_out}")
+        print(f"DICOM: {', '.join(sorted(written))} -> {args.dicom_out}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(data, indent=2))
+    else:
+        print("\n".join(summary_lines(result, out)))
+    verdict = (result.metrics.get("confidence") or {}).get("verdict")
+    if not verdict_meets(verdict, args.require):
+        print(f"dsareg: verdict {verdict or 'none'} is below --require {args.require}", file=sys.stderr)
+        return VERDICT_NOT_MET_EXIT
+    return 0
+
+
+def summary_lines(result, out: Path) -> list[str]:
+    """The summary: verdict, convergence, Dice, time (and why, motion, ground-truth errors)."""
     metrics = result.metrics
     dice_text = ", ".join(f"{name} dice {view.dice:.3f}" for name, view in result.views.items())
     confidence = metrics.get("confidence") or {}
     verdict = f"verdict {confidence['verdict']}; " if confidence.get("verdict") else ""
-    print(f"{verdict}{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
-          f"{metrics['seconds']['total']:.1f} s -> {out / 'result.json'}")
+    lines = [f"{verdict}{'converged' if metrics['converged'] else 'NOT converged'} ({metrics['reason']}); {dice_text}; "
+             f"{metrics['seconds']['total']:.1f} s -> {out / 'result.json'}"]
     if confidence.get("verdict") in ("check", "failed"):
-        print("why: " + "; ".join(str(reason) for reason in confidence.get("reasons", [])))
+        lines.append("why: " + "; ".join(str(reason) for reason in confidence.get("reasons", [])))
     if "motion" in metrics:
-        print(f"motion since --initial: {metrics['motion']['rotation_deg']:.3f} deg, {metrics['motion']['translation_mm']:.3f} mm")
+        lines.append(f"motion since --initial: {metrics['motion']['rotation_deg']:.3f} deg, "
+                     f"{metrics['motion']['translation_mm']:.3f} mm")
     if "ground_truth" in metrics:
         gt = metrics["ground_truth"]
-        print(f"rotation {gt['rotation_error_deg']:.4f} deg, translation {gt['translation_error_mm']:.4f} mm, ADD {gt['add_mm']:.4f} mm")
-    return 0
+        lines.append(f"rotation {gt['rotation_error_deg']:.4f} deg, translation {gt['translation_error_mm']:.4f} mm, "
+                     f"ADD {gt['add_mm']:.4f} mm")
+    return lines

@@ -63,9 +63,12 @@ class RegistrationResult:
     frames: list[tuple[str, int, np.ndarray]] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
+        """The JSON-ready result; ``verdict`` repeats ``metrics.confidence.verdict`` (ok / check / failed)."""
+        verdict = (self.metrics.get("confidence") or {}).get("verdict")
         return {
             "mesh_to_world": self.mesh_to_world.tolist(),
             "initial_mesh_to_world": self.initial_mesh_to_world.tolist(),
             "views": {name: view.to_dict() for name, view in self.views.items()},
             "metrics": self.metrics,
+            **({"verdict": verdict} if verdict else {}),
         }

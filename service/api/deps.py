@@ -23,6 +23,7 @@ from ..storage.store import JobRecord, JobStore, is_job_id
 from .intake.validation import ValidatorPool
 
 if TYPE_CHECKING:
+    from ..jobs.callbacks import CallbackDeliverer
     from ..jobs.sweeper import Sweeper
 
 ANONYMOUS = "anonymous"
@@ -38,6 +39,7 @@ class ServiceContext:
     registry: CollectorRegistry
     uploads: Counter
     sweeper: Sweeper | None = None
+    callbacks: CallbackDeliverer | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
 

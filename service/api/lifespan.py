@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 from collections.abc import Callable
 from typing import Any
 
 from fastapi import FastAPI
 
+from ..jobs.callbacks import CallbackDeliverer
 from ..storage.dbblobs import make_blob_store
 from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
@@ -18,6 +20,7 @@ from ..jobs.sweeper import Sweeper
 from ..storage.store import store_for
 from .intake.dimse import DimseIntake
 from .intake.validation import ValidatorPool
+from .schemas.jobs import summary_body
 from .deps import ServiceContext
 from .prometheus import ServiceMetrics
 
@@ -37,6 +40,20 @@ def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: 
     ex = executor or make_executor(settings, store)
     return ServiceContext(settings=settings, store=store, blobs=blobs, validator=validator, executor=ex,
                           registry=metrics.registry, uploads=metrics.uploads)
+
+
+def callback_body(job: Any) -> bytes:
+    """A callback's body: the job summary (``JobSummary``) as compact JSON."""
+    return json.dumps(summary_body(job), separators=(",", ":")).encode("utf-8")
+
+
+def start_callbacks(ctx: ServiceContext) -> CallbackDeliverer:
+    """The completion-callback deliverer of this API process (service/jobs/callbacks.py), in every topology."""
+    from .. import __version__
+
+    deliverer = CallbackDeliverer(ctx.store, ctx.settings, callback_body, user_agent=f"dsareg/{__version__}")
+    deliverer.start()
+    return deliverer
 
 
 def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
@@ -65,12 +82,15 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper = Sweeper(ctx)
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
+            ctx.callbacks = start_callbacks(ctx)
             ctx.extra["dicom_listener"] = _start_dicom_node(ctx)
         log.info("dsareg service ready (%d worker processes, store %s)", settings.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
         try:
             yield
         finally:
+            if ctx.callbacks:
+                ctx.callbacks.stop()
             if ctx.extra.get("dicom_listener") is not None:
                 await asyncio.to_thread(ctx.extra["dicom_listener"].stop)
             if ctx.sweeper:

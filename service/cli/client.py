@@ -1,4 +1,10 @@
-"""A small Python client of the registration service (httpx)."""
+"""A small Python client of the registration service (httpx); see docs/api/python-client.md.
+
+    with RegistrationClient("http://127.0.0.1:8000") as client:
+        job = client.submit(mesh=Path("vessel.obj"), ap=Path("ap.dcm"), lat=Path("lat.dcm"))
+        final = client.wait(job["id"])
+        if final["status"] == "succeeded" and final["verdict"] == "ok": ...
+"""
 
 from __future__ import annotations
 
@@ -12,7 +18,11 @@ import httpx
 
 FINISHED = ("succeeded", "failed", "canceled")
 LINKED_FILES = {"overlay_ap": "overlay_ap.png", "overlay_lat": "overlay_lat.png", "mask_ap": "mask_ap.png",
-                "mask_lat": "mask_lat.png", "loss_plot": "loss.png", "animation": "animation.gif"}
+                "mask_lat": "mask_lat.png", "loss_plot": "loss.png", "animation": "animation.gif",
+                "dicom_reg": "reg.dcm", "dicom_overlay_ap": "overlay_ap.dcm", "dicom_overlay_lat": "overlay_lat.dcm",
+                "dicom_loss": "loss.dcm"}
+"""The job's links that lead to files, and the file names they are saved as."""
+DICOM_NAMES = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm")
 
 
 class ServiceError(Exception):
@@ -64,8 +74,9 @@ class RegistrationClient:
     # ---- calls ------------------------------------------------------------------------------
     def submit(self, *, ap: Path | bytes, lat: Path | bytes, mesh: Path | bytes | None = None,
                volume: Path | bytes | Iterable[Path | bytes] | None = None, geometry: str | dict | Path | None = None,
-               options: dict | str | None = None, idempotency_key: str | None = None) -> dict[str, Any]:
-        """Submit a job; returns the job status (``id``, ``status``, ``links``...)."""
+               options: dict | str | None = None, idempotency_key: str | None = None,
+               callback_url: str | None = None) -> dict[str, Any]:
+        """Submit a job (files); returns the job status (``id``, ``status``, ``links``...)."""
         files: list[tuple[str, tuple[str, bytes, str]]] = []
 
         def add(field: str, item: Path | bytes, default_name: str) -> None:
@@ -92,8 +103,38 @@ class RegistrationClient:
             data["geometry"] = geometry
         if options is not None:
             data["options"] = options if isinstance(options, str) else json.dumps(options)
+        if callback_url:
+            data["callback_url"] = callback_url
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         response = self.http.post("/v1/registrations", files=files, data=data, headers=headers)
+        _raise_for(response)
+        return response.json()
+
+    def submit_reference(self, dicomweb: dict[str, Any], *, options: dict | None = None, store_results: bool = True,
+                         callback_url: str | None = None, idempotency_key: str | None = None) -> dict[str, Any]:
+        """Submit a job whose inputs the server fetches from a PACS: ``dicomweb`` is
+        ``{"url", "study_uid", "ap": {"series_uid"}, "lat": {"series_uid"}, "volume": {"series_uid"}}``."""
+        body: dict[str, Any] = {"source": {"dicomweb": dicomweb}, "options": options or {},
+                                "store_results": store_results}
+        if callback_url:
+            body["callback_url"] = callback_url
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        response = self.http.post("/v1/registrations", json=body, headers=headers)
+        _raise_for(response)
+        return response.json()
+
+    def track(self, job_id: str, *, ap: Path | bytes, lat: Path | bytes, options: dict | None = None,
+              callback_url: str | None = None) -> dict[str, Any]:
+        """Re-register a succeeded job's model to a new AP/LAT pair from its pose; the new job's status."""
+        files = []
+        for field, item in (("ap", ap), ("lat", lat)):
+            name, content = (Path(item).name, Path(item).read_bytes()) if isinstance(item, (str, Path)) else (
+                f"{field}.png", bytes(item))
+            files.append((field, (name, content, "application/octet-stream")))
+        data = {"options": json.dumps(options)} if options else {}
+        if callback_url:
+            data["callback_url"] = callback_url
+        response = self.http.post(f"/v1/registrations/{job_id}/track", files=files, data=data)
         _raise_for(response)
         return response.json()
 
@@ -138,6 +179,14 @@ class RegistrationClient:
         _raise_for(response)
         return response.content
 
+    def download_dicom(self, job_id: str, name: str = "reg.dcm") -> bytes:
+        """A DICOM result: ``reg.dcm`` (Spatial Registration), ``overlay_ap.dcm``, ``overlay_lat.dcm``, ``loss.dcm``."""
+        if name not in DICOM_NAMES:
+            raise ValueError(f"name must be one of {', '.join(DICOM_NAMES)}")
+        response = self.http.get(f"/v1/registrations/{job_id}/dicom/{name}")
+        _raise_for(response)
+        return response.content
+
     def download_overlays(self, job_id: str, out_dir: Path) -> list[Path]:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -149,7 +198,7 @@ class RegistrationClient:
         return written
 
     def download_all(self, job_id: str, out_dir: Path) -> list[Path]:
-        """result.json and every file the job links to: overlays, masks, loss plot, animation."""
+        """result.json and every file the job links to: overlays, masks, loss plot, animation, DICOM objects."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         links = self.get(job_id).get("links") or {}

@@ -87,14 +87,18 @@ def _add_submit(subparsers: Any) -> None:
     from ..engine_adapter import engine
 
     input_file, options_help = engine.input_file, engine.options_help
+    require_choices, not_met = engine.REQUIRE_CHOICES, engine.VERDICT_NOT_MET_EXIT
 
     submit = subparsers.add_parser(
         "submit", help="submit a registration to a dsareg server (and wait for it)",
         description="Submit a job to a running `dsareg serve`. Without --wait, prints the job id and returns; with "
-                    "--wait (or --out), shows progress, prints a one-line summary and, with --out, downloads "
-                    "result.json, overlays, masks and the animation.",
+                    "--wait (or --out), shows progress on stderr (a line per stage when stderr is not a terminal), "
+                    "prints a one-line summary on stdout and, with --out, downloads result.json, overlays, masks, "
+                    "the animation and the DICOM objects. A job that succeeded only ran: its verdict (ok / check / "
+                    "failed) says whether to trust the pose; --require makes that the exit status.",
         epilog="Exit status: 0 succeeded (or submitted, without --wait), 1 the job failed or the server is "
-               "unreachable, 2 usage or input error (the server's 4xx answers name the field).")
+               "unreachable, 2 usage or input error (the server's 4xx answers name the field), "
+               f"{not_met} the job succeeded but its verdict is below --require.")
     submit.add_argument("--server", required=True, metavar="URL", help="base URL, e.g. http://127.0.0.1:8000")
     model = submit.add_mutually_exclusive_group(required=True)
     model.add_argument("--mesh", type=input_file, metavar="FILE", help="vessel mesh in mm (OBJ, STL, PLY, OFF, GLB)")
@@ -117,6 +121,12 @@ def _add_submit(subparsers: Any) -> None:
                         help="print the job (without --wait) or the result (with --wait) as JSON on stdout")
     submit.add_argument("--timeout", type=float, default=3600.0, metavar="SECONDS",
                         help="with --wait: give up after this many seconds (default 3600)")
+    submit.add_argument("--require", choices=require_choices,
+                        help=f"implies --wait; exit {not_met} unless the verdict is at least this "
+                             "(ok; or check: ok or check)")
+    submit.add_argument("--callback-url", metavar="URL",
+                        help="the server POSTs the job summary here when the job ends (signed; the server must "
+                             "allow the URL's prefix)")
     submit.set_defaults(func=run_submit)
 
 
@@ -167,7 +177,8 @@ def summary_line(final: dict[str, Any]) -> str:
     """One line like `dsareg register` prints: verdict, Dice per view, time, ground-truth errors."""
     result = final.get("result") or {}
     metrics = result.get("metrics") or {}
-    verdict = (metrics.get("confidence") or {}).get("verdict")
+    confidence = metrics.get("confidence") or {}
+    verdict = confidence.get("verdict")
     state = (f"verdict {verdict}; " if verdict else "") + ("converged" if metrics.get("converged") else "NOT converged")
     reason = metrics.get("reason")
     views = result.get("views") or {}
@@ -183,6 +194,8 @@ def summary_line(final: dict[str, Any]) -> str:
     if isinstance(gt, dict) and "add_mm" in gt:
         parts.append(f"rotation {gt.get('rotation_error_deg', float('nan')):.4f} deg, "
                      f"translation {gt.get('translation_error_mm', float('nan')):.4f} mm, ADD {gt['add_mm']:.4f} mm")
+    if verdict in ("check", "failed") and confidence.get("reasons"):
+        parts.append("why: " + " / ".join(str(reason) for reason in confidence["reasons"]))
     return "; ".join(parts)
 
 
@@ -202,59 +215,38 @@ def run_submit(args: argparse.Namespace) -> int:
         raise DsaregInputError("must be a JSON object", field="--options", accepted='e.g. {"starts": 2}')
     if args.ground_truth:
         options = {**(options or {}), "ground_truth_mesh_to_world": load_pose(args.ground_truth).tolist()}
-    wait = args.wait or args.out is not None
+    wait = args.wait or args.out is not None or args.require is not None
     client = RegistrationClient(args.server, api_key=args.api_key or os.environ.get("DSAREG_API_KEY"))
     try:
         job = client.submit(ap=args.ap, lat=args.lat, mesh=args.mesh, volume=args.volume, geometry=geometry,
-                            options=options, idempotency_key=args.idempotency_key)
+                            options=options, idempotency_key=args.idempotency_key, callback_url=args.callback_url)
         print(f"job {job['id']}: {job['status']} ({args.server.rstrip('/')}{job['links']['self']})", file=sys.stderr)
         if not wait:
-            if args.json:
-                print(json.dumps(job, indent=2))
-            else:
-                print(job["id"])
+            print(json.dumps(job, indent=2) if args.json else job["id"])
             return 0
-        bar = _ProgressBar()
-        try:
-            final = client.wait(job["id"], progress=bar.update, timeout=args.timeout)
-        finally:
-            bar.close()
+        final = _wait(client, job["id"], args.timeout, engine.ProgressPrinter())
         if final["status"] != "succeeded":
             err = final.get("error") or {}
             detail = f": {err.get('title')}: {err.get('detail')}" if err else ""
             raise CommandFailed(f"job {final['id']} {final['status']}{detail}")
         if args.out:
-            written = client.download_all(final["id"], args.out)
-            for path in written:
+            for path in client.download_all(final["id"], args.out):
                 print(f"  wrote {path}", file=sys.stderr)
-        if args.json:
-            print(json.dumps(final.get("result"), indent=2))
-        else:
-            print(summary_line(final))
+        print(json.dumps(final.get("result"), indent=2) if args.json else summary_line(final))
+        verdict = final.get("verdict") or ((final.get("result") or {}).get("verdict"))
+        if not engine.verdict_meets(verdict, args.require):
+            print(f"dsareg: job {final['id']}: verdict {verdict or 'none'} is below --require {args.require}",
+                  file=sys.stderr)
+            return engine.VERDICT_NOT_MET_EXIT
         return 0
     finally:
         client.close()
 
 
-class _ProgressBar:
-    def __init__(self, width: int = 30):
-        self.width = width
-        self.stream = sys.stderr
-        self.drawn = False
-
-    def update(self, status: dict) -> None:
-        progress = status.get("progress") or {}
-        fraction = float(progress.get("fraction") or 0.0)
-        filled = round(fraction * self.width)
-        loss = progress.get("loss")
-        loss_text = f" loss {loss:.4f}" if isinstance(loss, (int, float)) else ""
-        line = (f"\r[{'#' * filled}{'.' * (self.width - filled)}] {fraction * 100:5.1f}% "
-                f"{status.get('status', ''):9s} {progress.get('stage', '')} it {progress.get('iteration', 0)}{loss_text}")
-        self.stream.write(line[:120].ljust(100))
-        self.stream.flush()
-        self.drawn = True
-
-    def close(self) -> None:
-        if self.drawn:
-            self.stream.write("\n")
-            self.stream.flush()
+def _wait(client: Any, job_id: str, timeout: float, printer: Any) -> dict[str, Any]:
+    """Poll the job to its end, showing progress on stderr."""
+    try:
+        return client.wait(job_id, progress=lambda status: printer.update(status.get("progress") or {},
+                                                                          status.get("status")), timeout=timeout)
+    finally:
+        printer.close()

@@ -35,6 +35,9 @@ from ..storage.store import JobRecord, JobStore, random_token, store_for, store_
 
 log = logging.getLogger("dsareg.service.worker")
 
+STORING_FRACTION = 0.985  # STOW-RS / C-STORE of the DICOM results into the PACS
+SAVING_FRACTION = 0.99  # artifacts into the blob store, then the result into the job store
+
 
 def make_worker_id(index: int) -> str:
     return f"{socket.gethostname()[:40]}-{os.getpid()}-w{index}-{random_token(3)}"
@@ -56,6 +59,7 @@ class _JobControl:
         self.timed_out = False
         self.started = time.monotonic()
         self.last_progress_write = 0.0
+        self.last_stage: str | None = None
         self.latest_progress: dict[str, Any] | None = None
         self._lock = threading.Lock()
         self._done = threading.Event()
@@ -96,8 +100,9 @@ class _JobControl:
             "fraction": max(0.0, min(1.0, float(update.get("fraction", 0.0) or 0.0))),
         }
         now = time.monotonic()
-        if now - self.last_progress_write >= self.settings.progress_interval_seconds:
-            self.last_progress_write = now
+        new_stage = progress["stage"] != self.last_stage  # a stage change is written at once (e.g. 'outputs')
+        if new_stage or now - self.last_progress_write >= self.settings.progress_interval_seconds:
+            self.last_progress_write, self.last_stage = now, progress["stage"]
             self._write(progress)
         else:
             with self._lock:
@@ -259,9 +264,12 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
     if control.lost:
         return "lost"
     if pacs is not None:
+        control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
         result = pacs.store_back(result, out_dir)
     if dimse is not None:
+        control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
         result = dimse.export(result, out_dir, STORED_FILES)
+    control.progress({"stage": "saving", "iteration": 0, "loss": None, "fraction": SAVING_FRACTION})
     artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
     outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
     if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete

@@ -109,6 +109,9 @@ class DicomwebRegistrationRequest(BaseModel):
     source: Source
     options: dict[str, Any] = Field(default_factory=dict, description="RegistrationOptions, as in the multipart form.")
     store_results: bool = Field(True, description="STOW-RS the REG and the overlays back into the study.")
+    callback_url: str | None = Field(
+        None, max_length=2048, description="POSTed the job summary once the job ends (see docs/api/callbacks.md); "
+                                           "must start with one of the server's DSAREG_CALLBACK_ALLOWED prefixes.")
 
 
 # ---- errors --------------------------------------------------------------------------------------

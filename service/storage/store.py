@@ -93,6 +93,9 @@ class JobRecord:
     idempotency_key: str | None = None
     request_hash: str | None = None
     input_bytes: int = 0
+    callback_url: str | None = None  # set at creation (its delivery state: ``callback``)
+    previous_id: str | None = None  # the job a tracking job started from (``POST …/track``)
+    callback: dict[str, Any] | None = None  # delivery state of the completion callback (read by ``get``)
     review: dict[str, Any] | None = None  # {"decision", "comment", "by", "at" (epoch s)}: the latest review
 
 
@@ -194,6 +197,20 @@ class JobStore(abc.ABC):
     def ping(self) -> bool:
         """True when the store accepts a write."""
 
+    # completion callbacks (service/jobs/callbacks.py): at-least-once, claimed with a lease like jobs
+    def due_callbacks(self, now: float, limit: int = 20) -> list[str]:
+        """Jobs that ended whose callback is due (pending and its time has come, or its delivery lease expired)."""
+        raise NotImplementedError
+
+    def claim_callback(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
+        """Take one due delivery (``attempts`` + 1); None when another deliverer has it or it is not due."""
+        raise NotImplementedError
+
+    def finish_callback(self, job_id: str, attempt: int, *, state: str, status_code: int | None,
+                        error: str | None, next_attempt_at: float | None) -> bool:
+        """Record the outcome of delivery ``attempt`` (``delivered``, ``pending`` again, or ``failed``)."""
+        raise NotImplementedError
+
 
 # ---- SQLAlchemy implementation -----------------------------------------------------------
 
@@ -257,6 +274,33 @@ workers = sa.Table(
     sa.Column("last_seen", sa.Float, nullable=False),
 )
 
+job_callbacks = sa.Table(
+    "job_callbacks", metadata,
+    sa.Column("job_id", sa.String(32), primary_key=True),
+    sa.Column("url", sa.Text, nullable=False),
+    sa.Column("delivery_id", sa.String(32), nullable=False),
+    sa.Column("state", sa.String(16), nullable=False),  # pending | delivering | delivered | failed
+    sa.Column("attempts", sa.Integer, nullable=False, default=0),
+    sa.Column("next_attempt_at", sa.Float, nullable=False, default=0.0),
+    sa.Column("lease_until", sa.Float),
+    sa.Column("last_attempt_at", sa.Float),
+    sa.Column("delivered_at", sa.Float),
+    sa.Column("last_status", sa.Integer),
+    sa.Column("last_error", sa.Text),
+    sa.Index("ix_job_callbacks_state", "state", "next_attempt_at"),
+)
+"""One row per job with a ``callback_url`` (a table of its own: databases of earlier versions gain it)."""
+
+job_previous = sa.Table(
+    "job_previous", metadata,
+    sa.Column("job_id", sa.String(32), primary_key=True),
+    sa.Column("previous_id", sa.String(32), nullable=False),
+)
+"""The job a tracking job started from (``Link: rel="previous"``)."""
+
+CALLBACK_COLUMNS = ("url", "delivery_id", "state", "attempts", "next_attempt_at", "last_attempt_at", "delivered_at",
+                    "last_status", "last_error")
+
 probe = sa.Table(
     "store_probe", metadata,
     sa.Column("id", sa.Integer, primary_key=True),
@@ -318,7 +362,9 @@ class SqlJobStore(JobStore):
             inputs=[InputFile(**item) for item in _load(m["inputs"], [])], progress=_load(m["progress"]),
             result=_load(m["result"]), error=_load(m["error"]), artifacts=_load(m["artifacts"], {}) or {},
             warnings=_load(m["warnings"], []) or [], idempotency_key=m["idempotency_key"],
-            request_hash=m["request_hash"], input_bytes=m["input_bytes"] or 0, review=_load(m["review"]),
+            request_hash=m["request_hash"], input_bytes=m["input_bytes"] or 0,
+            review=_load(m["review"]), callback_url=m.get("cb_url"), previous_id=m.get("previous_id"),
+            callback={name: m.get(f"cb_{name}") for name in CALLBACK_COLUMNS} if m.get("cb_url") else None,
         )
 
     def _event(self, conn: Any, job_id: str, event: str, worker_id: str | None = None, attempt: int | None = None,
@@ -340,6 +386,12 @@ class SqlJobStore(JobStore):
                 conn.execute(jobs.insert().values(**values))
                 for item in job.inputs:
                     conn.execute(job_blobs.insert().values(job_id=job.id, sha256=item.sha256, role=item.role))
+                if job.callback_url:
+                    conn.execute(job_callbacks.insert().values(
+                        job_id=job.id, url=job.callback_url, delivery_id=uuid.uuid4().hex, state="pending",
+                        attempts=0, next_attempt_at=0.0))
+                if job.previous_id:
+                    conn.execute(job_previous.insert().values(job_id=job.id, previous_id=job.previous_id))
                 self._event(conn, job.id, "queued")
         except IntegrityError:
             if job.idempotency_key is None:
@@ -360,13 +412,20 @@ class SqlJobStore(JobStore):
         return None if row is None else self._row_to_job(row)
 
     def get(self, job_id: str) -> JobRecord | None:
+        """The job, with its callback's delivery state and its previous job (outer joins)."""
+        query = (sa.select(jobs, *(job_callbacks.c[name].label(f"cb_{name}") for name in CALLBACK_COLUMNS),
+                           job_previous.c.previous_id)
+                 .select_from(jobs.outerjoin(job_callbacks, job_callbacks.c.job_id == jobs.c.id)
+                              .outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
+                 .where(jobs.c.id == job_id))
         with self.engine.connect() as conn:
-            row = conn.execute(sa.select(jobs).where(jobs.c.id == job_id)).first()
+            row = conn.execute(query).first()
         return None if row is None else self._row_to_job(row)
 
     def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,
              review: str | None = None) -> tuple[list[JobRecord], str | None]:
-        query = sa.select(jobs)
+        query = sa.select(jobs, job_previous.c.previous_id).select_from(  # summaries link to a previous job
+            jobs.outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
         if owner is not None:
             query = query.where(jobs.c.owner == owner)
         if status is not None:
@@ -436,6 +495,8 @@ class SqlJobStore(JobStore):
             hashes = {r[0] for r in conn.execute(sa.select(job_blobs.c.sha256).where(job_blobs.c.job_id == job_id))}
             conn.execute(job_blobs.delete().where(job_blobs.c.job_id == job_id))
             conn.execute(job_events.delete().where(job_events.c.job_id == job_id))
+            conn.execute(job_callbacks.delete().where(job_callbacks.c.job_id == job_id))
+            conn.execute(job_previous.delete().where(job_previous.c.job_id == job_id))
             conn.execute(jobs.delete().where(jobs.c.id == job_id))
             still = set()
             if hashes:
@@ -620,6 +681,45 @@ class SqlJobStore(JobStore):
         with self.engine.connect() as conn:
             rows = conn.execute(sa.select(job_events).where(job_events.c.job_id == job_id).order_by(job_events.c.seq)).fetchall()
         return [dict(r._mapping) for r in rows]
+
+    # ---- completion callbacks ---------------------------------------------------------------
+    def _due(self, now: float):
+        pending = sa.and_(job_callbacks.c.state == "pending", job_callbacks.c.next_attempt_at <= now)
+        abandoned = sa.and_(job_callbacks.c.state == "delivering", job_callbacks.c.lease_until < now)
+        ended = sa.select(jobs.c.id).where(jobs.c.id == job_callbacks.c.job_id, jobs.c.status.in_(FINISHED)).exists()
+        return sa.and_(sa.or_(pending, abandoned), ended)
+
+    def due_callbacks(self, now: float, limit: int = 20) -> list[str]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(sa.select(job_callbacks.c.job_id).where(self._due(now))
+                                     .order_by(job_callbacks.c.next_attempt_at).limit(limit)).scalars())
+
+    def claim_callback(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
+        with self.writer.begin() as conn:
+            won = conn.execute(job_callbacks.update().where(job_callbacks.c.job_id == job_id, self._due(now)).values(
+                state="delivering", lease_until=now + lease_seconds, attempts=job_callbacks.c.attempts + 1,
+                last_attempt_at=now)).rowcount
+            if not won:
+                return None
+            row = conn.execute(sa.select(job_callbacks).where(job_callbacks.c.job_id == job_id)).first()
+        return dict(row._mapping)
+
+    def finish_callback(self, job_id: str, attempt: int, *, state: str, status_code: int | None,
+                        error: str | None, next_attempt_at: float | None) -> bool:
+        if state not in ("delivered", "pending", "failed"):
+            raise ValueError(state)
+        now = time.time()
+        values: dict[str, Any] = {"state": state, "lease_until": None, "last_status": status_code,
+                                  "last_error": None if error is None else error[:500]}
+        if state == "delivered":
+            values["delivered_at"] = now
+        if next_attempt_at is not None:
+            values["next_attempt_at"] = next_attempt_at
+        with self.writer.begin() as conn:
+            done = conn.execute(job_callbacks.update().where(
+                job_callbacks.c.job_id == job_id, job_callbacks.c.state == "delivering",
+                job_callbacks.c.attempts == attempt).values(**values)).rowcount
+        return bool(done)
 
     def ping(self) -> bool:
         try:

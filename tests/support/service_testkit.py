@@ -174,9 +174,10 @@ class Server(LoggedProcess):
 
 def submit(client: httpx.Client, case: ExampleCase, options: dict | None = None, headers: dict | None = None,
            geometry: dict | str | None = None, names: tuple[str, str, str] = ("phantom.obj", "ap.png", "lat.png"),
-           ) -> httpx.Response:
+           files_override: dict[str, bytes] | None = None) -> httpx.Response:
+    content = {"ap": case.ap_png, "lat": case.lat_png, **(files_override or {})}
     files = [("mesh", (names[0], case.mesh_obj, "application/octet-stream")),
-             ("ap", (names[1], case.ap_png, "image/png")), ("lat", (names[2], case.lat_png, "image/png"))]
+             ("ap", (names[1], content["ap"], "image/png")), ("lat", (names[2], content["lat"], "image/png"))]
     geometry = case.geometry if geometry is None else geometry
     data = {"geometry": geometry if isinstance(geometry, str) else json.dumps(geometry),
             "options": json.dumps(FAST_OPTIONS if options is None else options)}
@@ -193,3 +194,31 @@ def wait_for(client: httpx.Client, job_id: str, statuses=("succeeded", "failed",
             return body
         time.sleep(0.2)
     raise AssertionError(f"job {job_id} not in {statuses} after {timeout} s: {body}")
+
+
+def generated_client(openapi_text: str, folder: Path):
+    """A Python client generated from ``openapi_text`` with openapi-python-client (a test dependency),
+    imported as the package ``dsareg_client``; call ``.cleanup()`` on the returned module list when done.
+    Skips when the generator is not installed."""
+    import importlib
+    import shutil
+
+    generator = shutil.which("openapi-python-client", path=str(Path(sys.executable).parent)) or shutil.which(
+        "openapi-python-client")
+    if generator is None:
+        pytest.skip("openapi-python-client is not installed (pip install -e '.[test]')")
+    (folder / "openapi.json").write_text(openapi_text)
+    env_path = f"{Path(sys.executable).parent}:{Path(generator).parent}"
+    proc = subprocess.run([generator, "generate", "--path", str(folder / "openapi.json"), "--meta", "none",
+                           "--output-path", str(folder / "dsareg_client")], capture_output=True, text=True,
+                          timeout=180, check=False, cwd=folder, env={"PATH": env_path, "HOME": str(folder)})
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    sys.path.insert(0, str(folder))
+    importlib.invalidate_caches()
+    return importlib.import_module("dsareg_client")
+
+
+def forget_generated_client(folder: Path) -> None:
+    sys.path.remove(str(folder))
+    for name in [m for m in sys.modules if m == "dsareg_client" or m.startswith("dsareg_client.")]:
+        del sys.modules[name]

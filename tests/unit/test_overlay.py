@@ -101,6 +101,41 @@ def test_animation_starts_at_the_initial_contour_and_has_stage_labels(tmp_path):
     assert _colour_pixels(first, INITIAL_BGR) > 0 or _colour_pixels(first, FINAL_BGR) > 0
 
 
+def test_animation_last_frame_shows_the_dice_of_the_result(tmp_path, monkeypatch):
+    """The registered frame reads the result's own Dice (full resolution), not its preview's."""
+    import torch
+
+    from dsareg_engine import pipeline
+    from dsareg_engine.geometry.rig import Rig
+    from dsareg_engine.geometry.spec import load_rig
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
+    from dsareg_engine.registration import register
+    from dsareg_engine.registration.options import RegistrationOptions
+    from dsareg_engine.render import Camera, render_hard_silhouette
+
+    mesh = make_vessel_phantom()
+    views = {n: v.resized(128, 128) for n, v in load_rig("paper").views.items()}
+    rig = Rig(views, np.eye(4))
+    vertices, faces = mesh.torch(torch.float64)
+    masks = {n: render_hard_silhouette(vertices, faces, torch.as_tensor(v.world_to_view)[None], Camera.from_view(v))[0]
+             .numpy().astype(bool) for n, v in views.items()}
+    result = register(mesh, masks, rig, RegistrationOptions(starts=1, max_iterations=4, animation=True))
+    captions: list[Caption] = []
+    real = pipeline.overlay_image
+
+    def recording(*args, caption=None, **kwargs):
+        captions.append(caption)
+        return real(*args, caption=caption, **kwargs)
+
+    monkeypatch.setattr(pipeline, "overlay_image", recording)
+    pipeline.write_animation(tmp_path / "a.gif", result, masks, mesh, rig, max_side=48)  # previews at 48 px
+    last = captions[-len(result.views):]
+    for caption in last:
+        assert caption.dice == result.views[caption.view].dice and caption.dice_label == "Dice", caption
+    previews = [c for c in captions[:-len(result.views)] if c.dice_label == "preview Dice"]
+    assert previews and any(c.dice != result.views[c.view].dice for c in previews)
+
+
 def test_unmatched_model_parts_are_filled_in_their_own_colour(tmp_path):
     from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
     from dsareg_engine.overlay import UNMATCHED_BGR, write_png

@@ -11,11 +11,10 @@
 from __future__ import annotations
 
 import asyncio
-import copy
 import json
 import logging
 
-from fastapi import FastAPI, Request
+from fastapi import Request
 from fastapi.responses import Response
 from pydantic import ValidationError
 
@@ -28,7 +27,16 @@ from ...problems import Problem
 from ...storage.store import InputFile
 from ..deps import ServiceContext
 from .forms import read_body
-from .submission import accepted, check_queue, create_job, find_replay, fingerprint, new_job, parse_options_json
+from .submission import (
+    accepted,
+    check_queue,
+    checked_callback_url,
+    create_job,
+    find_replay,
+    fingerprint,
+    new_job,
+    parse_options_json,
+)
 
 log = logging.getLogger("dsareg.service")
 
@@ -42,6 +50,11 @@ def _field(loc) -> str:
 async def parse_reference(request: Request) -> DicomwebRegistrationRequest | DimseRegistrationRequest:
     body = await read_body(request, MAX_REFERENCE_BYTES)  # streamed: never buffered past the limit
     data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
+    if not isinstance(data, dict) or "source" not in data:
+        raise Problem(422, "a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} (or "
+                           "{\"source\": {\"dimse\": ...}}) is required (or send multipart/form-data with the files "
+                           "mesh (or volume), ap and lat)", field="source",
+                      accepted="application/json with source.dicomweb or source.dimse, or multipart/form-data")
     if isinstance(data.get("source"), dict) and "dimse" in data["source"]:
         try:
             return DimseRegistrationRequest.model_validate(data)
@@ -51,10 +64,6 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
                           accepted='{"source": {"dimse": {"peer", "study_uid", "ap": {"series_uid"}, '
                                    '"lat": {"series_uid"}, "volume": {"series_uid"}}}, "options": {}, '
                                    '"store_results": true}') from None
-    if "source" not in data:
-        raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat, or application/json "
-                           "with a DICOMweb reference {\"source\": {\"dicomweb\": ...}}",
-                      accepted="multipart/form-data, application/json (source.dicomweb)")
     try:
         return DicomwebRegistrationRequest.model_validate(data)
     except ValidationError as exc:
@@ -66,35 +75,37 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
 
 
 def _stored_reference(ctx: ServiceContext, reference) -> tuple[str, bytes]:
-    """The input role and stored JSON of a checked reference (422 naming the field when its PACS is unknown)."""
+    """The input role and stored JSON of a checked reference (422 naming the field when its PACS is unknown).
+    The callback URL is the job's, not an input: it is not stored with the reference."""
     stored_reference = reference.model_copy(update={"options": {}})
     if isinstance(reference, DimseRegistrationRequest):
         if reference.source.dimse.peer not in configured_peers(ctx.settings):
             raise Problem(422, "this DICOM peer is not configured on this registration server (the administrator "
                                "lists allowed peers in DSAREG_DICOM_PEERS)", field="source.dimse.peer")
-        return PULL_ROLE, stored_reference.model_dump_json().encode()
+        return PULL_ROLE, stored_reference.model_dump_json(exclude={"callback_url"}).encode()
     server = resolve_server(ctx.settings, reference.source.dicomweb.url)
     if server is None:
         raise Problem(422, "this DICOMweb server is not configured on this registration server "
                            "(the administrator lists allowed servers in DSAREG_DICOMWEB_SERVERS)",
                       field="source.dicomweb.url")
     stored_reference.source.dicomweb.url = server.url  # normalized
-    return "dicomweb", stored_reference.model_dump_json().encode()
+    return "dicomweb", stored_reference.model_dump_json(exclude={"callback_url"}).encode()
 
 
 async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, key: str | None) -> Response:
     reference = await parse_reference(request)
+    callback_url = checked_callback_url(ctx, getattr(reference, "callback_url", None))
     role, text = _stored_reference(ctx, reference)
     options = parse_options_json(json.dumps(reference.options) if reference.options else None)
     options_json = options.model_dump(mode="json")
     digest, size = await asyncio.to_thread(ctx.blobs.put_bytes, text)
     inputs = [InputFile(role=role, sha256=digest, size=size, suffix=".json")]
-    request_hash = fingerprint(inputs, None, options_json)
+    request_hash = fingerprint(inputs, None, options_json, callback_url)
     if (previous := await find_replay(ctx, who, key, request_hash)) is not None:
         return previous
     await check_queue(ctx, who)
     job = new_job(ctx, who, key, options_json=options_json, geometry=None, inputs=inputs, warnings=[],
-                  request_hash=request_hash, input_bytes=size)
+                  request_hash=request_hash, input_bytes=size, callback_url=callback_url)
     stored, answer = await create_job(ctx, job)
     if stored is None:
         return answer  # type: ignore[return-value]
@@ -103,31 +114,3 @@ async def submit_by_reference(ctx: ServiceContext, request: Request, who: str, k
     await asyncio.to_thread(ctx.executor.submit, stored.id)
     log.info("job %s: queued by %s reference", stored.id, "DIMSE" if role == PULL_ROLE else "DICOMweb")
     return accepted(stored)
-
-
-def _inline_schema(model) -> dict:
-    """``model``'s JSON schema with its ``$defs`` inlined (it goes inside an operation, not components)."""
-    schema = model.model_json_schema()
-    defs = schema.pop("$defs", {})
-
-    def resolve(node):
-        if isinstance(node, dict):
-            ref = node.get("$ref", "")
-            if ref.startswith("#/$defs/"):
-                return resolve({**defs[ref.rsplit("/", 1)[1]], **{k: v for k, v in node.items() if k != "$ref"}})
-            return {k: resolve(v) for k, v in node.items()}
-        if isinstance(node, list):
-            return [resolve(v) for v in node]
-        return node
-
-    return resolve(schema)
-
-
-def document_json_submission(app: FastAPI) -> None:
-    """Add the ``application/json`` (DICOMweb reference) body to the submit operation's OpenAPI."""
-    for route in app.routes:
-        if getattr(route, "path", None) == "/v1/registrations" and "POST" in getattr(route, "methods", ()):
-            extra = copy.deepcopy(route.openapi_extra) if route.openapi_extra is not None else {}
-            content = extra.setdefault("requestBody", {"required": True}).setdefault("content", {})
-            content["application/json"] = {"schema": _inline_schema(DicomwebRegistrationRequest)}
-            route.openapi_extra = extra

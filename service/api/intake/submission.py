@@ -19,12 +19,13 @@ from starlette.datastructures import UploadFile
 
 from ...budgets import check_job_cost, parse_json_part
 from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry, volume_reading
+from ...jobs.callbacks import url_problem
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
 from ...storage.diskspace import ensure_room
 from ...storage.store import ConflictError, InputFile, JobRecord, new_job_id
 from ..deps import ANONYMOUS, ServiceContext
-from ..schemas.jobs import status_body
+from ..schemas.jobs import previous_link_header, status_body
 from .forms import MAX_TEXT_PART_BYTES
 
 log = logging.getLogger("dsareg.service")
@@ -33,7 +34,7 @@ MAX_GEOMETRY_BYTES = MAX_TEXT_PART_BYTES
 MAX_OPTIONS_BYTES = MAX_TEXT_PART_BYTES
 MAX_VOLUME_FILES = 4000
 RETRY_AFTER_QUEUED = "2"
-FORM_FIELDS = ("mesh", "volume", "ap", "lat", "geometry", "options")
+FORM_FIELDS = ("mesh", "volume", "ap", "lat", "geometry", "options", "callback_url")
 FILE_ROLES = ("mesh", "volume", "ap", "lat")
 
 
@@ -75,7 +76,7 @@ def form_files(form: Any) -> dict[str, list[UploadFile]]:
     unknown = sorted(set(form.keys()) - set(FORM_FIELDS))
     if unknown:
         raise Problem(422, f"unknown form field(s) {unknown[:5]}", field=str(unknown[0])[:64],
-                      accepted="mesh, volume, ap, lat, geometry, options")
+                      accepted=", ".join(FORM_FIELDS))
     files: dict[str, list[UploadFile]] = {}
     for name in FILE_ROLES:
         values = form.getlist(name)
@@ -129,10 +130,35 @@ async def store_uploads(ctx: ServiceContext, files: dict[str, list[UploadFile]]
     return inputs, sources
 
 
-def fingerprint(inputs: list[InputFile], geometry: str | None, options_json: dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(
-        {"inputs": [vars(f) for f in inputs], "geometry": geometry, "options": options_json},
-        sort_keys=True).encode()).hexdigest()
+def fingerprint(inputs: list[InputFile], geometry: str | None, options_json: dict[str, Any],
+                callback_url: str | None = None) -> str:
+    request = {"inputs": [vars(f) for f in inputs], "geometry": geometry, "options": options_json}
+    if callback_url:  # only when given: requests without one hash as before
+        request["callback_url"] = callback_url
+    return hashlib.sha256(json.dumps(request, sort_keys=True).encode()).hexdigest()
+
+
+def checked_callback_url(ctx: ServiceContext, value: Any, field: str = "callback_url") -> str | None:
+    """The callback URL of a request (None when not given); 422 naming ``field`` unless it is allowed."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    if not isinstance(value, str):
+        raise Problem(422, "must be text (a URL)", field=field)
+    url = value.strip()
+    why = url_problem(url, ctx.settings.callback_allowed)
+    if why is not None:
+        raise Problem(422, f"callback_url {why}", field=field,
+                      accepted="an http(s) URL under a prefix the administrator allowed (DSAREG_CALLBACK_ALLOWED)")
+    return url
+
+
+def form_callback_url(ctx: ServiceContext, form: Any) -> str | None:
+    values = form.getlist("callback_url")
+    if len(values) > 1:
+        raise Problem(422, "give callback_url at most once", field="callback_url")
+    if values and isinstance(values[0], UploadFile):
+        raise Problem(422, "must be a text field, not a file", field="callback_url")
+    return checked_callback_url(ctx, values[0] if values else None)
 
 
 # ---- the job ---------------------------------------------------------------------------------
@@ -173,12 +199,14 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
 
 
 def new_job(ctx: ServiceContext, who: str, key: str | None, *, options_json: dict[str, Any], geometry: str | None,
-            inputs: list[InputFile], warnings: list[str], request_hash: str, input_bytes: int) -> JobRecord:
+            inputs: list[InputFile], warnings: list[str], request_hash: str, input_bytes: int,
+            callback_url: str | None = None, previous_id: str | None = None) -> JobRecord:
     now = time.time()
     return JobRecord(
         id=new_job_id(), owner=who, status="queued", created_at=now, updated_at=now,
         max_attempts=ctx.settings.max_attempts, options=options_json, geometry=geometry, inputs=inputs,
         warnings=warnings, idempotency_key=key, request_hash=request_hash, input_bytes=input_bytes,
+        callback_url=callback_url, previous_id=previous_id,
     )
 
 
@@ -187,7 +215,8 @@ def replay(existing: JobRecord, request_hash: str) -> Response:
     if existing.request_hash != request_hash:
         raise Problem(409, "this Idempotency-Key was already used with a different request; use a new key",
                       kind="idempotency-conflict", field="Idempotency-Key", extra={"job_id": existing.id})
-    return JSONResponse(status_body(existing), status_code=200, headers={"Location": f"/v1/registrations/{existing.id}"})
+    return JSONResponse(status_body(existing), status_code=200,
+                        headers={"Location": f"/v1/registrations/{existing.id}", **previous_link_header(existing)})
 
 
 async def find_replay(ctx: ServiceContext, who: str, key: str | None, request_hash: str) -> Response | None:
@@ -211,31 +240,33 @@ async def create_job(ctx: ServiceContext, job: JobRecord) -> tuple[JobRecord | N
 def accepted(stored: JobRecord) -> JSONResponse:
     """202 with the job as every submission answers it (only the links that lead somewhere now)."""
     return JSONResponse(status_body(stored), status_code=202,
-                        headers={"Location": f"/v1/registrations/{stored.id}", "Retry-After": RETRY_AFTER_QUEUED})
+                        headers={"Location": f"/v1/registrations/{stored.id}", "Retry-After": RETRY_AFTER_QUEUED,
+                                 **previous_link_header(stored)})
 
 
 async def submit_form(ctx: ServiceContext, form: Any, who: str, key: str | None) -> Response:
     """A parsed multipart form → 202 with the new job (or 200/409 for an Idempotency-Key replay)."""
     files = form_files(form)
     geometry, options = await asyncio.to_thread(form_geometry_and_options, form)  # JSON parsing off the event loop
-    return await submit_files(ctx, files, geometry, options, who, key)
+    return await submit_files(ctx, files, geometry, options, who, key, callback_url=form_callback_url(ctx, form))
 
 
 async def submit_files(ctx: ServiceContext, files: dict[str, list[UploadFile]], geometry: str | None, options: Any,
-                       who: str, key: str | None) -> Response:
+                       who: str, key: str | None, *, callback_url: str | None = None,
+                       previous_id: str | None = None) -> Response:
     """Checked file parts, canonical geometry JSON and parsed options → 202 with the new job (or a replay)."""
     options_json = options.model_dump(mode="json")
     upload_bytes = sum(upload.size or 0 for uploads in files.values() for upload in uploads)
     await asyncio.to_thread(ensure_room, ctx.blobs.root, ctx.settings.min_free_bytes, upload_bytes)  # 507 before writing
     inputs, sources = await store_uploads(ctx, files)
-    request_hash = fingerprint(inputs, geometry, options_json)
+    request_hash = fingerprint(inputs, geometry, options_json, callback_url)
     total = sum(f.size for f in inputs)
     if (previous := await find_replay(ctx, who, key, request_hash)) is not None:
         return previous
     await check_queue(ctx, who)  # back-pressure before the expensive parse
     warnings = await validate_inputs(ctx, inputs, geometry, options)
     job = new_job(ctx, who, key, options_json=options_json, geometry=geometry, inputs=inputs, warnings=warnings,
-                  request_hash=request_hash, input_bytes=total)
+                  request_hash=request_hash, input_bytes=total, callback_url=callback_url, previous_id=previous_id)
     stored, answer = await create_job(ctx, job)
     if stored is None:
         return answer  # type: ignore[return-value]

@@ -7,6 +7,7 @@ from typing import Literal
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from ...engine_adapter import engine
+from ..schemas.jobs import previous_link_header, succeeded_result
 from ...problems import Problem, problem_responses
 from ...storage.store import JobRecord
 from ..deps import Ctx, OwnedJob, Principal, ServiceContext, owned_job
@@ -49,7 +50,7 @@ def get_result(job: OwnedJob) -> Response:
     if job.status != "succeeded" or job.result is None:
         raise Problem(404, f"no result: the job is {job.status}", kind="result-not-available",
                       extra={"job_status": job.status})
-    return JSONResponse(job.result)
+    return JSONResponse(succeeded_result(job), headers=previous_link_header(job))
 
 
 # the view (and DICOM name) is validated before the job is looked up: a bad one is a 422 for any job,

@@ -14,7 +14,7 @@ from ..deps import Ctx, OwnedJob, Principal
 from ..intake.forms import read_form
 from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
 from ..openapi import resource_router
-from ..schemas.jobs import JobList, JobStatus, status_body, summary_body
+from ..schemas.jobs import JobList, JobStatus, previous_link_header, status_body, summary_body
 
 log = logging.getLogger("dsareg.service")
 
@@ -25,8 +25,10 @@ SUBMIT_DOC = {
     "response_model": JobStatus,
     "summary": "Submit a registration job",
     "description": (
-        "multipart/form-data with `mesh` (or `volume`), `ap`, `lat`, optional `geometry` and `options`. "
+        "multipart/form-data with `mesh` (or `volume`), `ap`, `lat`, optional `geometry`, `options` and "
+        "`callback_url`; or application/json with the inputs by DICOMweb reference (`DicomwebRegistrationRequest`). "
         "Inputs are fully parsed before the job is accepted. Answers 202 with `Location` of the job. "
+        "A job that `succeeded` ran to the end; whether to trust its pose is `verdict` (ok / check / failed). "
         "With an `Idempotency-Key` header, repeating the same request returns the original job (200), "
         "while reusing the key with a different request is a 409."
     ),
@@ -112,7 +114,7 @@ def get_job(ctx: Ctx, job: OwnedJob) -> Response:
     body = status_body(job)
     if (source := dimse_source(job, ctx.blobs.read)) is not None:
         body["source"] = source
-    return JSONResponse(body, headers=headers)
+    return JSONResponse(body, headers={**headers, **previous_link_header(job)})
 
 
 @router.post("/v1/registrations/{job_id}/cancel", response_model=JobStatus, summary="Cancel a job",
@@ -127,7 +129,7 @@ def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
     updated = ctx.store.request_cancel(job.id) or job
     ctx.executor.cancel(job.id)
     code = 202 if updated.status == "running" else 200
-    return JSONResponse(status_body(updated), status_code=code)
+    return JSONResponse(status_body(updated), status_code=code, headers=previous_link_header(updated))
 
 
 @router.delete("/v1/registrations/{job_id}", status_code=204, summary="Delete a job and its files",

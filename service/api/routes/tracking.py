@@ -26,6 +26,7 @@ from ..deps import Ctx, OwnedJob, Principal, ServiceContext
 from ..intake.forms import read_form
 from ..intake.submission import (
     MAX_OPTIONS_BYTES,
+    form_callback_url,
     form_files,
     idempotency_key,
     parse_options_json,
@@ -46,6 +47,8 @@ TRACK_SCHEMA = {
         "options": {"type": "string", "description": "RegistrationOptions overriding the job's (JSON); mode is 'track', "
                                                      "the initial pose is the job's result.",
                     "example": "{\"max_iterations\": 60}"},
+        "callback_url": {"type": "string", "maxLength": 2048,
+                         "description": "POSTed the new job's summary once it ends (as for POST /v1/registrations)."},
     },
 }
 INHERITED_OUT = ("ground_truth_mesh_to_world", "initial_mesh_to_world", "mode", "starts")
@@ -106,22 +109,22 @@ async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) 
     key = idempotency_key(request)
     if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files ap and lat", accepted="multipart/form-data")
-    form = await read_form(request, max_files=6, max_fields=4)
+    form = await read_form(request, max_files=6, max_fields=5)
     model_files: list[tuple[str, UploadFile]] = []
     try:
-        unknown = sorted(set(form.keys()) - {"ap", "lat", "options"})
+        unknown = sorted(set(form.keys()) - {"ap", "lat", "options", "callback_url"})
         if unknown:
             raise Problem(422, f"unknown form field(s) {unknown[:5]}; the model and geometry are the job's",
-                          field=str(unknown[0])[:64], accepted="ap, lat, options")
+                          field=str(unknown[0])[:64], accepted="ap, lat, options, callback_url")
+        callback_url = form_callback_url(ctx, form)
         options = await asyncio.to_thread(_options, previous, form)
         model_files = _model_parts(ctx, previous)
         items: list[tuple[str, Any]] = list(model_files)
         items += [(name, value) for name in ("ap", "lat") for value in form.getlist(name)]
         geometry = canonical_geometry(previous.geometry)  # the job's, as stored (parsed once at its submission)
-        response = await submit_files(ctx, form_files(FormData(items)), geometry, options, who, key)
-        if response.status_code in (200, 202):
-            response.headers["Link"] = f'</v1/registrations/{previous.id}>; rel="previous"'
-        return response
+        # the new job records its previous one: its status, result and 202 carry Link: rel="previous"
+        return await submit_files(ctx, form_files(FormData(items)), geometry, options, who, key,
+                                  callback_url=callback_url, previous_id=previous.id)
     finally:
         for _, upload in model_files:
             await upload.close()

@@ -9,10 +9,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine
 from ...problems import ProblemDetails
+from .payloads import Verdict
 from ...storage.store import JobRecord
 from .review import Review, review_model
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
+STATUS_TEXT = ("The job's state. `succeeded` means the job ran to the end and has a result; whether to trust the pose "
+               "is the `verdict` (ok / check / failed), never the status.")
+VERDICT_TEXT = ("= result.metrics.confidence.verdict: ok (use the pose), check (look at the overlays first), failed "
+                "(do not use the pose). Null until the job succeeded (and for results of versions before the verdict).")
 
 EXAMPLE_ID = "0b5a6f3c9d2e4f1a8b7c6d5e4f3a2b1c"
 
@@ -23,8 +28,9 @@ class Progress(BaseModel):
 
     stage: str = Field(description="Current stage: 'queued', 'start', an optimization stage named "
                                    "'<views>:1/<downscale>' (e.g. 'ap+lat:1/4', 'ap:1/2') or "
-                                   "'<views>:1/1:refine' (the final L-BFGS), then 'outputs' and 'animation'. "
-                                   "A succeeded job reports its last optimization stage.")
+                                   "'<views>:1/1:refine' (the final L-BFGS), then the outputs: 'outputs' (PNGs, "
+                                   "0.92–0.96), 'animation', 'dicom' (0.98), 'storing' (STOW-RS, jobs by reference) "
+                                   "and 'saving' (0.99). A succeeded job reports its last optimization stage at 1.0.")
     iteration: int = Field(0, description="Iteration within the stage (L-BFGS: function evaluations).")
     loss: float | None = Field(None, description="Latest loss (mean squared silhouette error over the active views).")
     fraction: float = Field(0.0, ge=0.0, le=1.0,
@@ -48,6 +54,28 @@ class JobLinks(BaseModel):
     mask_lat: str | None = _link("LAT vessel mask PNG; present when succeeded.")
     loss_plot: str | None = _link("Loss-per-iteration plot PNG; present when succeeded.")
     animation: str | None = _link("Animated GIF; present only when the job asked for options.animation and succeeded.")
+    dicom_reg: str | None = _link("DICOM Spatial Registration (reg.dcm); present when succeeded and written.")
+    dicom_overlay_ap: str | None = _link("DICOM Secondary Capture of the AP overlay; present when succeeded and written.")
+    dicom_overlay_lat: str | None = _link("DICOM Secondary Capture of the LAT overlay; present when succeeded and written.")
+    dicom_loss: str | None = _link("DICOM Secondary Capture of the loss plot; present when succeeded and written.")
+    track: str | None = _link("POST new AP/LAT images here to re-register from this pose; present when succeeded.")
+    previous: str | None = _link("The job this tracking job started from; present for tracking jobs.")
+
+
+class CallbackState(BaseModel):
+    """Delivery of the job's completion callback (``callback_url``; docs/api/callbacks.md)."""
+
+    url: str = Field(description="The callback_url of the submission.")
+    state: Literal["pending", "delivering", "delivered", "failed"] = Field(
+        description="pending: waits for the job to end or for the next attempt; delivering: an attempt is under way; "
+                    "delivered: a 2xx answer; failed: out of attempts, or a 3xx/410 answer (redirects are not followed).")
+    delivery_id: str = Field(description="The X-Dsareg-Delivery header of every attempt (the same on retries).")
+    attempts: int = Field(0, description="Attempts made so far.")
+    last_attempt_at: str | None = None
+    next_attempt_at: str | None = Field(None, description="When the next attempt is due (state pending after a failure).")
+    delivered_at: str | None = None
+    last_response_status: int | None = Field(None, description="HTTP status of the last answer (null: no answer).")
+    last_error: str | None = Field(None, description="Why the last attempt did not deliver.")
 
 
 class JobStatus(BaseModel):
@@ -60,7 +88,8 @@ class JobStatus(BaseModel):
     }]})
 
     id: str
-    status: Status
+    status: Status = Field(description=STATUS_TEXT)
+    verdict: Verdict | None = Field(None, description=VERDICT_TEXT)
     created_at: str
     started_at: str | None = None
     finished_at: str | None = None
@@ -70,6 +99,7 @@ class JobStatus(BaseModel):
     result: dict[str, Any] | None = Field(None, description="The registration result when succeeded.")
     error: ProblemDetails | None = Field(None, description="Why the job failed (problem details).")
     warnings: list[str] = Field(default_factory=list, description="Notes from reading the inputs.")
+    callback: CallbackState | None = Field(None, description="The completion callback, when the job asked for one.")
     source: dict[str, Any] | None = Field(
         None, description='Only for a job made from a study received over DIMSE: {"dimse": {"calling_ae", '
                           '"study_uid", "pairing", "ap", "lat", "volume"}} (absent otherwise).')
@@ -90,15 +120,16 @@ class JobSummary(BaseModel):
     }]})
 
     id: str
-    status: Status
+    status: Status = Field(description=STATUS_TEXT)
     created_at: str
     started_at: str | None = None
     finished_at: str | None = None
     seconds: float | None = Field(None, description="Run time (started → finished), seconds.")
     progress: Progress | None = None
     converged: bool | None = Field(None, description="metrics.converged of the result (succeeded jobs).")
-    verdict: str | None = Field(None, description="metrics.confidence.verdict of the result: ok / check / failed "
-                                                  "(results without one: 'converged' / 'NOT converged').")
+    verdict: Verdict | None = Field(None, description=VERDICT_TEXT)
+    reasons: list[str] | None = Field(None, description="metrics.confidence.reasons: why the verdict is check or "
+                                                        "failed, in plain words (empty when ok).")
     dice: dict[str, float] | None = Field(None, description="Dice per view of the registered silhouette.")
     error: str | None = Field(None, description="Title and detail of the problem, for failed jobs.")
     review: Review | None = Field(None, description="A person's latest review; null until then.")
@@ -130,7 +161,8 @@ def job_links(job_id: str, job: JobRecord | None = None) -> JobLinks:
         cancel=f"{base}/cancel", result=f"{base}/result",
         overlay_ap=f"{base}/overlays/ap.png", overlay_lat=f"{base}/overlays/lat.png",
         mask_ap=f"{base}/masks/ap.png", mask_lat=f"{base}/masks/lat.png", loss_plot=f"{base}/loss.png",
-        animation=f"{base}/animation.gif",
+        animation=f"{base}/animation.gif", track=f"{base}/track",
+        **{key: f"{base}/dicom/{name}" for key, name in LINKED_DICOM.items()},
     )
     if job is None:
         return JobLinks(self=base, **every)
@@ -141,15 +173,26 @@ def job_links(job_id: str, job: JobRecord | None = None) -> JobLinks:
         if job.result is not None:
             links["result"] = every["result"]
         artifacts = job.artifacts or {}
-        for key, name in LINKED_ARTIFACTS.items():
+        for key, name in {**LINKED_ARTIFACTS, **LINKED_DICOM}.items():
             if name in artifacts:
                 links[key] = every[key]
+        if job.result is not None and "mesh_to_world" in job.result:
+            links["track"] = every["track"]
+    if job.previous_id:
+        links["previous"] = f"/v1/registrations/{job.previous_id}"
     return JobLinks(self=base, **links)
 
 
 LINKED_ARTIFACTS = {"overlay_ap": engine.overlay_png("ap"), "overlay_lat": engine.overlay_png("lat"),
                     "mask_ap": engine.mask_png("ap"), "mask_lat": engine.mask_png("lat"), "loss_plot": engine.LOSS_PNG,
                     "animation": engine.ANIMATION_GIF}
+LINKED_DICOM = {"dicom_reg": engine.REG_DCM, "dicom_overlay_ap": engine.overlay_dcm("ap"),
+                "dicom_overlay_lat": engine.overlay_dcm("lat"), "dicom_loss": engine.LOSS_DCM}
+
+
+def previous_link_header(job: JobRecord) -> dict[str, str]:
+    """``Link: </v1/registrations/{previous}>; rel="previous"`` for a tracking job, else nothing."""
+    return {"Link": f'</v1/registrations/{job.previous_id}>; rel="previous"'} if job.previous_id else {}
 
 
 def _final_progress(job: JobRecord) -> dict[str, Any]:
@@ -173,14 +216,35 @@ def _progress(job: JobRecord) -> Progress | None:
     return Progress(**progress) if progress else None
 
 
+def succeeded_result(job: JobRecord) -> dict[str, Any] | None:
+    """The result of a succeeded job, with ``verdict`` filled from ``metrics.confidence`` (older rows lack it)."""
+    if job.status != "succeeded" or not isinstance(job.result, dict):
+        return None
+    verdict = _verdict(job.result)
+    return {**job.result, "verdict": verdict} if verdict and "verdict" not in job.result else job.result
+
+
+def _callback_state(job: JobRecord) -> CallbackState | None:
+    row = job.callback
+    if not row:
+        return None
+    retry_at = row.get("next_attempt_at") if row.get("state") == "pending" and row.get("attempts") else None
+    return CallbackState(
+        url=row["url"], state=row["state"], delivery_id=row["delivery_id"], attempts=row.get("attempts") or 0,
+        last_attempt_at=iso(row.get("last_attempt_at")), next_attempt_at=iso(retry_at),
+        delivered_at=iso(row.get("delivered_at")), last_response_status=row.get("last_status"),
+        last_error=row.get("last_error"))
+
+
 def job_status(job: JobRecord) -> JobStatus:
+    result = succeeded_result(job)
     return JobStatus(
-        id=job.id, status=job.status, created_at=iso(job.created_at) or "", started_at=iso(job.started_at),
-        finished_at=iso(job.finished_at), attempts=job.attempts, cancel_requested=job.cancel_requested,
-        progress=_progress(job),
-        result=job.result if job.status == "succeeded" else None,
+        id=job.id, status=job.status, verdict=_verdict(result) if result else None, created_at=iso(job.created_at) or "",
+        started_at=iso(job.started_at), finished_at=iso(job.finished_at), attempts=job.attempts,
+        cancel_requested=job.cancel_requested, progress=_progress(job), result=result,
         error=ProblemDetails(**job.error) if job.error and job.status == "failed" else None,
-        warnings=job.warnings, review=review_model(job.review), links=job_links(job.id, job),
+        warnings=job.warnings, callback=_callback_state(job), review=review_model(job.review),
+        links=job_links(job.id, job),
     )
 
 
@@ -197,12 +261,14 @@ def _drop_absent_links(body: dict[str, Any]) -> dict[str, Any]:
 
 
 def _verdict(result: dict[str, Any]) -> str | None:
-    """``metrics.confidence.verdict`` (ok / check / failed); older results: converged or not."""
+    """``metrics.confidence.verdict`` (ok / check / failed); None for results without one."""
     verdict = ((result.get("metrics") or {}).get("confidence") or {}).get("verdict")
-    if isinstance(verdict, str) and verdict:
-        return verdict
-    converged = (result.get("metrics") or {}).get("converged")
-    return None if converged is None else ("converged" if converged else "NOT converged")
+    return verdict if verdict in ("ok", "check", "failed") else None
+
+
+def _reasons(result: dict[str, Any]) -> list[str] | None:
+    reasons = ((result.get("metrics") or {}).get("confidence") or {}).get("reasons")
+    return [str(reason) for reason in reasons] if isinstance(reasons, list) else None
 
 
 def job_summary(job: JobRecord) -> JobSummary:
@@ -218,13 +284,13 @@ def job_summary(job: JobRecord) -> JobSummary:
     if job.started_at is not None and job.finished_at is not None:
         seconds = round(job.finished_at - job.started_at, 3)
     full = job_links(job.id, job)
-    links = JobLinks(self=full.self, cancel=full.cancel, result=full.result)
+    links = JobLinks(self=full.self, cancel=full.cancel, result=full.result, previous=full.previous)
     return JobSummary(
         id=job.id, status=job.status, created_at=iso(job.created_at) or "", started_at=iso(job.started_at),
         finished_at=iso(job.finished_at), seconds=seconds, progress=_progress(job),
         converged=metrics.get("converged") if isinstance(metrics.get("converged"), bool) else None,
-        verdict=_verdict(result) if result else None, dice=dice or None, error=error,
-        review=review_model(job.review), links=links,
+        verdict=_verdict(result) if result else None, reasons=_reasons(result) if result else None,
+        dice=dice or None, error=error, review=review_model(job.review), links=links,
     )
 
 

@@ -18,6 +18,7 @@ documented, unknown ones pass.
 
 from __future__ import annotations
 
+from enum import Enum
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -63,6 +64,81 @@ class GroundTruthErrors(BaseModel):
     initial_mtre_mm: float | None = Field(None, description="mTRE of the initial pose, mm.")
 
 
+class Verdict(str, Enum):
+    """Whether to trust the pose: `ok` use it, `check` look at the overlays first, `failed` do not use it."""
+
+    ok = "ok"
+    check = "check"
+    failed = "failed"
+
+
+class RunnerUp(BaseModel):
+    """The best start that ended at a distinct pose, and how well it and the kept pose fit."""
+
+    model_config = ConfigDict(extra="allow")
+
+    distance_mm: float = Field(description="Mean vertex distance of that pose from the kept one, mm.")
+    best_fit: float = Field(description="Fit of the kept pose (tolerant F-score, 0–1, mean over the views).")
+    fit: float = Field(description="Fit of the distinct pose (same measure); close to best_fit = ambiguous.")
+
+
+class ConfidenceSignals(BaseModel):
+    """The measurements the verdict is made of (see docs/api/results.md)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    dice: dict[str, float] = Field(
+        default_factory=dict, description="Per view: Dice (0–1) of the registered silhouette with the vessel mask "
+                                          "as fitted (its border moved by the border correction).")
+    runner_up: RunnerUp | None = Field(None, description="A distinct pose that fits almost as well, or null.")
+    border_shift_px: dict[str, float] | None = Field(
+        None, description="Per view: how far the border correction moved the mask outline, pixels (signed).")
+    outside_fraction: dict[str, float] = Field(
+        default_factory=dict, description="Per view: fraction (0–1) of the model's vertices projecting outside the image.")
+    stopped_on_tolerance: bool | None = Field(
+        None, description="True when the final stage stopped because the pose stopped changing (not the iteration cap).")
+
+
+class Confidence(BaseModel):
+    """The verdict on the pose and why. `failed`: some view's Dice < 0.5; `check`: any view's Dice < 0.7, a
+    distinct pose fits almost as well, a border shift ≥ 1.5 px, > 25 % of the model outside an image, or the
+    iteration cap was hit; else `ok`."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+        "verdict": "failed", "reasons": ["ap: the model's silhouette overlaps the vessels poorly (dice 0.25)"],
+        "signals": {"dice": {"ap": 0.25, "lat": 0.31}, "runner_up": None, "border_shift_px": {"ap": 0.1, "lat": 0.0},
+                    "outside_fraction": {"ap": 0.0, "lat": 0.0}, "stopped_on_tolerance": True}}]})
+
+    verdict: Verdict = Field(description="ok: use the pose; check: look at the overlays first; failed: do not use it.")
+    reasons: list[str] = Field(default_factory=list,
+                               description="Plain-word sentences, one per finding (empty when ok); failed ones first.")
+    signals: ConfidenceSignals = Field(default_factory=ConfidenceSignals)
+
+
+class Initialization(BaseModel):
+    """Where the optimization started: a given pose, or a search over candidate poses."""
+
+    model_config = ConfigDict(extra="allow")
+
+    method: Literal["given", "search"] = Field(description="given: the geometry's / options' initial pose; "
+                                                           "search: the best candidates of a pose search.")
+    candidates_scored: int = Field(0, description="Candidate poses scored by the search (0 when given).")
+    seconds: float = Field(0.0, description="Time of the search, seconds.")
+    best_score: float | None = Field(None, description="Search score of the best candidate (higher is better).")
+    runner_up_score: float | None = Field(None, description="Score of the second-best candidate.")
+
+
+class Motion(BaseModel):
+    """Motion since the previous pose (tracking jobs: `POST …/track`, `options.mode: "track"`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    rotation_deg: float = Field(description="Angle of the relative rotation, degrees.")
+    translation_mm: float = Field(description="Displacement of the model's centroid, world mm.")
+    mean_displacement_mm: float = Field(description="Mean displacement of the model's vertices, mm.")
+    world_motion: Matrix4 | None = Field(None, description="4x4 current · previous⁻¹ (world frame).")
+
+
 class ResultMetrics(BaseModel):
     """How the registration went."""
 
@@ -88,6 +164,11 @@ class ResultMetrics(BaseModel):
         None, description="Measured mask border offset per view, pixels (border correction).")
     warnings: list[str] | None = Field(None, description="Notes on the result (e.g. single-view ambiguity).")
     ground_truth: GroundTruthErrors | None = None
+    confidence: Confidence | None = Field(None, description="The verdict on the pose and its reasons (every result "
+                                                            "of this version has one).")
+    initialization: Initialization | None = None
+    mode: Literal["register", "track"] | None = Field(None, description="track: a tracking job (then `motion`).")
+    motion: Motion | None = None
 
 
 class ViewResult(BaseModel):
@@ -100,6 +181,51 @@ class ViewResult(BaseModel):
     projection_matrix: Matrix34 = Field(description="3x4 homogeneous mesh-frame mm → homogeneous pixels.")
     dice: float = Field(ge=0, le=1, description="Dice of the registered hard silhouette with the vessel mask.")
     iou: float = Field(ge=0, le=1, description="Intersection over union of the same.")
+
+
+class DicomInstance(BaseModel):
+    """One DICOM object the job wrote (`GET …/dicom/{name}`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    sop_class_uid: str
+    sop_instance_uid: str
+    series_instance_uid: str | None = None
+    study_instance_uid: str | None = None
+
+
+class DicomSource(BaseModel):
+    """Where the inputs of a job by reference came from."""
+
+    model_config = ConfigDict(extra="allow")
+
+    server: str | None = Field(None, description="The DICOMweb base URL.")
+    study_uid: str | None = None
+    fetch_seconds: float | None = Field(None, description="Time to fetch the inputs, seconds.")
+    requests: int | None = Field(None, description="HTTP requests made to fetch them.")
+
+
+class DicomStored(BaseModel):
+    """What was stored back into the PACS (STOW-RS) for a job by reference with `store_results`."""
+
+    model_config = ConfigDict(extra="allow")
+
+    server: str | None = None
+    study_uid: str | None = None
+    sop_instance_uids: list[str] = Field(default_factory=list)
+    confirmed: bool | None = Field(None, description="True when the PACS confirmed every instance.")
+    store_seconds: float | None = None
+
+
+class DicomResult(BaseModel):
+    """The DICOM results: REG (model → C-arm frame) and Secondary Captures."""
+
+    model_config = ConfigDict(extra="allow")
+
+    instances: dict[str, DicomInstance] = Field(
+        default_factory=dict, description="By file name (`reg.dcm`, `overlay_ap.dcm`, `overlay_lat.dcm`, `loss.dcm`).")
+    source: DicomSource | None = None
+    stored: DicomStored | None = None
 
 
 class MaskShift(BaseModel):
@@ -160,14 +286,16 @@ class VolumeRead(BaseModel):
 
 
 class RegistrationResult(BaseModel):
-    """The registration result (`result.json`). Later versions may add fields (e.g. `verdict`)."""
+    """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
+    `succeeded` only ran to the end. Later versions may add fields; clients must ignore unknown ones."""
 
     model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
-        "mesh_to_world": IDENTITY, "initial_mesh_to_world": IDENTITY,
+        "mesh_to_world": IDENTITY, "initial_mesh_to_world": IDENTITY, "verdict": "ok",
         "views": {"ap": {"world_to_view": IDENTITY, "mesh_to_view": IDENTITY,
                          "projection_matrix": [[692.8, 0, 399.5, 0], [0, 692.8, 399.5, 0], [0, 0, 1, 0]],
                          "dice": 0.997, "iou": 0.994}},
-        "metrics": {"loss": 0.0019, "converged": True, "reason": "pose change below tolerance in the final stage"}}]})
+        "metrics": {"loss": 0.0019, "converged": True, "reason": "pose change below tolerance in the final stage",
+                    "confidence": {"verdict": "ok", "reasons": [], "signals": {}}}}]})
 
     mesh_to_world: Matrix4 = Field(description="4x4 rigid estimated pose, mesh mm → world mm: the answer.")
     initial_mesh_to_world: Matrix4 | None = Field(None, description="4x4 pose the registration started from.")
@@ -176,7 +304,10 @@ class RegistrationResult(BaseModel):
     warnings: list[str] | None = Field(None, description="Notes from reading the inputs (decimation, resizing...).")
     image_reading: dict[str, ImageReadingRecord] | None = Field(
         None, description="Per view, what was read from a multi-frame XA run (frames, mask frames, recipe, shift).")
-    verdict: Any | None = Field(None, description="The engine's verdict on the pose, when it gives one.")
+    verdict: Verdict | None = Field(
+        None, description="= metrics.confidence.verdict: ok (use the pose), check (look at the overlays first), "
+                          "failed (do not use it). Null only for results of versions before the verdict.")
+    dicom: DicomResult | None = Field(None, description="The DICOM objects written (and fetched/stored in a PACS).")
     volume: VolumeRead | None = Field(None, description="For a volume input: what was read from it.")
 
 
@@ -230,8 +361,20 @@ def multipart_schema(presets: list[str]) -> dict[str, Any]:
                 "description": "RegistrationOptions as JSON text; every field is optional.",
                 "examples": ['{"starts": 2, "max_iterations": 300}'],
             },
+            "callback_url": {
+                "type": "string", "maxLength": 2048,
+                "description": "POSTed the job summary (JobSummary JSON, signed) once the job ends; must start with "
+                               "one of the server's DSAREG_CALLBACK_ALLOWED prefixes, else 422.",
+                "examples": ["https://ris.example.org/dsareg-hooks/job-done"],
+            },
         },
     }
+
+
+def reference_model() -> type[BaseModel]:
+    from ...pacs.dicomweb import DicomwebRegistrationRequest
+
+    return DicomwebRegistrationRequest
 
 
 def document(schema: dict[str, Any]) -> dict[str, Any]:
@@ -241,7 +384,7 @@ def document(schema: dict[str, Any]) -> dict[str, Any]:
     PRESETS = engine.PRESETS
 
     schemas = schema.setdefault("components", {}).setdefault("schemas", {})
-    schemas.update(_components(options_model(), GeometryFile, RegistrationResult))
+    schemas.update(_components(options_model(), GeometryFile, RegistrationResult, reference_model()))
     result_ref = {"$ref": REF.format(model="RegistrationResult")}
     for name in ("JobStatus", "JobStatus-Output"):
         props = schemas.get(name, {}).get("properties", {})
@@ -251,12 +394,16 @@ def document(schema: dict[str, Any]) -> dict[str, Any]:
     paths = schema.get("paths", {})
     post = paths.get("/v1/registrations", {}).get("post")
     if post is not None:
-        post["requestBody"] = {"required": True, "content": {"multipart/form-data": {
-            "schema": multipart_schema(sorted(PRESETS)),
-            "encoding": {"options": {"contentType": "application/json, text/plain"},
-                         "geometry": {"contentType": "text/plain, application/json"},
-                         "volume": {"contentType": "application/octet-stream"}},
-        }}}
+        post["requestBody"] = {"required": True, "content": {
+            "multipart/form-data": {
+                "schema": multipart_schema(sorted(PRESETS)),
+                "encoding": {"options": {"contentType": "application/json, text/plain"},
+                             "geometry": {"contentType": "text/plain, application/json"},
+                             "volume": {"contentType": "application/octet-stream"}},
+            },
+            # inputs by DICOMweb reference (service/api/dicom_reference.py)
+            "application/json": {"schema": {"$ref": REF.format(model=reference_model().__name__)}},
+        }}
     get_result = paths.get("/v1/registrations/{job_id}/result", {}).get("get")
     if get_result is not None:
         ok = get_result.setdefault("responses", {}).setdefault("200", {})

@@ -59,6 +59,9 @@ class DimseRegistrationRequest(BaseModel):
     source: DimseSourceField
     options: dict[str, Any] = Field(default_factory=dict, description="RegistrationOptions, as in the multipart form.")
     store_results: bool = Field(True, description="C-STORE the REG and the overlays back to the peer.")
+    callback_url: str | None = Field(
+        None, max_length=2048, description="POSTed the job summary once the job ends (see docs/api/callbacks.md); "
+                                           "must start with one of the server's DSAREG_CALLBACK_ALLOWED prefixes.")
 
 
 class DimsePacsError(PacsError):

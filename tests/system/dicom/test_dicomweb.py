@@ -19,7 +19,7 @@ import numpy as np
 import pydicom
 import pytest
 
-from tests.support.service_testkit import Server, wait_for
+from tests.support.service_testkit import Server, forget_generated_client, generated_client, wait_for
 
 from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
 from tests.support.servers import OrthancServer, free_port
@@ -151,9 +151,11 @@ def test_register_by_reference_stores_reg_and_overlays_in_the_pacs(service, orth
                                             "cancel": f"/v1/registrations/{job_id}/cancel"}
         job = wait_for(client, job_id, timeout=300)
         assert job["status"] == "succeeded", job
-        assert set(job["links"]) == {"self", "result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot"}
-        for link in job["links"].values():
-            assert client.get(link).status_code == 200, link
+        assert set(job["links"]) == {"self", "result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot",
+                                     "dicom_reg", "dicom_overlay_ap", "dicom_overlay_lat", "dicom_loss", "track"}
+        for name, link in job["links"].items():
+            if name != "track":  # a POST
+                assert client.get(link).status_code == 200, link
         result = job["result"]
         dicom = result["dicom"]
         assert dicom["stored"]["confirmed"] and dicom["stored"]["study_uid"] == study.study_uid
@@ -316,6 +318,39 @@ def test_uploaded_dicom_case_gets_the_same_dicom_results(service, study, dciodvf
     assert reg.StudyInstanceUID == study.study_uid and reg.PatientID == "DSAREG-PHANTOM-1"
     matrix = read_registration_matrix(reg, study.uids["volume_frame"])
     np.testing.assert_allclose(matrix, np.asarray(job["result"]["mesh_to_world"]), rtol=0, atol=1e-9)
+
+
+def test_generated_client_submits_by_reference_and_reads_the_verdict(service, orthanc, uploaded, tmp_path):
+    """The JSON body is in /openapi.json: a generated client builds it from typed models and reads the
+    verdict from typed fields."""
+    import importlib
+
+    with service.client() as client:
+        package = generated_client(client.get("/openapi.json").text, tmp_path)
+    try:
+        submit = importlib.import_module("dsareg_client.api.registrations.submit")
+        get_job = importlib.import_module("dsareg_client.api.registrations.get_job")
+        models = importlib.import_module("dsareg_client.models")
+        api = package.Client(base_url=service.url, raise_on_unexpected_status=True)
+        body = models.DicomwebRegistrationRequest.from_dict(reference(uploaded, orthanc.dicomweb_url, store=False))
+        assert isinstance(body.source.dicomweb, models.DicomwebSource)
+        accepted = submit.sync_detailed(client=api, body=body)
+        assert accepted.status_code == 202, accepted.content[:500]
+        job_id = accepted.parsed.id
+        deadline = time.monotonic() + 300
+        while (job := get_job.sync(client=api, job_id=job_id)).status.value in ("queued", "running"):
+            assert time.monotonic() < deadline
+            time.sleep(0.3)
+        assert job.status.value == "succeeded", job.error
+        assert job.verdict in list(models.Verdict) and job.result.verdict == job.verdict
+        assert job.result.metrics.confidence.verdict == job.verdict
+        assert job.result.metrics.initialization.method in list(models.InitializationMethod)
+        reg = job.result.dicom.instances["reg.dcm"]
+        assert isinstance(reg, models.DicomInstance) and reg.sop_instance_uid
+        assert isinstance(job.result.dicom.source, models.DicomSource)
+        assert job.result.dicom.source.study_uid == uploaded.study_uid
+    finally:
+        forget_generated_client(tmp_path)
 
 
 def _series_uid(data: bytes) -> str:

@@ -29,9 +29,17 @@ def test_track_reuses_the_model_and_reports_the_motion(server, example_case):
         assert response.status_code == 202, response.text
         job = response.json()
         assert job["id"] != previous["id"] and response.headers["location"] == f"/v1/registrations/{job['id']}"
-        assert previous["id"] in response.headers["link"]
+        previous_link = f'</v1/registrations/{previous["id"]}>; rel="previous"'
+        assert response.headers["link"] == previous_link
         final = wait_for(c, job["id"], timeout=180)
         assert final["status"] == "succeeded", final
+        # the tracking job points back wherever it is read: its status, its result, its summary
+        assert final["links"]["previous"] == f"/v1/registrations/{previous['id']}"
+        assert c.get(f"/v1/registrations/{job['id']}").headers["link"] == previous_link
+        assert c.get(f"/v1/registrations/{job['id']}/result").headers["link"] == previous_link
+        listed = c.get("/v1/registrations", params={"limit": 100}).json()["items"]
+        assert next(i for i in listed if i["id"] == job["id"])["links"]["previous"] == final["links"]["previous"]
+        assert "link" not in c.get(f"/v1/registrations/{previous['id']}").headers
         result = final["result"]
         metrics = result["metrics"]
         assert metrics["mode"] == "track" and metrics["starts"] == 1

@@ -71,6 +71,11 @@ def test_progress_is_monotone_over_a_real_job(finished_jobs):
     last_stage = list(final["result"]["metrics"]["iterations"])[-1]
     assert final["progress"]["stage"] == last_stage and final["progress"]["fraction"] == 1.0
     assert final["progress"]["iteration"] == final["result"]["metrics"]["iterations"][last_stage]
+    # writing the outputs moves the bar on (stages outputs / animation / dicom / saving), not sitting at 92 %
+    after = [p for p in running if p["stage"] in ("outputs", "animation", "dicom", "saving")]
+    assert {p["stage"] for p in after} >= {"outputs"}, stages
+    assert max(p["fraction"] for p in after) > 0.95, after
+    assert len({round(p["fraction"], 3) for p in after}) >= 3, after
 
 
 @needs_engine
@@ -82,9 +87,13 @@ def test_links_lead_only_to_what_exists(ux_server, finished_jobs):
     assert "animation" in animated["links"] and "animation" not in quick["links"]
     with ux_server.client() as c:
         for job in (animated, quick):
-            assert {"result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot"} <= set(job["links"])
+            assert {"result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot", "dicom_reg",
+                    "dicom_overlay_ap", "dicom_overlay_lat", "track"} <= set(job["links"]), job["links"]
+            assert job["links"]["track"] == f"/v1/registrations/{job['id']}/track"
             for name, link in job["links"].items():
                 assert link is not None
+                if name == "track":  # a POST (tests/system/service/test_service_track.py)
+                    continue
                 r = c.get(link)
                 assert r.status_code == 200, (name, link, r.text[:200])
         gif = c.get(animated["links"]["animation"]).content
@@ -210,7 +219,7 @@ def test_real_responses_match_the_published_schema(ux_server, example_case, fini
 
 
 @needs_engine
-def test_generated_client_talks_to_the_server(ux_server, finished_jobs, tmp_path):
+def test_generated_client_talks_to_the_server(ux_server, finished_jobs, example_case, tmp_path):
     generator = shutil.which("openapi-python-client", path=str(Path(sys.executable).parent)) or shutil.which(
         "openapi-python-client")
     if generator is None:
@@ -244,6 +253,24 @@ def test_generated_client_talks_to_the_server(ux_server, finished_jobs, tmp_path
         assert isinstance(page, models.JobList) and quick["id"] in [item.id for item in page.items]
         missing = get_job.sync_detailed(client=client, job_id="nope")
         assert missing.status_code == 404 and isinstance(missing.parsed, models.ProblemDetails)
+        # the verdict through typed fields: a job with AP and LAT swapped runs (succeeded) but is not to be trusted
+        assert status.result.verdict in list(models.Verdict) and status.verdict == status.result.verdict
+        assert isinstance(status.result.metrics.confidence, models.Confidence)
+        with ux_server.client() as c:
+            swapped = submit(c, example_case, options=QUICK, names=("m.obj", "lat.png", "ap.png"),
+                             files_override={"ap": example_case.lat_png, "lat": example_case.ap_png}).json()
+        wait_for_typed = time.monotonic() + 180
+        while (job := get_job.sync(client=client, job_id=swapped["id"])).status.value in ("queued", "running"):
+            assert time.monotonic() < wait_for_typed, "the swapped job did not finish"
+            time.sleep(0.3)
+        assert job.status == models.JobStatusStatus.SUCCEEDED  # it ran ...
+        assert job.verdict == models.Verdict.FAILED and job.result.verdict == models.Verdict.FAILED  # ... wrongly
+        confidence = job.result.metrics.confidence
+        assert confidence.verdict == models.Verdict.FAILED
+        assert confidence.reasons and all(isinstance(reason, str) for reason in confidence.reasons)
+        assert max(confidence.signals.dice.additional_properties.values()) < 0.5
+        summary = next(i for i in list_jobs.sync(client=client, limit=100).items if i.id == swapped["id"])
+        assert summary.verdict == models.Verdict.FAILED and summary.reasons == confidence.reasons
     finally:
         sys.path.remove(str(tmp_path))
         for name in [m for m in sys.modules if m == "dsareg_client" or m.startswith("dsareg_client.")]:

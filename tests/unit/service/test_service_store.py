@@ -105,3 +105,49 @@ def test_list_pages_with_cursor(store):
         if cursor is None:
             break
     assert sorted(seen) == sorted(ids) and len(seen) == 5
+
+
+def _with_callback(store: SqlJobStore, previous_id: str | None = None) -> JobRecord:
+    now = time.time()
+    job = JobRecord(id=new_job_id(), owner="k", status="queued", created_at=now, updated_at=now,
+                    callback_url="http://127.0.0.1:9/hooks/x", previous_id=previous_id)
+    return store.create(job)[0]
+
+
+def test_callbacks_are_due_only_once_the_job_ended_and_claimed_once(store):
+    job = _with_callback(store)
+    assert job.callback["state"] == "pending" and job.callback["attempts"] == 0
+    assert store.due_callbacks(time.time()) == []  # still queued
+    store.request_cancel(job.id)
+    assert store.due_callbacks(time.time()) == [job.id]
+    row = store.claim_callback(job.id, time.time(), lease_seconds=60)
+    assert row["attempts"] == 1 and row["state"] == "delivering"
+    assert store.claim_callback(job.id, time.time(), 60) is None  # another deliverer does not get it
+    assert store.due_callbacks(time.time()) == []
+    store.finish_callback(job.id, 1, state="pending", status_code=503, error="HTTP 503", next_attempt_at=time.time() + 30)
+    assert store.due_callbacks(time.time()) == [] and store.due_callbacks(time.time() + 31) == [job.id]
+    assert store.get(job.id).callback["last_status"] == 503
+
+
+def test_an_abandoned_delivery_is_taken_over_and_the_stale_outcome_ignored(store):
+    job = _with_callback(store)
+    store.request_cancel(job.id)
+    first = store.claim_callback(job.id, time.time(), lease_seconds=0.05)  # its deliverer dies
+    time.sleep(0.1)
+    assert store.due_callbacks(time.time()) == [job.id]
+    second = store.claim_callback(job.id, time.time(), lease_seconds=60)
+    assert second["attempts"] == 2 and second["delivery_id"] == first["delivery_id"]
+    assert not store.finish_callback(job.id, 1, state="failed", status_code=None, error="late", next_attempt_at=None)
+    assert store.finish_callback(job.id, 2, state="delivered", status_code=200, error=None, next_attempt_at=None)
+    done = store.get(job.id).callback
+    assert done["state"] == "delivered" and done["delivered_at"] and done["attempts"] == 2
+
+
+def test_previous_job_is_read_by_get_and_list_and_deleted_with_the_job(store):
+    first = _with_callback(store)
+    second = _with_callback(store, previous_id=first.id)
+    assert store.get(second.id).previous_id == first.id and store.get(first.id).previous_id is None
+    listed = {job.id: job.previous_id for job in store.list(owner="k", status=None, limit=10, cursor=None)[0]}
+    assert listed == {first.id: None, second.id: first.id}
+    store.delete(second.id)
+    assert store.get(second.id) is None and store.due_callbacks(time.time() + 1e6) == []

@@ -1,0 +1,84 @@
+"""Progress and verdict helpers of the commands (``dsareg register``, ``dsareg submit``).
+
+Progress goes to stderr, the summary (or ``--json``) to stdout, so ``dsareg … | jq`` and log
+files read cleanly. On a terminal the progress is one bar redrawn in place (carriage return); on
+anything else (a pipe, a file, a CI log) it is plain lines, one per stage and at most one every
+``every_seconds`` within a stage, and never a carriage return.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import IO, Any
+
+VERDICT_RANK = {"failed": 0, "check": 1, "ok": 2}
+REQUIRE_CHOICES = ("ok", "check")
+VERDICT_NOT_MET_EXIT = 3
+"""Exit status when the job ran but its verdict is below ``--require``."""
+
+
+def verdict_meets(verdict: str | None, required: str | None) -> bool:
+    """``verdict`` (ok / check / failed / None) is at least ``required`` (None: anything goes)."""
+    if required is None:
+        return True
+    return VERDICT_RANK.get(verdict or "", -1) >= VERDICT_RANK[required]
+
+
+class ProgressPrinter:
+    """Show progress events ``{stage, iteration, loss, fraction}`` on ``stream`` (default stderr)."""
+
+    def __init__(self, stream: IO[str] | None = None, *, every_seconds: float = 5.0, width: int = 30,
+                 tty: bool | None = None):
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self._isatty() if tty is None else tty
+        self.every_seconds, self.width = every_seconds, width
+        self.last_stage: str | None = None
+        self.last_line_at = float("-inf")
+        self.drawn = False
+
+    def _isatty(self) -> bool:
+        try:
+            return bool(self.stream.isatty())
+        except (AttributeError, ValueError):
+            return False
+
+    @staticmethod
+    def describe(event: dict[str, Any], status: str | None = None) -> tuple[str, str]:
+        """``(stage, text)`` of one event (the text without any bar)."""
+        stage = str(event.get("stage") or "")
+        fraction = float(event.get("fraction") or 0.0)
+        loss = event.get("loss")
+        parts = [f"{fraction * 100:5.1f}%"]
+        if status:
+            parts.append(f"{status:9s}")
+        parts.append(f"{stage} it {int(event.get('iteration') or 0)}")
+        if isinstance(loss, (int, float)):
+            parts.append(f"loss {loss:.5f}")
+        return stage, " ".join(parts)
+
+    def update(self, event: dict[str, Any], status: str | None = None) -> None:
+        stage, text = self.describe(event, status)
+        if self.tty:
+            filled = round(float(event.get("fraction") or 0.0) * self.width)
+            self.stream.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {text}"[:120].ljust(100))
+            self.drawn = True
+        else:
+            now = time.monotonic()
+            if stage == self.last_stage and now - self.last_line_at < self.every_seconds:
+                return
+            self.last_stage, self.last_line_at = stage, now
+            self.stream.write(f"progress {text}\n")
+        self.stream.flush()
+
+    def message(self, text: str) -> None:
+        """A line of its own (a warning), below the bar on a terminal."""
+        self.close()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.drawn:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.drawn = False
