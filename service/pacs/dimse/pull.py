@@ -43,8 +43,9 @@ class DimseSource(BaseModel):
         return _uid(value)
 
     @property
-    def frame(self):
-        return self.ap.frame if self.ap.frame is not None else self.lat.frame
+    def frames(self) -> tuple[int | str | None, int | str | None]:
+        """The (ap, lat) frame choices (per view, as for a DICOMweb reference)."""
+        return self.ap.frame, self.lat.frame
 
 
 class DimseSourceField(BaseModel):
@@ -163,7 +164,7 @@ class DimsePullJob:
         self.source_info = {"dimse": {"peer": source.peer, "study_uid": source.study_uid,
                                       "fetch_seconds": round(time.perf_counter() - started, 3),
                                       "instances": 2 + len(volume)}}
-        return fetched_case_files(images["ap"], images["lat"], volume, source.frame, warnings)
+        return fetched_case_files(images["ap"], images["lat"], volume, source.frames, warnings)
 
     def store_back(self, result: dict, out_dir: Path) -> dict:
         from .export import export_to

@@ -155,7 +155,7 @@ def test_cli_register_volume_with_dicom_out(study, tmp_path, capsys):
                  "--ground-truth", str(tmp_path / "truth.json"), "--options", '{"starts": 1}',
                  "--out", str(tmp_path / "out"), "--dicom-out", str(tmp_path / "dicom")])
     assert code == 0
-    assert "DICOM: " in capsys.readouterr().out
+    assert "DICOM: " in capsys.readouterr().err  # notes go to stderr, the summary to stdout
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert result["metrics"]["ground_truth"]["add_mm"] < 0.5
     for name in ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm"):

@@ -211,7 +211,7 @@ def test_pull_by_dimse_reference_from_orthanc_and_store_back(node, study, tmp_pa
             answer = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "ORTHANC"))
             assert answer.status_code == 202, answer.text
             done = wait_for(client, answer.json()["id"], timeout=300)
-        assert done["status"] == "succeeded", done
+        assert done["status"] == "succeeded", done.get("error")
         dicom = done["result"]["dicom"]
         assert dicom["source"]["dimse"]["peer"] == "ORTHANC" and dicom["source"]["dimse"]["instances"] == len(paths)
         assert dicom["exported"][0]["status"] == "stored"
