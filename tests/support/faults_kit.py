@@ -20,7 +20,10 @@ import pytest
 
 from tests.support.service_testkit import ExampleCase, submit
 
-NEXT_POST_SECONDS = 1.0
+NEXT_POST_SECONDS = 2.0
+"""The bound on the next POST after a fault (issue 20: every request answered within 2 s). A restarted server's
+warmed workers at once take the requeued CPU-bound jobs, so on 2 cores the next parse shares the CPU with both
+(measured 1.1-1.2 s); a hang, the failure this guards against, was 25 s and more."""
 FINAL = ("succeeded", "failed", "canceled")
 
 
