@@ -77,10 +77,11 @@ class VolumeRef(BaseModel):
         return value if value is None else _uid(value)
 
 
-class DicomwebSource(BaseModel):
+class StudyReference(BaseModel):
+    """What a by-reference request names in the PACS, whichever protocol reaches it: the study, the two
+    XA images and the volume series (subclasses add where the PACS is: a DICOMweb URL or a DIMSE peer)."""
+
     model_config = ConfigDict(extra="forbid")
-    url: str = Field(description="DICOMweb base URL; must be one of the server's configured DICOMweb servers.",
-                     examples=["http://pacs.example:8042/dicom-web"])
     study_uid: str = Field(description="Study Instance UID of the biplane XA study (results are stored into it).")
     ap: ImageRef
     lat: ImageRef
@@ -93,8 +94,13 @@ class DicomwebSource(BaseModel):
 
     @property
     def frames(self) -> tuple[int | str | None, int | str | None]:
-        """The (ap, lat) frame choices."""
+        """The (ap, lat) frame choices (per view)."""
         return self.ap.frame, self.lat.frame
+
+
+class DicomwebSource(StudyReference):
+    url: str = Field(description="DICOMweb base URL; must be one of the server's configured DICOMweb servers.",
+                     examples=["http://pacs.example:8042/dicom-web"])
 
 
 class Source(BaseModel):

@@ -17,10 +17,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine, fetched_case_files
-from ..dicomweb import ImageRef, PacsError, VolumeRef, _uid
+from ..dicomweb import PacsError, StudyReference
 from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
 
 ROLE = "dimse-reference"
@@ -28,24 +28,9 @@ GET_MODEL = "1.2.840.10008.5.1.4.1.2.2.3"  # Study Root Query/Retrieve Informati
 PENDING, SUCCESS = {0xFF00, 0xFF01}, 0x0000
 
 
-class DimseSource(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class DimseSource(StudyReference):
     peer: str = Field(description="AE title of the PACS; must be one of the server's DSAREG_DICOM_PEERS.",
                       examples=["ORTHANC"])
-    study_uid: str = Field(description="Study Instance UID of the biplane XA study.")
-    ap: ImageRef
-    lat: ImageRef
-    volume: VolumeRef
-
-    @field_validator("study_uid")
-    @classmethod
-    def check_uid(cls, value):
-        return _uid(value)
-
-    @property
-    def frames(self) -> tuple[int | str | None, int | str | None]:
-        """The (ap, lat) frame choices (per view, as for a DICOMweb reference)."""
-        return self.ap.frame, self.lat.frame
 
 
 class DimseSourceField(BaseModel):
