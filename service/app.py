@@ -11,7 +11,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 
 from . import __version__
-from .api.routes import artifacts, operations, registrations, review, tracking, ui
+from .api.routes import artifacts, events, operations, registrations, review, tracking, ui
 from .api.deps import ServiceContext
 from .api.handlers import install_handlers
 from .api.httpfaults import problem_http_protocol
@@ -53,7 +53,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
-    mount(app, registrations.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
+    mount(app, registrations.router, events.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
     install_docs(app)
     install_openapi(app, settings)
     return app

@@ -7,6 +7,7 @@ from typing import Any
 from fastapi import APIRouter, FastAPI
 
 from ..problems import ProblemDetails, problem_responses
+from .schemas.jobs import JobProgressEvent
 from .schemas.payloads import document as document_payloads
 from ..settings import ServiceSettings
 
@@ -40,6 +41,9 @@ def patch_schema(schema: dict[str, Any], settings: ServiceSettings) -> dict[str,
     document_payloads(schema)  # options, geometry and result schemas; the multipart parts
     schemas = schema.setdefault("components", {}).setdefault("schemas", {})
     schemas["ProblemDetails"] = ProblemDetails.model_json_schema(ref_template="#/components/schemas/{model}")
+    event = JobProgressEvent.model_json_schema(ref_template="#/components/schemas/{model}")
+    event.pop("$defs", None)  # Progress is a component already (JobStatus uses it)
+    schemas["JobProgressEvent"] = event
     # FastAPI documents its own 422 body; ours is problem+json like every other error
     problem_422 = problem_responses(422)[422]
     for operation in _operations(schema):

@@ -33,6 +33,8 @@ class StoreCollector:
         yield jobs
         yield GaugeMetricFamily("dsareg_queue_depth", "Jobs waiting for a worker.", value=counts.get("queued", 0))
         yield GaugeMetricFamily("dsareg_workers_alive", "Worker processes alive.", value=ctx.executor.alive_workers())
+        yield GaugeMetricFamily("dsareg_event_streams_open", "Event streams (GET …/events) open in this API process.",
+                                value=ctx.extra.get("event_streams_open", 0))
         hist = HistogramMetricFamily("dsareg_job_duration_seconds", "Run time of finished jobs (started → finished).",
                                      labels=["state"])
         durations = ctx.store.finished_durations()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,27 @@ def _raise_for(response: httpx.Response) -> None:
         except ValueError:
             problem = None
     raise ServiceError(response.status_code, problem, response.text[:200])
+
+
+def parse_event_stream(lines: Iterable[str]) -> Iterator[dict[str, Any]]:
+    """SSE frames from text lines: ``{"event", "id", "data"}`` per frame with data (``data`` parsed as JSON);
+    comments (``: …``) and ``retry`` lines are skipped."""
+    fields: dict[str, str] = {}
+    data: list[str] = []
+    for line in lines:
+        if not line:
+            if data:
+                yield {"event": fields.get("event", "message"), "id": fields.get("id"), "data": json.loads("\n".join(data))}
+            fields, data = {}, []
+            continue
+        if line.startswith(":"):
+            continue
+        name, _, value = line.partition(":")
+        value = value[1:] if value.startswith(" ") else value
+        if name == "data":
+            data.append(value)
+        elif name in ("event", "id"):
+            fields[name] = value
 
 
 class RegistrationClient:
@@ -166,6 +187,20 @@ class RegistrationClient:
             if time.monotonic() > deadline:
                 raise TimeoutError(f"job {job_id} still {status['status']} after {timeout:g} s")
             time.sleep(interval)
+
+    def events(self, job_id: str) -> Iterator[dict[str, Any]]:
+        """The job's Server-Sent Events (``GET /v1/registrations/{id}/events``) as they come:
+        ``{"event": "progress" | "end" | "gone", "id": "<n>", "data": {...}}``; ends after ``end`` (data: the job
+        summary, with ``status`` and ``verdict``) or ``gone``. Closing the iterator early closes the stream."""
+        with self.http.stream("GET", f"/v1/registrations/{job_id}/events",
+                              headers={"Accept": "text/event-stream"}) as response:
+            if response.status_code >= 400:
+                response.read()
+                _raise_for(response)
+            for event in parse_event_stream(response.iter_lines()):
+                yield event
+                if event["event"] in ("end", "gone"):
+                    return
 
     def result(self, job_id: str) -> dict[str, Any]:
         response = self.http.get(f"/v1/registrations/{job_id}/result")

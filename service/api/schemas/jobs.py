@@ -296,3 +296,20 @@ def job_summary(job: JobRecord) -> JobSummary:
 
 def summary_body(job: JobRecord) -> dict[str, Any]:
     return _drop_absent_links(job_summary(job).model_dump(mode="json"))
+
+
+class JobProgressEvent(BaseModel):
+    """The data of a ``progress`` event of ``GET /v1/registrations/{id}/events`` (JSON, one line)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "id": EXAMPLE_ID, "status": "running",
+        "progress": {"stage": "ap+lat:1/2", "iteration": 15, "loss": 0.0152, "fraction": 0.21}}]})
+
+    id: str
+    status: Status = Field(description="queued or running (a final state ends the stream with an `end` event).")
+    progress: Progress | None = None
+
+
+def progress_event(job: JobRecord) -> dict[str, Any]:
+    """The JSON of a ``progress`` event for ``job``."""
+    return JobProgressEvent(id=job.id, status=job.status, progress=_progress(job)).model_dump(mode="json")
