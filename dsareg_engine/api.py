@@ -13,7 +13,8 @@ name, so an API process that only validates options never loads the renderer.
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
   DICOM: :func:`read_sources`, :class:`DicomSources`, :func:`write_dicom_outputs`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
-  :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_job` (a worker's first job's set-up)
+  :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_kernels`, :func:`warm_up_job` (a worker's first job's set-up),
+  :func:`compile_later_groups` (the kernels no first job needs, in the background)
 * the command line: :func:`run_parsed`, and the helpers sub-commands use (:class:`CommandFailed`,
   :func:`input_file`, :func:`options_help`, :func:`geometry_argument`, :func:`json_argument`, :func:`load_pose`)
 
@@ -58,7 +59,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .geometry.pose_file import load_pose
     from .registration.options import RegistrationOptions, image_reading, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
-    from .warmup import warm_up_job, warm_up_renderer
+    from .warmup import compile_later_groups, warm_up_job, warm_up_kernels, warm_up_renderer
 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
@@ -101,6 +102,8 @@ _LAZY = {
     "load_pose": "dsareg_engine.geometry.pose_file",
     "warm_up_job": "dsareg_engine.warmup",
     "warm_up_renderer": "dsareg_engine.warmup",
+    "warm_up_kernels": "dsareg_engine.warmup",
+    "compile_later_groups": "dsareg_engine.warmup",
 }
 
 __all__ = [
@@ -158,6 +161,8 @@ __all__ = [
     "warm_up_job",
     "warm_up_parsers",
     "warm_up_renderer",
+    "warm_up_kernels",
+    "compile_later_groups",
     "write_dicom_outputs",
 ]
 

@@ -5,12 +5,27 @@ the renderer's warm-up does not reach: torch's optimizers import ``torch._dynamo
 plot imports matplotlib and builds its font cache, the DICOM writer imports pydicom, the image
 readers their codecs. Measured on 2 cores: first job 2.1 CPU-s, the next ones 0.5 CPU-s (128 px
 phantom, 60 iterations). :func:`warm_up_job` pays this before the worker takes its first job.
+
+The kernels (numba, cached on disk) are compiled in **groups** (:data:`KERNEL_GROUPS`), each group's
+functions in one process so no two processes write one function's cache index at once:
+``forward`` and ``backward`` are what a registration job needs (:func:`warm_up_kernels` compiles
+``backward`` in a helper process while this one compiles ``forward``: two cores, half the wall time);
+``tracking`` (the Gauss-Newton Jacobian, more than half of all the compile) and ``search`` (the
+initial-pose search) are compiled afterwards by a background helper (:func:`compile_later_groups`),
+so a worker is ready without them; a job that needs one before the helper is done compiles it itself.
+``python -m dsareg_engine.warmup --threads N GROUP...`` is the helper.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import io
 import json
+import os
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 WARM_UP_SIZE_PX = 32
@@ -64,30 +79,85 @@ def warm_up_job(work_dir: Path, *, pose_search: bool = False) -> dict:
                     dicom="required")
 
 
-__all__ = ["WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "phantom_case_files", "warm_up_job"]
+__all__ = ["KERNEL_GROUPS", "WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "compile_later_groups", "phantom_case_files",
+           "warm_up_job", "warm_up_kernels", "warm_up_renderer"]
+
+JOB_GROUPS = ("forward", "backward")
+LATER_GROUPS = ("tracking", "search")
+HELPER_WAIT_SECONDS = 600.0
 
 
-def warm_up_renderer() -> None:
-    """Load the pipeline and compile the renderer's kernels (both dtypes, forward and backward)."""
+def _tiny_view():
     import numpy as np
+
+    from .geometry.rig import ViewGeometry
+
+    return ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
+                        principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
+
+
+def _tiny_triangle(dtype):
+    import torch
+
+    vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
+    return vertices, torch.tensor([[0, 1, 2]]), torch.eye(4, dtype=dtype)[None]
+
+
+def warm_up_renderer(*, tracking: bool = True) -> None:
+    """Load the pipeline and compile (or load from the cache) the renderer's kernels, both dtypes, forward
+    and backward; ``tracking``: tracking's kernels too."""
     import torch
 
     from . import pipeline  # noqa: F401 - loads the whole job path
-    from .geometry.rig import ViewGeometry
     from .render import Camera, render_hard_silhouette, render_soft_silhouette
 
-    view = ViewGeometry(image_size=(16, 16), pixel_spacing_mm=(1.0, 1.0), sid_mm=20.0,
-                        principal_point_px=(7.5, 7.5), world_to_view=np.eye(4))
-    faces = torch.tensor([[0, 1, 2]])
+    camera = Camera.from_view(_tiny_view())
     for dtype in (torch.float32, torch.float64):  # Adam stages run in float32, the L-BFGS fit in float64
-        vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=dtype)
-        pose = torch.eye(4, dtype=dtype)[None]
-        render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))
-        render_soft_silhouette(vertices, faces, pose.requires_grad_(), Camera.from_view(view)).sum().backward()
-    _warm_up_tracking(view, faces)
+        vertices, faces, pose = _tiny_triangle(dtype)
+        render_hard_silhouette(vertices, faces, pose, camera)
+        render_soft_silhouette(vertices, faces, pose.requires_grad_(), camera).sum().backward()
+    if tracking:
+        _warm_up_tracking()
 
 
-def _warm_up_tracking(view, faces) -> None:
+def _compile_forward() -> None:
+    """The renderer's forward kernels and the gradient scatter (both dtypes), without the backward kernel."""
+    import numpy as np
+    import torch
+
+    from .render import Camera, render_hard_silhouette, render_soft_silhouette
+    from .render.silhouette import _kernel
+
+    camera = Camera.from_view(_tiny_view())
+    for dtype in (torch.float32, torch.float64):
+        vertices, faces, pose = _tiny_triangle(dtype)
+        render_hard_silhouette(vertices, faces, pose, camera)
+        render_soft_silhouette(vertices, faces, pose, camera)
+        grad_triangles = np.zeros((1, 1, 3, 2), vertices.numpy().dtype)  # as _SoftLogKeepNumba.backward passes them
+        _kernel("scatter_to_vertices")[0](grad_triangles, faces.numpy(), np.zeros((1, 3, 2), grad_triangles.dtype))
+
+
+def _compile_backward() -> None:
+    """The renderer's backward kernel, both dtypes, with the argument types _SoftLogKeepNumba.backward passes."""
+    import numpy as np
+
+    from .render.silhouette import _SIGMOID_TABLE, _kernel
+
+    for dtype in (np.float32, np.float64):
+        triangles = np.zeros((1, 1, 3, 2), dtype)
+        boxes = np.array([[[1, 0, 1, 0]]], np.int32)  # an empty box: nothing to do, only the compile
+        kernel, n_threads = _kernel("soft_log_keep_backward")
+        kernel(triangles, boxes, 1.0, 1.0, dtype == np.float64, _SIGMOID_TABLE, n_threads, np.zeros((1, 2, 2), dtype),
+               np.zeros_like(triangles))
+
+
+def _compile_search() -> None:
+    """The pose search's kernels, through a tiny job without an initial pose (their real argument types)."""
+    with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-search-") as work_dir:
+        warm_up_job(Path(work_dir), pose_search=True)
+
+
+def _warm_up_tracking() -> None:
     """Compile tracking's kernels (the silhouette Jacobian and the normal equations, float32)."""
     import numpy as np
     import torch
@@ -97,6 +167,8 @@ def _warm_up_tracking(view, faces) -> None:
 
     if not jacobian_available(torch.device("cpu")):
         return
+    view = _tiny_view()
+    faces = torch.tensor([[0, 1, 2]])
     vertices = torch.tensor([[-1.0, -1.0, 10.0], [1.0, -1.0, 10.0], [0.0, 1.0, 10.0]], dtype=torch.float32)
     tangents = torch.zeros((1, 6, 4, 4), dtype=torch.float32)
     log_keep, log_keep_tangents = soft_log_keep_tangents(vertices, faces, torch.eye(4)[None], tangents, Camera.from_view(view))
@@ -104,3 +176,137 @@ def _warm_up_tracking(view, faces) -> None:
     normal_equations, n_threads = jacobian_kernel("normal_equations")
     for weight in (np.zeros((0, 0), np.float32), target):
         normal_equations(log_keep[0], log_keep_tangents[0], target, weight, n_threads, np.zeros((6, 6)), np.zeros(6))
+
+
+KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
+                 "search": _compile_search}
+"""Kernel groups: name → the function that compiles them (each group's numba functions belong to it alone)."""
+
+
+def _group_dispatchers(name: str) -> list:
+    """The numba dispatchers a group compiles, for this process's thread budget (serial twins on 1 thread)."""
+    from .render.jacobian import jacobian_kernel
+    from .render.silhouette import _kernel
+
+    if name == "forward":
+        return [_kernel(k)[0] for k in ("gather_faces", "soft_log_keep", "coverage", "scatter_to_vertices")]
+    if name == "backward":
+        return [_kernel("soft_log_keep_backward")[0]]
+    if name == "tracking":
+        from .render import jacobian_numba
+
+        return [jacobian_kernel("soft_log_keep_tangents")[0], jacobian_kernel("normal_equations")[0],
+                jacobian_numba.gather_faces_with_tangents]
+    from .registration.initialization import _SEARCH_KERNELS
+    from numba import get_num_threads
+
+    return [pair.pick(get_num_threads()) for pair in _SEARCH_KERNELS.values()]
+
+
+def group_cached(name: str) -> bool:
+    """Whether every kernel of the group has a compiled version in numba's on-disk cache (for these sources;
+    an entry for another CPU counts too: the worker then compiles that kernel itself)."""
+    try:
+        return all(len(d._cache._cache_file._load_index()) > 0 for d in _group_dispatchers(name))
+    except Exception:  # noqa: BLE001 - numba's cache internals moved: assume not cached
+        return False
+
+
+@contextlib.contextmanager
+def _group_lock(name: str):
+    """One process at a time compiles a group (several workers of a fresh install wait for the first one)."""
+    import numba
+
+    key = hashlib.sha256(f"{Path(__file__).resolve()}|{name}|{numba.get_num_threads()}".encode()).hexdigest()[:16]
+    path = Path(tempfile.gettempdir()) / f"dsareg-kernels-{key}.lock"
+    try:
+        import fcntl
+
+        handle = open(path, "a")  # noqa: SIM115 - closed below
+    except (ImportError, OSError):  # not POSIX, or no temp dir: no lock
+        yield
+        return
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield
+    finally:
+        handle.close()
+
+
+def compile_group(name: str) -> None:
+    """Compile the kernel group ``name`` into the cache (under its lock)."""
+    with _group_lock(name):
+        KERNEL_GROUPS[name]()
+
+
+def start_helper(groups: list[str], *, background: bool = False) -> subprocess.Popen | None:
+    """A helper process compiling ``groups`` into the cache for this process's thread budget; None when they are
+    all cached already. It dies with this process; ``background``: at the lowest CPU priority."""
+    import numba
+
+    missing = [g for g in groups if not group_cached(g)]
+    if not missing:
+        return None
+    command = [sys.executable, "-m", "dsareg_engine.warmup", "--threads", str(numba.get_num_threads()),
+               *(["--background"] if background else []), *missing]
+    return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL if background else subprocess.PIPE,
+                            env={**os.environ, "DSAREG_PARENT_PID": str(os.getpid())})
+
+
+def warm_up_kernels() -> None:
+    """The kernels a registration job needs, compiled (or loaded) into this process: ``backward`` in a helper
+    process while this one compiles ``forward``; then both load from the cache."""
+    helper = start_helper(["backward"])
+    compile_group("forward")
+    if helper is not None:
+        try:
+            _, errors = helper.communicate(timeout=HELPER_WAIT_SECONDS)
+        except subprocess.TimeoutExpired:
+            helper.kill()
+            errors = b"timed out"
+        if helper.returncode:  # not fatal: this process compiles what is missing
+            print(f"kernel helper failed ({helper.returncode}): {errors.decode(errors='replace')[-500:]}", file=sys.stderr)
+    warm_up_renderer(tracking=False)  # the backward kernel loads from the cache (or compiles here if the helper failed)
+
+
+def compile_later_groups() -> subprocess.Popen | None:
+    """Start the background helper that compiles the kernels no first job needs (tracking, pose search)."""
+    return start_helper(list(LATER_GROUPS), background=True)
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGKILL this helper when the process that started it dies (no orphaned compiles)."""
+    parent = os.environ.get("DSAREG_PARENT_PID")
+    if not parent or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != int(parent):  # the parent died before the prctl
+        os._exit(1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m dsareg_engine.warmup [--threads N] [--background] GROUP...``: compile kernel groups."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m dsareg_engine.warmup", description=main.__doc__)
+    parser.add_argument("groups", nargs="+", choices=list(KERNEL_GROUPS))
+    parser.add_argument("--threads", type=int, default=1, help="the thread budget to compile for (serial twins on 1)")
+    parser.add_argument("--background", action="store_true", help="at the lowest CPU priority")
+    args = parser.parse_args(argv)
+    _die_with_parent()
+    if args.background:
+        os.nice(19)
+    from .threads import set_cpu_threads
+
+    set_cpu_threads(args.threads)
+    for name in args.groups:
+        compile_group(name)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

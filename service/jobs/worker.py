@@ -300,15 +300,21 @@ def warm_up() -> None:
     import tempfile
 
     started = time.monotonic()
-    log.info("worker warming up: compiling the numba kernels and running one tiny job (minutes on a fresh "
-             "install with an empty kernel cache, a few seconds once cached; `dsareg warmup` fills the cache ahead)")
+    log.info("worker warming up: compiling the numba kernels a job needs (two processes) and running one tiny job "
+             "(about a minute on 2 cores on a fresh install with an empty kernel cache, a few seconds once cached; "
+             "`dsareg warmup` fills the cache ahead)")
     try:
-        engine.warm_up_renderer()
+        engine.warm_up_kernels()
         with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-") as work_dir:
             engine.warm_up_job(Path(work_dir))
     except Exception:
         log.warning("warm-up incomplete; the first job will be slower", exc_info=True)
     log.info("worker warmed up in %.1f s; ready for jobs", time.monotonic() - started)
+    try:  # tracking's and the pose search's kernels: a low-priority helper fills the cache while jobs run
+        if engine.compile_later_groups() is not None:
+            log.info("compiling tracking's and the pose search's kernels in the background (lowest priority)")
+    except Exception:  # noqa: BLE001
+        log.warning("could not start the background kernel compile; a first tracking job compiles them itself")
 
 
 def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_pid: int | None = None) -> None:
