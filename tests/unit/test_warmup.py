@@ -6,6 +6,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 from dsareg_engine.artifacts import REGISTRATION_FILES
 from dsareg_engine.warmup import warm_up_job
 
@@ -53,3 +55,63 @@ def test_service_warm_up_loads_what_the_first_job_would_load(tmp_path):
     assert report["loaded"] == ["torch._dynamo", "matplotlib.backends.backend_agg", "pydicom"]
     first, second = report["costs"]
     assert first < 2.0 * second + 0.3, report  # no second of imports left for the first job
+
+
+def _python(script: str, env: dict, timeout: float = 600) -> subprocess.CompletedProcess:
+    import os
+
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(script)], check=False, cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout, env={**os.environ, **env})
+
+
+@pytest.mark.slow
+def test_a_helper_compiles_a_group_that_this_process_then_loads_from_the_cache(tmp_path):
+    """The split warm-up is only worth it if the helper compiles the very specializations the worker
+    calls: with an empty cache, after the helper compiled ``backward``, this process compiles nothing."""
+    done = _python("""
+        import json
+        from dsareg_engine.threads import set_cpu_threads
+        from dsareg_engine import warmup
+        set_cpu_threads(1)
+        before = warmup.group_cached("backward")
+        helper = warmup.start_helper(["backward"])
+        _, errors = helper.communicate(timeout=500)
+        assert helper.returncode == 0, errors
+        after = warmup.group_cached("backward")
+        warmup._compile_backward()
+        (kernel,) = warmup._group_dispatchers("backward")
+        stats = kernel.stats
+        print(json.dumps({"before": before, "after": after, "hits": sum(stats.cache_hits.values()),
+                          "misses": sum(stats.cache_misses.values()), "signatures": len(kernel.signatures)}))
+    """, {"NUMBA_CACHE_DIR": str(tmp_path / "cache")})
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report == {"before": False, "after": True, "hits": 2, "misses": 0, "signatures": 2}, report
+
+
+def test_a_kernel_helper_dies_with_the_process_that_started_it(tmp_path):
+    """A killed worker leaves no compile behind (fault tests count every process of the service)."""
+    import os
+    import signal
+    import time
+
+    parent = subprocess.Popen([sys.executable, "-c", textwrap.dedent("""
+        import sys, time
+        from dsareg_engine import warmup
+        helper = warmup.start_helper(["tracking"], background=True)
+        print(helper.pid, flush=True)
+        time.sleep(600)
+    """)], cwd=REPO, stdout=subprocess.PIPE, text=True,
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")})  # empty: the helper has minutes of work
+    try:
+        helper_pid = int(parent.stdout.readline())
+        time.sleep(1.0)
+        assert Path(f"/proc/{helper_pid}").exists(), "the helper should still be compiling"
+        assert int(Path(f"/proc/{helper_pid}/stat").read_text().rsplit(")", 1)[1].split()[16]) == 19, "not niced"
+    finally:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{helper_pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not Path(f"/proc/{helper_pid}").exists(), "the helper outlived its parent"
