@@ -233,9 +233,21 @@ def _group_lock(name: str):
         handle.close()
 
 
+_WAITED: set[str] = set()
+
+
+def wait_for_group(name: str) -> None:
+    """Before this process first uses the group's kernels: wait while another process (the background helper)
+    compiles them, so two processes never write one function's cache index at once; then they load from it."""
+    if name not in _WAITED:
+        with _group_lock(name):
+            _WAITED.add(name)
+
+
 def compile_group(name: str) -> None:
     """Compile the kernel group ``name`` into the cache (under its lock)."""
     with _group_lock(name):
+        _WAITED.add(name)  # this process holds the lock: its own kernel calls must not wait for it
         KERNEL_GROUPS[name]()
 
 
@@ -308,5 +320,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+if __name__ == "__main__":  # run through the imported module: the kernels' own wait_for_group reads its _WAITED
+    from dsareg_engine.warmup import main as _main
+
+    sys.exit(_main())

@@ -211,18 +211,25 @@ def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray)
     return turns, offsets, np.array([*view.focal_px, *view.principal_point_px])
 
 
+def _search_kernel(name: str):
+    """The search kernel ``name`` for this thread budget (after any background compile of it is done)."""
+    from ..warmup import wait_for_group
+
+    wait_for_group("search")
+    return _SEARCH_KERNELS[name].pick(numba.get_num_threads())
+
+
 def _mean_pixels(window: _Window, rotations: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(B, 2)`` mean projected ``(u, v)`` of centred points ``(N, 3)`` turned by ``(B, 3, 3)``, placed at ``(B, 3)``."""
     out = np.empty((len(rotations), 2))
-    _SEARCH_KERNELS["mean_pixels"].pick(numba.get_num_threads())(points, *_view_placement(window, rotations, centres), out)
+    _search_kernel("mean_pixels")(points, *_view_placement(window, rotations, centres), out)
     return out
 
 
 def _overlap(window: _Window, rotations: np.ndarray, centres: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(B, 2)``: Σ blurred target over the pixels the points hit, and the number of those pixels."""
     out = np.empty((len(rotations), 2))
-    _SEARCH_KERNELS["splat_overlap"].pick(numba.get_num_threads())(points, *_view_placement(window, rotations, centres),
-                                                                   window.target, out)
+    _search_kernel("splat_overlap")(points, *_view_placement(window, rotations, centres), window.target, out)
     return out
 
 

@@ -184,3 +184,21 @@ def test_sigterm_releases_running_job_to_another_worker(topology, case):
         assert topology.store.get(job_id).attempts == 1  # a release does not use up an attempt
         client.post(f"/v1/registrations/{job_id}/cancel")
         assert wait_for(client, job_id, timeout=30)["status"] == "canceled"
+
+
+def test_progress_events_from_a_celery_worker(topology, case):
+    """``GET …/events`` reads the store the Celery workers write progress to: progress, then one end event."""
+    from service.cli.client import parse_event_stream
+
+    if not topology.workers:
+        topology.add_worker()
+    topology.wait_workers(1)
+    with topology.api.client() as client:
+        job_id = _submit_many(client, case, 1, LONG_OPTIONS)[0]  # runs long enough for several progress writes
+        with client.stream("GET", f"/v1/registrations/{job_id}/events", timeout=120) as response:
+            assert response.status_code == 200 and response.headers["content-type"].startswith("text/event-stream")
+            frames = list(parse_event_stream(response.iter_lines()))
+    assert [f["event"] for f in frames][-1] == "end" and all(f["event"] == "progress" for f in frames[:-1])
+    assert any(f["data"]["status"] == "running" and (f["data"]["progress"] or {}).get("iteration", 0) > 0
+               for f in frames[:-1]), frames
+    assert frames[-1]["data"]["status"] == "succeeded" and frames[-1]["data"]["verdict"] in ("ok", "check", "failed")
