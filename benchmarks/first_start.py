@@ -6,8 +6,8 @@ Exports the sources of git revision ``--ref`` (``git archive``: no ``__pycache__
 and no bytecode, as after a fresh install) into a temporary folder, starts ``python -m service serve``
 from there (this interpreter and its packages; ``NUMBA_CACHE_DIR`` unset) on a free loopback port with a
 new data dir, submits one small job (the phantom at 64 px, 30 iterations) as soon as the API accepts it,
-and prints the seconds from the start to: the API answering, the job accepted, ``/readyz`` 200, the job
-running and the job finished, with the CPU seconds of the server's process tree (user + system, children
+and prints the seconds from the start to: the API answering, the job accepted, ``/readyz`` 200, the job's
+``started_at`` (the server's clock), the job seen running and the job finished, with the CPU seconds of the server's process tree (user + system, children
 included) at the time the job was running, and the load average (the machine may be shared).
 """
 
@@ -68,10 +68,16 @@ def _submit(client: httpx.Client, files: dict) -> str | None:
     return response.json()["id"] if response.status_code == 202 else None
 
 
+def _iso_seconds(text: str) -> float:
+    from datetime import datetime
+
+    return datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+
+
 def _watch(server: subprocess.Popen, url: str, files: dict, timeout: float) -> dict[str, float]:
     """Seconds since the start of each milestone, and the tree's CPU seconds when the job ran."""
     marks: dict[str, float] = {}
-    started, job_id = time.monotonic(), None
+    started, wall_started, job_id = time.monotonic(), time.time(), None
     with httpx.Client(base_url=url, timeout=30) as client:
         while "finished" not in marks and time.monotonic() - started < timeout and server.poll() is None:
             now = time.monotonic() - started
@@ -82,11 +88,13 @@ def _watch(server: subprocess.Popen, url: str, files: dict, timeout: float) -> d
                     marks["accepted"] = time.monotonic() - started
                 if "ready" not in marks and client.get("/readyz").status_code == 200:
                     marks["ready"] = now
-                status = client.get(f"/v1/registrations/{job_id}").json()["status"] if job_id else None
+                body = client.get(f"/v1/registrations/{job_id}").json() if job_id else {}
+                status = body.get("status")
             except httpx.HTTPError:
                 status = None
             if status in ("running", "succeeded") and "running" not in marks:
                 marks["running"], marks["cpu_at_running"] = now, _tree_cpu_seconds(server.pid)
+                marks["started_at"] = _iso_seconds(body["started_at"]) - wall_started
             if status in ("succeeded", "failed", "canceled"):
                 marks["finished"] = now
             time.sleep(0.2)
@@ -98,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ref", default="HEAD", help="git revision whose sources are started (default HEAD)")
     parser.add_argument("--workers", type=int, default=1, help="embedded worker processes")
     parser.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")
+    parser.add_argument("--log", type=Path, default=None, help="write the server's log here")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="dsareg-first-start-") as tmp:
         tree, port = Path(tmp) / "src", free_port()
@@ -107,17 +116,20 @@ def main(argv: list[str] | None = None) -> int:
         env = {k: v for k, v in os.environ.items() if not k.startswith(("DSAREG_", "NUMBA_CACHE_DIR"))}
         env.update(PYTHONPATH=str(tree), PYTHONDONTWRITEBYTECODE="0")
         load_before = os.getloadavg()[0]
+        log = open(args.log, "wb") if args.log else subprocess.DEVNULL  # noqa: SIM115 - closed below
         server = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port), "--data-dir",
                                    str(Path(tmp) / "data"), "--workers", str(args.workers)], cwd=tree, env=env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                                  stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         try:
             marks = _watch(server, f"http://127.0.0.1:{port}", files, args.timeout)
         finally:
             server.terminate()
             server.wait(30)
+            if args.log:
+                log.close()
     print(f"ref {args.ref}, {args.workers} worker(s), {os.cpu_count()} CPUs, load average {load_before:.1f} → "
           f"{os.getloadavg()[0]:.1f}")
-    for name in ("api", "accepted", "ready", "running", "finished"):
+    for name in ("api", "accepted", "ready", "started_at", "running", "finished"):
         print(f"{name:>9}: " + (f"{marks[name]:.1f} s" if name in marks else "not reached"))
     if "cpu_at_running" in marks:
         print(f"first job running after {marks['running']:.1f} s wall, {marks['cpu_at_running']:.1f} CPU-s (server tree)")

@@ -233,21 +233,26 @@ def _group_lock(name: str):
         handle.close()
 
 
-_WAITED: set[str] = set()
+_WAITED: set[tuple[str, int]] = set()
+"""(group, thread budget) pairs this process compiled or waited for."""
 
 
 def wait_for_group(name: str) -> None:
     """Before this process first uses the group's kernels: wait while another process (the background helper)
     compiles them, so two processes never write one function's cache index at once; then they load from it."""
-    if name not in _WAITED:
+    import numba
+
+    if (name, numba.get_num_threads()) not in _WAITED:
         with _group_lock(name):
-            _WAITED.add(name)
+            _WAITED.add((name, numba.get_num_threads()))
 
 
 def compile_group(name: str) -> None:
     """Compile the kernel group ``name`` into the cache (under its lock)."""
+    import numba
+
     with _group_lock(name):
-        _WAITED.add(name)  # this process holds the lock: its own kernel calls must not wait for it
+        _WAITED.add((name, numba.get_num_threads()))  # this process holds the lock: its kernel calls must not wait
         KERNEL_GROUPS[name]()
 
 
