@@ -59,13 +59,15 @@ def _export(ref: str, folder: Path) -> None:
 
 
 def _submit(client: httpx.Client, files: dict) -> str | None:
+    """The job's id; a retry after a timeout returns the same job (Idempotency-Key), never a second one."""
     try:
         response = client.post("/v1/registrations", files={
             "mesh": ("phantom.obj", files["mesh"]), "ap": ("ap.png", files["ap"]), "lat": ("lat.png", files["lat"])},
-            data={"geometry": files["geometry"], "options": json.dumps({"starts": 1, "max_iterations": 30})})
+            data={"geometry": files["geometry"], "options": json.dumps({"starts": 1, "max_iterations": 30})},
+            headers={"Idempotency-Key": "first-start-benchmark"}, timeout=300)
     except httpx.HTTPError:
         return None
-    return response.json()["id"] if response.status_code == 202 else None
+    return response.json()["id"] if response.status_code in (200, 202) else None
 
 
 def _iso_seconds(text: str) -> float:
