@@ -18,8 +18,6 @@ so a worker is ready without them; a job that needs one before the helper is don
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import io
 import json
 import os
@@ -212,47 +210,11 @@ def group_cached(name: str) -> bool:
         return False
 
 
-@contextlib.contextmanager
-def _group_lock(name: str):
-    """One process at a time compiles a group (several workers of a fresh install wait for the first one)."""
-    import numba
-
-    key = hashlib.sha256(f"{Path(__file__).resolve()}|{name}|{numba.get_num_threads()}".encode()).hexdigest()[:16]
-    path = Path(tempfile.gettempdir()) / f"dsareg-kernels-{key}.lock"
-    try:
-        import fcntl
-
-        handle = open(path, "a")  # noqa: SIM115 - closed below
-    except (ImportError, OSError):  # not POSIX, or no temp dir: no lock
-        yield
-        return
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        yield
-    finally:
-        handle.close()
-
-
-_WAITED: set[tuple[str, int]] = set()
-"""(group, thread budget) pairs this process compiled or waited for."""
-
-
-def wait_for_group(name: str) -> None:
-    """Before this process first uses the group's kernels: wait while another process (the background helper)
-    compiles them, so two processes never write one function's cache index at once; then they load from it."""
-    import numba
-
-    if (name, numba.get_num_threads()) not in _WAITED:
-        with _group_lock(name):
-            _WAITED.add((name, numba.get_num_threads()))
-
-
 def compile_group(name: str) -> None:
-    """Compile the kernel group ``name`` into the cache (under its lock)."""
-    import numba
+    """Compile the kernel group ``name`` into the cache (under its lock, see :mod:`.render.compile_lock`)."""
+    from .render.compile_lock import compiling_group
 
-    with _group_lock(name):
-        _WAITED.add((name, numba.get_num_threads()))  # this process holds the lock: its kernel calls must not wait
+    with compiling_group(name):
         KERNEL_GROUPS[name]()
 
 
@@ -325,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # run through the imported module: the kernels' own wait_for_group reads its _WAITED
+if __name__ == "__main__":  # through the imported module, so KERNEL_GROUPS and its imports are the ones the kernels see
     from dsareg_engine.warmup import main as _main
 
     sys.exit(_main())
