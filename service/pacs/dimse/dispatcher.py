@@ -6,6 +6,13 @@ hands each one to ``intake.submit`` — the same checks and queue as ``POST /v1/
 When an association is released it asks ``intake.prevalidate`` to parse the planned inputs
 early (the validator caches successful parses by content), so the submission at stable time
 costs no parse. The intake is injected: this package knows nothing of the API.
+
+A stable study with biplane pairs but no volume, when ``dicom_query_peer`` is set: the patient's
+latest CT / MR / 3D-RA series is found by C-FIND and fetched by C-MOVE into the inbox
+(:mod:`.query`, bounded by ``dicom_timeout_seconds``), and the pairs become jobs with it. No
+volume found, or the peer down: a WARNING naming the peer, the step and the status, the outcome
+in :attr:`StudyDispatcher.dispatched`, and the study waits ``dicom_query_retry_seconds`` before
+it is asked for again (a volume sent meanwhile makes the job).
 """
 
 from __future__ import annotations
@@ -19,8 +26,9 @@ from typing import Any
 
 from ...engine_adapter import xa_view_angle_deg
 from ...problems import Problem
-from .grouping import XaView, plan_study
+from .grouping import PlannedJob, StudyPlan, XaView, plan_study
 from .inbox import Inbox, StoredInstance
+from .query import DimsePacsError, latest_volume, retrieve
 
 log = logging.getLogger("dsareg.dimse")
 
@@ -111,6 +119,9 @@ class StudyDispatcher:
         plan = plan_study(list(headers.values()), angle_between)
         by_uid = {item.sop_instance_uid: item for item in items}
         outcome: dict[str, Any] = {"study_uid": study, "jobs": [], "notes": plan.notes}
+        if plan.unmodelled and self.settings.dicom_query_peer:
+            if not self._patient_volume(study, plan, headers, by_uid, outcome):
+                return
         for job in plan.jobs:
             future = asyncio.run_coroutine_threadsafe(self.intake.submit(study, job, by_uid), self.loop)
             try:
@@ -130,5 +141,45 @@ class StudyDispatcher:
             log.info("study: %s", note)
         self._retry_at.pop(study, None)
         self.inbox.mark_dispatched(study, [item.sop_instance_uid for item in items])
+        self._remember(outcome)
+
+    def _patient_volume(self, study: str, plan: StudyPlan, headers: dict[str, Any], by_uid: dict[str, StoredInstance],
+                        outcome: dict[str, Any]) -> bool:
+        """Fill ``plan.jobs`` with the patient's latest volume from the query peer; False: none (retried later)."""
+        peer = self.settings.dicom_query_peer
+        patient = str(getattr(headers[plan.unmodelled[0][0]], "PatientID", "") or "")
+        try:
+            if not patient:
+                raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "the XA images have no Patient ID")
+            found = latest_volume(self.settings, peer, patient, exclude_study=study)
+            if found is None:
+                raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "no CT / MR / 3D-RA series of the "
+                                     "patient (the study waits for a volume)")
+            volume = retrieve(self.settings, self.inbox, peer, "SERIES", {
+                "StudyInstanceUID": found.study_uid, "SeriesInstanceUID": found.series_uid}, "C-MOVE volume")
+        except DimsePacsError as exc:
+            self._retry_at[study] = time.time() + self.settings.dicom_query_retry_seconds
+            log.warning("study: %s; asking again in %g s", exc, self.settings.dicom_query_retry_seconds)
+            outcome["error"] = {"type": "pacs-error", "peer": exc.server, "step": exc.step,
+                                "dimse_status": exc.status, "detail": str(exc)}
+            self._remember(outcome)
+            return False
+        ordered = sorted(volume, key=lambda item: _instance_number(self.blobs, item))
+        by_uid.update({item.sop_instance_uid: item for item in ordered})
+        origin = {"peer": peer, "study_uid": found.study_uid, "modality": found.modality, "study_date": found.study_date}
+        plan.jobs = [PlannedJob(ap, lat, [item.sop_instance_uid for item in ordered], f"{rule}; patient's latest volume",
+                                volume_origin=origin) for ap, lat, rule in plan.unmodelled]
+        log.info("study: the patient's latest %s volume (%d instances) retrieved from %s", found.modality,
+                 len(ordered), peer)
+        return True
+
+    def _remember(self, outcome: dict[str, Any]) -> None:
         self.dispatched.append(outcome)
         del self.dispatched[:-100]
+
+
+def _instance_number(blobs: Any, item: StoredInstance) -> float:
+    try:
+        return float(_header(blobs, item).InstanceNumber)
+    except Exception:  # noqa: BLE001 - no or odd Instance Number: last
+        return float("inf")
