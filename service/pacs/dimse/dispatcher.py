@@ -114,9 +114,11 @@ class StudyDispatcher:
         return len(studies)
 
     def _dispatch(self, study: str) -> None:
+        started = time.perf_counter()
         items = self.inbox.study(study)
         headers = {item.sop_instance_uid: _header(self.blobs, item) for item in items}
         plan = plan_study(list(headers.values()), angle_between)
+        planned = time.perf_counter()
         by_uid = {item.sop_instance_uid: item for item in items}
         outcome: dict[str, Any] = {"study_uid": study, "jobs": [], "notes": plan.notes}
         if plan.unmodelled and self.settings.dicom_query_peer:
@@ -136,7 +138,10 @@ class StudyDispatcher:
                 outcome["jobs"].append({"refused": exc.status, "detail": exc.detail, "instances": job.instances})
                 continue
             outcome["jobs"].append({"job_id": job_id, "created": created, "pairing": job.rule})
-            log.info("job %s: %s from a DICOM study (%s)", job_id, "queued" if created else "already queued", job.rule)
+            lag = time.time() - max(item.received_at for item in items)
+            log.info("job %s: %s from a DICOM study (%s), %.2f s after its last instance (planning %.2f s, "
+                     "submission %.2f s)", job_id, "queued" if created else "already queued", job.rule, lag,
+                     planned - started, time.perf_counter() - planned)
         for note in plan.notes:
             log.info("study: %s", note)
         self._retry_at.pop(study, None)
