@@ -168,7 +168,7 @@ def queue_lag(folder: Path, stable_seconds: float, studies: int) -> dict:
     lags = []
     try:
         client = httpx.Client(base_url=f"http://127.0.0.1:{http}", timeout=30)
-        _wait(lambda: _get(client, "/healthz") == 200 and _get(client, "/v1/registrations") == 200, 300, 0.5)
+        _wait(lambda: _validators_ready(client), 300, 0.5)  # /readyz is 503 without workers
         for index in range(studies):
             _uid, paths = renamed_study(study, folder / f"s{index}")
             subprocess.run(["storescu", "-aet", "STORESCU", "-aec", "DSAREG", "127.0.0.1", str(dicom),
@@ -185,6 +185,14 @@ def queue_lag(folder: Path, stable_seconds: float, studies: int) -> dict:
              if "(planning " in line]
     return {"stable_seconds": stable_seconds, "studies": studies, "dispatcher_steps": steps, "median_seconds": round(float(np.median(lags)), 2),
             "max_seconds": round(max(lags), 2), "lags_seconds": [round(x, 2) for x in lags]}
+
+
+def _validators_ready(client) -> bool:
+    try:
+        checks = client.get("/readyz").json()["checks"]
+    except Exception:  # noqa: BLE001 - not up yet
+        return False
+    return bool(checks.get("validator_ready") and checks.get("validator_spare_ready"))
 
 
 def _get(client, path: str) -> int:

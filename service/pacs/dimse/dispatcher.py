@@ -51,6 +51,7 @@ class StudyDispatcher:
     """A thread: stable studies → planned jobs → ``intake.submit`` on ``loop`` (the API's event loop, or its own)."""
 
     HOUSEKEEPING_SECONDS = 5.0
+    HEADER_CACHE_STUDIES = 32
 
     def __init__(self, settings: Any, blobs: Any, inbox: Inbox, intake: Any, loop: asyncio.AbstractEventLoop,
                  tick_seconds: float = 0.25, housekeeping=None):
@@ -62,6 +63,7 @@ class StudyDispatcher:
         self._wake = threading.Event()
         self._retry_at: dict[str, float] = {}
         self._early: set[str] = set()
+        self._header_cache: dict[str, dict[tuple[str, str], Any]] = {}
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="dimse-dispatcher", daemon=True)
         self.dispatched: list[dict[str, Any]] = []  # recent outcomes, for logs and tests
@@ -82,9 +84,9 @@ class StudyDispatcher:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            try:
-                self.dispatch_once()
+            try:  # parse first: a study that became stable during the parse is then submitted at once
                 self._prevalidate_released()
+                self.dispatch_once()
                 if time.monotonic() - self._last_housekeeping > self.HOUSEKEEPING_SECONDS:
                     self._last_housekeeping = time.monotonic()
                     self.housekeeping()
@@ -99,11 +101,25 @@ class StudyDispatcher:
             studies, self._early = self._early, set()
         for study in studies:
             items = self.inbox.study(study)
-            plan = plan_study([_header(self.blobs, item) for item in items], angle_between)
+            plan = plan_study(list(self._headers(study, items).values()), angle_between)
             by_uid = {item.sop_instance_uid: item for item in items}
             for job in plan.jobs:
                 future = asyncio.run_coroutine_threadsafe(self.intake.prevalidate(study, job, by_uid), self.loop)
                 future.result(timeout=self.settings.validation_timeout_seconds + 30)
+
+    def _headers(self, study: str, items: list[StoredInstance]) -> dict[str, Any]:
+        """``{SOP Instance UID: header}`` of the study's instances, kept from the early parse to the dispatch
+        (read once per stored file)."""
+        cached = self._header_cache.setdefault(study, {})
+        while len(self._header_cache) > self.HEADER_CACHE_STUDIES:
+            self._header_cache.pop(next(iter(self._header_cache)))
+        out = {}
+        for item in items:
+            key = (item.sop_instance_uid, item.sha256)
+            if key not in cached:
+                cached[key] = _header(self.blobs, item)
+            out[item.sop_instance_uid] = cached[key]
+        return out
 
     def dispatch_once(self) -> int:
         now = time.time()
@@ -116,7 +132,8 @@ class StudyDispatcher:
     def _dispatch(self, study: str) -> None:
         started = time.perf_counter()
         items = self.inbox.study(study)
-        headers = {item.sop_instance_uid: _header(self.blobs, item) for item in items}
+        headers = self._headers(study, items)
+        self._header_cache.pop(study, None)
         plan = plan_study(list(headers.values()), angle_between)
         planned = time.perf_counter()
         by_uid = {item.sop_instance_uid: item for item in items}

@@ -45,6 +45,15 @@ class Listener(LoggedProcess):
 
 
 @pytest.fixture(scope="module")
+def study():
+    """A coarser phantom study than the shared one (1 mm slices: about half the instances): these jobs are only
+    counted, never run, so only the number of instances and the parse time matter."""
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
+
+    return make_biplane_study(image_px=128, pixel_spacing_mm=1.1, pitch_mm=1.0, depth=2)
+
+
+@pytest.fixture(scope="module")
 def topology(tmp_path_factory):
     need_dcmtk()
     root = tmp_path_factory.mktemp("listener")
