@@ -108,6 +108,7 @@ def _iso(text: str) -> float:
 
 def round_trip(folder: Path, stable_seconds: float) -> dict:
     import httpx
+
     from dsareg_engine.simulation.phantom_study import make_biplane_study
 
     study = make_biplane_study(image_px=160, pixel_spacing_mm=0.9, depth=2)

@@ -138,9 +138,9 @@ class StudyDispatcher:
         planned = time.perf_counter()
         by_uid = {item.sop_instance_uid: item for item in items}
         outcome: dict[str, Any] = {"study_uid": study, "jobs": [], "notes": plan.notes}
-        if plan.unmodelled and self.settings.dicom_query_peer:
-            if not self._patient_volume(study, plan, headers, by_uid, outcome):
-                return
+        if (plan.unmodelled and self.settings.dicom_query_peer
+                and not self._patient_volume(study, plan, headers, by_uid, outcome)):
+            return  # no volume for the pairs yet (logged; asked again later)
         for job in plan.jobs:
             future = asyncio.run_coroutine_threadsafe(self.intake.submit(study, job, by_uid), self.loop)
             try:
