@@ -77,9 +77,12 @@ class StudyDispatcher:
         self._thread.join(10)
 
     def wake(self, studies: Any = None) -> None:
-        """An association was released with instances of ``studies``: parse their planned jobs early."""
+        """An association was released with instances of ``studies``: parse their planned jobs early; a study
+        waiting to ask its query peer again (no volume found) is looked at again as soon as it is stable."""
         with self._lock:
             self._early.update(studies or ())
+            for study in studies or ():
+                self._retry_at.pop(study, None)
         self._wake.set()
 
     def _run(self) -> None:

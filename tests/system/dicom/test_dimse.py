@@ -53,13 +53,29 @@ def node(tmp_path_factory):
            "DSAREG_DICOM_EXPORT_RETRIES": "2", "DSAREG_DICOM_EXPORT_BACKOFF_SECONDS": "0.2",
            "DSAREG_DICOM_TIMEOUT_SECONDS": "5", "DSAREG_DICOM_QUERY_PEER": "ORTHANC",
            "DSAREG_DICOM_QUERY_RETRY_SECONDS": "600"}
-    server = Server(root / "data", workers=1, env=env).start()
+    # the worker warms up (tens of seconds on a loaded machine) while the first tests run: jobs wait in the queue;
+    # submissions need only the input validators
+    server = Server(root / "data", workers=1, env=env).start(wait_ready=False)
+    wait_validators(server, timeout=300)
     server.dicom_port, server.orthanc, server.export, server.root = dicom_port, orthanc, export, root
     export.start()
     yield server
     server.stop()
     export.stop()
     orthanc.stop()
+
+
+def wait_validators(server, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            checks = httpx.get(server.url + "/readyz", timeout=5).json()["checks"]
+            if checks.get("validator_ready") and checks.get("validator_spare_ready"):
+                return
+        except (httpx.HTTPError, ValueError, KeyError):
+            pass
+        time.sleep(0.2)
+    raise AssertionError(f"the input validators were not ready after {timeout} s:\n{server.logs()[-2000:]}")
 
 
 @pytest.fixture

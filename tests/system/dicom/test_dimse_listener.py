@@ -63,8 +63,7 @@ def topology(tmp_path_factory):
                                              {"ae_title": "SCU", "host": "127.0.0.1", "port": free_port()},
                                              {"ae_title": "DOWNQUERY", "host": "127.0.0.1", "port": free_port()}]),
            "DSAREG_DICOM_STABLE_SECONDS": str(STABLE_S), "DSAREG_DICOM_JOB_OPTIONS": json.dumps({"starts": 1}),
-           "DSAREG_DICOM_QUERY_PEER": "DOWNQUERY", "DSAREG_DICOM_QUERY_RETRY_SECONDS": "600",
-           "DSAREG_DICOM_TIMEOUT_SECONDS": "5"}
+           "DSAREG_DICOM_QUERY_PEER": "DOWNQUERY", "DSAREG_DICOM_QUERY_RETRY_SECONDS": "600"}
     api = Server(data, workers=0, env=env).start(wait_ready=False)
     listener = Listener(data, port, env).start()
     yield api, listener
@@ -180,3 +179,7 @@ def test_an_xa_only_study_with_its_query_peer_down_is_a_bounded_clear_pacs_error
     assert "asking again in 600 s" in listener.logs()
     with api.client() as client:
         assert jobs_of_study(client, study_uid) == []
+    # the volume sent into the study meanwhile makes the job at once, not after the 600 s
+    assert set(scu_send(listener.port, paths[2:], "SCU")) == {0}
+    jobs = settle_and_count(api, study_uid, wait_s=STABLE_S + 20)
+    assert len(jobs) == 1 and jobs[0]["source"]["dimse"]["volume"]["instances"] == len(paths) - 2, jobs
