@@ -108,7 +108,7 @@ class StudyDispatcher:
             by_uid = {item.sop_instance_uid: item for item in items}
             for job in plan.jobs:
                 future = asyncio.run_coroutine_threadsafe(self.intake.prevalidate(study, job, by_uid), self.loop)
-                future.result(timeout=self.settings.validation_timeout_seconds + 30)
+                future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
 
     def _headers(self, study: str, items: list[StoredInstance]) -> dict[str, Any]:
         """``{SOP Instance UID: header}`` of the study's instances, kept from the early parse to the dispatch
@@ -126,7 +126,7 @@ class StudyDispatcher:
 
     def dispatch_once(self) -> int:
         now = time.time()
-        studies = [s for s in self.inbox.stable_studies(self.settings.dicom_stable_seconds, now)
+        studies = [s for s in self.inbox.stable_studies(self.settings.dimse.dicom_stable_seconds, now)
                    if self._retry_at.get(s, 0.0) <= now]
         for study in studies:
             self._dispatch(study)
@@ -141,13 +141,13 @@ class StudyDispatcher:
         planned = time.perf_counter()
         by_uid = {item.sop_instance_uid: item for item in items}
         outcome: dict[str, Any] = {"study_uid": study, "jobs": [], "notes": plan.notes}
-        if (plan.unmodelled and self.settings.dicom_query_peer
+        if (plan.unmodelled and self.settings.dimse.dicom_query_peer
                 and not self._patient_volume(study, plan, headers, by_uid, outcome)):
             return  # no volume for the pairs yet (logged; asked again later)
         for job in plan.jobs:
             future = asyncio.run_coroutine_threadsafe(self.intake.submit(study, job, by_uid), self.loop)
             try:
-                job_id, created = future.result(timeout=self.settings.validation_timeout_seconds + 30)
+                job_id, created = future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
             except Problem as exc:
                 if exc.status in TRANSIENT_STATUS:
                     self._retry_at[study] = time.time() + 5.0
@@ -171,7 +171,7 @@ class StudyDispatcher:
     def _patient_volume(self, study: str, plan: StudyPlan, headers: dict[str, Any], by_uid: dict[str, StoredInstance],
                         outcome: dict[str, Any]) -> bool:
         """Fill ``plan.jobs`` with the patient's latest volume from the query peer; False: none (retried later)."""
-        peer = self.settings.dicom_query_peer
+        peer = self.settings.dimse.dicom_query_peer
         patient = str(getattr(headers[plan.unmodelled[0][0]], "PatientID", "") or "")
         try:
             if not patient:
@@ -183,8 +183,8 @@ class StudyDispatcher:
             volume = retrieve(self.settings, self.inbox, peer, "SERIES", {
                 "StudyInstanceUID": found.study_uid, "SeriesInstanceUID": found.series_uid}, "C-MOVE volume")
         except DimsePacsError as exc:
-            self._retry_at[study] = time.time() + self.settings.dicom_query_retry_seconds
-            log.warning("study: %s; asking again in %g s", exc, self.settings.dicom_query_retry_seconds)
+            self._retry_at[study] = time.time() + self.settings.dimse.dicom_query_retry_seconds
+            log.warning("study: %s; asking again in %g s", exc, self.settings.dimse.dicom_query_retry_seconds)
             outcome["error"] = {"type": "pacs-error", "peer": exc.server, "step": exc.step,
                                 "dimse_status": exc.status, "detail": str(exc)}
             self._remember(outcome)

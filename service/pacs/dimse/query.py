@@ -47,9 +47,9 @@ def scu_ae(settings: Any):
 
     if not logging.getLogger("dsareg").isEnabledFor(logging.DEBUG):  # one INFO line per sub-operation otherwise
         logging.getLogger("pynetdicom").setLevel(logging.WARNING)
-    ae = AE(ae_title=settings.dicom_ae_title)
+    ae = AE(ae_title=settings.dimse.dicom_ae_title)
     for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
-        setattr(ae, timeout, settings.dicom_timeout_seconds)
+        setattr(ae, timeout, settings.dimse.dicom_timeout_seconds)
     return ae
 
 
@@ -64,7 +64,7 @@ def associate(settings: Any, title: str, contexts: tuple[str, ...], step: str, *
     assoc = ae.associate(peer.host, peer.port, ae_title=peer.ae_title, **kwargs)
     if not assoc.is_established:
         raise DimsePacsError(title, step, f"association rejected by {title} (does it know the calling AE "
-                                          f"{settings.dicom_ae_title}?)" if assoc.is_rejected else
+                                          f"{settings.dimse.dicom_ae_title}?)" if assoc.is_rejected else
                              f"no association with {peer.host}:{peer.port} (connection refused, timed out or "
                              "aborted: is the peer up?)")
     return assoc
@@ -167,7 +167,7 @@ def c_move(settings: Any, title: str, level: str, keys: dict[str, Any], step: st
         model = _accepted(assoc, STUDY_MOVE, PATIENT_MOVE)
         if model is None:
             raise DimsePacsError(title, step, "the peer accepted neither Study Root nor Patient Root C-MOVE")
-        for status, _answer in assoc.send_c_move(_identifier(level, keys), settings.dicom_ae_title, model):
+        for status, _answer in assoc.send_c_move(_identifier(level, keys), settings.dimse.dicom_ae_title, model):
             code = int(getattr(status, "Status", -1)) if status else None
             completed = int(getattr(status, "NumberOfCompletedSuboperations", completed) or completed) if status \
                 else completed
@@ -178,7 +178,7 @@ def c_move(settings: Any, title: str, level: str, keys: dict[str, Any], step: st
             assoc.release()
     if final not in (SUCCESS, WARNING) or not completed:
         detail = "no answer (timed out or aborted)" if final is None else (
-            f"{completed} instance(s) sent to {settings.dicom_ae_title} (does the peer know {settings.dicom_ae_title} "
+            f"{completed} instance(s) sent to {settings.dimse.dicom_ae_title} (does the peer know {settings.dimse.dicom_ae_title} "
             "as a DICOM modality, and is dsareg's DICOM node listening?)")
         raise DimsePacsError(title, step, detail, final)
     return completed
@@ -188,13 +188,13 @@ def retrieve(settings: Any, inbox: Any, title: str, level: str, keys: dict[str, 
     """C-MOVE one series (or one instance of it) to us; its ``retrieved`` inbox rows once all have arrived."""
     completed = c_move(settings, title, level, keys, step)
     series, sop = keys["SeriesInstanceUID"], keys.get("SOPInstanceUID")
-    deadline = time.monotonic() + settings.dicom_timeout_seconds
+    deadline = time.monotonic() + settings.dimse.dicom_timeout_seconds
     while True:
         found = inbox.series(series, sop)
         if len(found) >= completed:
             return found
         if time.monotonic() > deadline:
             raise DimsePacsError(title, step, f"the peer reported {completed} instance(s) sent but {len(found)} "
-                                              f"reached {settings.dicom_ae_title} within "
-                                              f"{settings.dicom_timeout_seconds:g} s")
+                                              f"reached {settings.dimse.dicom_ae_title} within "
+                                              f"{settings.dimse.dicom_timeout_seconds:g} s")
         time.sleep(0.05)
