@@ -182,6 +182,16 @@ class ServiceSettings(BaseSettings):
     callback_retry_backoff_seconds: float = Field(
         1.0, ge=0.0, description="Delay before the second attempt; doubles each attempt, at most 300 s.")
 
+    # results to the PACS only after a person approved them (service/jobs/exports.py, docs/review.md)
+    export_after_review: bool = Field(
+        False, description="Hold the STOW-RS / C-STORE of a job's DICOM results until a person approves the job "
+                           "(POST /v1/registrations/{id}/review); a rejected job is never exported. Off: results are "
+                           "stored as soon as the job ends.")
+    export_max_attempts: int = Field(5, ge=1, le=50, description="Export attempts of an approved job (each with the "
+                                                                 "DICOMweb / DIMSE retries) before it is marked failed.")
+    export_retry_backoff_seconds: float = Field(
+        5.0, ge=0.0, description="Delay before the second export attempt; doubles each attempt, at most 300 s.")
+
     log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
 
     @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "dicom_peers", "dicom_export", "callback_allowed",
