@@ -218,6 +218,7 @@ function reviewSection(job) {
       const shown = document.getElementById("export-state");
       if (shown && updated.export) shown.replaceWith(exportState(updated.export));
       document.getElementById("history").replaceWith(historySection(updated).querySelector("#history"));
+      if (updated.export && ["pending", "exporting"].includes(updated.export.state)) watchExport(job.id, 30);
     } catch (error) { say("The review was not saved: " + error.message, true); }
   };
   return el("section", { "aria-labelledby": "review-h", class: "review-form" }, el("h3", { id: "review-h" }, "Review"), current,
@@ -243,6 +244,19 @@ function exportState(exp) {
   return el("p", { id: "export-state" }, "PACS export: ", badge(EXPORT_WORDS[exp.state] || exp.state, exp.state === "done" ? "ok" : exp.state),
     ` (${where}${exp.attempts ? `, ${exp.attempts} attempt${exp.attempts === 1 ? "" : "s"}` : ""})`,
     exp.error && exp.state !== "done" ? [el("br"), el("span", { class: "error" }, exp.error.detail || exp.error.title)] : null);
+}
+
+async function watchExport(id, polls) {
+  // the export runs in the service after the approval: follow it for a while (every 1 s)
+  await new Promise((done) => setTimeout(done, 1000));
+  const shown = document.getElementById("export-state");
+  if (!shown || !location.hash.endsWith(id)) return;
+  let job;
+  try { job = await api("/v1/registrations/" + encodeURIComponent(id)); } catch (error) { return; }
+  if (!job.export) return;
+  shown.replaceWith(exportState(job.export));
+  if (["pending", "exporting"].includes(job.export.state) && polls > 1) { watchExport(id, polls - 1); return; }
+  document.getElementById("history").replaceWith(historySection(job).querySelector("#history"));
 }
 
 function historySection(job) {
