@@ -100,7 +100,7 @@ def verify(body: bytes, secret: str, header: str | None) -> bool:
 
 def backoff_seconds(settings: ServiceSettings, attempts: int) -> float:
     """Delay after the ``attempts``-th failed attempt."""
-    return min(MAX_BACKOFF_SECONDS, settings.callback_retry_backoff_seconds * 2.0 ** max(0, attempts - 1))
+    return min(MAX_BACKOFF_SECONDS, settings.callbacks.callback_retry_backoff_seconds * 2.0 ** max(0, attempts - 1))
 
 
 # ---- delivering -----------------------------------------------------------------------------
@@ -115,9 +115,9 @@ class CallbackDeliverer(LeasedDeliverer):
                  user_agent: str = "dsareg"):
         super().__init__()
         self.store, self.settings, self.payload = store, settings, payload
-        self.lease_seconds = settings.callback_timeout_seconds + LEASE_MARGIN_SECONDS
+        self.lease_seconds = settings.callbacks.callback_timeout_seconds + LEASE_MARGIN_SECONDS
         self.headers = {"Content-Type": "application/json", "User-Agent": user_agent}
-        self._http = httpx.Client(timeout=settings.callback_timeout_seconds, follow_redirects=False)
+        self._http = httpx.Client(timeout=settings.callbacks.callback_timeout_seconds, follow_redirects=False)
 
     def due(self, now: float) -> list[str]:
         return self.store.due_callbacks(now)
@@ -131,7 +131,7 @@ class CallbackDeliverer(LeasedDeliverer):
         if job is None:
             return "gone"
         body = self.payload(job)
-        headers = {**self.headers, SIGNATURE_HEADER: signature(body, self.settings.callback_secret),
+        headers = {**self.headers, SIGNATURE_HEADER: signature(body, self.settings.callbacks.callback_secret),
                    DELIVERY_HEADER: row["delivery_id"], ATTEMPT_HEADER: str(row["attempts"]), JOB_HEADER: job.id}
         status, error = None, None
         try:
@@ -148,7 +148,7 @@ class CallbackDeliverer(LeasedDeliverer):
         elif status is not None and (300 <= status < 400 or status == 410):
             state, next_at = "failed", None
             error = f"HTTP {status}: " + ("redirects are not followed" if status < 400 else "the receiver is gone")
-        elif attempt >= self.settings.callback_max_attempts:
+        elif attempt >= self.settings.callbacks.callback_max_attempts:
             state, next_at = "failed", None
         else:
             state, next_at = "pending", time.time() + backoff_seconds(self.settings, attempt)

@@ -67,11 +67,11 @@ def pacs_error(detail: str, **extra: Any) -> dict[str, Any]:
 def lease_seconds(settings: ServiceSettings, target: dict[str, Any]) -> float:
     """Longer than one attempt can take (every retry of the transport at its timeout)."""
     if target.get("via") == STOW:
-        work = (settings.dicomweb_timeout_seconds * (settings.dicomweb_retries + 1)
-                + settings.dicomweb_retry_backoff_seconds * 2 ** settings.dicomweb_retries)
+        work = (settings.dicomweb.dicomweb_timeout_seconds * (settings.dicomweb.dicomweb_retries + 1)
+                + settings.dicomweb.dicomweb_retry_backoff_seconds * 2 ** settings.dicomweb.dicomweb_retries)
     else:
-        per_peer = (3 * settings.dicom_timeout_seconds * (settings.dicom_export_retries + 1)
-                    + settings.dicom_export_backoff_seconds * 2 ** settings.dicom_export_retries)
+        per_peer = (3 * settings.dimse.dicom_timeout_seconds * (settings.dimse.dicom_export_retries + 1)
+                    + settings.dimse.dicom_export_backoff_seconds * 2 ** settings.dimse.dicom_export_retries)
         work = per_peer * max(1, len(target.get("peers") or []))
     return work + LEASE_MARGIN_SECONDS
 
@@ -84,9 +84,9 @@ def _stow(target: dict[str, Any], files: list[tuple[str, bytes]], uids: list[str
                                 server=target["server"], step="configuration")
     started = time.perf_counter()
     try:
-        with DicomwebClient(server, timeout=settings.dicomweb_timeout_seconds, retries=settings.dicomweb_retries,
-                            backoff=settings.dicomweb_retry_backoff_seconds,
-                            max_bytes=settings.max_upload_bytes) as client:
+        with DicomwebClient(server, timeout=settings.dicomweb.dicomweb_timeout_seconds, retries=settings.dicomweb.dicomweb_retries,
+                            backoff=settings.dicomweb.dicomweb_retry_backoff_seconds,
+                            max_bytes=settings.limits.max_upload_bytes) as client:
             stored = client.store(target["study_uid"], [data for _, data in files])
     except PacsError as exc:
         return None, pacs_error(str(exc), **exc.problem_extra())
@@ -151,10 +151,10 @@ class ExportDeliverer(LeasedDeliverer):
         attempt = row["attempts"]
         if error is None:
             state, next_at = "done", None
-        elif attempt >= self.settings.export_max_attempts:
+        elif attempt >= self.settings.jobs.export_max_attempts:
             state, next_at = "failed", None
         else:
-            delay = min(MAX_BACKOFF_SECONDS, self.settings.export_retry_backoff_seconds * 2.0 ** (attempt - 1))
+            delay = min(MAX_BACKOFF_SECONDS, self.settings.jobs.export_retry_backoff_seconds * 2.0 ** (attempt - 1))
             state, next_at = "pending", time.time() + delay
         if error is not None:
             error = {**error, "attempts": attempt, "instance": f"/v1/registrations/{job.id}"}
