@@ -21,6 +21,7 @@ from tests.support.servers import OrthancServer, free_port
 from tests.support.service_testkit import Server, wait_for
 
 RESULTS = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm")
+START_S = 240.0  # a worker's start (torch, kernels, warm-up job) on a loaded 2-core machine has taken > 90 s
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +54,7 @@ def node(tmp_path_factory, orthanc):
            "DSAREG_DICOM_PORT": str(dicom_port), "DSAREG_DICOM_STABLE_SECONDS": "1",
            "DSAREG_DICOM_PEERS": json.dumps([{"ae_title": "STORESCU", "host": "127.0.0.1", "port": destination.port}]),
            "DSAREG_DICOM_JOB_OPTIONS": json.dumps({"starts": 1}), "DSAREG_DICOM_TIMEOUT_SECONDS": "5"}
-    server = Server(root / "data", workers=1, env=env).start()
+    server = Server(root / "data", workers=1, env=env).start(timeout=START_S)
     server.dicom_port, server.destination = dicom_port, destination
     yield server
     server.stop()
@@ -177,7 +178,7 @@ def test_an_api_killed_during_the_export_exports_after_its_restart(node, orthanc
         node.kill()  # SIGKILL, the API and its workers, mid-attempt
     finally:
         os.kill(orthanc.process.pid, signal.SIGCONT)
-    node.start()
+    node.start(timeout=START_S)
     with node.client() as client:
         done = export_state(client, job["id"], ("done", "failed"), timeout=60)
         events = [item["event"] for item in client.get(f"/v1/registrations/{job['id']}/audit").json()["items"]]
