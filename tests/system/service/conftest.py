@@ -9,9 +9,11 @@ def example_case(tmp_path_factory):
     return make_example_case(tmp_path_factory.mktemp("case"))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def server(tmp_path_factory):
-    """One server for the API tests: auth off, asked for 0.0.0.0 (must fall back to loopback), 1 worker."""
+    """One server for the API tests: auth off, asked for 0.0.0.0 (must fall back to loopback), 1 worker.
+    Shared by every module that asks for it (api, geometry, native_xa, track: each warmed-up start costs
+    ~15 CPU-s); none of them needs an empty store, and each looks only at the jobs it submitted."""
     srv = Server(tmp_path_factory.mktemp("srv") / "data", workers=1, host="0.0.0.0",
                  env={"DSAREG_MAX_UPLOAD_BYTES": str(4 * 1024 * 1024)}).start()
     yield srv
