@@ -3,7 +3,7 @@
 * ``POST /v1/registrations`` with ``Content-Type: application/json`` and a body
   ``{"source": {"dicomweb": {...}}, "options": {...}, "store_results": true}``
   (see :class:`service.pacs.dicomweb.DicomwebRegistrationRequest`). The reference is checked
-  (UID syntax, the URL is one of ``settings.dicomweb_servers``, options) and stored as the
+  (UID syntax, the URL is one of ``settings.dicomweb.dicomweb_servers``, options) and stored as the
   job's only input; the worker fetches the images (``service/pacs/dicom_jobs.py``).
   The DICOM results are served by :mod:`service.api.routes.artifacts`.
 """

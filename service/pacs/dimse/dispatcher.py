@@ -95,11 +95,11 @@ class StudyDispatcher:
             by_uid = {item.sop_instance_uid: item for item in items}
             for job in plan.jobs:
                 future = asyncio.run_coroutine_threadsafe(self.intake.prevalidate(study, job, by_uid), self.loop)
-                future.result(timeout=self.settings.validation_timeout_seconds + 30)
+                future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
 
     def dispatch_once(self) -> int:
         now = time.time()
-        studies = [s for s in self.inbox.stable_studies(self.settings.dicom_stable_seconds, now)
+        studies = [s for s in self.inbox.stable_studies(self.settings.dimse.dicom_stable_seconds, now)
                    if self._retry_at.get(s, 0.0) <= now]
         for study in studies:
             self._dispatch(study)
@@ -114,7 +114,7 @@ class StudyDispatcher:
         for job in plan.jobs:
             future = asyncio.run_coroutine_threadsafe(self.intake.submit(study, job, by_uid), self.loop)
             try:
-                job_id, created = future.result(timeout=self.settings.validation_timeout_seconds + 30)
+                job_id, created = future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
             except Problem as exc:
                 if exc.status in TRANSIENT_STATUS:
                     self._retry_at[study] = time.time() + 5.0

@@ -76,9 +76,9 @@ def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str
         received.append(bytes(event.encoded_dataset(include_meta=True)))
         return SUCCESS
 
-    ae = AE(ae_title=settings.dicom_ae_title)
+    ae = AE(ae_title=settings.dimse.dicom_ae_title)
     for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
-        setattr(ae, timeout, settings.dicom_timeout_seconds)
+        setattr(ae, timeout, settings.dimse.dicom_timeout_seconds)
     ae.add_requested_context(GET_MODEL)
     syntaxes = decodable_transfer_syntaxes()
     for sop_class in STORAGE_CLASSES:

@@ -93,8 +93,8 @@ class Peer:
 
 
 def configured_peers(settings: Any) -> dict[str, Peer]:
-    """``{AE title: Peer}`` of ``settings.dicom_peers``."""
-    return {p["ae_title"]: Peer(p["ae_title"], p["host"], int(p["port"])) for p in settings.dicom_peers}
+    """``{AE title: Peer}`` of ``settings.dimse.dicom_peers``."""
+    return {p["ae_title"]: Peer(p["ae_title"], p["host"], int(p["port"])) for p in settings.dimse.dicom_peers}
 
 
 def free_bytes(folder) -> int:
@@ -123,18 +123,22 @@ class StoreScp:
         calling = str(request.calling_ae_title).strip()
         called = str(request.called_ae_title).strip()
         host = str(assoc.requestor.address)
-        if called != self.settings.dicom_ae_title:
+        if called != self.settings.dimse.dicom_ae_title:
             log.warning("association from %s@%s rejected: called AE title %r is not ours", calling, host, called)
             return REJECT_CALLED
         peer = self.peers.get(calling)
         if peer is None or host not in (peer.address, peer.host):
             log.warning("association from %s@%s rejected: not one of DSAREG_DICOM_PEERS", calling, host)
             return REJECT_CALLING
-        if self.settings.min_free_bytes and free_bytes(self.settings.data_dir) < self.settings.min_free_bytes:
+        if self._disk_low():
             log.error("association from %s rejected: less than %d bytes free in the data folder (DSAREG_MIN_FREE_BYTES)",
-                      calling, self.settings.min_free_bytes)
+                      calling, self.settings.storage.min_free_bytes)
             return REJECT_FULL
         return None
+
+    def _disk_low(self) -> bool:
+        floor = self.settings.storage.min_free_bytes
+        return bool(floor) and free_bytes(self.settings.storage.data_dir) < floor
 
     def on_requested(self, event: Any) -> None:
         reason = self.policy(event.assoc)
@@ -154,7 +158,7 @@ class StoreScp:
     # ---- C-STORE ----------------------------------------------------------------------------------
     def on_store(self, event: Any) -> int:
         """Store, fsync, index, then answer (0000; A700 out of space or storage failed; C000 unreadable)."""
-        if self.settings.min_free_bytes and free_bytes(self.settings.data_dir) < self.settings.min_free_bytes:
+        if self._disk_low():
             self.stats["refused"] += 1
             return OUT_OF_RESOURCES
         association = self.association_id(event.assoc)
@@ -260,10 +264,10 @@ def make_ae(settings: Any):
     """The pynetdicom AE of the node: Verification + the storage SOP classes, SCP role."""
     from pynetdicom import AE
 
-    ae = AE(ae_title=settings.dicom_ae_title)
+    ae = AE(ae_title=settings.dimse.dicom_ae_title)
     ae.maximum_pdu_size = 1 << 20  # 1 MiB P-DATA PDUs (0 = "unlimited" trips dcmtk on encapsulated pixel data)
     for timeout in ("acse_timeout", "dimse_timeout", "network_timeout"):
-        setattr(ae, timeout, settings.dicom_timeout_seconds)
+        setattr(ae, timeout, settings.dimse.dicom_timeout_seconds)
     syntaxes = decodable_transfer_syntaxes()
     ae.add_supported_context(VERIFICATION)
     for sop_class in STORAGE_CLASSES:
@@ -281,4 +285,4 @@ def start_server(settings: Any, scp: StoreScp):
     handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_C_STORE, scp.on_store), (evt.EVT_ACSE_RECV, scp.on_acse),
                 (evt.EVT_RELEASED, scp.on_released), (evt.EVT_ABORTED, scp.on_aborted),
                 (evt.EVT_CONN_CLOSE, scp.on_closed)]
-    return ae.start_server((settings.dicom_host, settings.dicom_port), block=False, evt_handlers=handlers)
+    return ae.start_server((settings.dimse.dicom_host, settings.dimse.dicom_port), block=False, evt_handlers=handlers)
