@@ -241,6 +241,11 @@ class DimseSettings(_Group):
     dicom_export: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="AE titles (of dicom_peers) that receive the REG and overlays by C-STORE; "
                                           "empty: the peer that sent the study.")
+    dicom_query_peer: str | None = Field(
+        None, description="AE title (of dicom_peers) asked by C-FIND / C-MOVE for the patient's latest CT / MR / 3D-RA "
+                          "volume when a received study has biplane XA but no volume; unset: such a study waits for one.")
+    dicom_query_retry_seconds: float = Field(
+        60.0, gt=0.0, description="Wait before asking dicom_query_peer again after it found no volume or was down.")
     dicom_export_retries: int = Field(2, ge=0, le=10, description="Retries of a failed C-STORE of the results.")
     dicom_export_backoff_seconds: float = Field(0.5, ge=0.0, description="First export retry delay (doubles each retry).")
     dicom_timeout_seconds: float = Field(20.0, gt=0.0, description="Timeout of DIMSE connections, associations and "

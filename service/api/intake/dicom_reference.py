@@ -62,8 +62,8 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
             first = exc.errors()[0]
             raise Problem(422, f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
                           accepted='{"source": {"dimse": {"peer", "study_uid", "ap": {"series_uid"}, '
-                                   '"lat": {"series_uid"}, "volume": {"series_uid"}}}, "options": {}, '
-                                   '"store_results": true}') from None
+                                   '"lat": {"series_uid"}, "volume": {"series_uid"}, "retrieve": "move" | "get"}}, '
+                                   '"options": {}, "store_results": true}') from None
     try:
         return DicomwebRegistrationRequest.model_validate(data)
     except ValidationError as exc:

@@ -39,11 +39,14 @@ def source_document(study_uid: str, job: PlannedJob, by_uid: dict[str, StoredIns
     """The job's ``dimse`` input: the study's origin and the export destinations (deterministic JSON)."""
     calling = by_uid[job.ap].calling_ae
     volume_series = sorted({by_uid[uid].series_uid for uid in job.volume})
+    volume = {"series_uid": volume_series[0], "instances": len(job.volume)}
+    if job.volume_origin:  # not in the study: the patient's latest volume, retrieved by C-MOVE
+        volume["retrieved"] = dict(job.volume_origin)
     return {"source": {"dimse": {
         "calling_ae": calling, "study_uid": study_uid, "pairing": job.rule,
         "ap": {"series_uid": by_uid[job.ap].series_uid, "sop_instance_uid": job.ap},
         "lat": {"series_uid": by_uid[job.lat].series_uid, "sop_instance_uid": job.lat},
-        "volume": {"series_uid": volume_series[0], "instances": len(job.volume)}}},
+        "volume": volume}},
         "export": list(settings.dimse.dicom_export) or [calling]}
 
 

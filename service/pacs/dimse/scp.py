@@ -12,7 +12,8 @@ Association policy (checked on A-ASSOCIATE-RQ, in ``EVT_REQUESTED``, answered A-
 C-STORE: the instance is stored as received (its transfer syntax kept), fsynced, indexed
 (:mod:`service.pacs.dimse.inbox`), then answered 0000. An A-RELEASE-RQ commits the association's
 instances before the release is confirmed; an aborted association (A-ABORT, a dropped
-connection) discards them.
+connection) discards them. The C-STOREs of a C-MOVE dsareg asked for (Move Originator AE Title =
+ours) are committed as ``retrieved``: the job that asked reads them; they make no job of their own.
 """
 
 from __future__ import annotations
@@ -113,6 +114,7 @@ class StoreScp:
         self._ids: dict[int, str] = {}
         self._studies: dict[str, set[str]] = {}
         self._closed: dict[int, float] = {}
+        self._retrievals: set[str] = set()  # associations carrying the C-STOREs of our own C-MOVE
         self._lock = threading.Lock()
         self.stats = {"associations": 0, "rejected": 0, "stored": 0, "aborted": 0, "refused": 0}
 
@@ -180,8 +182,12 @@ class StoreScp:
         except Exception:
             log.exception("C-STORE of an instance could not be stored")
             return OUT_OF_RESOURCES
+        moved_for = str(getattr(event.request, "MoveOriginatorApplicationEntityTitle", None) or "").strip()
         with self._lock:
-            self._studies.setdefault(association, set()).add(study)
+            if moved_for == self.settings.dimse.dicom_ae_title:
+                self._retrievals.add(association)
+            else:
+                self._studies.setdefault(association, set()).add(study)
         self.stats["stored"] += 1
         return SUCCESS
 
@@ -203,13 +209,15 @@ class StoreScp:
             association = self._ids.get(id(event.assoc))
         if association is None:
             return  # nothing stored (an echo)
+        with self._lock:
+            state = "retrieved" if association in self._retrievals else "committed"
         try:
-            count = self.inbox.commit_association(association)
+            count = self.inbox.commit_association(association, state)
         except Exception:
             log.exception("association %s: its instances could not be committed", association)
             return
         if count:
-            log.info("association %s released: %d instance(s) committed", association, count)
+            log.info("association %s released: %d instance(s) %s", association, count, state)
 
     def on_released(self, event: Any) -> None:
         with self._lock:
@@ -234,6 +242,7 @@ class StoreScp:
                 self._closed[id(event.assoc)] = time.monotonic()
 
     def _forget(self, assoc: Any) -> None:
+        self._retrievals.discard(self._ids.get(id(assoc), ""))
         self._ids.pop(id(assoc), None)
         self._closed.pop(id(assoc), None)
 
@@ -252,6 +261,7 @@ class StoreScp:
             dead = [key for key, closed in self._closed.items() if now - closed > grace_seconds]
             for key in dead:
                 self._closed.pop(key, None)
+                self._retrievals.discard(self._ids.get(key, ""))
                 self._studies.pop(self._ids.pop(key, ""), None)
             live = set(self._ids.values())
         orphans = self.inbox.discard_stale(live, older_than_seconds=grace_seconds)
