@@ -31,7 +31,8 @@ from ..geometry.vessel_tree import select_region
 from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
-from .initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
+from .branch_search import with_branch_starts
+from .initialization import COVERAGE_GATE, GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .options import RegistrationOptions
 from .partial import looks_partial, match_fractions, trimmed_weight
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
@@ -503,7 +504,7 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     if searched is not None:
         initial = searched.poses[0]
     problem = _Problem(mesh, targets, rig, options, device, initial)
-    problem.partial = searched is not None and searched.method == "search+coverage"
+    problem.partial = searched is not None and searched.method.startswith("search+")
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -677,7 +678,10 @@ def _initialize(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, opti
         return None
     visible = {name: mask for name, mask in masks.items()
                if name in rig.views and mask.shape == rig.views[name].image_size[::-1] and mask.any()}
-    return search_initial_poses(mesh, visible, rig, max(options.starts, SEARCH_MIN_STARTS))
+    found = search_initial_poses(mesh, visible, rig, max(options.starts, SEARCH_MIN_STARTS))
+    if found.centroid_score < COVERAGE_GATE:
+        return found
+    return with_branch_starts(found, mesh, visible, rig)
 
 
 def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str, ...]) -> None:
