@@ -81,6 +81,8 @@ class Initialization:
     """The coverage search's best candidate: score and per-view precision / recall (None when it did not run)."""
     branch: dict | None = None
     """The branch search's best part: parts searched, its score and share of the faces (None when it did not run)."""
+    fit_faces: np.ndarray | None = None
+    """``(F,)`` bool: the part of the model the fit renders (the branch search's matching part), or None: all of it."""
     centroid_score: float = 1.0
     """The centroid search's best score for the whole model (what decides whether the partial searches run)."""
 

@@ -4,7 +4,6 @@ import numpy as np
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
 from dsareg_engine.registration.branch_search import BranchSettings, candidate_parts, search_parts
-from dsareg_engine.registration.rotation_grid import angles_between_deg
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 from dsareg_engine.simulation.partial_filling import extra_territory
 
@@ -24,13 +23,15 @@ def test_parts_are_distinct_branches_in_the_size_range(phantom):
     assert not parts[:, inflow_faces].any()
 
 
-def test_the_filled_territory_is_found_among_the_parts(small_phantom):
+def test_the_filled_territory_is_found_among_the_parts(phantom):
     # The model holds the phantom and its mirror image; the images show the phantom alone. The part
-    # that is the phantom must be searched, score best, and place the model near its true pose.
-    case = extra_territory(small_phantom)
-    rig = clinical_biplane_rig(128)
+    # that is the phantom must score best and place it near its true pose; other parts score worse.
+    case = extra_territory(phantom)
+    rig = clinical_biplane_rig(192)
     truth = random_visible_pose(case.model, rig, np.random.default_rng(3), 30.0)
     found = search_parts(case.model, render_masks(case.visible, rig, truth), rig, BranchSettings(samples=150, max_parts=6))
     assert abs(found.fractions[0] - 0.5) < 0.1  # the original half (and a few faces past the inflow)
-    assert angles_between_deg(found.poses[:1, :3, :3], truth[:3, :3])[0] < 15.0
+    original = phantom.vertices
+    moved = original @ found.poses[0][:3, :3].T + found.poses[0][:3, 3]
+    assert np.linalg.norm(moved - (original @ truth[:3, :3].T + truth[:3, 3]), axis=1).mean() < 5.0
     assert found.scores[0] < 0.3 < found.scores[-1]
