@@ -11,9 +11,12 @@ finds it (the filled part scores 0.15–0.27, every other part ≥ 0.3). So:
 1. **Parts.** ``samples`` vertices are drawn (fixed seed) among those farther than
    ``min_distance`` (a fraction of the longest path) from the inflow; each gives its branch and
    everything downstream (:meth:`~dsareg_engine.geometry.vessel_tree.VesselTree.downstream_sets`),
-   as the faces whose three vertices are in it. Parts holding ``min_fraction``–``max_fraction``
-   of the faces are kept, nearest the inflow (largest) first, unless they overlap an already
-   kept part by more than ``overlap`` (Jaccard), up to ``max_parts``.
+   as the faces whose three vertices are in it, and the rest of the model without it (the filled
+   part may hold the inflow, and the inflow is a guess: on a model of two territories joined at
+   the inflow it may lie inside the filled one, whose faces are then no branch but the rest of
+   the model less the other territory). Parts holding ``min_fraction``–``max_fraction`` of the
+   faces are kept, nearest the inflow first, unless they overlap an already kept part by more
+   than ``overlap`` (Jaccard), up to ``max_parts``.
 2. **Search.** Each part alone runs the centroid search (no coverage search); its best pose
    places the whole model (a part keeps the model's frame).
 3. **Starts and fit.** When the best part scores below :data:`PART_MATCHES` (and the whole model's
@@ -58,19 +61,20 @@ class BranchSettings:
     min_fraction: float = 0.15
     max_fraction: float = 0.85
     overlap: float = 0.85
-    max_parts: int = 20
+    max_parts: int = 24
     starts: int = 2
 
 
 def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSettings()) -> np.ndarray:
-    """``(K, F)`` bool: the model's parts to try, largest first (see the module, step 1)."""
+    """``(K, F)`` bool: the model's parts to try, nearest the inflow first (see the module, step 1)."""
     tree = vessel_tree(mesh)
     from_inflow = tree.distances_from(tree.inflow)
     eligible = np.flatnonzero(from_inflow > settings.min_distance * from_inflow.max())
     rng = np.random.default_rng(0)
     picked = rng.choice(eligible, size=min(settings.samples, len(eligible)), replace=False)
     picked = picked[np.argsort(from_inflow[picked], kind="stable")]
-    faces = tree.downstream_sets(picked)[:, mesh.faces].all(axis=2)
+    downstream = tree.downstream_sets(picked)[:, mesh.faces].all(axis=2)
+    faces = np.stack([downstream, ~downstream], axis=1).reshape(-1, mesh.n_faces)  # each branch, then the rest
     share = faces.mean(axis=1)
     kept: list[np.ndarray] = []
     for part in faces[(share >= settings.min_fraction) & (share <= settings.max_fraction)]:
