@@ -108,7 +108,8 @@ def _iso(text: str) -> float:
 
 def round_trip(folder: Path, stable_seconds: float) -> dict:
     import httpx
-    from dsareg_engine.phantom_study import make_biplane_study
+
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
 
     study = make_biplane_study(image_px=160, pixel_spacing_mm=0.9, depth=2)
     files = folder / "study"
@@ -147,6 +148,54 @@ def round_trip(folder: Path, stable_seconds: float) -> dict:
         scp.wait(10)
 
 
+def queue_lag(folder: Path, stable_seconds: float, studies: int) -> dict:
+    """``studies`` phantom studies (fresh UIDs) sent one after another by ``storescu`` to ``dsareg serve
+    --workers 0``: seconds from the end of each ``storescu`` to the job's ``created_at``."""
+    import httpx
+
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
+    from tests.support.dimse_kit import renamed_study
+
+    study = make_biplane_study(image_px=160, pixel_spacing_mm=0.9, depth=2)
+    http, dicom = free_port(), free_port()
+    env = {**os.environ, "DSAREG_DICOM_PORT": str(dicom), "DSAREG_DICOM_STABLE_SECONDS": str(stable_seconds),
+           "DSAREG_DICOM_PEERS": json.dumps([{"ae_title": "STORESCU", "host": "127.0.0.1", "port": free_port()}]),
+           "DSAREG_DICOM_JOB_OPTIONS": json.dumps({"starts": 1})}
+    folder.mkdir(parents=True, exist_ok=True)
+    log = open(folder / "serve.log", "wb")  # noqa: SIM115 - closed below
+    serve = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(http), "--workers", "0",
+                              "--data-dir", str(folder / "data")], env=env, stdout=log,
+                             stderr=subprocess.STDOUT)
+    lags = []
+    try:
+        client = httpx.Client(base_url=f"http://127.0.0.1:{http}", timeout=30)
+        _wait(lambda: _validators_ready(client), 300, 0.5)  # /readyz is 503 without workers
+        for index in range(studies):
+            _uid, paths = renamed_study(study, folder / f"s{index}")
+            subprocess.run(["storescu", "-aet", "STORESCU", "-aec", "DSAREG", "127.0.0.1", str(dicom),
+                            *map(str, paths)], check=True, capture_output=True, timeout=300)
+            last = time.time()
+            items = _wait(lambda n=index: len(page := client.get("/v1/registrations").json()["items"]) > n and page,
+                          120, 0.05)
+            lags.append(max(_iso(item["created_at"]) for item in items) - last)
+    finally:
+        serve.terminate()
+        serve.wait(30)
+        log.close()
+    steps = [line.split("(planning ")[1].rstrip(")\n") for line in (folder / "serve.log").read_text().splitlines()
+             if "(planning " in line]
+    return {"stable_seconds": stable_seconds, "studies": studies, "dispatcher_steps": steps, "median_seconds": round(float(np.median(lags)), 2),
+            "max_seconds": round(max(lags), 2), "lags_seconds": [round(x, 2) for x in lags]}
+
+
+def _validators_ready(client) -> bool:
+    try:
+        checks = client.get("/readyz").json()["checks"]
+    except Exception:  # noqa: BLE001 - not up yet
+        return False
+    return bool(checks.get("validator_ready") and checks.get("validator_spare_ready"))
+
+
 def _get(client, path: str) -> int:
     try:
         return client.get(path).status_code
@@ -158,9 +207,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.dimse", description=__doc__.splitlines()[0])
     parser.add_argument("--stable-seconds", type=float, default=10.0)
     parser.add_argument("--transfer-only", action="store_true")
+    parser.add_argument("--lag-studies", type=int, default=0,
+                        help="only measure the queue lag (last instance -> job) over this many studies")
     args = parser.parse_args(argv)
     folder = Path(tempfile.mkdtemp(prefix="dsareg-bench-dimse-"))
     try:
+        if args.lag_studies:
+            out = {"loadavg_1min": round(os.getloadavg()[0], 1),
+                   "queue_lag": queue_lag(folder / "lag", args.stable_seconds, args.lag_studies)}
+            print(json.dumps(out, indent=1))
+            return 0
         out = {"loadavg_1min": round(os.getloadavg()[0], 1), "transfer_20mb": transfer(folder / "transfer")}
         if not args.transfer_only:
             out["round_trip"] = round_trip(folder / "trip", args.stable_seconds)

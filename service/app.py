@@ -50,7 +50,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
         redoc_url=None,
         generate_unique_id_function=operation_id,
     )
-    app.add_middleware(BodyLimitMiddleware, limit=settings.max_upload_bytes)
+    app.add_middleware(BodyLimitMiddleware, limit=settings.limits.max_upload_bytes)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
     mount(app, registrations.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
@@ -77,13 +77,13 @@ def _listener_context(settings: ServiceSettings) -> ServiceContext:
     from .storage.dbblobs import make_blob_store
     from .storage.store import SqlJobStore
 
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     store = SqlJobStore(settings.effective_database_url)
-    validator = ValidatorPool(settings.validation_processes, settings.validation_timeout_seconds,
-                              settings.validation_memory_mb, threads=settings.threads_per_worker)
+    validator = ValidatorPool(settings.limits.validation_processes, settings.limits.validation_timeout_seconds,
+                              settings.limits.validation_memory_mb, threads=settings.jobs.threads_per_worker)
     validator.start()
     # embedded workers belong to `dsareg serve` (they poll the job table); Celery gets a message
-    executor = make_executor(settings, store) if settings.executor == "celery" else NoExecutor()
+    executor = make_executor(settings, store) if settings.jobs.executor == "celery" else NoExecutor()
     registry = CollectorRegistry()
     return ServiceContext(settings=settings, store=store, blobs=make_blob_store(settings, store.engine),
                           validator=validator, executor=executor, registry=registry,
@@ -101,7 +101,7 @@ def run_dicom_listener(settings: ServiceSettings) -> int:
     from .api.intake.dimse import DimseIntake
     from .pacs.dimse.listener import DicomListener
 
-    if not settings.dicom_port:
+    if not settings.dimse.dicom_port:
         logging.getLogger("dsareg.dimse").error("set DSAREG_DICOM_PORT (the listener's TCP port)")
         return 2
     ctx = _listener_context(settings)
@@ -113,12 +113,12 @@ def run_dicom_listener(settings: ServiceSettings) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stopping.set())
     try:
-        deadline = time.monotonic() + settings.validation_timeout_seconds
+        deadline = time.monotonic() + settings.limits.validation_timeout_seconds
         while not ctx.validator.ready() and time.monotonic() < deadline:
             time.sleep(0.1)
         ctx.executor.start()
         listener.start()
-        print(f"dsareg dicom-listener: {settings.dicom_ae_title} on {settings.dicom_host}:{listener.port}", flush=True)
+        print(f"dsareg dicom-listener: {settings.dimse.dicom_ae_title} on {settings.dimse.dicom_host}:{listener.port}", flush=True)
         stopping.wait()
     finally:
         listener.stop()

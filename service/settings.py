@@ -1,11 +1,16 @@
-"""Service settings: environment variables (prefix ``DSAREG_``) and/or a config file.
+"""Service settings, grouped: ``settings.<group>.<name>`` (e.g. ``settings.jobs.workers``).
 
-The config file (JSON or TOML, named by ``DSAREG_CONFIG`` or ``--config``) gives the same
-keys as the environment without the prefix, in lower case; environment variables win
-over the file, explicit keyword arguments (the CLI) win over both.
+Every setting keeps its flat environment variable ``DSAREG_<NAME>`` (``DSAREG_WORKERS``): the groups
+are for reading the code and the reference, not for the deployment. A config file (JSON or TOML,
+named by ``DSAREG_CONFIG`` or ``--config``) gives the same flat keys without the prefix, in lower
+case; environment variables win over the file, explicit keyword arguments (the CLI) win over both.
+Keyword arguments and ``model_validate`` take the flat names too (``ServiceSettings(workers=2)``).
 
 API keys are never kept in clear: ``api_keys`` (plain, for convenience) are hashed
 with SHA-256 at load time and merged into ``api_key_hashes``.
+
+A new setting goes into the group it belongs to (one field, with a ``description=``); its name
+must be unique across all groups (``DSAREG_<NAME>`` is flat). Then regenerate ``docs/settings.md``.
 """
 
 from __future__ import annotations
@@ -17,8 +22,10 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, field_validator, model_validator
-from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, PydanticBaseSettingsSource, SettingsConfigDict
+
+ENV_PREFIX = "DSAREG_"
 
 
 def hash_api_key(key: str) -> str:
@@ -35,19 +42,54 @@ def _split_list(value: Any) -> Any:
     return value
 
 
-class ServiceSettings(BaseSettings):
-    """Every knob of ``dsareg serve``."""
+class _Group(BaseModel):
+    model_config = ConfigDict(extra="ignore", validate_default=True)
 
-    model_config = SettingsConfigDict(env_prefix="DSAREG_", extra="ignore", validate_default=True)
 
-    # where
-    data_dir: Path = Field(Path("./dsareg-data"), description="Inputs, artifacts and the default SQLite database.")
-    database_url: str | None = Field(None, description="Any SQLAlchemy URL; default sqlite:///<data_dir>/jobs.sqlite3.")
+class ServerSettings(_Group):
+    """The API process: where it listens, how much it logs."""
+
     host: str = Field("127.0.0.1", description="Address the API binds; anything but loopback needs API keys "
                       "(without keys the service binds 127.0.0.1 whatever is asked).")
     port: int = Field(8000, description="TCP port of the API.")
+    log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
 
-    # workers
+
+class StorageSettings(_Group):
+    """Where inputs and artifacts live, and the disk space kept free."""
+
+    data_dir: Path = Field(Path("./dsareg-data"), description="Inputs, artifacts and the default SQLite database.")
+    blob_backend: Literal["auto", "files", "database"] = Field(
+        "auto", description="Inputs/artifacts: files in data_dir, or a table of the job database "
+                            "(auto: database with executor=celery, else files).")
+    min_free_bytes: int = Field(
+        512 * 1024 * 1024, ge=0,
+        description="Free disk space the data directory keeps: a submission that would leave less is refused "
+                    "(507 + Retry-After) before anything is written, a worker does not claim jobs below it, and new "
+                    "DICOM associations are refused (C-STORE answers 'out of resources'); 0: no floor (a full disk "
+                    "is still a 507, never a 500).")
+
+
+class DatabaseSettings(_Group):
+    """The job database and its deadlines (service/storage/dbtimeouts.py): a frozen database is a fast 503."""
+
+    database_url: str | None = Field(None, description="Any SQLAlchemy URL; default sqlite:///<data_dir>/jobs.sqlite3.")
+    sqlite_busy_timeout_seconds: float = Field(
+        1.0, gt=0.0, description="SQLite: how long a write waits for the database lock (a writer frozen with "
+                                 "the lock → 503 + Retry-After after this long).")
+    db_connect_timeout_seconds: float = Field(1.0, gt=0.0, description="PostgreSQL: time to open a connection.")
+    db_statement_timeout_seconds: float = Field(
+        1.0, gt=0.0, description="PostgreSQL: statement_timeout of the session, and the client-side deadline "
+                                 "(+0.25 s) of one statement when the server does not answer at all.")
+    db_lock_timeout_seconds: float = Field(0.5, gt=0.0, description="PostgreSQL: lock_timeout of the session.")
+    db_pool_timeout_seconds: float = Field(1.0, gt=0.0, description="Wait for a free pooled database connection.")
+
+
+class JobSettings(_Group):
+    """Who runs jobs and how: workers, leases, attempts, deadlines."""
+
+    executor: Literal["embedded", "celery"] = Field(
+        "embedded", description="Who runs jobs: embedded worker processes of the API, or Celery workers.")
     workers: int = Field(1, ge=0, le=64, description="Embedded worker processes (0: API only, jobs stay queued).")
     threads_per_worker: int = Field(
         0, ge=0, le=256,
@@ -58,8 +100,19 @@ class ServiceSettings(BaseSettings):
     max_attempts: int = Field(3, ge=1, le=20, description="Claims of one job before it fails for good.")
     poll_seconds: float = Field(0.5, gt=0.0, description="How often an idle worker looks for queued jobs.")
     progress_interval_seconds: float = Field(0.5, ge=0.0, description="Least time between two progress writes of a job.")
+    result_save_seconds: float = Field(
+        120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
+                                   "(exponential backoff) before giving up the attempt.")
+    job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
 
-    # limits
+    @property
+    def effective_heartbeat_seconds(self) -> float:
+        return self.heartbeat_seconds or max(0.2, self.lease_seconds / 3.0)
+
+
+class LimitSettings(_Group):
+    """What one request, one input and the queue may cost."""
+
     max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024, description="Whole request body, enforced while streaming.")
     queue_limit: int = Field(1000, ge=1, description="Queued jobs at most; more → 503 with Retry-After.")
     queue_limit_per_key: int = Field(200, ge=1, description="Queued jobs of one API key at most; more → 429.")
@@ -77,32 +130,25 @@ class ServiceSettings(BaseSettings):
         5e10, ge=0.0, description="Refuse jobs estimated above this many pixel-iterations "
                                   "(starts × max_iterations × final-stage pixels of the views); 0: no limit.")
     max_volume_bytes: int | None = Field(None, ge=1, description="Refuse larger decoded volumes (engine default 1 GiB).")
-    result_save_seconds: float = Field(
-        120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
-                                   "(exponential backoff) before giving up the attempt.")
-    job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
-    min_free_bytes: int = Field(
-        256 * 1024 * 1024, ge=0,
-        description="Free disk space the data directory keeps: a submission that would leave less is refused "
-                    "(507 + Retry-After) before anything is written, and a worker does not claim jobs below it; "
-                    "0: no floor (a full disk is still a 507, never a 500).")
 
-    # deadlines on the job database (service/storage/dbtimeouts.py): a frozen database is a fast 503
-    sqlite_busy_timeout_seconds: float = Field(
-        1.0, gt=0.0, description="SQLite: how long a write waits for the database lock (a writer frozen with "
-                                 "the lock → 503 + Retry-After after this long).")
-    db_connect_timeout_seconds: float = Field(1.0, gt=0.0, description="PostgreSQL: time to open a connection.")
-    db_statement_timeout_seconds: float = Field(
-        1.0, gt=0.0, description="PostgreSQL: statement_timeout of the session, and the client-side deadline "
-                                 "(+0.25 s) of one statement when the server does not answer at all.")
-    db_lock_timeout_seconds: float = Field(0.5, gt=0.0, description="PostgreSQL: lock_timeout of the session.")
-    db_pool_timeout_seconds: float = Field(1.0, gt=0.0, description="Wait for a free pooled database connection.")
+    @property
+    def input_limits(self) -> dict[str, int]:
+        """Keyword arguments of the engine's ``InputLimits`` (only those configured)."""
+        chosen = {"max_faces": self.max_mesh_faces, "max_image_pixels": self.max_image_pixels,
+                  "max_volume_bytes": self.max_volume_bytes, "max_image_bytes": self.max_image_bytes}
+        return {k: v for k, v in chosen.items() if v}
 
-    # retention
+
+class RetentionSettings(_Group):
+    """How long finished jobs are kept."""
+
     retention_hours: float = Field(168.0, gt=0.0, description="Finished jobs and their files are removed after this.")
     sweep_interval_seconds: float = Field(300.0, gt=0.0, description="Period of the retention sweep and lease recovery.")
 
-    # auth
+
+class AuthSettings(_Group):
+    """API keys (hashed at load) and who may read /metrics."""
+
     api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list, description="Plain keys (hashed at load).")
     api_key_hashes: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="SHA-256 hex digests of accepted keys."
@@ -112,16 +158,46 @@ class ServiceSettings(BaseSettings):
                           "otherwise it needs a valid key (any). The metrics are service-wide aggregates (jobs by "
                           "state, queue depth, latency by route template): no key, job id or path appears in them.")
 
-    # scale-out (see service/README.md, "Scale-out with Celery")
-    executor: Literal["embedded", "celery"] = Field(
-        "embedded", description="Who runs jobs: embedded worker processes of the API, or Celery workers.")
+    @field_validator("api_keys", "api_key_hashes", mode="before")
+    @classmethod
+    def _lists(cls, value: Any) -> Any:
+        return _split_list(value)
+
+    @field_validator("api_key_hashes")
+    @classmethod
+    def _hex(cls, value: list[str]) -> list[str]:
+        out = []
+        for item in value:
+            item = item.strip().lower()
+            if len(item) != 64 or any(c not in "0123456789abcdef" for c in item):
+                raise ValueError("api_key_hashes must be SHA-256 hex digests (64 hex characters)")
+            out.append(item)
+        return out
+
+    @model_validator(mode="after")
+    def _hash_plain_keys(self) -> AuthSettings:
+        hashes = list(dict.fromkeys([*self.api_key_hashes, *(hash_api_key(k) for k in self.api_keys if k.strip())]))
+        object.__setattr__(self, "api_key_hashes", hashes)
+        object.__setattr__(self, "api_keys", [])  # clear text is not kept
+        return self
+
+    @property
+    def auth_enabled(self) -> bool:
+        return bool(self.api_key_hashes)
+
+    @property
+    def metrics_open(self) -> bool:
+        """Whether /metrics answers without an API key (``metrics_public``, else: no keys configured)."""
+        return (not self.auth_enabled) if self.metrics_public is None else self.metrics_public
+
+
+class CelerySettings(_Group):
+    """Scale-out with Celery (executor=celery; service/README.md, "Scale-out with Celery")."""
+
     broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker (executor=celery).")
     celery_queue: str = Field("dsareg", description="Celery queue of registration jobs.")
     broker_visibility_timeout_seconds: float = Field(
         0.0, ge=0.0, description="Redis visibility timeout; 0: job_timeout_seconds * 2 + 600 (longer than any job).")
-    blob_backend: Literal["auto", "files", "database"] = Field(
-        "auto", description="Inputs/artifacts: files in data_dir, or a table of the job database "
-                            "(auto: database with executor=celery, else files).")
     redispatch_after_seconds: float = Field(
         60.0, gt=0.0, description="A queued job not picked up this long is sent to the broker again (executor=celery).")
     task_max_retries: int = Field(5, ge=0, le=50, description="Retries of a Celery task on a transient store error.")
@@ -129,7 +205,10 @@ class ServiceSettings(BaseSettings):
         0.5, gt=0.0, description="Longest a submission waits for the broker (executor=celery): a down or frozen "
                                  "broker leaves the job queued in the table and the sweeper re-sends it.")
 
-    # DICOMweb (service/pacs/dicomweb.py): the only PACS a request may name, with their credentials
+
+class DicomwebSettings(_Group):
+    """DICOMweb (service/pacs/dicomweb.py): the only PACS a request may name, with their credentials."""
+
     dicomweb_servers: Annotated[list[Any], NoDecode] = Field(
         default_factory=list,
         description='DICOMweb servers jobs may read from / store to: JSON list of {"url", "username"?, "password"?, '
@@ -139,7 +218,15 @@ class ServiceSettings(BaseSettings):
                                                               "timeouts and 408/429/502/503/504.")
     dicomweb_retry_backoff_seconds: float = Field(0.5, ge=0.0, description="First retry delay (doubles each retry).")
 
-    # DICOM node (service/pacs/dimse): DIMSE C-ECHO / C-STORE SCP, jobs from received studies, results by C-STORE
+    @field_validator("dicomweb_servers", mode="before")
+    @classmethod
+    def _lists(cls, value: Any) -> Any:
+        return _split_list(value)
+
+
+class DimseSettings(_Group):
+    """The DICOM node (service/pacs/dimse): C-ECHO / C-STORE SCP, jobs from received studies, results by C-STORE."""
+
     dicom_port: int | None = Field(
         None, ge=1, le=65535, description="DICOM (DIMSE) listener port; unset: no DICOM node in `dsareg serve` "
                                           "(`dsareg dicom-listener` runs one on its own).")
@@ -154,6 +241,11 @@ class ServiceSettings(BaseSettings):
     dicom_export: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="AE titles (of dicom_peers) that receive the REG and overlays by C-STORE; "
                                           "empty: the peer that sent the study.")
+    dicom_query_peer: str | None = Field(
+        None, description="AE title (of dicom_peers) asked by C-FIND / C-MOVE for the patient's latest CT / MR / 3D-RA "
+                          "volume when a received study has biplane XA but no volume; unset: such a study waits for one.")
+    dicom_query_retry_seconds: float = Field(
+        60.0, gt=0.0, description="Wait before asking dicom_query_peer again after it found no volume or was down.")
     dicom_export_retries: int = Field(2, ge=0, le=10, description="Retries of a failed C-STORE of the results.")
     dicom_export_backoff_seconds: float = Field(0.5, ge=0.0, description="First export retry delay (doubles each retry).")
     dicom_timeout_seconds: float = Field(20.0, gt=0.0, description="Timeout of DIMSE connections, associations and "
@@ -163,29 +255,8 @@ class ServiceSettings(BaseSettings):
                           "API); default the first configured key, or anonymous when auth is off.")
     dicom_job_options: dict[str, Any] = Field(
         default_factory=dict, description="RegistrationOptions (as in the multipart form) of jobs made from DICOM studies.")
-    min_free_bytes: int = Field(
-        512 * 1024 * 1024, ge=0, description="Free disk space in data_dir below which new DICOM associations are "
-                                             "refused (and C-STORE answers 'out of resources'); 0: no floor.")
 
-    # completion callbacks (service/jobs/callbacks.py, docs/api/callbacks.md)
-    callback_allowed: Annotated[list[str], NoDecode] = Field(
-        default_factory=list,
-        description="URL prefixes a job's callback_url must start with (JSON list or comma-separated), e.g. "
-                    "https://ris.example.org/hooks/; empty: callbacks are refused (422). Scheme, host and port must "
-                    "match exactly and the path at a '/' boundary.")
-    callback_secret: str = Field(
-        "", repr=False, description="Key of the X-Dsareg-Signature HMAC-SHA256 of every callback body; required "
-                                    "when callback_allowed is set.")
-    callback_timeout_seconds: float = Field(10.0, gt=0.0, description="Timeout of one callback POST.")
-    callback_max_attempts: int = Field(10, ge=1, le=50, description="Delivery attempts of one callback before it "
-                                                                    "is marked failed.")
-    callback_retry_backoff_seconds: float = Field(
-        1.0, ge=0.0, description="Delay before the second attempt; doubles each attempt, at most 300 s.")
-
-    log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
-
-    @field_validator("api_keys", "api_key_hashes", "dicomweb_servers", "dicom_peers", "dicom_export", "callback_allowed",
-                     mode="before")
+    @field_validator("dicom_peers", "dicom_export", mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
         return _split_list(value)
@@ -206,70 +277,154 @@ class ServiceSettings(BaseSettings):
             peers.append({"ae_title": title, "host": str(item["host"]).strip(), "port": port})
         return peers
 
-    @field_validator("api_key_hashes")
+
+class CallbackSettings(_Group):
+    """Completion callbacks (service/jobs/callbacks.py, docs/api/callbacks.md)."""
+
+    callback_allowed: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="URL prefixes a job's callback_url must start with (JSON list or comma-separated), e.g. "
+                    "https://ris.example.org/hooks/; empty: callbacks are refused (422). Scheme, host and port must "
+                    "match exactly and the path at a '/' boundary.")
+    callback_secret: str = Field(
+        "", repr=False, description="Key of the X-Dsareg-Signature HMAC-SHA256 of every callback body; required "
+                                    "when callback_allowed is set.")
+    callback_timeout_seconds: float = Field(10.0, gt=0.0, description="Timeout of one callback POST.")
+    callback_max_attempts: int = Field(10, ge=1, le=50, description="Delivery attempts of one callback before it "
+                                                                    "is marked failed.")
+    callback_retry_backoff_seconds: float = Field(
+        1.0, ge=0.0, description="Delay before the second attempt; doubles each attempt, at most 300 s.")
+
+    @field_validator("callback_allowed", mode="before")
     @classmethod
-    def _hex(cls, value: list[str]) -> list[str]:
-        out = []
-        for item in value:
-            item = item.strip().lower()
-            if len(item) != 64 or any(c not in "0123456789abcdef" for c in item):
-                raise ValueError("api_key_hashes must be SHA-256 hex digests (64 hex characters)")
-            out.append(item)
-        return out
+    def _lists(cls, value: Any) -> Any:
+        return _split_list(value)
 
     @model_validator(mode="after")
-    def _callback_secret(self) -> ServiceSettings:
+    def _callback_secret(self) -> CallbackSettings:
         if self.callback_allowed and not self.callback_secret.strip():
             raise ValueError("callback_secret (DSAREG_CALLBACK_SECRET) is required when callback_allowed is set: "
                              "every callback is signed with it")
         return self
 
-    @model_validator(mode="after")
-    def _hash_plain_keys(self) -> ServiceSettings:
-        hashes = list(dict.fromkeys([*self.api_key_hashes, *(hash_api_key(k) for k in self.api_keys if k.strip())]))
-        object.__setattr__(self, "api_key_hashes", hashes)
-        object.__setattr__(self, "api_keys", [])  # clear text is not kept
-        return self
 
-    # ---- derived ----------------------------------------------------------------------
-    @property
-    def auth_enabled(self) -> bool:
-        return bool(self.api_key_hashes)
+# The groups in reference order: attribute of ServiceSettings → its model.
+GROUPS: dict[str, type[_Group]] = {
+    "server": ServerSettings, "storage": StorageSettings, "database": DatabaseSettings, "jobs": JobSettings,
+    "limits": LimitSettings, "retention": RetentionSettings, "auth": AuthSettings, "celery": CelerySettings,
+    "dicomweb": DicomwebSettings, "dimse": DimseSettings, "callbacks": CallbackSettings,
+}
+# Every setting's flat name → its group (a name is unique across groups: its env variable is flat).
+GROUP_OF: dict[str, str] = {name: group for group, model in GROUPS.items() for name in model.model_fields}
+assert len(GROUP_OF) == sum(len(model.model_fields) for model in GROUPS.values()), "a setting name is in two groups"
+assert not set(GROUPS) & set(GROUP_OF), "a group has the name of a setting"
 
-    @property
-    def metrics_open(self) -> bool:
-        """Whether /metrics answers without an API key (``metrics_public``, else: no keys configured)."""
-        return (not self.auth_enabled) if self.metrics_public is None else self.metrics_public
 
+def env_name(name: str) -> str:
+    """The environment variable of the setting ``name`` (flat, whatever its group)."""
+    return f"{ENV_PREFIX}{name.upper()}"
+
+
+class FlatEnvSource(PydanticBaseSettingsSource):
+    """Reads ``DSAREG_<NAME>`` for every setting of every group, parsed as pydantic-settings parses env values.
+
+    pydantic-settings reads env variables only for the top-level fields (or ``GROUP__NAME`` forms with a
+    nested delimiter); this source runs its own env reader over each group model instead, so the names
+    stay flat. It returns flat names; ``ServiceSettings`` files them into their groups.
+    """
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:  # pragma: no cover - unused
+        return None, field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        values: dict[str, Any] = {}
+        for model in GROUPS.values():
+            values.update(EnvSettingsSource(model, case_sensitive=False, env_prefix=ENV_PREFIX)())  # type: ignore[arg-type]
+        return values
+
+
+def _nest(data: Any) -> Any:
+    """Flat input (``{"workers": 2}``) filed into groups (``{"jobs": {"workers": 2}}``); a flat key wins."""
+    if not isinstance(data, dict):
+        return data
+    nested: dict[str, Any] = {group: dict(data.get(group) or {}) for group in GROUPS}
+    for key, value in data.items():
+        if key in GROUP_OF:
+            nested[GROUP_OF[key]][key] = value
+    return nested
+
+
+def _env_error_location(loc: tuple[Any, ...]) -> tuple[Any, ...]:
+    """``("jobs", "workers", …)`` → ``("DSAREG_WORKERS", …)``: the name an operator sets."""
+    if len(loc) >= 2 and loc[0] in GROUPS and loc[1] in GROUP_OF:
+        return (env_name(str(loc[1])), *loc[2:])
+    return loc
+
+
+class ServiceSettings(BaseSettings):
+    """Every knob of ``dsareg serve``, in groups; each setting is still the env variable ``DSAREG_<NAME>``."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="ignore", validate_default=True)
+
+    server: ServerSettings = Field(default_factory=ServerSettings)
+    storage: StorageSettings = Field(default_factory=StorageSettings)
+    database: DatabaseSettings = Field(default_factory=DatabaseSettings)
+    jobs: JobSettings = Field(default_factory=JobSettings)
+    limits: LimitSettings = Field(default_factory=LimitSettings)
+    retention: RetentionSettings = Field(default_factory=RetentionSettings)
+    auth: AuthSettings = Field(default_factory=AuthSettings)
+    celery: CelerySettings = Field(default_factory=CelerySettings)
+    dicomweb: DicomwebSettings = Field(default_factory=DicomwebSettings)
+    dimse: DimseSettings = Field(default_factory=DimseSettings)
+    callbacks: CallbackSettings = Field(default_factory=CallbackSettings)
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource,
+                                   ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """Keyword arguments, then the flat ``DSAREG_<NAME>`` variables; nothing else (no ``DSAREG_JOBS`` JSON)."""
+        return init_settings, FlatEnvSource(settings_cls)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _flat_names(cls, data: Any, handler: Any) -> Any:
+        """Files flat names into groups; a bad value's error names its env variable (``DSAREG_WORKERS``)."""
+        try:
+            return handler(_nest(data))
+        except ValidationError as exc:
+            details = [{"type": e["type"], "loc": _env_error_location(tuple(e["loc"])), "input": e.get("input"),
+                        "ctx": e.get("ctx", {})} for e in exc.errors()]
+            raise ValidationError.from_exception_data(cls.__name__, details) from None  # type: ignore[arg-type]
+
+    def __getattr__(self, name: str) -> Any:
+        if name in GROUP_OF:  # a merge from before the grouping: say where the setting went
+            raise AttributeError(f"ServiceSettings.{name} is now ServiceSettings.{GROUP_OF[name]}.{name}")
+        return super().__getattr__(name)  # type: ignore[misc]
+
+    # ---- derived (across groups) ------------------------------------------------------
     @property
     def effective_database_url(self) -> str:
-        return self.database_url or f"sqlite:///{(self.data_dir / 'jobs.sqlite3').resolve()}"
-
-    @property
-    def effective_heartbeat_seconds(self) -> float:
-        return self.heartbeat_seconds or max(0.2, self.lease_seconds / 3.0)
-
-    @property
-    def input_limits(self) -> dict[str, int]:
-        """Keyword arguments of the engine's ``InputLimits`` (only those configured)."""
-        chosen = {"max_faces": self.max_mesh_faces, "max_image_pixels": self.max_image_pixels,
-                  "max_volume_bytes": self.max_volume_bytes, "max_image_bytes": self.max_image_bytes}
-        return {k: v for k, v in chosen.items() if v}
+        return self.database.database_url or f"sqlite:///{(self.storage.data_dir / 'jobs.sqlite3').resolve()}"
 
     @property
     def effective_blob_backend(self) -> str:
-        if self.blob_backend != "auto":
-            return self.blob_backend
-        return "database" if self.executor == "celery" else "files"
+        if self.storage.blob_backend != "auto":
+            return self.storage.blob_backend
+        return "database" if self.jobs.executor == "celery" else "files"
 
     @property
     def effective_visibility_timeout(self) -> float:
-        return self.broker_visibility_timeout_seconds or self.job_timeout_seconds * 2.0 + 600.0
+        return self.celery.broker_visibility_timeout_seconds or self.jobs.job_timeout_seconds * 2.0 + 600.0
 
     @property
     def effective_host(self) -> str:
         """No keys → loopback only, whatever was asked for."""
-        return self.host if self.auth_enabled else "127.0.0.1"
+        return self.server.host if self.auth.auth_enabled else "127.0.0.1"
+
+    def flat(self) -> dict[str, Any]:
+        """Every setting by its flat name (the keys of a config file)."""
+        return {name: getattr(getattr(self, group), name) for name, group in GROUP_OF.items()}
 
 
 def load_config_file(path: str | Path) -> dict[str, Any]:
@@ -282,7 +437,7 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
 
 
 def load_settings(config_file: str | Path | None = None, **overrides: Any) -> ServiceSettings:
-    """Settings from (lowest first) the config file, the environment, then ``overrides``.
+    """Settings from (lowest first) the config file, the environment, then ``overrides`` (flat names).
 
     Keyword overrides whose value is ``None`` are ignored (unset CLI flags).
     """
@@ -291,12 +446,13 @@ def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Se
     if config_file:
         file_values = load_config_file(config_file)
     env_only = ServiceSettings()  # environment (and defaults)
-    env_set = {name for name in ServiceSettings.model_fields if f"DSAREG_{name.upper()}" in os.environ}
+    env_set = {name for name in GROUP_OF if env_name(name) in os.environ}
+    env_values = env_only.flat()
     merged: dict[str, Any] = dict(file_values)
     for name in env_set:
-        merged[name] = getattr(env_only, name)
+        merged[name] = env_values[name]
     if "api_key_hashes" in env_set or "api_keys" in env_set:
-        merged["api_key_hashes"] = env_only.api_key_hashes + list(file_values.get("api_key_hashes", []))
+        merged["api_key_hashes"] = env_only.auth.api_key_hashes + list(file_values.get("api_key_hashes", []))
         merged["api_keys"] = file_values.get("api_keys", [])
     merged.update({k: v for k, v in overrides.items() if v is not None})
     return ServiceSettings.model_validate(merged) if merged else env_only
@@ -305,12 +461,11 @@ def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Se
 def settings_to_env(settings: ServiceSettings) -> dict[str, str]:
     """Environment that recreates ``settings`` in a child process (hashes only, never clear keys)."""
     env: dict[str, str] = {}
-    for name in ServiceSettings.model_fields:
-        value = getattr(settings, name)
+    for name, value in settings.flat().items():
         if name == "api_keys" or value is None:
             continue
         if isinstance(value, (list, dict)):
-            env[f"DSAREG_{name.upper()}"] = json.dumps(value)
+            env[env_name(name)] = json.dumps(value)
         else:
-            env[f"DSAREG_{name.upper()}"] = str(value)
+            env[env_name(name)] = str(value)
     return env

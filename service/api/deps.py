@@ -56,13 +56,13 @@ Ctx = Annotated[ServiceContext, Depends(get_ctx)]
 def principal(request: Request, credentials: HTTPAuthorizationCredentials | None = Depends(bearer)) -> str:  # noqa: B008
     """The caller: ``'anonymous'`` without configured keys, else ``'key:<hash prefix>'``."""
     ctx = get_ctx(request)
-    if not ctx.settings.auth_enabled:
+    if not ctx.settings.auth.auth_enabled:
         return ANONYMOUS
     if credentials is None or not credentials.credentials:
         raise Problem(401, "send 'Authorization: Bearer <API key>'", headers={"WWW-Authenticate": "Bearer"})
     digest = hash_api_key(credentials.credentials)
     match = None
-    for known in ctx.settings.api_key_hashes:  # compare against all, in constant time each
+    for known in ctx.settings.auth.api_key_hashes:  # compare against all, in constant time each
         if hmac.compare_digest(digest, known):
             match = known
     if match is None:

@@ -29,13 +29,13 @@ log = logging.getLogger("dsareg.service")
 
 def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: Executor | None,
                   make_executor: Callable[[ServiceSettings, Any], Executor], start_background: bool) -> ServiceContext:
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     store = store_for(settings)
     blobs = make_blob_store(settings, store.engine)
     validator = None
     if start_background:
-        validator = ValidatorPool(settings.validation_processes, settings.validation_timeout_seconds,
-                                  settings.validation_memory_mb, threads=settings.threads_per_worker)
+        validator = ValidatorPool(settings.limits.validation_processes, settings.limits.validation_timeout_seconds,
+                                  settings.limits.validation_memory_mb, threads=settings.jobs.threads_per_worker)
         validator.start()
     ex = executor or make_executor(settings, store)
     return ServiceContext(settings=settings, store=store, blobs=blobs, validator=validator, executor=ex,
@@ -58,7 +58,7 @@ def start_callbacks(ctx: ServiceContext) -> CallbackDeliverer:
 
 def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
     """The DICOM node of ``dsareg serve`` when ``DSAREG_DICOM_PORT`` is set (its jobs go through this API's intake)."""
-    if not ctx.settings.dicom_port:
+    if not ctx.settings.dimse.dicom_port:
         return None
     listener = DicomListener(ctx.settings, ctx.store, ctx.blobs, DimseIntake(ctx), asyncio.get_running_loop())
     listener.start()
@@ -75,7 +75,7 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
         ctx = _open_context(settings, metrics, executor, make_executor, start_background)
         holder["ctx"] = ctx
         app.state.ctx = ctx
-        if not settings.auth_enabled:
+        if not settings.auth.auth_enabled:
             log.warning("no API keys configured: authentication is off and the service listens on 127.0.0.1 only")
         if start_background:
             ctx.executor.start()
@@ -84,7 +84,7 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper.start()
             ctx.callbacks = start_callbacks(ctx)
             ctx.extra["dicom_listener"] = _start_dicom_node(ctx)
-        log.info("dsareg service ready (%d worker processes, store %s)", settings.workers,
+        log.info("dsareg service ready (%d worker processes, store %s)", settings.jobs.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
         try:
             yield

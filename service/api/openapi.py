@@ -48,7 +48,7 @@ def patch_schema(schema: dict[str, Any], settings: ServiceSettings) -> dict[str,
             responses["422"] = problem_422
     for name in ("HTTPValidationError", "ValidationError"):
         schemas.pop(name, None)
-    if not settings.auth_enabled:  # no keys: nothing to authenticate with, so no scheme and no lock in /docs
+    if not settings.auth.auth_enabled:  # no keys: nothing to authenticate with, so no scheme and no lock in /docs
         for operation in _operations(schema):
             operation.pop("security", None)
         schema.get("components", {}).pop("securitySchemes", None)

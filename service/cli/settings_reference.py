@@ -11,7 +11,7 @@ from typing import Any
 
 from pydantic_core import PydanticUndefined
 
-from ..settings import ServiceSettings
+from ..settings import GROUPS, env_name
 
 HEADER = """# Settings reference
 
@@ -19,9 +19,11 @@ Generated from `service/settings.py` by `python -m service.cli.settings_referenc
 (a test keeps it current). Every setting is an environment variable `DSAREG_<NAME>`, or the same key
 in lower case in a JSON/TOML file named by `DSAREG_CONFIG` (or `dsareg serve --config`); the
 environment wins over the file, command-line options over both. Lists take JSON (`["a","b"]`) or
-comma-separated text.
+comma-separated text. The names are flat; in the code each setting sits in a group, read as
+`settings.<group>.<name>` (e.g. `DSAREG_WORKERS` is `settings.jobs.workers`).
+"""
 
-| environment variable | type | default | what it does |
+TABLE_HEAD = """| environment variable | type | default | what it does |
 |---|---|---|---|
 """
 
@@ -51,13 +53,17 @@ def _cell(text: str) -> str:
     return " ".join(text.split()).replace("|", "\\|")
 
 
+def _section(group: str, model: Any) -> str:
+    """One group: a heading, the group's docstring, then one row per setting in declaration order."""
+    rows = [f"| `{env_name(name)}` | {_cell(_type(field.annotation))} | {_cell(_default(field))} "
+            f"| {_cell(field.description or '')} |" for name, field in model.model_fields.items()]
+    intro = " ".join((model.__doc__ or "").split())
+    return f"\n## `{group}`\n\n{intro}\n\n" + TABLE_HEAD + "\n".join(rows) + "\n"
+
+
 def render() -> str:
-    """The whole page, one row per setting in declaration order."""
-    rows = []
-    for name, field in ServiceSettings.model_fields.items():
-        rows.append(f"| `DSAREG_{name.upper()}` | {_cell(_type(field.annotation))} | {_cell(_default(field))} "
-                    f"| {_cell(field.description or '')} |")
-    return HEADER + "\n".join(rows) + "\n"
+    """The whole page: one section per group, in the order of ``service.settings.GROUPS``."""
+    return HEADER + "".join(_section(group, model) for group, model in GROUPS.items())
 
 
 if __name__ == "__main__":

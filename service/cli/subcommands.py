@@ -79,7 +79,7 @@ def run_dicom_listener(args: argparse.Namespace) -> int:
 
     settings = load_settings(args.config, dicom_port=args.port, dicom_ae_title=args.ae_title, data_dir=args.data_dir,
                              database_url=args.database_url, log_level=args.log_level)
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     return run_listener(settings)
 
 
@@ -140,13 +140,13 @@ def run_serve(args: argparse.Namespace) -> int:
         args.config, host=args.host, port=args.port, data_dir=args.data_dir, database_url=args.database_url,
         workers=args.workers, threads_per_worker=args.threads_per_worker, log_level=args.log_level,
     )
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log = logging.getLogger("dsareg.service")
     host = settings.effective_host
-    if host != settings.host:
-        log.warning("no API keys configured: binding to 127.0.0.1 instead of %s", settings.host)
+    if host != settings.server.host:
+        log.warning("no API keys configured: binding to 127.0.0.1 instead of %s", settings.server.host)
     app = create_app(settings)
-    uvicorn.run(app, host=host, port=settings.port, log_level=settings.log_level.lower(), access_log=False,
+    uvicorn.run(app, host=host, port=settings.server.port, log_level=settings.server.log_level.lower(), access_log=False,
                 timeout_graceful_shutdown=10, http=http_protocol())  # bad Content-Length → problem+json
     return 0
 
@@ -158,8 +158,8 @@ def run_worker(args: argparse.Namespace) -> int:
         args.config, data_dir=args.data_dir, database_url=args.database_url, broker_url=args.broker_url,
         threads_per_worker=args.threads_per_worker, log_level=args.log_level,
     )
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     if args.engine == "celery":
         from ..jobs.celery.worker import run_worker as run_celery_worker
 

@@ -103,7 +103,7 @@ def verify(body: bytes, secret: str, header: str | None) -> bool:
 
 def backoff_seconds(settings: ServiceSettings, attempts: int) -> float:
     """Delay after the ``attempts``-th failed attempt."""
-    return min(MAX_BACKOFF_SECONDS, settings.callback_retry_backoff_seconds * 2.0 ** max(0, attempts - 1))
+    return min(MAX_BACKOFF_SECONDS, settings.callbacks.callback_retry_backoff_seconds * 2.0 ** max(0, attempts - 1))
 
 
 # ---- delivering -----------------------------------------------------------------------------
@@ -115,12 +115,12 @@ class CallbackDeliverer:
     def __init__(self, store: JobStore, settings: ServiceSettings, payload: Callable[[JobRecord], bytes],
                  user_agent: str = "dsareg"):
         self.store, self.settings, self.payload = store, settings, payload
-        self.lease_seconds = settings.callback_timeout_seconds + LEASE_MARGIN_SECONDS
+        self.lease_seconds = settings.callbacks.callback_timeout_seconds + LEASE_MARGIN_SECONDS
         self.headers = {"Content-Type": "application/json", "User-Agent": user_agent}
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._run, name="callbacks", daemon=True)
         self._pool = ThreadPoolExecutor(DELIVERY_THREADS, thread_name_prefix="callback")
-        self._http = httpx.Client(timeout=settings.callback_timeout_seconds, follow_redirects=False)
+        self._http = httpx.Client(timeout=settings.callbacks.callback_timeout_seconds, follow_redirects=False)
 
     def start(self) -> None:
         self._thread.start()
@@ -161,7 +161,7 @@ class CallbackDeliverer:
         if job is None:
             return "gone"
         body = self.payload(job)
-        headers = {**self.headers, SIGNATURE_HEADER: signature(body, self.settings.callback_secret),
+        headers = {**self.headers, SIGNATURE_HEADER: signature(body, self.settings.callbacks.callback_secret),
                    DELIVERY_HEADER: row["delivery_id"], ATTEMPT_HEADER: str(row["attempts"]), JOB_HEADER: job.id}
         status, error = None, None
         try:
@@ -178,7 +178,7 @@ class CallbackDeliverer:
         elif status is not None and (300 <= status < 400 or status == 410):
             state, next_at = "failed", None
             error = f"HTTP {status}: " + ("redirects are not followed" if status < 400 else "the receiver is gone")
-        elif attempt >= self.settings.callback_max_attempts:
+        elif attempt >= self.settings.callbacks.callback_max_attempts:
             state, next_at = "failed", None
         else:
             state, next_at = "pending", time.time() + backoff_seconds(self.settings, attempt)

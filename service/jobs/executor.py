@@ -86,7 +86,7 @@ class EmbeddedProcessExecutor(Executor):
     def __init__(self, settings: ServiceSettings, workers: int | None = None, store: Any = None):
         self.settings = settings
         self.store = store  # to tell warmed-up workers (they register in the store after warm-up) from warming ones
-        self.count = settings.workers if workers is None else workers
+        self.count = settings.jobs.workers if workers is None else workers
         self.ctx = mp.get_context("spawn")
         self.links: list[WakeLink | None] = [None] * self.count
         self.processes: list[Any] = [None] * self.count

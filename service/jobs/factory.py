@@ -10,8 +10,8 @@ from .executor import EmbeddedProcessExecutor, Executor, NoExecutor
 
 def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
     """The executor the settings ask for (the one place that knows every kind)."""
-    if settings.executor == "celery":
+    if settings.jobs.executor == "celery":
         from .celery.executor import CeleryExecutor
 
         return CeleryExecutor(settings, store)
-    return EmbeddedProcessExecutor(settings, store=store) if settings.workers > 0 else NoExecutor()
+    return EmbeddedProcessExecutor(settings, store=store) if settings.jobs.workers > 0 else NoExecutor()

@@ -48,13 +48,13 @@ class Sweeper:
         self._thread.join(5)
 
     def _run(self) -> None:
-        recovery_every = max(0.5, min(5.0, self.ctx.settings.lease_seconds / 3.0))
+        recovery_every = max(0.5, min(5.0, self.ctx.settings.jobs.lease_seconds / 3.0))
         while not self._halt.wait(recovery_every):
             try:
                 self.sweep_once(recover=time.monotonic() >= self.recover_after)
             except store_outage_errors() as exc:
                 log.warning("sweep skipped: job store unavailable (%s)", type(exc).__name__)
-                self.recover_after = time.monotonic() + self.ctx.settings.lease_seconds
+                self.recover_after = time.monotonic() + self.ctx.settings.jobs.lease_seconds
             except Exception:
                 log.exception("sweep failed")
 
@@ -68,13 +68,13 @@ class Sweeper:
         self.ctx.executor.requeued(requeued)
         self.ctx.executor.maintain(store)
         now = time.time()
-        if force_retention or now - self.last_retention >= self.ctx.settings.sweep_interval_seconds:
+        if force_retention or now - self.last_retention >= self.ctx.settings.retention.sweep_interval_seconds:
             self.last_retention = now
             self._retention(now)
 
     def _retention(self, now: float) -> None:
         store, blobs, settings = self.ctx.store, self.ctx.blobs, self.ctx.settings
-        expired = store.expired_finished(now - settings.retention_hours * 3600.0)
+        expired = store.expired_finished(now - settings.retention.retention_hours * 3600.0)
         for job_id in expired:
             orphans = store.delete(job_id)
             blobs.delete(orphans, min_age_seconds=0.0)  # submit re-stores a blob it still needs

@@ -74,7 +74,7 @@ class _JobControl:
 
     def _write(self, progress: dict | None) -> None:
         try:
-            owned, cancel = self.store.heartbeat(self.job.id, self.worker_id, self.settings.lease_seconds, progress)
+            owned, cancel = self.store.heartbeat(self.job.id, self.worker_id, self.settings.jobs.lease_seconds, progress)
         except Exception:  # noqa: BLE001 - a database hiccup: try again next beat
             log.warning("job %s: heartbeat failed", self.job.id)
             return
@@ -83,13 +83,13 @@ class _JobControl:
         self.cancel = self.cancel or cancel
 
     def _beat(self) -> None:
-        interval = self.settings.effective_heartbeat_seconds
+        interval = self.settings.jobs.effective_heartbeat_seconds
         while not self._done.wait(interval):
             with self._lock:
                 pending = self.latest_progress
                 self.latest_progress = None
             self._write(pending)
-            if time.monotonic() - self.started > self.settings.job_timeout_seconds:
+            if time.monotonic() - self.started > self.settings.jobs.job_timeout_seconds:
                 self.timed_out = True
 
     def progress(self, update: dict) -> None:
@@ -101,7 +101,7 @@ class _JobControl:
         }
         now = time.monotonic()
         new_stage = progress["stage"] != self.last_stage  # a stage change is written at once (e.g. 'outputs')
-        if new_stage or now - self.last_progress_write >= self.settings.progress_interval_seconds:
+        if new_stage or now - self.last_progress_write >= self.settings.jobs.progress_interval_seconds:
             self.last_progress_write, self.last_stage = now, progress["stage"]
             self._write(progress)
         else:
@@ -129,7 +129,7 @@ def is_store_outage(exc: BaseException) -> bool:
 def with_store_retries(call: Any, settings: ServiceSettings, what: str, job_id: str) -> Any:
     """``call()`` retried with exponential backoff while the store is out, for at most
     ``result_save_seconds``: a short database outage must not throw away a finished registration."""
-    deadline = time.monotonic() + settings.result_save_seconds
+    deadline = time.monotonic() + settings.jobs.result_save_seconds
     delay = 0.25
     while True:
         try:
@@ -225,8 +225,8 @@ class DiskFloor:
     a minute while it has not (the job stays queued: nothing is claimed that could not be written)."""
 
     def __init__(self, settings: ServiceSettings):
-        self.path = Path(settings.data_dir)
-        self.floor = settings.min_free_bytes
+        self.path = Path(settings.storage.data_dir)
+        self.floor = settings.storage.min_free_bytes
         self.last_warning = 0.0
 
     def check(self) -> bool:
@@ -256,10 +256,10 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
     pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
     dimse = dimse_job(job, blobs.read, settings)  # made from a study received over DIMSE, or None
     if pacs is None:
-        files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.input_limits)
+        files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.limits.input_limits)
     else:
         files = pacs.fetch()
-    result = run_job(files, job.options, out_dir, limits=settings.input_limits, control=control,
+    result = run_job(files, job.options, out_dir, limits=settings.limits.input_limits, control=control,
                      label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
     if control.lost:
         return "lost"
@@ -287,7 +287,7 @@ def _stopped(job: JobRecord, settings: ServiceSettings, control: _JobControl, fi
         return finish.complete("canceled")
     if control.timed_out:
         err = _problem(job.id, 500, "job-timeout", "Job timed out",
-                       f"the registration did not finish within {settings.job_timeout_seconds:g} s; "
+                       f"the registration did not finish within {settings.jobs.job_timeout_seconds:g} s; "
                        "try fewer starts, fewer iterations or a smaller working_size_px")
         return finish.complete("failed", error=err)
     return finish.release()  # worker shutting down: hand the job back
@@ -330,9 +330,10 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
         die_with_parent(parent_pid)
     if link is not None:
         control.watch(link)
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        engine.set_cpu_threads(settings.threads_per_worker or engine.default_cpu_threads(max(1, settings.workers)))
+        jobs = settings.jobs
+        engine.set_cpu_threads(jobs.threads_per_worker or engine.default_cpu_threads(max(1, jobs.workers)))
     except Exception:  # noqa: BLE001
         log.warning("could not set the worker's CPU threads")
     warm_up()
@@ -352,7 +353,7 @@ def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
     try:
         while not control.stop.is_set():
             now = time.monotonic()
-            if now - last_seen > max(1.0, settings.effective_heartbeat_seconds):
+            if now - last_seen > max(1.0, settings.jobs.effective_heartbeat_seconds):
                 try:
                     store.worker_seen(worker_id, os.getpid())
                 except Exception:  # noqa: BLE001
@@ -361,11 +362,11 @@ def _claim_loop(settings: ServiceSettings, index: int, control: Any) -> None:
             job = None
             if room.check():
                 try:
-                    job = store.claim(worker_id, settings.lease_seconds)
+                    job = store.claim(worker_id, settings.jobs.lease_seconds)
                 except Exception:  # noqa: BLE001
                     log.warning("worker %s: claim failed", worker_id)
             if job is None:
-                control.wait_for_work(settings.poll_seconds)
+                control.wait_for_work(settings.jobs.poll_seconds)
                 continue
             log.info("job %s: claimed by %s (attempt %d)", job.id, worker_id, job.attempts)
             run_one(store, blobs, job, worker_id, settings, control.stop)

@@ -51,10 +51,10 @@ class PacsJob:
         server = resolve_server(self.settings, source.url)
         if server is None:  # accepted earlier, since removed from the settings
             raise PacsError(source.url, "configuration", "no longer one of this server's DICOMweb servers")
-        return DicomwebClient(server, timeout=self.settings.dicomweb_timeout_seconds,
-                              retries=self.settings.dicomweb_retries,
-                              backoff=self.settings.dicomweb_retry_backoff_seconds,
-                              max_bytes=self.settings.max_upload_bytes)
+        return DicomwebClient(server, timeout=self.settings.dicomweb.dicomweb_timeout_seconds,
+                              retries=self.settings.dicomweb.dicomweb_retries,
+                              backoff=self.settings.dicomweb.dicomweb_retry_backoff_seconds,
+                              max_bytes=self.settings.limits.max_upload_bytes)
 
     def fetch(self) -> Any:
         """The study's AP, LAT and volume instances as ``engine.CaseFiles`` (geometry from the XA headers)."""

@@ -20,10 +20,13 @@ import re
 import time
 import uuid
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import httpx
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+if TYPE_CHECKING:
+    from ..settings import ServiceSettings
 
 UID_PATTERN = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
 RETRIABLE_STATUS = {408, 429, 502, 503, 504}
@@ -157,10 +160,10 @@ class PacsServer:
         return {"Authorization": f"Bearer {self.token}"} if self.token else {}
 
 
-def configured_servers(settings) -> dict[str, PacsServer]:
-    """``{normalized url: PacsServer}`` from ``settings.dicomweb_servers`` (dicts, or plain URLs)."""
+def configured_servers(settings: ServiceSettings) -> dict[str, PacsServer]:
+    """``{normalized url: PacsServer}`` from ``settings.dicomweb.dicomweb_servers`` (dicts, or plain URLs)."""
     servers: dict[str, PacsServer] = {}
-    for entry in getattr(settings, "dicomweb_servers", None) or []:
+    for entry in settings.dicomweb.dicomweb_servers:
         if isinstance(entry, str):
             entry = {"url": entry}
         url = normalize_url(str(entry["url"]))
@@ -168,7 +171,7 @@ def configured_servers(settings) -> dict[str, PacsServer]:
     return servers
 
 
-def resolve_server(settings, url: str) -> PacsServer | None:
+def resolve_server(settings: ServiceSettings, url: str) -> PacsServer | None:
     return configured_servers(settings).get(normalize_url(url))
 
 

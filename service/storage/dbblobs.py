@@ -154,7 +154,7 @@ class DatabaseBlobStore(BlobStore):
 def make_blob_store(settings, engine: sa.Engine | None = None, *, cache: bool = True) -> BlobStore:
     """The blob store the settings ask for (``engine``: the job store's, to share its pool;
     ``cache``: keep local copies of database blobs, for the API)."""
-    root = Path(settings.data_dir)
+    root = Path(settings.storage.data_dir)
     if settings.effective_blob_backend == "database":
         if engine is None:
             engine = sa.create_engine(settings.effective_database_url, future=True)

@@ -46,9 +46,10 @@ class StoreTimeouts:
 
     @classmethod
     def from_settings(cls, settings: Any) -> StoreTimeouts:
-        return cls(busy_s=settings.sqlite_busy_timeout_seconds, connect_s=settings.db_connect_timeout_seconds,
-                   statement_s=settings.db_statement_timeout_seconds, lock_s=settings.db_lock_timeout_seconds,
-                   pool_s=settings.db_pool_timeout_seconds)
+        database = settings.database
+        return cls(busy_s=database.sqlite_busy_timeout_seconds, connect_s=database.db_connect_timeout_seconds,
+                   statement_s=database.db_statement_timeout_seconds, lock_s=database.db_lock_timeout_seconds,
+                   pool_s=database.db_pool_timeout_seconds)
 
 
 def engine_kwargs(url: str, timeouts: StoreTimeouts) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 * ``POST /v1/registrations`` with ``Content-Type: application/json`` and a body
   ``{"source": {"dicomweb": {...}}, "options": {...}, "store_results": true}``
   (see :class:`service.pacs.dicomweb.DicomwebRegistrationRequest`). The reference is checked
-  (UID syntax, the URL is one of ``settings.dicomweb_servers``, options) and stored as the
+  (UID syntax, the URL is one of ``settings.dicomweb.dicomweb_servers``, options) and stored as the
   job's only input; the worker fetches the images (``service/pacs/dicom_jobs.py``).
   The DICOM results are served by :mod:`service.api.routes.artifacts`.
 """
@@ -62,8 +62,8 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
             first = exc.errors()[0]
             raise Problem(422, f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
                           accepted='{"source": {"dimse": {"peer", "study_uid", "ap": {"series_uid"}, '
-                                   '"lat": {"series_uid"}, "volume": {"series_uid"}}}, "options": {}, '
-                                   '"store_results": true}') from None
+                                   '"lat": {"series_uid"}, "volume": {"series_uid"}, "retrieve": "move" | "get"}}, '
+                                   '"options": {}, "store_results": true}') from None
     try:
         return DicomwebRegistrationRequest.model_validate(data)
     except ValidationError as exc:

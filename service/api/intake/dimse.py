@@ -30,20 +30,24 @@ log = logging.getLogger("dsareg.dimse")
 
 ROLE = "dimse"
 def job_owner(settings: Any) -> str:
-    chosen = settings.dicom_job_owner_key_hash or (settings.api_key_hashes[0] if settings.api_key_hashes else None)
-    return "key:" + chosen.strip().lower()[:16] if chosen and settings.auth_enabled else ANONYMOUS
+    hashes = settings.auth.api_key_hashes
+    chosen = settings.dimse.dicom_job_owner_key_hash or (hashes[0] if hashes else None)
+    return "key:" + chosen.strip().lower()[:16] if chosen and settings.auth.auth_enabled else ANONYMOUS
 
 
 def source_document(study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance], settings: Any) -> dict:
     """The job's ``dimse`` input: the study's origin and the export destinations (deterministic JSON)."""
     calling = by_uid[job.ap].calling_ae
     volume_series = sorted({by_uid[uid].series_uid for uid in job.volume})
+    volume = {"series_uid": volume_series[0], "instances": len(job.volume)}
+    if job.volume_origin:  # not in the study: the patient's latest volume, retrieved by C-MOVE
+        volume["retrieved"] = dict(job.volume_origin)
     return {"source": {"dimse": {
         "calling_ae": calling, "study_uid": study_uid, "pairing": job.rule,
         "ap": {"series_uid": by_uid[job.ap].series_uid, "sop_instance_uid": job.ap},
         "lat": {"series_uid": by_uid[job.lat].series_uid, "sop_instance_uid": job.lat},
-        "volume": {"series_uid": volume_series[0], "instances": len(job.volume)}}},
-        "export": list(settings.dicom_export) or [calling]}
+        "volume": volume}},
+        "export": list(settings.dimse.dicom_export) or [calling]}
 
 
 def idempotency_key(study_uid: str, job: PlannedJob) -> str:
@@ -62,7 +66,7 @@ async def _planned_inputs(ctx: ServiceContext, study_uid: str, job: PlannedJob,
 
     inputs = [item("ap", job.ap), item("lat", job.lat), *(item("volume", uid) for uid in job.volume),
               InputFile(role=ROLE, sha256=digest, size=size, suffix=".json")]
-    return inputs, parse_options_json(dict(ctx.settings.dicom_job_options) or None)
+    return inputs, parse_options_json(dict(ctx.settings.dimse.dicom_job_options) or None)
 
 
 async def prevalidate(ctx: ServiceContext, study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance]) -> None:

@@ -145,7 +145,7 @@ def checked_callback_url(ctx: ServiceContext, value: Any, field: str = "callback
     if not isinstance(value, str):
         raise Problem(422, "must be text (a URL)", field=field)
     url = value.strip()
-    why = url_problem(url, ctx.settings.callback_allowed)
+    why = url_problem(url, ctx.settings.callbacks.callback_allowed)
     if why is not None:
         raise Problem(422, f"callback_url {why}", field=field,
                       accepted="an http(s) URL under a prefix the administrator allowed (DSAREG_CALLBACK_ALLOWED)")
@@ -166,11 +166,12 @@ def form_callback_url(ctx: ServiceContext, form: Any) -> str | None:
 
 async def check_queue(ctx: ServiceContext, who: str) -> None:
     """Back-pressure: 503 when the queue is full, 429 when this key has too many queued jobs."""
-    if await asyncio.to_thread(ctx.store.queued_count) >= ctx.settings.queue_limit:
-        raise Problem(503, f"the job queue is full ({ctx.settings.queue_limit} queued); retry later",
+    limits = ctx.settings.limits
+    if await asyncio.to_thread(ctx.store.queued_count) >= limits.queue_limit:
+        raise Problem(503, f"the job queue is full ({limits.queue_limit} queued); retry later",
                       kind="queue-full", headers={"Retry-After": "30"})
-    if who != ANONYMOUS and await asyncio.to_thread(ctx.store.queued_count, who) >= ctx.settings.queue_limit_per_key:
-        raise Problem(429, f"this API key already has {ctx.settings.queue_limit_per_key} queued jobs; retry later",
+    if who != ANONYMOUS and await asyncio.to_thread(ctx.store.queued_count, who) >= limits.queue_limit_per_key:
+        raise Problem(429, f"this API key already has {limits.queue_limit_per_key} queued jobs; retry later",
                       headers={"Retry-After": "30"})
 
 
@@ -182,8 +183,8 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
         "reading": image_reading_json(options),
         "volume_reading": volume_reading(options),
-        "blob_root": str(ctx.blobs.root), "limits": ctx.settings.input_limits,
-        "require_cuda": options.device == "cuda" and ctx.settings.executor == "embedded",
+        "blob_root": str(ctx.blobs.root), "limits": ctx.settings.limits.input_limits,
+        "require_cuda": options.device == "cuda" and ctx.settings.jobs.executor == "embedded",
     })
     if outcome.unavailable:
         raise Problem(503, "the registration engine is not available on this server", kind="engine-unavailable",
@@ -194,7 +195,7 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
     if not outcome.ok:
         raise Problem(422, outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
     views = (outcome.summary or {}).get("views") or {}
-    check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.max_job_cost)
+    check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.limits.max_job_cost)
     return list((outcome.summary or {}).get("warnings", []))
 
 
@@ -204,7 +205,7 @@ def new_job(ctx: ServiceContext, who: str, key: str | None, *, options_json: dic
     now = time.time()
     return JobRecord(
         id=new_job_id(), owner=who, status="queued", created_at=now, updated_at=now,
-        max_attempts=ctx.settings.max_attempts, options=options_json, geometry=geometry, inputs=inputs,
+        max_attempts=ctx.settings.jobs.max_attempts, options=options_json, geometry=geometry, inputs=inputs,
         warnings=warnings, idempotency_key=key, request_hash=request_hash, input_bytes=input_bytes,
         callback_url=callback_url, previous_id=previous_id,
     )
@@ -257,7 +258,7 @@ async def submit_files(ctx: ServiceContext, files: dict[str, list[UploadFile]], 
     """Checked file parts, canonical geometry JSON and parsed options → 202 with the new job (or a replay)."""
     options_json = options.model_dump(mode="json")
     upload_bytes = sum(upload.size or 0 for uploads in files.values() for upload in uploads)
-    await asyncio.to_thread(ensure_room, ctx.blobs.root, ctx.settings.min_free_bytes, upload_bytes)  # 507 before writing
+    await asyncio.to_thread(ensure_room, ctx.blobs.root, ctx.settings.storage.min_free_bytes, upload_bytes)  # 507 before writing
     inputs, sources = await store_uploads(ctx, files)
     request_hash = fingerprint(inputs, geometry, options_json, callback_url)
     total = sum(f.size for f in inputs)

@@ -32,7 +32,7 @@ def readyz(ctx: Ctx) -> Response:
     store_ok = ctx.store.ping()
     # workers are counted in the database (Celery's alive, everyone's ready): not asked again when it just
     # failed (one deadline, not three)
-    alive = ctx.executor.alive_workers() if store_ok or ctx.settings.executor == "embedded" else 0
+    alive = ctx.executor.alive_workers() if store_ok or ctx.settings.jobs.executor == "embedded" else 0
     ready_workers = ctx.executor.ready_workers() if alive and store_ok else 0
     checks = {
         "store_writable": store_ok,
@@ -44,7 +44,7 @@ def readyz(ctx: Ctx) -> Response:
     }
     if alive and not ready_workers:
         checks["warming"] = "compiling kernels: workers are warming up (minutes on a fresh install, seconds after)"
-    data_ok = Path(ctx.settings.data_dir).is_dir()
+    data_ok = Path(ctx.settings.storage.data_dir).is_dir()
     checks["data_dir"] = data_ok
     ready = (checks["store_writable"] and ready_workers > 0 and data_ok
              and (ctx.validator is None or checks["validator_ready"]))
@@ -60,8 +60,8 @@ def readyz(ctx: Ctx) -> Response:
             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}, "description": "Prometheus text"},
                        **problem_responses(401, 403)})
 def metrics(ctx: Ctx, request: Request, credentials: HTTPAuthorizationCredentials | None = Depends(bearer)) -> Response:  # noqa: B008
-    if not ctx.settings.metrics_open:
-        if not ctx.settings.auth_enabled:
+    if not ctx.settings.auth.metrics_open:
+        if not ctx.settings.auth.auth_enabled:
             raise Problem(403, "metrics are not public on this server (DSAREG_METRICS_PUBLIC=false) and no API keys "
                                "are configured", field="DSAREG_METRICS_PUBLIC")
         principal(request, credentials)  # 401 without a valid key

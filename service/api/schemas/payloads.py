@@ -415,6 +415,21 @@ def reference_model() -> type[BaseModel]:
     return DicomwebRegistrationRequest
 
 
+def dimse_reference_model() -> type[BaseModel]:
+    from ...pacs.dimse.pull import DimseRegistrationRequest
+
+    return DimseRegistrationRequest
+
+
+def json_body_schema() -> dict[str, Any]:
+    """The ``application/json`` body: inputs by DICOMweb or by DIMSE reference, told apart by the key of ``source``."""
+    return {"oneOf": [{"$ref": REF.format(model=reference_model().__name__)},
+                      {"$ref": REF.format(model=dimse_reference_model().__name__)}],
+            "description": 'Inputs by reference: `{"source": {"dicomweb": ...}}` (QIDO/WADO-RS) or '
+                           '`{"source": {"dimse": ...}}` (C-MOVE / C-GET from a DSAREG_DICOM_PEERS peer); '
+                           "the single key of `source` says which."}
+
+
 def document(schema: dict[str, Any]) -> dict[str, Any]:
     """Add the payload schemas to an OpenAPI document (in place; returned for convenience)."""
     from ...engine_adapter import engine
@@ -422,7 +437,8 @@ def document(schema: dict[str, Any]) -> dict[str, Any]:
     PRESETS = engine.PRESETS
 
     schemas = schema.setdefault("components", {}).setdefault("schemas", {})
-    schemas.update(_components(options_model(), GeometryFile, RegistrationResult, reference_model()))
+    schemas.update(_components(options_model(), GeometryFile, RegistrationResult, reference_model(),
+                               dimse_reference_model()))
     result_ref = {"$ref": REF.format(model="RegistrationResult")}
     for name in ("JobStatus", "JobStatus-Output"):
         props = schemas.get(name, {}).get("properties", {})
@@ -439,8 +455,8 @@ def document(schema: dict[str, Any]) -> dict[str, Any]:
                              "geometry": {"contentType": "text/plain, application/json"},
                              "volume": {"contentType": "application/octet-stream"}},
             },
-            # inputs by DICOMweb reference (service/api/dicom_reference.py)
-            "application/json": {"schema": {"$ref": REF.format(model=reference_model().__name__)}},
+            # inputs by DICOMweb or DIMSE reference (service/api/intake/dicom_reference.py)
+            "application/json": {"schema": json_body_schema()},
         }}
     get_result = paths.get("/v1/registrations/{job_id}/result", {}).get("get")
     if get_result is not None:

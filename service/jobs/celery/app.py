@@ -15,16 +15,16 @@ TASK_NAME = "dsareg.run_job"
 
 def celery_config(settings: ServiceSettings) -> dict[str, Any]:
     """Celery settings, each with the reason it is there."""
-    timeout = settings.job_timeout_seconds
+    timeout = settings.jobs.job_timeout_seconds
     vt = settings.effective_visibility_timeout
     return {
-        "broker_url": settings.broker_url,
+        "broker_url": settings.celery.broker_url,
         # nothing reads Celery results: the job table holds them
         "task_ignore_result": True,
         "result_backend": None,
         "task_serializer": "json",
         "accept_content": ["json"],
-        "task_default_queue": settings.celery_queue,
+        "task_default_queue": settings.celery.celery_queue,
         # ack only after the task returned: a worker that dies mid-job leaves its message
         # unacked, so the broker delivers it again instead of forgetting the job
         "task_acks_late": True,
@@ -79,7 +79,7 @@ def publisher_config(settings: ServiceSettings) -> dict[str, Any]:
     that fails at once). The job is already in the table; the sweeper re-sends it
     (``CeleryExecutor.maintain``). Worker processes keep the defaults (long BRPOP polls).
     """
-    step = settings.broker_publish_timeout_seconds / 4.0
+    step = settings.celery.broker_publish_timeout_seconds / 4.0
     return {
         "broker_transport_options": {
             **celery_config(settings)["broker_transport_options"],
@@ -107,6 +107,6 @@ def make_celery(settings: ServiceSettings, task: Callable[..., Any] | None = Non
         app.conf.update(publisher_config(settings))
     if task is not None:
         app.task(name=TASK_NAME, bind=True, acks_late=True, reject_on_worker_lost=True,
-                 max_retries=settings.task_max_retries)(task)
+                 max_retries=settings.celery.task_max_retries)(task)
     app.dsareg_settings = settings
     return app

@@ -46,7 +46,7 @@ class CeleryExecutor(Executor):
         self._lock = threading.Lock()
 
     def start(self) -> None:
-        log.info("celery executor: queue %s", self.settings.celery_queue)
+        log.info("celery executor: queue %s", self.settings.celery.celery_queue)
 
     def stop(self, timeout: float = 10.0) -> None:
         try:
@@ -59,7 +59,7 @@ class CeleryExecutor(Executor):
 
     def _send(self, job_id: str) -> bool:
         try:
-            self.app.send_task(TASK_NAME, args=[job_id], task_id=job_id, queue=self.settings.celery_queue)
+            self.app.send_task(TASK_NAME, args=[job_id], task_id=job_id, queue=self.settings.celery.celery_queue)
         except Exception as exc:  # noqa: BLE001 - the job is safe in the table; the sweeper re-sends it
             log.warning("job %s: broker unreachable (%s); will re-send", job_id, type(exc).__name__)
             return False
@@ -87,7 +87,7 @@ class CeleryExecutor(Executor):
                 conn.ensure_connection(max_retries=1)
                 try:
                     return int(conn.default_channel.queue_declare(
-                        queue=self.settings.celery_queue, passive=True).message_count)
+                        queue=self.settings.celery.celery_queue, passive=True).message_count)
                 except conn.connection_errors:
                     return None
                 except Exception:  # noqa: BLE001 - the queue does not exist (e.g. after a broker restart)
@@ -103,7 +103,7 @@ class CeleryExecutor(Executor):
         is not flooded with duplicates). Duplicates are harmless: the claim decides.
         """
         now = time.time()
-        after = self.settings.redispatch_after_seconds
+        after = self.settings.celery.redispatch_after_seconds
         if now - self._last_maintain < min(10.0, after / 2.0):
             return
         self._last_maintain = now
@@ -130,12 +130,12 @@ class CeleryExecutor(Executor):
     def alive_workers(self) -> int:
         if self.store is None:
             return 0
-        window = max(10.0, 3.0 * max(1.0, self.settings.effective_heartbeat_seconds))
+        window = max(10.0, 3.0 * max(1.0, self.settings.jobs.effective_heartbeat_seconds))
         try:
             return self.store.live_workers(time.time() - window)
         except Exception:  # noqa: BLE001
             return 0
 
     def describe(self) -> dict[str, Any]:
-        return {"kind": "celery", "alive_workers": self.alive_workers(), "queue": self.settings.celery_queue,
+        return {"kind": "celery", "alive_workers": self.alive_workers(), "queue": self.settings.celery.celery_queue,
                 "redispatched": self.redispatched}

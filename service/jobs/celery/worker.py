@@ -35,12 +35,12 @@ class _WorkerState:
         self._beat.start()
 
     def _seen_loop(self) -> None:
-        interval = max(1.0, self.settings.effective_heartbeat_seconds)
+        interval = max(1.0, self.settings.jobs.effective_heartbeat_seconds)
         while True:
             try:
                 self.store.worker_seen(self.worker_id, os.getpid())
                 # liveness file for container health checks (docker/compose.yaml)
-                (Path(self.settings.data_dir) / "worker-heartbeat").touch()
+                (Path(self.settings.storage.data_dir) / "worker-heartbeat").touch()
             except Exception:  # noqa: BLE001 - the store may be restarting
                 log.warning("worker %s: store not reachable", self.worker_id)
             if self.stop.wait(interval):
@@ -68,7 +68,7 @@ def apply_thread_budget(settings: ServiceSettings) -> int:
     every core. Called at the start of every task, so it holds on whichever thread runs it.
     """
     try:
-        return engine.set_cpu_threads(settings.threads_per_worker or engine.default_cpu_threads())
+        return engine.set_cpu_threads(settings.jobs.threads_per_worker or engine.default_cpu_threads())
     except Exception:  # noqa: BLE001 - run with the defaults rather than not at all
         log.warning("could not set the task thread's CPU threads")
         return 0
@@ -86,7 +86,7 @@ def _run_job_task(self: Any, job_id: str) -> str:
         log.info("job %s: left queued while the data disk is below its floor", job_id)
         return "deferred"
     try:
-        job = state.store.claim_job(job_id, state.worker_id, settings.lease_seconds)
+        job = state.store.claim_job(job_id, state.worker_id, settings.jobs.lease_seconds)
     except (OperationalError, DBAPIError) as exc:
         # the job store is briefly unreachable: bounded retries with backoff, then give up
         # (the job stays queued in the table and the API's sweeper re-sends it later)
@@ -105,7 +105,7 @@ def _run_job_task(self: Any, job_id: str) -> str:
     outcome = run_one(state.store, state.blobs, job, state.worker_id, settings, state.stop, cancel_hint=revoked)
     if outcome == "released":  # warm shutdown: the job is queued again, hand it to another worker
         try:
-            self.app.send_task(TASK_NAME, args=[job_id], task_id=job_id, queue=settings.celery_queue)
+            self.app.send_task(TASK_NAME, args=[job_id], task_id=job_id, queue=settings.celery.celery_queue)
         except Exception:  # noqa: BLE001 - the sweeper re-sends it
             log.warning("job %s: could not re-send after release", job_id)
     return outcome
@@ -119,7 +119,7 @@ def run_worker(settings: ServiceSettings, *, pool: str = "threads", hostname: st
         import torch
 
         # set explicitly: several worker processes on one machine must not each take every core
-        engine.set_cpu_threads(settings.threads_per_worker or engine.default_cpu_threads())
+        engine.set_cpu_threads(settings.jobs.threads_per_worker or engine.default_cpu_threads())
         torch.set_num_interop_threads(1)
     except Exception:  # noqa: BLE001
         log.warning("could not set the worker's CPU threads")
@@ -135,11 +135,12 @@ def run_worker(settings: ServiceSettings, *, pool: str = "threads", hostname: st
     def _on_shutdown(**_: Any) -> None:
         state.stop.set()
 
-    argv = ["worker", f"--pool={pool}", "--concurrency=1", "-Q", settings.celery_queue,
-            f"--loglevel={settings.log_level.upper()}", "--without-gossip", "--without-mingle"]
+    argv = ["worker", f"--pool={pool}", "--concurrency=1", "-Q", settings.celery.celery_queue,
+            f"--loglevel={settings.server.log_level.upper()}", "--without-gossip", "--without-mingle"]
     if hostname:
         argv += ["-n", hostname]
-    log.info("celery worker %s: pool %s, %d CPU threads", state.worker_id, pool, settings.threads_per_worker or engine.default_cpu_threads())
+    threads = settings.jobs.threads_per_worker or engine.default_cpu_threads()
+    log.info("celery worker %s: pool %s, %d CPU threads", state.worker_id, pool, threads)
     try:
         app.worker_main(argv)
     finally:

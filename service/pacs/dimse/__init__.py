@@ -5,7 +5,8 @@
 * :mod:`.grouping` — biplane pairs and the volume of one study;
 * :mod:`.dispatcher` — stable studies → planned jobs, handed to the API's intake
   (:mod:`service.api.intake.dimse`, injected: this package never imports the API);
-* :mod:`.pull` — inputs by DIMSE reference (C-GET);
+* :mod:`.pull` — inputs by DIMSE reference (C-MOVE or C-GET);
+* :mod:`.query` — C-FIND / C-MOVE SCU: the patient's latest volume, retrieval to our own AE;
 * :mod:`.export` — the REG and overlays back to the peers by C-STORE (SCU);
 * :mod:`.listener` — the node inside ``dsareg serve`` or alone (``dsareg dicom-listener``).
 

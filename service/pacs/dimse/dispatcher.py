@@ -6,6 +6,13 @@ hands each one to ``intake.submit`` — the same checks and queue as ``POST /v1/
 When an association is released it asks ``intake.prevalidate`` to parse the planned inputs
 early (the validator caches successful parses by content), so the submission at stable time
 costs no parse. The intake is injected: this package knows nothing of the API.
+
+A stable study with biplane pairs but no volume, when ``dicom_query_peer`` is set: the patient's
+latest CT / MR / 3D-RA series is found by C-FIND and fetched by C-MOVE into the inbox
+(:mod:`.query`, bounded by ``dicom_timeout_seconds``), and the pairs become jobs with it. No
+volume found, or the peer down: a WARNING naming the peer, the step and the status, the outcome
+in :attr:`StudyDispatcher.dispatched`, and the study waits ``dicom_query_retry_seconds`` before
+it is asked for again (a volume sent meanwhile makes the job).
 """
 
 from __future__ import annotations
@@ -19,8 +26,9 @@ from typing import Any
 
 from ...engine_adapter import xa_view_angle_deg
 from ...problems import Problem
-from .grouping import XaView, plan_study
+from .grouping import PlannedJob, StudyPlan, XaView, plan_study
 from .inbox import Inbox, StoredInstance
+from .query import DimsePacsError, latest_volume, retrieve
 
 log = logging.getLogger("dsareg.dimse")
 
@@ -43,6 +51,7 @@ class StudyDispatcher:
     """A thread: stable studies → planned jobs → ``intake.submit`` on ``loop`` (the API's event loop, or its own)."""
 
     HOUSEKEEPING_SECONDS = 5.0
+    HEADER_CACHE_STUDIES = 32
 
     def __init__(self, settings: Any, blobs: Any, inbox: Inbox, intake: Any, loop: asyncio.AbstractEventLoop,
                  tick_seconds: float = 0.25, housekeeping=None):
@@ -54,6 +63,7 @@ class StudyDispatcher:
         self._wake = threading.Event()
         self._retry_at: dict[str, float] = {}
         self._early: set[str] = set()
+        self._header_cache: dict[str, dict[tuple[str, str], Any]] = {}
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="dimse-dispatcher", daemon=True)
         self.dispatched: list[dict[str, Any]] = []  # recent outcomes, for logs and tests
@@ -67,16 +77,19 @@ class StudyDispatcher:
         self._thread.join(10)
 
     def wake(self, studies: Any = None) -> None:
-        """An association was released with instances of ``studies``: parse their planned jobs early."""
+        """An association was released with instances of ``studies``: parse their planned jobs early; a study
+        waiting to ask its query peer again (no volume found) is looked at again as soon as it is stable."""
         with self._lock:
             self._early.update(studies or ())
+            for study in studies or ():
+                self._retry_at.pop(study, None)
         self._wake.set()
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            try:
-                self.dispatch_once()
+            try:  # parse first: a study that became stable during the parse is then submitted at once
                 self._prevalidate_released()
+                self.dispatch_once()
                 if time.monotonic() - self._last_housekeeping > self.HOUSEKEEPING_SECONDS:
                     self._last_housekeeping = time.monotonic()
                     self.housekeeping()
@@ -91,30 +104,50 @@ class StudyDispatcher:
             studies, self._early = self._early, set()
         for study in studies:
             items = self.inbox.study(study)
-            plan = plan_study([_header(self.blobs, item) for item in items], angle_between)
+            plan = plan_study(list(self._headers(study, items).values()), angle_between)
             by_uid = {item.sop_instance_uid: item for item in items}
             for job in plan.jobs:
                 future = asyncio.run_coroutine_threadsafe(self.intake.prevalidate(study, job, by_uid), self.loop)
-                future.result(timeout=self.settings.validation_timeout_seconds + 30)
+                future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
+
+    def _headers(self, study: str, items: list[StoredInstance]) -> dict[str, Any]:
+        """``{SOP Instance UID: header}`` of the study's instances, kept from the early parse to the dispatch
+        (read once per stored file)."""
+        cached = self._header_cache.setdefault(study, {})
+        while len(self._header_cache) > self.HEADER_CACHE_STUDIES:
+            self._header_cache.pop(next(iter(self._header_cache)))
+        out = {}
+        for item in items:
+            key = (item.sop_instance_uid, item.sha256)
+            if key not in cached:
+                cached[key] = _header(self.blobs, item)
+            out[item.sop_instance_uid] = cached[key]
+        return out
 
     def dispatch_once(self) -> int:
         now = time.time()
-        studies = [s for s in self.inbox.stable_studies(self.settings.dicom_stable_seconds, now)
+        studies = [s for s in self.inbox.stable_studies(self.settings.dimse.dicom_stable_seconds, now)
                    if self._retry_at.get(s, 0.0) <= now]
         for study in studies:
             self._dispatch(study)
         return len(studies)
 
     def _dispatch(self, study: str) -> None:
+        started = time.perf_counter()
         items = self.inbox.study(study)
-        headers = {item.sop_instance_uid: _header(self.blobs, item) for item in items}
+        headers = self._headers(study, items)
+        self._header_cache.pop(study, None)
         plan = plan_study(list(headers.values()), angle_between)
+        planned = time.perf_counter()
         by_uid = {item.sop_instance_uid: item for item in items}
         outcome: dict[str, Any] = {"study_uid": study, "jobs": [], "notes": plan.notes}
+        if (plan.unmodelled and self.settings.dimse.dicom_query_peer
+                and not self._patient_volume(study, plan, headers, by_uid, outcome)):
+            return  # no volume for the pairs yet (logged; asked again later)
         for job in plan.jobs:
             future = asyncio.run_coroutine_threadsafe(self.intake.submit(study, job, by_uid), self.loop)
             try:
-                job_id, created = future.result(timeout=self.settings.validation_timeout_seconds + 30)
+                job_id, created = future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
             except Problem as exc:
                 if exc.status in TRANSIENT_STATUS:
                     self._retry_at[study] = time.time() + 5.0
@@ -125,10 +158,53 @@ class StudyDispatcher:
                 outcome["jobs"].append({"refused": exc.status, "detail": exc.detail, "instances": job.instances})
                 continue
             outcome["jobs"].append({"job_id": job_id, "created": created, "pairing": job.rule})
-            log.info("job %s: %s from a DICOM study (%s)", job_id, "queued" if created else "already queued", job.rule)
+            lag = time.time() - max(item.received_at for item in items)
+            log.info("job %s: %s from a DICOM study (%s), %.2f s after its last instance (planning %.2f s, "
+                     "submission %.2f s)", job_id, "queued" if created else "already queued", job.rule, lag,
+                     planned - started, time.perf_counter() - planned)
         for note in plan.notes:
             log.info("study: %s", note)
         self._retry_at.pop(study, None)
         self.inbox.mark_dispatched(study, [item.sop_instance_uid for item in items])
+        self._remember(outcome)
+
+    def _patient_volume(self, study: str, plan: StudyPlan, headers: dict[str, Any], by_uid: dict[str, StoredInstance],
+                        outcome: dict[str, Any]) -> bool:
+        """Fill ``plan.jobs`` with the patient's latest volume from the query peer; False: none (retried later)."""
+        peer = self.settings.dimse.dicom_query_peer
+        patient = str(getattr(headers[plan.unmodelled[0][0]], "PatientID", "") or "")
+        try:
+            if not patient:
+                raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "the XA images have no Patient ID")
+            found = latest_volume(self.settings, peer, patient, exclude_study=study)
+            if found is None:
+                raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "no CT / MR / 3D-RA series of the "
+                                     "patient (the study waits for a volume)")
+            volume = retrieve(self.settings, self.inbox, peer, "SERIES", {
+                "StudyInstanceUID": found.study_uid, "SeriesInstanceUID": found.series_uid}, "C-MOVE volume")
+        except DimsePacsError as exc:
+            self._retry_at[study] = time.time() + self.settings.dimse.dicom_query_retry_seconds
+            log.warning("study: %s; asking again in %g s", exc, self.settings.dimse.dicom_query_retry_seconds)
+            outcome["error"] = {"type": "pacs-error", "peer": exc.server, "step": exc.step,
+                                "dimse_status": exc.status, "detail": str(exc)}
+            self._remember(outcome)
+            return False
+        ordered = sorted(volume, key=lambda item: _instance_number(self.blobs, item))
+        by_uid.update({item.sop_instance_uid: item for item in ordered})
+        origin = {"peer": peer, "study_uid": found.study_uid, "modality": found.modality, "study_date": found.study_date}
+        plan.jobs = [PlannedJob(ap, lat, [item.sop_instance_uid for item in ordered], f"{rule}; patient's latest volume",
+                                volume_origin=origin) for ap, lat, rule in plan.unmodelled]
+        log.info("study: the patient's latest %s volume (%d instances) retrieved from %s", found.modality,
+                 len(ordered), peer)
+        return True
+
+    def _remember(self, outcome: dict[str, Any]) -> None:
         self.dispatched.append(outcome)
         del self.dispatched[:-100]
+
+
+def _instance_number(blobs: Any, item: StoredInstance) -> float:
+    try:
+        return float(_header(blobs, item).InstanceNumber)
+    except Exception:  # noqa: BLE001 - no or odd Instance Number: last
+        return float("inf")

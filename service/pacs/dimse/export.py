@@ -37,16 +37,16 @@ def _store_once(settings: Any, peer: Any, datasets: list) -> list[str]:
     """One association to ``peer`` storing ``datasets``; the SOP Instance UIDs stored."""
     from pynetdicom import AE
 
-    ae = AE(ae_title=settings.dicom_ae_title)
+    ae = AE(ae_title=settings.dimse.dicom_ae_title)
     for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
-        setattr(ae, timeout, settings.dicom_timeout_seconds)
+        setattr(ae, timeout, settings.dimse.dicom_timeout_seconds)
     for sop_class in sorted({str(ds.SOPClassUID) for ds in datasets}):
         ae.add_requested_context(sop_class, "1.2.840.10008.1.2.1")
     assoc = ae.associate(peer.host, peer.port, ae_title=peer.ae_title)
     if not assoc.is_established:
         if assoc.is_rejected:
             raise ExportError("associate", f"association rejected by {peer.ae_title} (does it know the calling AE "
-                                           f"{settings.dicom_ae_title}?)")
+                                           f"{settings.dimse.dicom_ae_title}?)")
         raise ExportError("associate", f"no association with {peer.host}:{peer.port} (connection refused, timed out "
                                        "or aborted: is the peer up?)")
     stored = []
@@ -76,7 +76,7 @@ def export_to(settings: Any, title: str, files: list[Path]) -> dict[str, Any]:
             "detail": "not one of DSAREG_DICOM_PEERS"}}
     datasets = [pydicom.dcmread(io.BytesIO(path.read_bytes())) for path in files]
     attempts, error = 0, None
-    while attempts <= settings.dicom_export_retries:
+    while attempts <= settings.dimse.dicom_export_retries:
         attempts += 1
         try:
             uids = _store_once(settings, peer, datasets)
@@ -86,8 +86,8 @@ def export_to(settings: Any, title: str, files: list[Path]) -> dict[str, Any]:
             error = exc
         except Exception as exc:  # noqa: BLE001 - a network failure of any kind is a failed attempt
             error = ExportError("associate", f"{type(exc).__name__}: {str(exc)[:160]}")
-        if attempts <= settings.dicom_export_retries:
-            time.sleep(settings.dicom_export_backoff_seconds * 2 ** (attempts - 1))
+        if attempts <= settings.dimse.dicom_export_retries:
+            time.sleep(settings.dimse.dicom_export_backoff_seconds * 2 ** (attempts - 1))
     log.warning("export to %s failed after %d attempts: %s %s", title, attempts, error.step, error.detail)
     return {"peer": title, "host": peer.host, "port": peer.port, "status": "failed", "attempts": attempts,
             "seconds": round(time.perf_counter() - started, 3),

@@ -14,7 +14,8 @@ Pairs, first rule that applies wins for an instance:
 In each pair the AP view is the one whose primary angle is nearest 0°. The model is the
 volume series of the study (CT, MR, enhanced CT/MR, X-Ray 3D Angiographic) with the most
 instances (a multi-frame series counts its frames). No volume: no job yet (the study is
-kept; a volume sent later makes the job).
+kept; a volume sent later makes the job), and the pairs are listed in ``StudyPlan.unmodelled``:
+the dispatcher may fetch the patient's latest volume from ``dicom_query_peer`` (:mod:`.query`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ class PlannedJob:
     lat: str
     volume: list[str]
     rule: str
+    volume_origin: dict | None = None  # where a volume not in the study came from (C-MOVE)
 
     @property
     def instances(self) -> list[str]:
@@ -61,6 +63,7 @@ class PlannedJob:
 class StudyPlan:
     jobs: list[PlannedJob] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    unmodelled: list[tuple[str, str, str]] = field(default_factory=list)  # (AP, LAT, rule) pairs without a volume
 
 
 def _first(ds: Any, keyword: str) -> Any:
@@ -206,6 +209,7 @@ def plan_study(headers: list[Any], angle_between) -> StudyPlan:
                           f"≥ {MIN_PAIR_ANGLE_DEG:g}° within {MAX_PAIR_SECONDS:g} s)")
     if not volume:
         plan.notes.append("no CT / MR / 3D-RA volume series in the study: waiting for one")
+        plan.unmodelled = [(ap.sop_instance_uid, lat.sop_instance_uid, rule) for ap, lat, rule in pairs]
         return plan
     uids = [str(ds.SOPInstanceUID) for ds in volume]
     plan.jobs = [PlannedJob(ap.sop_instance_uid, lat.sop_instance_uid, uids, rule) for ap, lat, rule in pairs]

@@ -12,7 +12,10 @@ Rows go through three states:
   the association fail and will send again;
 * ``committed``: the association was released normally; the study waits for
   ``dicom_stable_seconds`` without a new instance;
-* ``dispatched``: the study's jobs were created (``job_ids`` in :meth:`Inbox.mark_dispatched`).
+* ``dispatched``: the study's jobs were created (``job_ids`` in :meth:`Inbox.mark_dispatched`);
+* ``retrieved``: sent by a peer because dsareg asked for it (a C-MOVE whose Move Originator is
+  our AE title: a volume of the patient, or the inputs of a pull by reference); never grouped
+  into jobs of their own, read by :meth:`Inbox.series` for the job that asked.
 
 Restarts: a listener that starts finds the ``received`` rows of associations that died with
 the previous process and discards them (:meth:`discard_stale`); committed studies are grouped
@@ -40,7 +43,7 @@ instances = sa.Table(
     sa.Column("size", sa.BigInteger, nullable=False),
     sa.Column("association", sa.String(64), nullable=False, index=True),
     sa.Column("calling_ae", sa.String(16), nullable=False),
-    sa.Column("state", sa.String(16), nullable=False),  # received | committed | dispatched
+    sa.Column("state", sa.String(16), nullable=False),  # received | committed | dispatched | retrieved
     sa.Column("received_at", sa.Float, nullable=False),
     sa.Index("ix_dimse_state_study", "state", "study_uid"),
 )
@@ -86,13 +89,24 @@ class Inbox:
             conn.execute(instances.delete().where(instances.c.sop_instance_uid == item.sop_instance_uid))
             conn.execute(instances.insert().values(**values))
 
-    def commit_association(self, association: str) -> int:
-        """The association was released: its instances join their studies."""
+    def commit_association(self, association: str, state: str = "committed") -> int:
+        """The association was released: its instances join their studies (``committed``), or, for the
+        C-STOREs of a C-MOVE dsareg asked for, become ``retrieved``."""
         with self.writer.begin() as conn:
             done = conn.execute(instances.update().where(instances.c.association == association,
                                                          instances.c.state == "received")
-                                .values(state="committed", received_at=time.time()))
+                                .values(state=state, received_at=time.time()))
         return done.rowcount
+
+    def series(self, series_uid: str, sop_instance_uid: str | None = None) -> list[StoredInstance]:
+        """The ``retrieved`` instances of a series (or one of them), oldest first."""
+        query = sa.select(instances).where(instances.c.series_uid == series_uid, instances.c.state == "retrieved")
+        if sop_instance_uid:
+            query = query.where(instances.c.sop_instance_uid == sop_instance_uid)
+        with self.engine.connect() as conn:
+            rows = conn.execute(query.order_by(instances.c.received_at)).mappings().all()
+        fields = StoredInstance.__dataclass_fields__
+        return [StoredInstance(**{k: row[k] for k in fields}) for row in rows]
 
     def discard_association(self, association: str) -> list[str]:
         """The association was aborted: drop its instances; the blobs no other row uses."""

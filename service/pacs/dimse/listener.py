@@ -29,7 +29,7 @@ class DicomListener:
     def __init__(self, settings: Any, store: Any, blobs: Any, intake: Any, loop: asyncio.AbstractEventLoop):
         self.settings, self.blobs = settings, blobs
         self.inbox = Inbox(store.engine, getattr(store, "writer", None))
-        tick = min(0.25, settings.dicom_stable_seconds / 4)
+        tick = min(0.25, settings.dimse.dicom_stable_seconds / 4)
         self.dispatcher = StudyDispatcher(settings, blobs, self.inbox, intake, loop, tick_seconds=tick,
                                           housekeeping=lambda: self.scp.sweep())
         self.scp = StoreScp(settings, self.inbox, blobs, on_commit=self.dispatcher.wake)
@@ -42,8 +42,9 @@ class DicomListener:
             log.warning("discarded %d instance file(s) of associations an earlier listener left open", len(orphans))
         self.dispatcher.start()
         self.server = start_server(self.settings, self.scp)
-        log.info("DICOM node %s listening on %s:%d (%d peers)", self.settings.dicom_ae_title, self.settings.dicom_host,
-                 self.port, len(self.settings.dicom_peers))
+        dimse = self.settings.dimse
+        log.info("DICOM node %s listening on %s:%d (%d peers)", dimse.dicom_ae_title, dimse.dicom_host,
+                 self.port, len(dimse.dicom_peers))
 
     @property
     def port(self) -> int:

@@ -2,8 +2,9 @@
 
 The alternative to a DICOMweb reference for a PACS that only speaks DIMSE. The request names a
 peer by AE title (one of ``dicom_peers``: nothing else is reachable); the worker retrieves the
-AP and LAT instances and the volume series with **C-GET** (Study Root, the instances come back
-on the same association, so the peer needs no route back to dsareg) and, with
+AP and LAT instances and the volume series with **C-MOVE** (``"retrieve": "move"``, the default:
+the peer sends them to dsareg's own DICOM node, :mod:`.query`) or **C-GET** (``"get"``: Study Root,
+the instances come back on the same association, so the peer needs no route back to dsareg) and, with
 ``store_results``, stores the REG and overlays back into the peer by C-STORE
 (:mod:`.export`, bounded retries; a failed export is listed in the result, never fails the job).
 A retrieve that fails fails the job with ``pacs-error`` naming the peer, the step and the
@@ -14,13 +15,15 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine, fetched_case_files
-from ..dicomweb import PacsError, StudyReference
+from ..dicomweb import StudyReference
+from .query import DimsePacsError, retrieve, scu_ae
 from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
 
 ROLE = "dimse-reference"
@@ -31,6 +34,10 @@ PENDING, SUCCESS = {0xFF00, 0xFF01}, 0x0000
 class DimseSource(StudyReference):
     peer: str = Field(description="AE title of the PACS; must be one of the server's DSAREG_DICOM_PEERS.",
                       examples=["ORTHANC"])
+    retrieve: Literal["move", "get"] = Field(
+        "move", description="C-MOVE (default; the PACS sends the instances to dsareg's DICOM node, so it must know "
+                            "dsareg's AE title as a modality) or C-GET (the instances come back on the same "
+                            "association; no route back needed, fewer PACS allow it).")
 
 
 class DimseSourceField(BaseModel):
@@ -39,7 +46,7 @@ class DimseSourceField(BaseModel):
 
 
 class DimseRegistrationRequest(BaseModel):
-    """``POST /v1/registrations`` (``application/json``) with inputs retrieved over DIMSE (C-GET)."""
+    """``POST /v1/registrations`` (``application/json``) with inputs retrieved over DIMSE (C-MOVE or C-GET)."""
 
     model_config = ConfigDict(extra="forbid")
     source: DimseSourceField
@@ -50,22 +57,10 @@ class DimseRegistrationRequest(BaseModel):
                                            "must start with one of the server's DSAREG_CALLBACK_ALLOWED prefixes.")
 
 
-class DimsePacsError(PacsError):
-    """A DIMSE retrieve failed: which peer, which step, which DIMSE status."""
-
-    def __init__(self, peer: str, step: str, detail: str, status: int | None = None):
-        self.server, self.step, self.detail, self.status, self.attempts = peer, step, detail, status, 1
-        where = f" (DIMSE status 0x{status:04X})" if status is not None else ""
-        Exception.__init__(self, f"PACS {peer}: {step} failed{where}: {detail}")
-
-    def problem_extra(self) -> dict[str, Any]:
-        return {"peer": self.server, "step": self.step, "dimse_status": self.status}
-
-
 def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str) -> list[bytes]:
     """The instances a C-GET at ``level`` with ``keys`` returns from peer ``title`` (Part 10 bytes)."""
     from pydicom.dataset import Dataset
-    from pynetdicom import AE, build_role, evt
+    from pynetdicom import build_role, evt
 
     peer = configured_peers(settings).get(title)
     if peer is None:
@@ -76,9 +71,7 @@ def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str
         received.append(bytes(event.encoded_dataset(include_meta=True)))
         return SUCCESS
 
-    ae = AE(ae_title=settings.dicom_ae_title)
-    for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
-        setattr(ae, timeout, settings.dicom_timeout_seconds)
+    ae = scu_ae(settings)
     ae.add_requested_context(GET_MODEL)
     syntaxes = decodable_transfer_syntaxes()
     for sop_class in STORAGE_CLASSES:
@@ -122,31 +115,46 @@ def _first_by_number(parts: list[bytes]) -> bytes:
 
 
 class DimsePullJob:
-    """Fetch a job's inputs by C-GET and C-STORE its DICOM results back (the worker's PACS-job interface)."""
+    """Fetch a job's inputs by C-MOVE or C-GET and C-STORE its DICOM results back (the worker's PACS-job interface)."""
 
-    def __init__(self, reference: DimseRegistrationRequest, settings: Any):
-        self.reference, self.settings = reference, settings
+    def __init__(self, reference: DimseRegistrationRequest, settings: Any, read: Any = None):
+        self.reference, self.settings, self.read = reference, settings, read
         self.source_info: dict[str, Any] = {}
+
+    def _retriever(self, stack: ExitStack):
+        """``(level, keys, step) -> [Part 10 bytes]`` by the source's ``retrieve`` (C-MOVE or C-GET)."""
+        source, settings = self.reference.source.dimse, self.settings
+        if source.retrieve == "get":
+            return lambda level, keys, step: c_get(settings, source.peer, level, keys, step)
+        import sqlalchemy as sa
+
+        from .inbox import Inbox
+
+        database = sa.create_engine(settings.effective_database_url)  # the job database: the node's inbox
+        stack.callback(database.dispose)
+        inbox = Inbox(database)
+        return lambda level, keys, step: [self.read(item.sha256) for item in
+                                          retrieve(settings, inbox, source.peer, level, keys, step)]
 
     def fetch(self) -> Any:
         source = self.reference.source.dimse
-        started = time.perf_counter()
+        started, how = time.perf_counter(), "C-MOVE" if source.retrieve == "move" else "C-GET"
         warnings, images = [], {}
-        for name in ("ap", "lat"):
-            ref = getattr(source, name)
-            keys = {"StudyInstanceUID": source.study_uid, "SeriesInstanceUID": ref.series_uid}
-            if ref.sop_instance_uid:
-                keys["SOPInstanceUID"] = ref.sop_instance_uid
-            parts = c_get(self.settings, source.peer, "IMAGE" if ref.sop_instance_uid else "SERIES", keys,
-                          f"retrieve {name} (C-GET)")
-            if len(parts) > 1:
-                warnings.append(f"{name}: series has {len(parts)} instances; the first by Instance Number was used "
-                                "(give sop_instance_uid to choose)")
-            images[name] = _first_by_number(parts)
-        volume = c_get(self.settings, source.peer, "SERIES",
-                       {"StudyInstanceUID": source.volume.study_uid or source.study_uid,
-                        "SeriesInstanceUID": source.volume.series_uid}, "retrieve volume (C-GET)")
-        self.source_info = {"dimse": {"peer": source.peer, "study_uid": source.study_uid,
+        with ExitStack() as stack:
+            fetch = self._retriever(stack)
+            for name in ("ap", "lat"):
+                ref = getattr(source, name)
+                keys = {"StudyInstanceUID": source.study_uid, "SeriesInstanceUID": ref.series_uid}
+                if ref.sop_instance_uid:
+                    keys["SOPInstanceUID"] = ref.sop_instance_uid
+                parts = fetch("IMAGE" if ref.sop_instance_uid else "SERIES", keys, f"retrieve {name} ({how})")
+                if len(parts) > 1:
+                    warnings.append(f"{name}: series has {len(parts)} instances; the first by Instance Number was "
+                                    "used (give sop_instance_uid to choose)")
+                images[name] = _first_by_number(parts)
+            volume = fetch("SERIES", {"StudyInstanceUID": source.volume.study_uid or source.study_uid,
+                                      "SeriesInstanceUID": source.volume.series_uid}, f"retrieve volume ({how})")
+        self.source_info = {"dimse": {"peer": source.peer, "study_uid": source.study_uid, "retrieve": source.retrieve,
                                       "fetch_seconds": round(time.perf_counter() - started, 3),
                                       "instances": 2 + len(volume)}}
         return fetched_case_files(images["ap"], images["lat"], volume, source.frames, warnings)
@@ -165,4 +173,6 @@ class DimsePullJob:
 
 def pull_job(job: Any, read: Any, settings: Any) -> DimsePullJob | None:
     refs = [item for item in job.inputs if item.role == ROLE]
-    return DimsePullJob(DimseRegistrationRequest.model_validate(json.loads(read(refs[0].sha256))), settings) if refs else None
+    if not refs:
+        return None
+    return DimsePullJob(DimseRegistrationRequest.model_validate(json.loads(read(refs[0].sha256))), settings, read)

@@ -12,7 +12,8 @@ Association policy (checked on A-ASSOCIATE-RQ, in ``EVT_REQUESTED``, answered A-
 C-STORE: the instance is stored as received (its transfer syntax kept), fsynced, indexed
 (:mod:`service.pacs.dimse.inbox`), then answered 0000. An A-RELEASE-RQ commits the association's
 instances before the release is confirmed; an aborted association (A-ABORT, a dropped
-connection) discards them.
+connection) discards them. The C-STOREs of a C-MOVE dsareg asked for (Move Originator AE Title =
+ours) are committed as ``retrieved``: the job that asked reads them; they make no job of their own.
 """
 
 from __future__ import annotations
@@ -93,8 +94,8 @@ class Peer:
 
 
 def configured_peers(settings: Any) -> dict[str, Peer]:
-    """``{AE title: Peer}`` of ``settings.dicom_peers``."""
-    return {p["ae_title"]: Peer(p["ae_title"], p["host"], int(p["port"])) for p in settings.dicom_peers}
+    """``{AE title: Peer}`` of ``settings.dimse.dicom_peers``."""
+    return {p["ae_title"]: Peer(p["ae_title"], p["host"], int(p["port"])) for p in settings.dimse.dicom_peers}
 
 
 def free_bytes(folder) -> int:
@@ -113,6 +114,7 @@ class StoreScp:
         self._ids: dict[int, str] = {}
         self._studies: dict[str, set[str]] = {}
         self._closed: dict[int, float] = {}
+        self._retrievals: set[str] = set()  # associations carrying the C-STOREs of our own C-MOVE
         self._lock = threading.Lock()
         self.stats = {"associations": 0, "rejected": 0, "stored": 0, "aborted": 0, "refused": 0}
 
@@ -123,18 +125,22 @@ class StoreScp:
         calling = str(request.calling_ae_title).strip()
         called = str(request.called_ae_title).strip()
         host = str(assoc.requestor.address)
-        if called != self.settings.dicom_ae_title:
+        if called != self.settings.dimse.dicom_ae_title:
             log.warning("association from %s@%s rejected: called AE title %r is not ours", calling, host, called)
             return REJECT_CALLED
         peer = self.peers.get(calling)
         if peer is None or host not in (peer.address, peer.host):
             log.warning("association from %s@%s rejected: not one of DSAREG_DICOM_PEERS", calling, host)
             return REJECT_CALLING
-        if self.settings.min_free_bytes and free_bytes(self.settings.data_dir) < self.settings.min_free_bytes:
+        if self._disk_low():
             log.error("association from %s rejected: less than %d bytes free in the data folder (DSAREG_MIN_FREE_BYTES)",
-                      calling, self.settings.min_free_bytes)
+                      calling, self.settings.storage.min_free_bytes)
             return REJECT_FULL
         return None
+
+    def _disk_low(self) -> bool:
+        floor = self.settings.storage.min_free_bytes
+        return bool(floor) and free_bytes(self.settings.storage.data_dir) < floor
 
     def on_requested(self, event: Any) -> None:
         reason = self.policy(event.assoc)
@@ -154,7 +160,7 @@ class StoreScp:
     # ---- C-STORE ----------------------------------------------------------------------------------
     def on_store(self, event: Any) -> int:
         """Store, fsync, index, then answer (0000; A700 out of space or storage failed; C000 unreadable)."""
-        if self.settings.min_free_bytes and free_bytes(self.settings.data_dir) < self.settings.min_free_bytes:
+        if self._disk_low():
             self.stats["refused"] += 1
             return OUT_OF_RESOURCES
         association = self.association_id(event.assoc)
@@ -176,8 +182,12 @@ class StoreScp:
         except Exception:
             log.exception("C-STORE of an instance could not be stored")
             return OUT_OF_RESOURCES
+        moved_for = str(getattr(event.request, "MoveOriginatorApplicationEntityTitle", None) or "").strip()
         with self._lock:
-            self._studies.setdefault(association, set()).add(study)
+            if moved_for == self.settings.dimse.dicom_ae_title:
+                self._retrievals.add(association)
+            else:
+                self._studies.setdefault(association, set()).add(study)
         self.stats["stored"] += 1
         return SUCCESS
 
@@ -199,13 +209,15 @@ class StoreScp:
             association = self._ids.get(id(event.assoc))
         if association is None:
             return  # nothing stored (an echo)
+        with self._lock:
+            state = "retrieved" if association in self._retrievals else "committed"
         try:
-            count = self.inbox.commit_association(association)
+            count = self.inbox.commit_association(association, state)
         except Exception:
             log.exception("association %s: its instances could not be committed", association)
             return
         if count:
-            log.info("association %s released: %d instance(s) committed", association, count)
+            log.info("association %s released: %d instance(s) %s", association, count, state)
 
     def on_released(self, event: Any) -> None:
         with self._lock:
@@ -230,6 +242,7 @@ class StoreScp:
                 self._closed[id(event.assoc)] = time.monotonic()
 
     def _forget(self, assoc: Any) -> None:
+        self._retrievals.discard(self._ids.get(id(assoc), ""))
         self._ids.pop(id(assoc), None)
         self._closed.pop(id(assoc), None)
 
@@ -248,6 +261,7 @@ class StoreScp:
             dead = [key for key, closed in self._closed.items() if now - closed > grace_seconds]
             for key in dead:
                 self._closed.pop(key, None)
+                self._retrievals.discard(self._ids.get(key, ""))
                 self._studies.pop(self._ids.pop(key, ""), None)
             live = set(self._ids.values())
         orphans = self.inbox.discard_stale(live, older_than_seconds=grace_seconds)
@@ -260,10 +274,10 @@ def make_ae(settings: Any):
     """The pynetdicom AE of the node: Verification + the storage SOP classes, SCP role."""
     from pynetdicom import AE
 
-    ae = AE(ae_title=settings.dicom_ae_title)
+    ae = AE(ae_title=settings.dimse.dicom_ae_title)
     ae.maximum_pdu_size = 1 << 20  # 1 MiB P-DATA PDUs (0 = "unlimited" trips dcmtk on encapsulated pixel data)
     for timeout in ("acse_timeout", "dimse_timeout", "network_timeout"):
-        setattr(ae, timeout, settings.dicom_timeout_seconds)
+        setattr(ae, timeout, settings.dimse.dicom_timeout_seconds)
     syntaxes = decodable_transfer_syntaxes()
     ae.add_supported_context(VERIFICATION)
     for sop_class in STORAGE_CLASSES:
@@ -281,4 +295,4 @@ def start_server(settings: Any, scp: StoreScp):
     handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_C_STORE, scp.on_store), (evt.EVT_ACSE_RECV, scp.on_acse),
                 (evt.EVT_RELEASED, scp.on_released), (evt.EVT_ABORTED, scp.on_aborted),
                 (evt.EVT_CONN_CLOSE, scp.on_closed)]
-    return ae.start_server((settings.dicom_host, settings.dicom_port), block=False, evt_handlers=handlers)
+    return ae.start_server((settings.dimse.dicom_host, settings.dimse.dicom_port), block=False, evt_handlers=handlers)

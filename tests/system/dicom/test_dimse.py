@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import sqlite3
 import time
 
 import httpx
@@ -16,12 +17,13 @@ import numpy as np
 import pydicom
 import pytest
 
-from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
+from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, new_uid, read_registration_matrix
 from tests.support.dimse_kit import StoreScp, echoscu, jobs_of_study, need_dcmtk, renamed_study, scu_send, storescu
 from tests.support.servers import OrthancServer, free_port
-from tests.support.service_testkit import Server, wait_for
+from tests.support.service_testkit import Server, forget_generated_client, generated_client, wait_for
 
 STABLE_S = 1.0
+QUICK = {"starts": 1, "max_iterations": 3, "coarse_to_fine": False, "refine": False}  # a job that is over fast
 
 
 def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -49,14 +51,42 @@ def node(tmp_path_factory):
     env = {"DSAREG_DICOM_PORT": str(dicom_port), "DSAREG_DICOM_PEERS": json.dumps(peers),
            "DSAREG_DICOM_STABLE_SECONDS": str(STABLE_S), "DSAREG_DICOM_JOB_OPTIONS": json.dumps({"starts": 1}),
            "DSAREG_DICOM_EXPORT_RETRIES": "2", "DSAREG_DICOM_EXPORT_BACKOFF_SECONDS": "0.2",
-           "DSAREG_DICOM_TIMEOUT_SECONDS": "5"}
-    server = Server(root / "data", workers=1, env=env).start()
+           "DSAREG_DICOM_TIMEOUT_SECONDS": "5", "DSAREG_DICOM_QUERY_PEER": "ORTHANC",
+           "DSAREG_DICOM_QUERY_RETRY_SECONDS": "600"}
+    # the worker warms up (tens of seconds on a loaded machine) while the first tests run: jobs wait in the queue;
+    # submissions need only the input validators
+    server = Server(root / "data", workers=1, env=env).start(wait_ready=False)
+    wait_validators(server, timeout=300)
     server.dicom_port, server.orthanc, server.export, server.root = dicom_port, orthanc, export, root
     export.start()
     yield server
     server.stop()
     export.stop()
     orthanc.stop()
+
+
+def wait_validators(server, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            checks = httpx.get(server.url + "/readyz", timeout=5).json()["checks"]
+            if checks.get("validator_ready") and checks.get("validator_spare_ready"):
+                return
+        except (httpx.HTTPError, ValueError, KeyError):
+            pass
+        time.sleep(0.2)
+    raise AssertionError(f"the input validators were not ready after {timeout} s:\n{server.logs()[-2000:]}")
+
+
+@pytest.fixture
+def orthanc(node):
+    """The module's Orthanc (the node's C-STORE peer, query / retrieve peer and export destination), started once."""
+    if not node.orthanc.process or node.orthanc.process.poll() is not None:
+        try:
+            node.orthanc.start()
+        except Exception as exc:  # noqa: BLE001
+            pytest.skip(f"cannot start Orthanc ({str(exc)[:200]})")
+    return node.orthanc
 
 
 def wait_jobs(client, study_uid: str, count: int = 1, timeout: float = 60.0) -> list[dict]:
@@ -67,6 +97,15 @@ def wait_jobs(client, study_uid: str, count: int = 1, timeout: float = 60.0) -> 
             return found
         time.sleep(0.1)
     raise AssertionError(f"{count} job(s) of study {study_uid} not queued after {timeout} s")
+
+
+def wait_log(server, text: str, timeout: float, count: int = 1) -> float:
+    """Seconds until ``text`` is ``count`` times in the server's log (AssertionError after ``timeout``)."""
+    started = time.monotonic()
+    while server.logs().count(text) < count:
+        assert time.monotonic() - started < timeout, f"{text!r} not logged within {timeout} s"
+        time.sleep(0.1)
+    return time.monotonic() - started
 
 
 def test_echo_and_the_association_policy(node):
@@ -101,8 +140,9 @@ def test_storescu_study_becomes_one_job_and_the_results_reach_storescp(node, stu
         exported = done["result"]["dicom"]["exported"]
         assert [e["status"] for e in exported] == ["stored"], exported
         # sending the same study again makes no second job (idempotent per study + instances)
+        again = node.logs().count("already queued from a DICOM study")
         assert storescu(node.dicom_port, paths).returncode == 0
-        time.sleep(STABLE_S + 1.5)
+        wait_log(node, "already queued from a DICOM study", timeout=STABLE_S + 30, count=again + 1)
         assert len(jobs_of_study(client, study_uid)) == 1
     received = {pydicom.dcmread(p).SOPInstanceUID: p for p in node.export.files()}
     assert set(exported[0]["sop_instance_uids"]) <= set(received)
@@ -114,12 +154,7 @@ def test_storescu_study_becomes_one_job_and_the_results_reach_storescp(node, stu
     assert_pose(reg, frame, study.mesh_to_world)
 
 
-def test_orthanc_sends_a_study_and_gets_the_reg_back(node, study, tmp_path):
-    orthanc = node.orthanc
-    try:
-        orthanc.start()
-    except Exception as exc:  # noqa: BLE001
-        pytest.skip(f"cannot start Orthanc ({str(exc)[:200]})")
+def test_orthanc_sends_a_study_and_gets_the_reg_back(node, orthanc, study, tmp_path):
     study_uid, paths = renamed_study(study, tmp_path / "study")
     auth = (orthanc.user, orthanc.password)
     with httpx.Client(base_url=orthanc.url, auth=auth, timeout=60) as pacs:
@@ -154,9 +189,13 @@ def test_orthanc_sends_a_study_and_gets_the_reg_back(node, study, tmp_path):
 
 def test_aborted_association_leaves_no_job_and_no_files(node, study, tmp_path):
     study_uid, paths = renamed_study(study, tmp_path / "study")
+    before = node.logs().count("ended without release")
     statuses = scu_send(node.dicom_port, paths, "ABORTER", abort_after=len(paths) - 3)
     assert statuses and set(statuses) == {0}
-    time.sleep(STABLE_S + 2.0)
+    wait_log(node, "ended without release", timeout=15, count=before + 1)
+    # no row of the study is left in the inbox, in any state: no job can be made of it
+    with sqlite3.connect(node.data_dir / "jobs.sqlite3") as db:
+        assert db.execute("SELECT count(*) FROM dimse_instances WHERE study_uid = ?", (study_uid,)).fetchone() == (0,)
     with node.client() as client:
         assert jobs_of_study(client, study_uid) == []
     import hashlib
@@ -166,60 +205,42 @@ def test_aborted_association_leaves_no_job_and_no_files(node, study, tmp_path):
     stored = {p.name for p in blobs.glob("??/*")}
     # what the peer sent was stored as sent; none of it is left
     assert not digests & stored
-    assert "ended without release" in node.logs()
 
 
-def test_export_destination_down_fails_clearly_and_the_job_succeeds(node, study, tmp_path):
-    study_uid, paths = renamed_study(study, tmp_path / "study")
-    assert set(scu_send(node.dicom_port, paths, "DOWNPEER")) == {0}
-    with node.client() as client:
-        (job,) = wait_jobs(client, study_uid)
-        done = wait_for(client, job["id"], timeout=300)
-    assert done["status"] == "succeeded", done
-    (export,) = done["result"]["dicom"]["exported"]
-    assert export["status"] == "failed" and export["attempts"] == 3
-    error = export["error"]
-    assert error["type"].endswith("/pacs-error") and error["peer"] == "DOWNPEER" and error["step"] == "associate"
-    assert "DOWNPEER" in error["detail"] and "3 attempts" in error["detail"]
-    assert export["seconds"] < 30
-    assert done["result"]["mesh_to_world"]  # the registration itself stands
-
-
-def _pull_reference(study_uid: str, paths, peer: str) -> dict:
+def _pull_reference(study_uid: str, paths, peer: str, **more) -> dict:
     headers = [pydicom.dcmread(p, stop_before_pixels=True) for p in paths]
     ap, lat = (h for h in headers if h.Modality == "XA")
     volume = next(h for h in headers if h.Modality == "CT")
     return {"source": {"dimse": {"peer": peer, "study_uid": study_uid, "ap": {"series_uid": ap.SeriesInstanceUID},
                                  "lat": {"series_uid": lat.SeriesInstanceUID},
-                                 "volume": {"series_uid": volume.SeriesInstanceUID}}},
+                                 "volume": {"series_uid": volume.SeriesInstanceUID}, **more}},
             "options": {"starts": 1}}
 
 
-def test_pull_by_dimse_reference_from_orthanc_and_store_back(node, study, tmp_path):
-    """``source.dimse``: the worker retrieves the study from Orthanc by C-GET and C-STOREs the results back."""
-    orthanc = node.orthanc
-    if not orthanc.process or orthanc.process.poll() is not None:
-        try:
-            orthanc.start()
-        except Exception as exc:  # noqa: BLE001
-            pytest.skip(f"cannot start Orthanc ({str(exc)[:200]})")
+def test_pull_by_dimse_reference_with_c_get_from_orthanc_and_store_back(node, orthanc, study, tmp_path):
+    """``source.dimse`` with ``"retrieve": "get"``: the worker retrieves the study from Orthanc by C-GET and
+    C-STOREs the results back."""
     study_uid, paths = renamed_study(study, tmp_path / "study")
     with httpx.Client(base_url=orthanc.url, auth=(orthanc.user, orthanc.password), timeout=60) as pacs:
         for path in paths:
             assert pacs.post("/instances", content=path.read_bytes()).status_code == 200
         with node.client() as client:
-            answer = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "ORTHANC"))
+            body = _pull_reference(study_uid, paths, "ORTHANC", retrieve="get")
+            body["options"] = QUICK  # the pose is checked with C-MOVE; here the retrieve and the store-back
+            answer = client.post("/v1/registrations", json=body)
             assert answer.status_code == 202, answer.text
             done = wait_for(client, answer.json()["id"], timeout=300)
         assert done["status"] == "succeeded", done.get("error")
         dicom = done["result"]["dicom"]
         assert dicom["source"]["dimse"]["peer"] == "ORTHANC" and dicom["source"]["dimse"]["instances"] == len(paths)
+        assert dicom["source"]["dimse"]["retrieve"] == "get"
         assert dicom["exported"][0]["status"] == "stored"
         reg_uid = dicom["instances"]["reg.dcm"]["sop_instance_uid"]
         found = pacs.post("/tools/find", json={"Level": "Instance", "Query": {"SOPInstanceUID": reg_uid}}).json()
         reg = pydicom.dcmread(io.BytesIO(pacs.get(f"/instances/{found[0]}/file").content))
     print(f"\nC-GET of {len(paths)} instances: {dicom['source']['dimse']['fetch_seconds']:.2f} s")
-    assert_pose(reg, pydicom.dcmread(paths[-1]).FrameOfReferenceUID, study.mesh_to_world)
+    matrix = read_registration_matrix(reg, pydicom.dcmread(paths[-1]).FrameOfReferenceUID)
+    np.testing.assert_allclose(matrix, np.asarray(done["result"]["mesh_to_world"]), rtol=0, atol=1e-6)
 
 
 def test_pull_refusals_and_a_retrieve_source_that_is_down(node, study, tmp_path):
@@ -231,10 +252,125 @@ def test_pull_refusals_and_a_retrieve_source_that_is_down(node, study, tmp_path)
         bad["source"]["dimse"]["study_uid"] = "1.2.x"
         answer = client.post("/v1/registrations", json=bad)
         assert answer.status_code == 422 and answer.json()["field"] == "source.dimse.study_uid"
-        answer = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "DOWNPEER"))
-        assert answer.status_code == 202
-        done = wait_for(client, answer.json()["id"], timeout=120)
-    assert done["status"] == "failed"
-    error = done["error"]
-    assert error["type"].endswith("/pacs-error") and error["peer"] == "DOWNPEER" and error["step"] == "retrieve ap (C-GET)"
-    assert "DOWNPEER" in error["detail"]
+        answer = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "DOWNPEER", retrieve="ftp"))
+        assert answer.status_code == 422 and answer.json()["field"] == "source.dimse.retrieve"
+        assert '"move" | "get"' in answer.json()["accepted"]
+        moved = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "DOWNPEER"))
+        got = client.post("/v1/registrations", json=_pull_reference(study_uid, paths, "DOWNPEER", retrieve="get"))
+        assert moved.status_code == got.status_code == 202
+        done = [wait_for(client, answer.json()["id"], timeout=120) for answer in (moved, got)]
+    for job, how in zip(done, ("C-MOVE", "C-GET"), strict=True):
+        assert job["status"] == "failed"
+        error = job["error"]
+        assert error["type"].endswith("/pacs-error") and error["peer"] == "DOWNPEER"
+        assert error["step"] == f"retrieve ap ({how})" and "DOWNPEER" in error["detail"]
+
+
+def _pacs(orthanc) -> httpx.Client:
+    return httpx.Client(base_url=orthanc.url, auth=(orthanc.user, orthanc.password), timeout=60)
+
+
+def _rewritten(paths, folder, **values) -> list:
+    """Copies of ``paths`` with ``values`` set (``SeriesInstanceUID=None``: a fresh one); fresh SOP Instance UIDs."""
+    folder.mkdir(parents=True, exist_ok=True)
+    series, out = {}, []
+    for index, path in enumerate(paths):
+        ds = pydicom.dcmread(path)
+        for keyword, value in values.items():
+            if keyword == "SeriesInstanceUID" and value is None:
+                value = series.setdefault(ds.SeriesInstanceUID, new_uid())
+            setattr(ds, keyword, value)
+        ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = new_uid()
+        ds.save_as(folder / f"{index:03d}.dcm", enforce_file_format=True)
+        out.append(folder / f"{index:03d}.dcm")
+    return out
+
+
+def test_an_xa_only_study_gets_the_patients_latest_volume_and_a_down_destination_fails_clearly(node, orthanc, study,
+                                                                                               tmp_path):
+    """Only the XA pair is sent to dsareg; Orthanc holds two CT studies of the patient: the job runs with the newer.
+    The XA came from DOWNPEER, where nothing listens: the export of the results fails clearly after bounded retries
+    and the job still succeeds."""
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    patient = "TEST-" + new_uid()[-12:]  # synthetic
+    xa = _rewritten(paths[:2], tmp_path / "xa", PatientID=patient)
+    newer_uid, older_uid = new_uid(), new_uid()
+    newer = _rewritten(paths[2:], tmp_path / "newer", PatientID=patient, StudyInstanceUID=newer_uid,
+                       SeriesInstanceUID=None, StudyDate="20260301")
+    older = _rewritten(paths[2:6], tmp_path / "older", PatientID=patient, StudyInstanceUID=older_uid,
+                       SeriesInstanceUID=None, StudyDate="20190301")
+    with _pacs(orthanc) as pacs:
+        for path in [*older, *newer]:
+            assert pacs.post("/instances", content=path.read_bytes()).status_code == 200
+    assert set(scu_send(node.dicom_port, xa, "DOWNPEER")) == {0}
+    with node.client() as client:
+        (job,) = wait_jobs(client, study_uid)
+        volume = job["source"]["dimse"]["volume"]
+        assert volume["retrieved"]["peer"] == "ORTHANC" and volume["retrieved"]["study_uid"] == newer_uid
+        assert volume["series_uid"] == pydicom.dcmread(newer[0]).SeriesInstanceUID
+        assert volume["instances"] == len(newer)
+        done = wait_for(client, job["id"], timeout=300)
+        assert jobs_of_study(client, newer_uid) == []  # the retrieved volume makes no job of its own
+    assert done["status"] == "succeeded", done.get("error")
+    truth, found = study.mesh_to_world, np.asarray(done["result"]["mesh_to_world"])
+    assert rotation_deg(found, truth) < 1.0 and np.linalg.norm(found[:3, 3] - truth[:3, 3]) < 0.5
+    (export,) = done["result"]["dicom"]["exported"]  # to DOWNPEER, the calling peer: down
+    assert export["status"] == "failed" and export["attempts"] == 3
+    error = export["error"]
+    assert error["type"].endswith("/pacs-error") and error["peer"] == "DOWNPEER" and error["step"] == "associate"
+    assert "DOWNPEER" in error["detail"] and "3 attempts" in error["detail"]
+    assert export["seconds"] < 30
+
+
+def test_an_xa_only_study_without_a_volume_anywhere_is_reported_not_waited_on(node, orthanc, study, tmp_path):
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    patient = "TEST-" + new_uid()[-12:]  # nothing of this patient in Orthanc
+    xa = _rewritten(paths[:2], tmp_path / "xa", PatientID=patient)
+    assert set(scu_send(node.dicom_port, xa, "STORESCU")) == {0}
+    seconds = wait_log(node, "no CT / MR / 3D-RA series of the patient", timeout=STABLE_S + 15)
+    print(f"\nno volume for the patient reported {seconds:.2f} s after the XA were sent")
+    assert "PACS ORTHANC: C-FIND studies (patient's volume) failed" in node.logs()
+    assert patient not in node.logs()  # no patient identifier in the logs
+    with node.client() as client:
+        assert jobs_of_study(client, study_uid) == []
+
+
+def test_generated_client_pulls_by_dimse_reference_with_c_move(node, orthanc, study, tmp_path):
+    """``/openapi.json`` documents the DIMSE body: a generated client submits it; C-MOVE (the default) brings the
+    inputs to dsareg's node, the results go back to Orthanc by C-STORE."""
+    import importlib
+
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    with _pacs(orthanc) as pacs:
+        for path in paths:
+            assert pacs.post("/instances", content=path.read_bytes()).status_code == 200
+    with node.client() as client:
+        (tmp_path / "client").mkdir()
+        package = generated_client(client.get("/openapi.json").text, tmp_path / "client")
+    try:
+        submit = importlib.import_module("dsareg_client.api.registrations.submit")
+        get_job = importlib.import_module("dsareg_client.api.registrations.get_job")
+        models = importlib.import_module("dsareg_client.models")
+        body = models.DimseRegistrationRequest.from_dict(_pull_reference(study_uid, paths, "ORTHANC"))
+        assert isinstance(body.source.dimse, models.DimseSource)  # retrieve left out: C-MOVE, the default
+        api = package.Client(base_url=node.url, raise_on_unexpected_status=True)
+        accepted = submit.sync_detailed(client=api, body=body)
+        assert accepted.status_code == 202, accepted.content[:500]
+        deadline = time.monotonic() + 300
+        while (job := get_job.sync(client=api, job_id=accepted.parsed.id)).status.value in ("queued", "running"):
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        assert job.status.value == "succeeded", job.error
+    finally:
+        forget_generated_client(tmp_path / "client")
+    with node.client() as client:
+        dicom = client.get(f"/v1/registrations/{accepted.parsed.id}").json()["result"]["dicom"]
+        assert jobs_of_study(client, study_uid) == []  # the moved instances made no job of their own
+    assert dicom["source"]["dimse"]["retrieve"] == "move" and dicom["source"]["dimse"]["instances"] == len(paths)
+    assert dicom["exported"][0]["status"] == "stored"
+    with _pacs(orthanc) as pacs:
+        reg_uid = dicom["instances"]["reg.dcm"]["sop_instance_uid"]
+        found = pacs.post("/tools/find", json={"Level": "Instance", "Query": {"SOPInstanceUID": reg_uid}}).json()
+        reg = pydicom.dcmread(io.BytesIO(pacs.get(f"/instances/{found[0]}/file").content))
+    print(f"\nC-MOVE of {len(paths)} instances: {dicom['source']['dimse']['fetch_seconds']:.2f} s")
+    assert_pose(reg, pydicom.dcmread(paths[-1]).FrameOfReferenceUID, study.mesh_to_world)

@@ -20,7 +20,7 @@ from tests.support.dimse_kit import echoscu, jobs_of_study, need_dcmtk, renamed_
 from tests.support.servers import free_port
 from tests.support.service_testkit import REPO, LoggedProcess, Server
 
-STABLE_S = 2.0
+STABLE_S = 1.0
 
 
 class Listener(LoggedProcess):
@@ -45,14 +45,25 @@ class Listener(LoggedProcess):
 
 
 @pytest.fixture(scope="module")
+def study():
+    """A coarser phantom study than the shared one (1 mm slices: about half the instances): these jobs are only
+    counted, never run, so only the number of instances and the parse time matter."""
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
+
+    return make_biplane_study(image_px=128, pixel_spacing_mm=1.1, pitch_mm=1.0, depth=2)
+
+
+@pytest.fixture(scope="module")
 def topology(tmp_path_factory):
     need_dcmtk()
     root = tmp_path_factory.mktemp("listener")
     data = root / "data"
     port = free_port()
     env = {"DSAREG_DICOM_PEERS": json.dumps([{"ae_title": "STORESCU", "host": "127.0.0.1", "port": free_port()},
-                                             {"ae_title": "SCU", "host": "127.0.0.1", "port": free_port()}]),
-           "DSAREG_DICOM_STABLE_SECONDS": str(STABLE_S), "DSAREG_DICOM_JOB_OPTIONS": json.dumps({"starts": 1})}
+                                             {"ae_title": "SCU", "host": "127.0.0.1", "port": free_port()},
+                                             {"ae_title": "DOWNQUERY", "host": "127.0.0.1", "port": free_port()}]),
+           "DSAREG_DICOM_STABLE_SECONDS": str(STABLE_S), "DSAREG_DICOM_JOB_OPTIONS": json.dumps({"starts": 1}),
+           "DSAREG_DICOM_QUERY_PEER": "DOWNQUERY", "DSAREG_DICOM_QUERY_RETRY_SECONDS": "600"}
     api = Server(data, workers=0, env=env).start(wait_ready=False)
     listener = Listener(data, port, env).start()
     yield api, listener
@@ -151,3 +162,24 @@ def test_compressed_transfer_syntaxes_are_accepted_kept_and_decoded(topology, st
         if getattr(ds, "StudyInstanceUID", None) == study_uid:
             syntaxes.add(str(ds.file_meta.TransferSyntaxUID))
     assert syntaxes == {"1.2.840.10008.1.2.4.70", "1.2.840.10008.1.2.5"}
+
+
+def test_an_xa_only_study_with_its_query_peer_down_is_a_bounded_clear_pacs_error(topology, study, tmp_path):
+    """DSAREG_DICOM_QUERY_PEER names a peer nothing listens for: the C-FIND fails at once, is logged naming the peer
+    and the step, and the study makes no job (it waits DSAREG_DICOM_QUERY_RETRY_SECONDS before asking again)."""
+    api, listener = topology
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    started = time.monotonic()
+    assert set(scu_send(listener.port, paths[:2], "SCU")) == {0}  # the XA pair alone
+    expected = "PACS DOWNQUERY: C-FIND studies (patient's volume) failed: no association with 127.0.0.1"
+    while expected not in listener.logs():
+        assert time.monotonic() - started < STABLE_S + 15, listener.logs()[-3000:]
+        time.sleep(0.1)
+    print(f"\nquery peer down reported {time.monotonic() - started:.2f} s after the XA pair was sent")
+    assert "asking again in 600 s" in listener.logs()
+    with api.client() as client:
+        assert jobs_of_study(client, study_uid) == []
+    # the volume sent into the study meanwhile makes the job at once, not after the 600 s
+    assert set(scu_send(listener.port, paths[2:], "SCU")) == {0}
+    jobs = settle_and_count(api, study_uid, wait_s=STABLE_S + 20)
+    assert len(jobs) == 1 and jobs[0]["source"]["dimse"]["volume"]["instances"] == len(paths) - 2, jobs

@@ -28,7 +28,7 @@ def node(tmp_path):
         scp = StoreScp(config, Inbox(store.engine, store.writer), BlobStore(tmp_path))
         server = start_server(config, scp)
         made.append((server, store))
-        return scp, config.dicom_port
+        return scp, config.dimse.dicom_port
 
     made: list = []
     yield make

@@ -37,14 +37,14 @@ def test_database_blobs_are_shared_without_a_shared_filesystem(tmp_path, cache):
 
 def test_settings_for_scale_out(tmp_path, monkeypatch):
     plain = ServiceSettings(data_dir=tmp_path)
-    assert plain.executor == "embedded" and plain.effective_blob_backend == "files"
+    assert plain.jobs.executor == "embedded" and plain.effective_blob_backend == "files"
     assert type(make_blob_store(plain)).__name__ == "BlobStore"
     monkeypatch.setenv("DSAREG_EXECUTOR", "celery")
     monkeypatch.setenv("DSAREG_BROKER_URL", "redis://broker:6379/1")
     monkeypatch.setenv("DSAREG_JOB_TIMEOUT_SECONDS", "100")
     scaled = ServiceSettings(data_dir=tmp_path)
-    assert scaled.broker_url == "redis://broker:6379/1" and scaled.effective_blob_backend == "database"
-    assert scaled.effective_visibility_timeout > scaled.job_timeout_seconds
+    assert scaled.celery.broker_url == "redis://broker:6379/1" and scaled.effective_blob_backend == "database"
+    assert scaled.effective_visibility_timeout > scaled.jobs.job_timeout_seconds
 
 
 def test_celery_reliability_settings():

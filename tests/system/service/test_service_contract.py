@@ -158,8 +158,13 @@ def test_openapi_types_the_whole_result(contract_server):
     assert _enum(doc, callback["state"]) == ["pending", "delivering", "delivered", "failed"]
     # both request bodies of the submission, the JSON one as a named model a generator can use
     body = doc["paths"]["/v1/registrations"]["post"]["requestBody"]["content"]
-    assert body["application/json"]["schema"] == {"$ref": "#/components/schemas/DicomwebRegistrationRequest"}
-    assert "callback_url" in _schema(doc, "DicomwebRegistrationRequest")["properties"]
+    assert body["application/json"]["schema"]["oneOf"] == [  # by DICOMweb or by DIMSE reference
+        {"$ref": "#/components/schemas/DicomwebRegistrationRequest"},
+        {"$ref": "#/components/schemas/DimseRegistrationRequest"}]
+    for model in ("DicomwebRegistrationRequest", "DimseRegistrationRequest"):
+        assert "callback_url" in _schema(doc, model)["properties"]
+        assert _schema(doc, model)["additionalProperties"] is False  # the key of `source` tells them apart
+    assert _schema(doc, "DimseSource")["properties"]["retrieve"]["enum"] == ["move", "get"]
     assert "callback_url" in body["multipart/form-data"]["schema"]["properties"]
     # authentication is off on this server: no scheme, no lock in /docs
     assert "securitySchemes" not in doc["components"]

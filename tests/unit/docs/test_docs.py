@@ -57,12 +57,36 @@ def test_settings_reference_is_current():
 
 
 def test_every_setting_is_described():
-    from service.settings import ServiceSettings
+    from service.settings import GROUPS
 
-    missing = [name for name, field in ServiceSettings.model_fields.items() if not (field.description or "").strip()]
+    missing = [name for model in GROUPS.values() for name, field in model.model_fields.items()
+               if not (field.description or "").strip()]
+    missing += [group for group, model in GROUPS.items() if not (model.__doc__ or "").strip()]
     assert not missing, f"settings without a description (the reference is generated from them): {missing}"
 
 
 def test_readme_is_a_front_page():
     size = len((ROOT / "README.md").read_bytes())
     assert size <= 12_000, f"README.md is {size} bytes; the front page stays ≤ 12 kB, the rest lives in docs/"
+
+
+def test_the_service_map_names_every_folder_and_module():
+    """service/README.md's architecture block is a map of the tree: every package and module of service/ is on it."""
+    readme = (ROOT / "service" / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## Architecture"):]
+    block = section[section.index("```\nservice/"):]
+    block = block[:block.index("\n```", 4)]
+    words = set(re.findall(r"[A-Za-z_]+(?:\.py)?/?", block))
+    missing = []
+    for path in sorted((ROOT / "service").rglob("*")):
+        if "__pycache__" in path.parts or "static" in path.parts or path.name == "__init__.py":
+            continue
+        if path.is_dir() and (path / "__init__.py").is_file():
+            wanted = {f"{path.name}/"}
+        elif path.suffix == ".py":
+            wanted = {path.name, path.stem}  # a module by file name, or by stem in its folder's list
+        else:
+            continue
+        if not wanted & words:
+            missing.append(str(path.relative_to(ROOT)))
+    assert not missing, f"service/README.md's architecture map lacks: {missing}"

@@ -54,6 +54,6 @@ def test_backoff_doubles_and_is_bounded():
 def test_a_secret_is_required_with_allowed_prefixes():
     with pytest.raises(ValueError, match="callback_secret"):
         ServiceSettings(callback_allowed=ALLOWED)
-    assert ServiceSettings(callback_allowed=ALLOWED, callback_secret="k").callback_allowed == ALLOWED
+    assert ServiceSettings(callback_allowed=ALLOWED, callback_secret="k").callbacks.callback_allowed == ALLOWED
     listed = ServiceSettings(callback_allowed="https://a.example/x/,https://b.example/", callback_secret="k")
-    assert listed.callback_allowed == ["https://a.example/x/", "https://b.example/"]
+    assert listed.callbacks.callback_allowed == ["https://a.example/x/", "https://b.example/"]

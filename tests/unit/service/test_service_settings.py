@@ -4,9 +4,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
+import pytest
+from pydantic import ValidationError
+
+from service.settings import (GROUP_OF, GROUPS, FlatEnvSource, ServiceSettings, env_name, load_settings,
+                              settings_to_env)
 from service.storage.blobs import safe_suffix
-from service.settings import load_settings
 
 
 def test_env_file_and_overrides(tmp_path, monkeypatch):
@@ -15,9 +23,9 @@ def test_env_file_and_overrides(tmp_path, monkeypatch):
     monkeypatch.setenv("DSAREG_QUEUE_LIMIT", "9")
     monkeypatch.setenv("DSAREG_API_KEYS", "s3cret, other")
     settings = load_settings(config, workers=5, port=None)
-    assert settings.workers == 5 and settings.queue_limit == 9 and settings.retention_hours == 2.5
-    assert settings.api_keys == [] and settings.api_key_hashes[0] == hashlib.sha256(b"s3cret").hexdigest()
-    assert len(settings.api_key_hashes) == 2 and settings.effective_host == "0.0.0.0"
+    assert settings.jobs.workers == 5 and settings.limits.queue_limit == 9 and settings.retention.retention_hours == 2.5
+    assert settings.auth.api_keys == [] and settings.auth.api_key_hashes[0] == hashlib.sha256(b"s3cret").hexdigest()
+    assert len(settings.auth.api_key_hashes) == 2 and settings.effective_host == "0.0.0.0"
     assert "s3cret" not in json.dumps(settings.model_dump(mode="json"))
 
 
@@ -25,7 +33,7 @@ def test_no_keys_means_loopback(tmp_path, monkeypatch):
     for name in ("DSAREG_API_KEYS", "DSAREG_API_KEY_HASHES", "DSAREG_CONFIG"):
         monkeypatch.delenv(name, raising=False)
     settings = load_settings(None, host="0.0.0.0", data_dir=tmp_path)
-    assert not settings.auth_enabled and settings.effective_host == "127.0.0.1"
+    assert not settings.auth.auth_enabled and settings.effective_host == "127.0.0.1"
     assert settings.effective_database_url.startswith("sqlite:///") and str(tmp_path) in settings.effective_database_url
 
 
@@ -35,3 +43,70 @@ def test_client_file_names_reduced_to_a_safe_suffix():
     assert safe_suffix("scan.DCM") == ".dcm"
     assert safe_suffix("patient name.v2.obj") == ".obj"
     assert safe_suffix(None) == ""
+
+
+# ---- grouped settings, flat environment names (issue 25) ----------------------------------------------------
+BASE_COMMIT = "ad8dd6e"  # the last flat ServiceSettings
+BASE_NAMES_FILE = Path(__file__).parent / "data" / "settings_env_names.txt"
+ADDED_SINCE_BASE = {"DSAREG_DICOM_QUERY_PEER", "DSAREG_DICOM_QUERY_RETRY_SECONDS"}  # issue 22: the patient's volume
+
+
+def _env_names_of(settings_source: str) -> list[str]:
+    """The env names a flat ``ServiceSettings`` module accepts (how ``data/settings_env_names.txt`` was made)."""
+    namespace: dict = {"__name__": "base_settings"}
+    exec(compile(settings_source, "base_settings.py", "exec"), namespace)  # noqa: S102 - the project's own file
+    return sorted(f"DSAREG_{name.upper()}" for name in namespace["ServiceSettings"].model_fields)
+
+
+def test_the_committed_name_list_is_the_base_commits():
+    try:
+        source = subprocess.run(["git", "show", f"{BASE_COMMIT}:service/settings.py"], capture_output=True, text=True,
+                                check=True, cwd=Path(__file__).parent).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip(f"no git history with {BASE_COMMIT} here (shallow clone); the committed list stands")
+    assert BASE_NAMES_FILE.read_text().split() == _env_names_of(source)
+
+
+def test_the_environment_names_are_those_of_the_flat_settings(monkeypatch):
+    base = set(BASE_NAMES_FILE.read_text().split()) | ADDED_SINCE_BASE
+    assert {env_name(name) for name in GROUP_OF} == base  # declared
+    for name in list(os.environ):
+        if name.startswith("DSAREG_"):
+            monkeypatch.delenv(name)
+    for name in base:
+        monkeypatch.setenv(name, "1")
+    for group in GROUPS:  # nested forms are not read: the names stay flat
+        monkeypatch.setenv(f"DSAREG_{group.upper()}", "{}")
+        monkeypatch.setenv(f"DSAREG_{group.upper()}__X", "1")
+    read = FlatEnvSource(ServiceSettings)()
+    assert {env_name(name) for name in read} == base  # read from the environment, each one
+
+
+def test_an_env_variable_sets_its_nested_setting(monkeypatch):
+    monkeypatch.setenv("DSAREG_DICOMWEB_TIMEOUT_SECONDS", "7.5")
+    monkeypatch.setenv("DSAREG_DICOM_PEERS", '[{"ae_title": "PACS", "host": "10.0.0.2", "port": 104}]')
+    monkeypatch.setenv("DSAREG_DICOM_JOB_OPTIONS", '{"starts": 2}')
+    settings = load_settings(None, workers=2)
+    assert settings.dicomweb.dicomweb_timeout_seconds == 7.5 and settings.jobs.workers == 2
+    assert settings.dimse.dicom_peers == [{"ae_title": "PACS", "host": "10.0.0.2", "port": 104}]
+    assert settings.dimse.dicom_job_options == {"starts": 2}
+    again = settings_to_env(settings)  # what a child process gets: flat names, same values
+    assert again["DSAREG_DICOMWEB_TIMEOUT_SECONDS"] == "7.5" and "DSAREG_WORKERS" in again
+    with pytest.raises(AttributeError, match=r"ServiceSettings\.jobs\.workers"):
+        _ = settings.workers  # a branch from before the grouping is told where the setting went
+
+
+def test_a_bad_value_names_its_env_variable(monkeypatch):
+    monkeypatch.setenv("DSAREG_DICOM_PORT", "70000")
+    with pytest.raises(ValidationError) as caught:
+        load_settings(None)
+    assert caught.value.errors()[0]["loc"] == ("DSAREG_DICOM_PORT",)
+
+
+def test_the_cli_names_the_env_variable_without_a_traceback(tmp_path):
+    env = {**os.environ, "DSAREG_LEASE_SECONDS": "soon", "DSAREG_CONFIG": ""}
+    done = subprocess.run([sys.executable, "-m", "service", "worker", "--data-dir", str(tmp_path)], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "DSAREG_LEASE_SECONDS" in done.stderr and "valid number" in done.stderr
+    assert "Traceback" not in done.stderr + done.stdout
