@@ -15,8 +15,8 @@ finds it (the filled part scores 0.15–0.27, every other part ≥ 0.3). So:
    part may hold the inflow, and the inflow is a guess: on a model of two territories joined at
    the inflow it may lie inside the filled one, whose faces are then no branch but the rest of
    the model less the other territory). Parts holding ``min_fraction``–``max_fraction`` of the
-   faces are kept, nearest the inflow first, unless they overlap an already kept part by more
-   than ``overlap`` (Jaccard), up to ``max_parts``.
+   faces are kept — the branches, nearest the inflow first, then the rests — unless they overlap an
+   already kept part by more than ``overlap`` (Jaccard), up to ``max_parts``.
 2. **Search.** Each part alone runs the centroid search (no coverage search); its best pose
    places the whole model (a part keeps the model's frame).
 3. **Starts and fit.** When the best part scores below :data:`PART_MATCHES` (and the whole model's
@@ -66,7 +66,7 @@ class BranchSettings:
 
 
 def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSettings()) -> np.ndarray:
-    """``(K, F)`` bool: the model's parts to try, nearest the inflow first (see the module, step 1)."""
+    """``(K, F)`` bool: the model's parts to try, branches first (see the module, step 1)."""
     tree = vessel_tree(mesh)
     from_inflow = tree.distances_from(tree.inflow)
     eligible = np.flatnonzero(from_inflow > settings.min_distance * from_inflow.max())
@@ -74,7 +74,7 @@ def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSetting
     picked = rng.choice(eligible, size=min(settings.samples, len(eligible)), replace=False)
     picked = picked[np.argsort(from_inflow[picked], kind="stable")]
     downstream = tree.downstream_sets(picked)[:, mesh.faces].all(axis=2)
-    faces = np.stack([downstream, ~downstream], axis=1).reshape(-1, mesh.n_faces)  # each branch, then the rest
+    faces = np.concatenate([downstream, ~downstream])  # the branches first: a rest overlapping a branch is dropped
     share = faces.mean(axis=1)
     kept: list[np.ndarray] = []
     for part in faces[(share >= settings.min_fraction) & (share <= settings.max_fraction)]:

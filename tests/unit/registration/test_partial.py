@@ -29,7 +29,7 @@ def test_one_injected_branch_registers_with_no_initial_pose(branch_case):
     case, rig, truth, masks = branch_case
     assert 0.4 <= case.visible_fraction <= 0.6
     result = register(case.model, masks, rig, RegistrationOptions(ground_truth_mesh_to_world=truth.tolist()))
-    assert result.metrics["initialization"]["method"] in ("search+coverage", "search+branch")
+    assert result.metrics["initialization"]["method"].startswith("search+")  # a partial search led the starts
     assert result.metrics["ground_truth"]["add_mm"] < 1.0
     confidence = result.metrics["confidence"]
     assert confidence["verdict"] == "check", confidence["reasons"]
