@@ -11,7 +11,8 @@ name, so an API process that only validates options never loads the renderer.
 * running it: :func:`run_case` (files in, every output written, in one call), :func:`run_registration_case`
   (from a loaded case), :class:`RegistrationCanceled`
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
-  DICOM: :func:`read_sources`, :class:`DicomSources`, :func:`write_dicom_outputs`
+  DICOM: :class:`DicomSources` / :class:`DicomIdentity` (a loaded case carries them: ``case.sources``),
+  :func:`read_sources` (from bytes, without a case), :func:`write_dicom_outputs`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
   :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_job` (a worker's first job's set-up)
 * the command line: :func:`run_parsed`, and the helpers sub-commands use (:class:`CommandFailed`,
@@ -49,7 +50,8 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.xa_run import ImageReading
-    from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+    from .io.dicom_identity import DicomIdentity, DicomSources, read_sources
+    from .io.dicom_out import write_dicom_outputs
     from .io.dicom_xa import c_arm_rotation
     from .io.limits import DEFAULT_LIMITS, InputLimits
     from .io.volume_kind import VolumeReading
@@ -82,9 +84,10 @@ _LAZY = {
     "run_registration_case": "dsareg_engine.pipeline",
     "run_case": "dsareg_engine.pipeline",
     "RegistrationCanceled": "dsareg_engine.pipeline",
-    "DicomSources": "dsareg_engine.io.dicom_out",
+    "DicomSources": "dsareg_engine.io.dicom_identity",
+    "DicomIdentity": "dsareg_engine.io.dicom_identity",
     "c_arm_rotation": "dsareg_engine.io.dicom_xa",
-    "read_sources": "dsareg_engine.io.dicom_out",
+    "read_sources": "dsareg_engine.io.dicom_identity",
     "write_dicom_outputs": "dsareg_engine.io.dicom_out",
     "set_cpu_threads": "dsareg_engine.threads",
     "default_cpu_threads": "dsareg_engine.threads",
@@ -118,6 +121,7 @@ __all__ = [
     "RESULT_JSON",
     "CaseFiles",
     "CommandFailed",
+    "DicomIdentity",
     "DicomSources",
     "DsaregInputError",
     "GeometrySpec",

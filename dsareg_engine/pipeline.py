@@ -24,7 +24,9 @@ import numpy as np
 import torch
 
 from . import artifacts
+from .errors import DsaregInputError
 from .io.case import Case, CaseFiles, load_case_files
+from .io.dicom_identity import DicomSources
 from .io.limits import DEFAULT_LIMITS, InputLimits
 from .io.volume_kind import VolumeReading
 from .metrics import dice
@@ -77,20 +79,18 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     if dicom != "off":
         if progress is not None:
             progress({"stage": "dicom", "iteration": 0, "loss": None, "fraction": DICOM_FRACTION})
-        _write_dicom(files, data, Path(out_dir), required=dicom == "required")
+        _write_dicom(case.sources, data, Path(out_dir), required=dicom == "required")
     return data
 
 
-def _write_dicom(files: CaseFiles, data: dict, out_dir: Path, *, required: bool) -> None:
-    """DICOM results next to the PNGs; the DICOM inputs' patient and study when there are any."""
-    from .io.dicom_out import DicomSources, read_sources, write_dicom_outputs
+def _write_dicom(sources: DicomSources, data: dict, out_dir: Path, *, required: bool) -> None:
+    """DICOM results next to the PNGs; the DICOM inputs' patient and study (``case.sources``) when there are any."""
+    from .io.dicom_out import write_dicom_outputs
 
-    single = [part if isinstance(part, bytes) else None for part in (files.ap, files.lat)]
-    try:
-        sources = read_sources(*single, files.volume)
-    except Exception:
+    if sources.unreadable:
         if required:
-            raise
+            raise DsaregInputError("the DICOM identity (patient, study, UIDs) of the input cannot be read",
+                                   field=sources.unreadable[0])
         log.warning("the DICOM headers of the inputs could not be read; DICOM results start a new study")
         sources = DicomSources()
     try:

@@ -146,10 +146,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         printer.close()
     if args.dicom_out:
-        from ..io.dicom_out import read_sources, write_dicom_outputs
+        from ..io.dicom_out import write_dicom_outputs
 
-        sources = read_sources(ap_bytes, lat_bytes, model.get("volume"))
-        written = write_dicom_outputs(out, result.mesh_to_world, sources, Path(args.dicom_out))
+        written = write_dicom_outputs(out, result.mesh_to_world, case.sources, Path(args.dicom_out))
         print(f"DICOM: {', '.join(sorted(written))} -> {args.dicom_out}", file=sys.stderr)
     if args.json:
         print(json.dumps(data, indent=2))

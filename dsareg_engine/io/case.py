@@ -11,6 +11,7 @@ from ..geometry.rig import VIEW_NAMES, Rig, ViewGeometry
 from ..geometry.spec import GeometrySpec
 from ..mesh import TriangleMesh
 from ..vision.vessel_target import binary_mask
+from .dicom_identity import DicomSources
 from .image_io import LoadedImage, read_image
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
@@ -42,6 +43,9 @@ class Case:
         readings: per view, what was read from a multi-frame XA run (frames and mask frames used,
             recipe, shift found; :mod:`.xa_run`); empty for other images.
         volume: for a volume input, what was read from it (kind, thresholds, voxels kept).
+        sources: the identity of the DICOM inputs (SOP, study, series, frame of reference, patient and
+            study attributes), taken when they were read: what the DICOM outputs refer to, so that
+            nothing parses the inputs again (:mod:`.dicom_identity`).
     """
 
     mesh: TriangleMesh
@@ -53,6 +57,7 @@ class Case:
     targets: dict[str, np.ndarray] = field(default_factory=dict)
     readings: dict[str, dict] = field(default_factory=dict)
     volume: VolumeReadout | None = None
+    sources: DicomSources = field(default_factory=DicomSources)
 
     @property
     def fitted(self) -> dict[str, np.ndarray]:
@@ -146,8 +151,8 @@ def load_case(
         raise DsaregInputError(
             f"unknown method '{segmentation}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
         )
-    surface, volume_readout = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings, kinds,
-                                            volume_reading)
+    surface, volume_readout, volume_sources = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings,
+                                                            kinds, volume_reading)
 
     images: dict[str, LoadedImage] = {}
     reading = reading if reading is not None else ImageReading.both(frame)
@@ -174,16 +179,22 @@ def load_case(
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
                 readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
-                volume=volume_readout)
+                volume=volume_readout, sources=_sources(images, volume_sources))
+
+
+def _sources(images: dict[str, LoadedImage], volume: DicomSources) -> DicomSources:
+    """The DICOM identities the readers took: the AP and LAT images', then the volume's instances."""
+    unreadable = tuple(name for name in VIEW_NAMES if images[name].dicom_unreadable) + volume.unreadable
+    return DicomSources(ap=images["ap"].dicom, lat=images["lat"].dicom, volume=volume.volume, unreadable=unreadable)
 
 
 
 def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | list[bytes] | None,
                   volume_name: str | None, limits: InputLimits, warnings: list[str],
                   kinds: dict[str, str], volume_reading: VolumeReading | None = None,
-                  ) -> tuple[TriangleMesh, VolumeReadout | None]:
+                  ) -> tuple[TriangleMesh, VolumeReadout | None, DicomSources]:
     """The vessel surface from exactly one of a mesh or a volume (read by its kind, meshed, decimated), and for a
-    volume what was read from it."""
+    volume what was read from it and its DICOM identities (``DicomSources.volume``)."""
     has_mesh = mesh is not None and (len(mesh) > 0 or mesh_name is not None)
     has_volume = volume is not None
     if has_mesh == has_volume:
@@ -196,7 +207,7 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
         result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh")
         kinds["mesh"] = result.format
         warnings.extend(result.warnings)
-        return result.mesh, None
+        return result.mesh, None, DicomSources()
     loaded = read_volume(volume, volume_name, limits, field_name="volume")
     warnings.extend(loaded.warnings)
     extraction = extract_vessels(loaded, volume_reading, field_name="volume")
@@ -206,7 +217,8 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
         original = surface.n_faces
         surface = decimate(surface, limits.working_faces)
         warnings.append(f"volume: surface decimated from {original} to {surface.n_faces} faces")
-    return surface, extraction.readout
+    sources = DicomSources(volume=loaded.dicom, unreadable=("volume",) if loaded.dicom_unreadable else ())
+    return surface, extraction.readout, sources
 
 
 def _view_for_image(rig: Rig, name: str, image: LoadedImage, warnings: list[str]) -> ViewGeometry:

@@ -26,7 +26,8 @@ per view (and the loss plot) in one new series of the same study.
 
 **Identity**: the patient and study attributes are copied from the DICOM inputs (XA first, then
 the volume); when no input is DICOM they are left empty (Type 2) and a new Study Instance UID is
-made. Nothing about the patient is invented or logged.
+made. Nothing about the patient is invented or logged. The inputs are not parsed here: the case
+reader keeps what is needed (:class:`.dicom_identity.DicomSources`, ``case.sources``).
 """
 
 from __future__ import annotations
@@ -34,28 +35,30 @@ from __future__ import annotations
 import datetime as _dt
 import io
 import uuid
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .. import artifacts
+from .dicom_identity import PATIENT_KEYWORDS, STUDY_KEYWORDS, DicomIdentity, DicomSources, read_sources
+
+__all__ = [
+    "PATIENT_KEYWORDS",
+    "STUDY_KEYWORDS",
+    "DicomIdentity",
+    "DicomSources",
+    "build_registration",
+    "build_secondary_capture",
+    "read_registration_matrix",
+    "read_sources",
+    "write_dicom_outputs",
+]
 
 REG_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.66.1"
 SC_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.7"
 MANUFACTURER = "dsareg"
 MODEL_NAME = "dsareg 3D/2D vessel registration"
 
-# Patient module (and the Patient Study / clinical trial bits that travel with it), copied when present.
-PATIENT_KEYWORDS = (
-    "PatientName", "PatientID", "IssuerOfPatientID", "PatientBirthDate", "PatientSex", "OtherPatientIDsSequence",
-    "PatientIdentityRemoved", "DeidentificationMethod", "DeidentificationMethodCodeSequence",
-    "PatientAge", "PatientSize", "PatientWeight",
-)
-STUDY_KEYWORDS = (
-    "StudyInstanceUID", "StudyDate", "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber",
-    "StudyDescription",
-)
 TYPE2_PATIENT = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex")
 TYPE2_STUDY = ("StudyDate", "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber")
 
@@ -69,71 +72,6 @@ def new_uid() -> str:
     return f"2.25.{uuid.uuid4().int}"
 
 
-@dataclass
-class DicomSources:
-    """Header-only datasets of the DICOM inputs of one registration (pixels are not read)."""
-
-    ap: object | None = None
-    lat: object | None = None
-    volume: list = field(default_factory=list)
-
-    @property
-    def xa(self) -> list:
-        return [ds for ds in (self.ap, self.lat) if ds is not None]
-
-    @property
-    def first(self):
-        for ds in (*self.xa, *self.volume):
-            return ds
-        return None
-
-    @property
-    def volume_frame_uid(self) -> str | None:
-        for ds in self.volume:
-            uid = _nested_value(ds, "FrameOfReferenceUID")
-            if uid:
-                return str(uid)
-        return None
-
-    @property
-    def xa_frame_uid(self) -> str | None:
-        uids = {str(_nested_value(ds, "FrameOfReferenceUID")) for ds in self.xa if _nested_value(ds, "FrameOfReferenceUID")}
-        return uids.pop() if len(uids) == 1 else None
-
-
-def _nested_value(ds, keyword: str):
-    if keyword in ds:
-        return ds.data_element(keyword).value
-    return None
-
-
-def _header(data) -> object | None:
-    """A pydicom Dataset of ``data``'s header when it is DICOM (Part 10 or raw), else None."""
-    import pydicom
-
-    if data is None:
-        return None
-    if isinstance(data, (list, tuple)):  # a .rad + .raw pair
-        return None
-    data = bytes(data)
-    if len(data) < 132:
-        return None
-    try:
-        ds = pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=data[128:132] != b"DICM")
-    except Exception:  # noqa: BLE001 - not DICOM: no DICOM context
-        return None
-    if "SOPInstanceUID" not in ds or "SOPClassUID" not in ds:
-        return None
-    return ds
-
-
-def read_sources(ap=None, lat=None, volume=None) -> DicomSources:
-    """The DICOM headers among a case's inputs (bytes as given to ``load_case``); others are ignored."""
-    parts = volume if isinstance(volume, (list, tuple)) else ([volume] if volume is not None else [])
-    volume_headers = [h for h in (_header(p) for p in parts) if h is not None]
-    return DicomSources(ap=_header(ap), lat=_header(lat), volume=volume_headers)
-
-
 # ---- common modules -----------------------------------------------------------------------------
 
 
@@ -142,16 +80,13 @@ def _now() -> tuple[str, str]:
     return now.strftime("%Y%m%d"), now.strftime("%H%M%S.%f")
 
 
-def _copy(src, dst, keywords) -> None:
+def _copy(found: tuple, dst) -> None:
+    """``(keyword, value)`` pairs of a :class:`DicomIdentity` into ``dst``, where ``dst`` has none yet."""
     import copy
 
-    if src is None:
-        return
-    for keyword in keywords:
-        if keyword in src and keyword not in dst:
-            value = src.data_element(keyword).value
-            if value is not None and value != "":
-                setattr(dst, keyword, copy.deepcopy(value))
+    for keyword, value in found:
+        if keyword not in dst:
+            setattr(dst, keyword, copy.deepcopy(value))
 
 
 def new_instance(sop_class: str, sop_instance: str, charset: str = "ISO_IR 192"):
@@ -178,9 +113,10 @@ def _base(sop_class: str, sop_instance: str, sources: DicomSources, study_uid: s
     ds.InstanceCreationDate, ds.InstanceCreationTime = date, time
     # Patient + General Study: copied from the inputs (XA first), never invented
     for src in (*sources.xa, *sources.volume[:1]):
-        _copy(src, ds, PATIENT_KEYWORDS)
-    anchor = _study_anchor(sources)
-    _copy(anchor, ds, STUDY_KEYWORDS)
+        _copy(src.patient, ds)
+    anchor = sources.first
+    if anchor is not None:
+        _copy(anchor.study, ds)
     ds.StudyInstanceUID = study_uid
     for keyword in (*TYPE2_PATIENT, *TYPE2_STUDY):
         if keyword not in ds:
@@ -190,11 +126,6 @@ def _base(sop_class: str, sop_instance: str, sources: DicomSources, study_uid: s
     ds.ManufacturerModelName = MODEL_NAME
     ds.SoftwareVersions = _version()
     return ds
-
-
-def _study_anchor(sources: DicomSources):
-    """The input whose study the outputs join: the AP XA, else the LAT, else the volume."""
-    return sources.first
 
 
 def _version() -> str:
@@ -207,9 +138,9 @@ def _version() -> str:
 
 
 def study_uid_for(sources: DicomSources) -> str:
-    anchor = _study_anchor(sources)
-    if anchor is not None and "StudyInstanceUID" in anchor and anchor.StudyInstanceUID:
-        return str(anchor.StudyInstanceUID)
+    anchor = sources.first
+    if anchor is not None and anchor.study_instance_uid:
+        return anchor.study_instance_uid
     return new_uid()
 
 
@@ -218,7 +149,7 @@ def xa_frame_uid_for(sources: DicomSources) -> str:
     if sources.xa_frame_uid:
         return sources.xa_frame_uid
     if sources.xa:
-        return name_uid("dsareg-xa-isocentre-frame", *(str(ds.SOPInstanceUID) for ds in sources.xa))
+        return name_uid("dsareg-xa-isocentre-frame", *(x.sop_instance_uid for x in sources.xa))
     return new_uid()
 
 
@@ -233,28 +164,28 @@ def _series(ds, modality: str, series_uid: str, number: int, description: str) -
     ds.ContentDate, ds.ContentTime = date, time
 
 
-def _instance_ref(ds):
+def _instance_ref(source: DicomIdentity):
     from pydicom.dataset import Dataset
 
     item = Dataset()
-    item.ReferencedSOPClassUID = ds.SOPClassUID
-    item.ReferencedSOPInstanceUID = ds.SOPInstanceUID
+    item.ReferencedSOPClassUID = source.sop_class_uid
+    item.ReferencedSOPInstanceUID = source.sop_instance_uid
     return item
 
 
-def _common_instance_reference(ds, referenced: list, study_uid: str) -> None:
+def _common_instance_reference(ds, referenced: list[DicomIdentity], study_uid: str) -> None:
     """Common Instance Reference module: every referenced instance, by study and series."""
     from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
 
     studies: dict[str, dict[str, list]] = {}
     for ref in referenced:
-        study = str(getattr(ref, "StudyInstanceUID", "") or study_uid)
-        series = str(getattr(ref, "SeriesInstanceUID", "") or "")
+        study = ref.study_instance_uid or study_uid
+        series = ref.series_instance_uid or ""
         if not series:
             continue
         bucket = studies.setdefault(study, {}).setdefault(series, [])
-        if all(x.ReferencedSOPInstanceUID != ref.SOPInstanceUID for x in bucket):
+        if all(x.ReferencedSOPInstanceUID != ref.sop_instance_uid for x in bucket):
             bucket.append(_instance_ref(ref))
 
     def series_items(by_series: dict[str, list]) -> Sequence:
@@ -340,7 +271,7 @@ def build_registration(
     return ds
 
 
-def _registered_frame_item(frame_uid: str, xa: list):
+def _registered_frame_item(frame_uid: str, xa: list[DicomIdentity]):
     """The second Registration Sequence item: the XA images in the Registered RCS itself (identity).
 
     PS3.3 C.12.2 lists in Common Instance Reference only instances referenced elsewhere in the

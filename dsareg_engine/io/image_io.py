@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..geometry.rig import ViewGeometry
 from . import rad as rad_format
+from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
 from .limits import DEFAULT_LIMITS, InputLimits
 from .xa_run import RunReading
 
@@ -42,6 +43,8 @@ class LoadedImage:
     kind: str
     warnings: list[str] = field(default_factory=list)
     reading: dict = field(default_factory=dict)  # multi-frame XA: what was read and done (xa_run)
+    dicom: DicomIdentity | None = None  # DICOM: what the DICOM outputs refer to (taken from the one parse)
+    dicom_unreadable: bool = False  # DICOM whose identity attributes could not be converted
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -263,15 +266,10 @@ def read_dicom_image(
     A multi-frame run is read by :func:`.xa_run.read_run` (``reading``; default: ``frame`` with
     automatic subtraction of native runs); the geometry comes from the frame used.
     """
-    import pydicom
-
     from .dicom_xa import view_from_xa
     from .xa_run import read_run, run_kind, subtracted_record
 
-    try:
-        header = pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=True)
-    except Exception as exc:
-        raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
+    header, failure = parse_dicom(data, field_name)
     rows, cols = dicom_number(header, "Rows", 0, field_name), dicom_number(header, "Columns", 0, field_name)
     if rows < 1 or cols < 1:
         raise DsaregInputError("DICOM file has no image (Rows/Columns missing)", field=field_name)
@@ -283,10 +281,9 @@ def read_dicom_image(
                                accepted="NumberOfFrames and SamplesPerPixel of at least 1")
     if n_frames * rows * cols * samples * 4 > limits.max_volume_bytes:
         raise DsaregInputError(f"declares {n_frames} frames of {cols}x{rows}, above the size limit", field=field_name)
-    try:
-        dataset = pydicom.dcmread(io.BytesIO(data), force=True)
-    except Exception as exc:
-        raise DsaregInputError(f"DICOM is unreadable or truncated ({str(exc)[:200]})", field=field_name) from None
+    if failure is not None:
+        raise DsaregInputError(f"DICOM is unreadable or truncated ({failure})", field=field_name)
+    dataset = header
     if "PixelData" not in dataset:
         raise DsaregInputError("DICOM file has no pixel data", field=field_name)
     try:
@@ -313,9 +310,10 @@ def read_dicom_image(
     geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
     warnings.extend(geometry_warnings)
     pixels = np.ascontiguousarray(pixels, dtype=np.float32)
+    identity, unreadable = identity_or_none(dataset)
     return LoadedImage(
         pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings,
-        reading=record,
+        reading=record, dicom=identity, dicom_unreadable=unreadable,
     )
 
 

@@ -29,6 +29,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from . import rad as rad_format
+from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
 from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
 
@@ -47,6 +48,8 @@ class Volume:
     kind: str
     warnings: list[str] = field(default_factory=list)
     tags: dict[str, str] = field(default_factory=dict)  # DICOM: what tells CTA / MRA / 3D-DSA apart
+    dicom: tuple[DicomIdentity, ...] = ()  # DICOM: the instances, in the order given (for the DICOM outputs)
+    dicom_unreadable: bool = False  # a DICOM instance whose identity attributes could not be converted
 
     @property
     def spacing_mm(self) -> tuple[float, float, float]:
@@ -239,23 +242,16 @@ def read_nrrd(data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: 
 # ---- DICOM ------------------------------------------------------------------------------
 
 
-def _read_dicom_header(part: bytes, field_name: str):
-    import pydicom
-
+def _dicom_pixels(parsed: tuple, field_name: str) -> np.ndarray:
+    """The rescaled pixels of a :func:`.dicom_identity.parse_dicom` result (decoded here, from that parse)."""
+    dataset, failure = parsed
     try:
-        return pydicom.dcmread(io.BytesIO(part), stop_before_pixels=True, force=True)
-    except Exception as exc:
-        raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
-
-
-def _dicom_pixels(part: bytes, field_name: str) -> np.ndarray:
-    import pydicom
-
-    try:
-        dataset = pydicom.dcmread(io.BytesIO(part), force=True)
+        if failure is not None:
+            raise ValueError(failure)
         if "PixelData" not in dataset:
             raise DsaregInputError("DICOM file has no pixel data", field=field_name)
         pixels = dataset.pixel_array.astype(np.float32)
+        del dataset.PixelData  # the parse stays for the identity; its pixel bytes and decoded cache go
     except DsaregInputError:
         raise
     except Exception as exc:
@@ -335,11 +331,12 @@ def read_dicom_series(
     parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
 ) -> Volume:
     """A volume from the files of one DICOM series (or one enhanced multi-frame file)."""
-    headers = []
+    parsed = []
     for index, part in enumerate(parts):
         if not part:
             raise DsaregInputError(f"file {index} of the series is empty", field=field_name)
-        headers.append(_read_dicom_header(part, field_name))
+        parsed.append(parse_dicom(part, field_name))
+    headers = [dataset for dataset, _ in parsed]
     first = headers[0]
     rows, cols = int(getattr(first, "Rows", 0) or 0), int(getattr(first, "Columns", 0) or 0)
     bits = int(getattr(first, "BitsAllocated", 16) or 16)
@@ -351,7 +348,7 @@ def read_dicom_series(
         if "PerFrameFunctionalGroupsSequence" not in first:
             raise DsaregInputError("multi-frame DICOM lacks per-frame positions (not a volume)", field=field_name)
         geometry = [_frame_geometry(first, f, field_name) for f in range(n_frames)]
-        pixels = _dicom_pixels(parts[0], field_name)
+        pixels = _dicom_pixels(parsed[0], field_name)
         if pixels.ndim != 3 or pixels.shape[0] != n_frames:
             raise DsaregInputError("multi-frame pixel data does not match NumberOfFrames", field=field_name)
         slices = list(pixels)
@@ -368,7 +365,7 @@ def read_dicom_series(
             if (int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)) != (rows, cols):
                 raise DsaregInputError("DICOM slices differ in size", field=field_name)
         geometry = [_frame_geometry(header, None, field_name) for header in headers]
-        slices = [_dicom_pixels(part, field_name) for part in parts]
+        slices = [_dicom_pixels(one, field_name) for one in parsed]
         kind = "dicom-series"
     row_dir, col_dir, spacing = geometry[0][1], geometry[0][2], geometry[0][3]
     for _, other_row, other_col, _ in geometry[1:]:
@@ -383,7 +380,10 @@ def read_dicom_series(
             raise DsaregInputError("a DICOM slice has pixel data of the wrong size", field=field_name)
     voxels = np.stack([slices[i].T for i in order], axis=2).astype(np.float32)  # [i=col, j=row, k]
     affine = _series_affine(positions, row_dir, col_dir, spacing, field_name)
-    return Volume(voxels, affine, kind, tags=_identity_tags(first))
+    identities = [identity_or_none(header) for header in headers]
+    return Volume(voxels, affine, kind, tags=_identity_tags(first),
+                  dicom=tuple(identity for identity, _ in identities if identity is not None),
+                  dicom_unreadable=any(unreadable for _, unreadable in identities))
 
 
 IDENTITY_TAGS = ("Modality", "SOPClassUID", "ImageType", "SeriesDescription", "ContrastBolusAgent", "AngioFlag",

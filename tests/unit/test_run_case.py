@@ -7,8 +7,8 @@ import trimesh
 
 from dsareg_engine.geometry.spec import parse_geometry
 from dsareg_engine.io.case import CaseFiles
-from dsareg_engine.simulation.phantom import make_vessel_phantom
 from dsareg_engine.pipeline import RegistrationCanceled, run_case
+from dsareg_engine.simulation.phantom import make_vessel_phantom
 
 QUICK = {"starts": 1, "max_iterations": 5}
 
@@ -44,3 +44,33 @@ def test_a_stop_before_the_start_cancels(files, tmp_path):
     with pytest.raises(RegistrationCanceled):
         run_case(files, QUICK, tmp_path, should_stop=lambda: True)
     assert not (tmp_path / "result.json").exists()
+
+
+# ---- the DICOM inputs are parsed once (issue 25) -------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def dicom_files():
+    """A DICOM XA pair and a DICOM CT series of the synthetic phantom study (no patient data)."""
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
+
+    study = make_biplane_study(image_px=96, pixel_spacing_mm=1.4, depth=2)
+    return CaseFiles(ap=study.ap, ap_name="ap.dcm", lat=study.lat, lat_name="lat.dcm", volume=list(study.volume))
+
+
+def test_each_dicom_input_is_parsed_once_in_a_registration(dicom_files, tmp_path, monkeypatch):
+    import pydicom
+
+    parsed: list[bytes] = []
+    real = pydicom.dcmread
+
+    def counting(source, *args, **kwargs):
+        parsed.append(source.getvalue() if hasattr(source, "getvalue") else bytes(source))
+        return real(source, *args, **kwargs)
+
+    monkeypatch.setattr(pydicom, "dcmread", counting)
+    data = run_case(dicom_files, QUICK, tmp_path, dicom="required")
+    assert {"reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm"} <= set(data["dicom"]["instances"])
+    inputs = [dicom_files.ap, dicom_files.lat, *dicom_files.volume]
+    counts = [sum(one == given for one in parsed) for given in inputs]
+    assert counts == [1] * len(inputs), f"parses per input (AP, LAT, slices): {counts}"
+    assert len(parsed) == len(inputs)  # and nothing else is parsed again

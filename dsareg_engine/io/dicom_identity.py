@@ -1,0 +1,185 @@
+"""What the DICOM writers need of the DICOM inputs, taken from them when they are read (never parsed again).
+
+:class:`DicomIdentity` is one input instance's identity: its SOP class and instance, study, series and
+frame of reference, and the patient and study attributes the outputs copy (``io/dicom_out.py``).
+:class:`DicomSources` holds them for a case: the AP and LAT images and the volume's instances (in the
+order given). The image and volume readers make them from the dataset they parse anyway
+(:func:`identity_of`); :func:`read_sources` parses bytes for callers that hold files but no case.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+from dataclasses import dataclass
+from typing import Any
+
+# Patient module (and the Patient Study / clinical trial bits that travel with it), copied when present.
+PATIENT_KEYWORDS = (
+    "PatientName", "PatientID", "IssuerOfPatientID", "PatientBirthDate", "PatientSex", "OtherPatientIDsSequence",
+    "PatientIdentityRemoved", "DeidentificationMethod", "DeidentificationMethodCodeSequence",
+    "PatientAge", "PatientSize", "PatientWeight",
+)
+STUDY_KEYWORDS = (
+    "StudyInstanceUID", "StudyDate", "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber",
+    "StudyDescription",
+)
+
+
+class UnreadableIdentity(ValueError):
+    """A DICOM input whose identity attributes cannot be converted (the outputs cannot join its study)."""
+
+
+@dataclass(frozen=True)
+class DicomIdentity:
+    """One DICOM input instance, as the REG and Secondary Capture writers refer to it.
+
+    Attributes:
+        sop_class_uid, sop_instance_uid: the instance (both present, else the input has no identity).
+        study_instance_uid, series_instance_uid, frame_of_reference_uid: top-level values, or ``None``.
+        patient: ``(keyword, value)`` of the :data:`PATIENT_KEYWORDS` present and non-empty, in that order
+            (values as pydicom converts them; copied, never shared with the parsed dataset).
+        study: the same for :data:`STUDY_KEYWORDS`.
+    """
+
+    sop_class_uid: str
+    sop_instance_uid: str
+    study_instance_uid: str | None = None
+    series_instance_uid: str | None = None
+    frame_of_reference_uid: str | None = None
+    patient: tuple[tuple[str, Any], ...] = ()
+    study: tuple[tuple[str, Any], ...] = ()
+
+
+@dataclass(frozen=True)
+class DicomSources:
+    """The identities of a case's DICOM inputs; empty when no input is DICOM.
+
+    ``unreadable`` names the inputs that are DICOM but whose identity could not be converted: the
+    outputs then start a new study (or fail, when DICOM outputs are required).
+    """
+
+    ap: DicomIdentity | None = None
+    lat: DicomIdentity | None = None
+    volume: tuple[DicomIdentity, ...] = ()
+    unreadable: tuple[str, ...] = ()
+
+    @property
+    def xa(self) -> list[DicomIdentity]:
+        return [x for x in (self.ap, self.lat) if x is not None]
+
+    @property
+    def first(self) -> DicomIdentity | None:
+        """The input whose study the outputs join: the AP XA, else the LAT, else the volume."""
+        for identity in (*self.xa, *self.volume):
+            return identity
+        return None
+
+    @property
+    def volume_frame_uid(self) -> str | None:
+        for identity in self.volume:
+            if identity.frame_of_reference_uid:
+                return identity.frame_of_reference_uid
+        return None
+
+    @property
+    def xa_frame_uid(self) -> str | None:
+        uids = {x.frame_of_reference_uid for x in self.xa if x.frame_of_reference_uid}
+        return uids.pop() if len(uids) == 1 else None
+
+
+def _present(dataset, keywords: tuple[str, ...]) -> tuple[tuple[str, Any], ...]:
+    found = []
+    for keyword in keywords:
+        if keyword in dataset:
+            value = dataset.data_element(keyword).value
+            if value is not None and value != "":
+                found.append((keyword, copy.deepcopy(value)))
+    return tuple(found)
+
+
+def _top(dataset, keyword: str) -> str | None:
+    if keyword in dataset:
+        value = dataset.data_element(keyword).value
+        return str(value) if value else None
+    return None
+
+
+def identity_of(dataset) -> DicomIdentity | None:
+    """The identity of a parsed DICOM dataset (header only is enough); ``None`` without SOP class and instance.
+
+    Raises:
+        UnreadableIdentity: an attribute's value cannot be converted (pydicom converts lazily).
+    """
+    if dataset is None or "SOPInstanceUID" not in dataset or "SOPClassUID" not in dataset:
+        return None
+    try:
+        return DicomIdentity(
+            sop_class_uid=str(dataset.SOPClassUID), sop_instance_uid=str(dataset.SOPInstanceUID),
+            study_instance_uid=_top(dataset, "StudyInstanceUID"), series_instance_uid=_top(dataset, "SeriesInstanceUID"),
+            frame_of_reference_uid=_top(dataset, "FrameOfReferenceUID"),
+            patient=_present(dataset, PATIENT_KEYWORDS), study=_present(dataset, STUDY_KEYWORDS))
+    except Exception as exc:  # noqa: BLE001 - a malformed value: no identity, said so
+        raise UnreadableIdentity(str(exc)[:200]) from None
+
+
+DEFER_BYTES = 64 * 1024
+"""Values larger than this (the pixel data) are read from the buffer when used, not copied by the parse."""
+
+
+def parse_dicom(data: bytes, field_name: str):
+    """One parse of a DICOM file: ``(dataset, None)``, or ``(header, why)`` when only the header parses.
+
+    The full dataset is parsed once with large values deferred, so the readers check the header, decode
+    the pixels and take the :class:`DicomIdentity` from the same parse. Only a file whose full parse fails
+    is parsed again, header only, to tell "not DICOM" from "truncated pixel data".
+
+    Raises:
+        DsaregInputError: not readable as DICOM at all.
+    """
+    import pydicom
+
+    from ..errors import DsaregInputError
+
+    try:
+        return pydicom.dcmread(io.BytesIO(data), force=True, defer_size=DEFER_BYTES), None
+    except Exception as exc:  # noqa: BLE001 - told apart below
+        failure = str(exc)[:200]
+    try:
+        return pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=True), failure
+    except Exception as exc:  # noqa: BLE001
+        raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
+
+
+def identity_or_none(dataset) -> tuple[DicomIdentity | None, bool]:
+    """``(identity, unreadable)``: :func:`identity_of`, with a malformed identity as ``(None, True)``."""
+    try:
+        return identity_of(dataset), False
+    except UnreadableIdentity:
+        return None, True
+
+
+def _header(data) -> object | None:
+    """A pydicom Dataset of ``data``'s header when it is DICOM (Part 10 or raw), else None."""
+    import pydicom
+
+    if data is None or isinstance(data, (list, tuple)):  # a .rad + .raw pair
+        return None
+    data = bytes(data)
+    if len(data) < 132:
+        return None
+    try:
+        return pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=data[128:132] != b"DICM")
+    except Exception:  # noqa: BLE001 - not DICOM: no DICOM context
+        return None
+
+
+def read_sources(ap=None, lat=None, volume=None) -> DicomSources:
+    """The identities of DICOM files given as bytes (as to ``load_case``), for callers without a loaded case.
+
+    A case read by :func:`dsareg_engine.io.case.load_case` carries them already (``case.sources``).
+    """
+    parts = volume if isinstance(volume, (list, tuple)) else ([volume] if volume is not None else [])
+    identities = [identity_of(_header(p)) for p in parts]
+    return DicomSources(ap=identity_of(_header(ap)), lat=identity_of(_header(lat)),
+                        volume=tuple(i for i in identities if i is not None))

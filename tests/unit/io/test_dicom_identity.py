@@ -1,0 +1,72 @@
+"""The DICOM inputs' identity, taken by the readers: the same record as a separate parse, the same output bytes."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pydicom
+import pytest
+from PIL import Image
+
+from dsareg_engine.io import dicom_out
+from dsareg_engine.io.case import load_case
+from dsareg_engine.io.dicom_identity import DicomIdentity, DicomSources, identity_of, read_sources
+
+
+@pytest.fixture(scope="module")
+def study():
+    from dsareg_engine.simulation.phantom_study import make_biplane_study
+
+    return make_biplane_study(image_px=96, pixel_spacing_mm=1.4, depth=2)
+
+
+@pytest.fixture(scope="module")
+def case(study):
+    return load_case(ap=study.ap, ap_name="ap.dcm", lat=study.lat, lat_name="lat.dcm", volume=list(study.volume))
+
+
+def test_the_case_carries_the_identity_a_separate_parse_finds(study, case):
+    again = read_sources(study.ap, study.lat, list(study.volume))  # an independent header parse of the bytes
+    assert case.sources == again and not case.sources.unreadable
+    ap = pydicom.dcmread(pydicom.filebase.DicomBytesIO(study.ap))
+    assert case.sources.ap.sop_instance_uid == str(ap.SOPInstanceUID)
+    assert case.sources.ap.study_instance_uid == str(ap.StudyInstanceUID)
+    assert [v.sop_instance_uid for v in case.sources.volume] == [
+        str(pydicom.dcmread(pydicom.filebase.DicomBytesIO(part)).SOPInstanceUID) for part in study.volume]
+    assert case.sources.volume_frame_uid == study.uids["volume_frame"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        case.sources.ap.sop_instance_uid = "1.2"  # type: ignore[misc]
+
+
+def _outputs(folder, sources: DicomSources, monkeypatch) -> dict[str, bytes]:
+    folder.mkdir()
+    for name in ("overlay_ap", "overlay_lat"):
+        Image.fromarray(np.full((40, 56, 3), 120, np.uint8)).save(folder / f"{name}.png")
+    numbers = itertools.count(1)
+    monkeypatch.setattr(dicom_out, "new_uid", lambda: f"2.25.{next(numbers)}")  # the random parts, fixed
+    monkeypatch.setattr(dicom_out, "_now", lambda: ("20261201", "010203.000000"))
+    written = dicom_out.write_dicom_outputs(folder, np.eye(4), sources, folder)
+    return {name: (folder / name).read_bytes() for name in written}
+
+
+def test_outputs_from_the_case_are_byte_equal_to_outputs_from_a_separate_parse(study, case, tmp_path, monkeypatch):
+    from_case = _outputs(tmp_path / "case", case.sources, monkeypatch)
+    from_parse = _outputs(tmp_path / "parse", read_sources(study.ap, study.lat, list(study.volume)), monkeypatch)
+    assert from_case == from_parse and set(from_case) == {"reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm"}
+    reg = pydicom.dcmread(tmp_path / "case" / "reg.dcm")
+    assert reg.StudyInstanceUID == case.sources.ap.study_instance_uid  # joined the input study
+
+
+def test_no_sop_uids_no_identity():
+    ds = pydicom.Dataset()
+    ds.PatientID = "x"
+    assert identity_of(ds) is None
+    ds.SOPClassUID, ds.SOPInstanceUID = "1.2.3", "1.2.3.4"
+    assert identity_of(ds) == DicomIdentity("1.2.3", "1.2.3.4", patient=(("PatientID", "x"),))
+
+
+def test_non_dicom_images_have_no_identity(build):
+    png = build.png(build.dsa(height=64, width=64)[0])
+    assert read_sources(png, png, None) == DicomSources()
