@@ -5,8 +5,11 @@ display needed), imported only when a plot is made.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
+Y_LABEL = "loss (silhouette MSE)"  # mean squared silhouette error; short enough for any axes height here
 STAGE_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
 
 
@@ -18,6 +21,18 @@ def loss_figure(history: list[tuple[str, list[float]]], width: int = 800, height
         history: ``[(stage name, [loss per iteration])]`` in the order the stages ran.
         title: optional title (e.g. the job id).
     """
+    figure = drawn_loss_figure(history, width, height, title)
+    rgba = np.asarray(figure.canvas.buffer_rgba())
+    image = np.ascontiguousarray(rgba[..., 2::-1])  # RGBA → BGR
+    if image.shape[:2] != (height, width):  # tight_layout keeps the size; guard rounding
+        import cv2
+
+        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    return image
+
+
+def drawn_loss_figure(history: list[tuple[str, list[float]]], width: int, height: int, title: str | None) -> Any:
+    """The matplotlib ``Figure`` of :func:`loss_figure`, laid out and drawn (its artists can be measured)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -43,12 +58,13 @@ def loss_figure(history: list[tuple[str, list[float]]], width: int = 800, height
             axes.axvline(start + 0.5, color="#999999", linestyle="--", linewidth=0.8)
         start += len(values)
     axes.set_xlabel("iteration (all stages, in order)")
-    axes.set_ylabel("loss (mean squared silhouette error)")
+    axes.set_ylabel(Y_LABEL)
     if any_positive:
         axes.set_yscale("log")
         low, high = axes.get_ylim()
-        if high / max(low, 1e-300) < 100:  # under two decades: label the 2..9 ticks too
-            axes.yaxis.set_minor_formatter(LogFormatterSciNotation(labelOnlyBase=False, minor_thresholds=(3, 3)))
+        if high / max(low, 1e-300) < 100:  # under two decades: label some 2..9 ticks too (all of them only
+            # within one decade, where they do not crowd)
+            axes.yaxis.set_minor_formatter(LogFormatterSciNotation(labelOnlyBase=False, minor_thresholds=(2, 1.0)))
         axes.legend(title="stage (dashed: stage boundary)", loc="upper left", bbox_to_anchor=(1.02, 1.0),
                     fontsize=8, title_fontsize=8, frameon=False)
     else:
@@ -59,13 +75,7 @@ def loss_figure(history: list[tuple[str, list[float]]], width: int = 800, height
     axes.set_title(title or "Registration loss per iteration", fontsize=11)
     figure.tight_layout()
     figure.canvas.draw()
-    rgba = np.asarray(figure.canvas.buffer_rgba())
-    image = np.ascontiguousarray(rgba[..., 2::-1])  # RGBA → BGR
-    if image.shape[:2] != (height, width):  # tight_layout keeps the size; guard rounding
-        import cv2
-
-        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-    return image
+    return figure
 
 
 def stage_boundaries(history: list[tuple[str, list[float]]]) -> list[int]:

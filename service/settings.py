@@ -104,6 +104,15 @@ class JobSettings(_Group):
         120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
                                    "(exponential backoff) before giving up the attempt.")
     job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
+    # results to the PACS only after a person approved them (service/jobs/exports.py, docs/review.md)
+    export_after_review: bool = Field(
+        False, description="Hold the STOW-RS / C-STORE of a job's DICOM results until a person approves the job "
+                           "(POST /v1/registrations/{id}/review); a rejected job is never exported. Off: results are "
+                           "stored as soon as the job ends.")
+    export_max_attempts: int = Field(5, ge=1, le=50, description="Export attempts of an approved job (each with the "
+                                                                 "DICOMweb / DIMSE retries) before it is marked failed.")
+    export_retry_backoff_seconds: float = Field(
+        5.0, ge=0.0, description="Delay before the second export attempt; doubles each attempt, at most 300 s.")
 
     @property
     def effective_heartbeat_seconds(self) -> float:

@@ -12,6 +12,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from ..jobs.callbacks import CallbackDeliverer
+from ..jobs.exports import ExportDeliverer
 from ..storage.dbblobs import make_blob_store
 from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
@@ -83,6 +84,8 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
             ctx.callbacks = start_callbacks(ctx)
+            ctx.extra["exports"] = ExportDeliverer(ctx.store, ctx.blobs, ctx.settings)  # held for review
+            ctx.extra["exports"].start()
             ctx.extra["dicom_listener"] = _start_dicom_node(ctx)
         log.info("dsareg service ready (%d worker processes, store %s)", settings.jobs.workers,
                  "sqlite" if ctx.store.is_sqlite else ctx.store.engine.dialect.name)
@@ -91,6 +94,8 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
         finally:
             if ctx.callbacks:
                 ctx.callbacks.stop()
+            if ctx.extra.get("exports") is not None:
+                ctx.extra["exports"].stop()
             if ctx.extra.get("dicom_listener") is not None:
                 await asyncio.to_thread(ctx.extra["dicom_listener"].stop)
             if ctx.sweeper:

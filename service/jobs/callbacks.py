@@ -7,7 +7,7 @@
 * **Who delivers**: the API process (:class:`CallbackDeliverer`, a thread next to the sweeper,
   started by the lifespan), in both topologies (embedded workers or Celery): workers never make
   outbound calls and never wait on a receiver. Deliveries run on a small thread pool.
-* **Exactly when**: every ``POLL_SECONDS`` the deliverer asks the store for callbacks of ended jobs
+* **Exactly when**: every ``POLL_SECONDS`` (:mod:`.leased`, the loop shared with held PACS exports) the deliverer asks the store for callbacks of ended jobs
   (succeeded, failed, canceled — however they ended) that are due, claims each with a lease
   (a conditional UPDATE, so two API replicas never deliver the same attempt), POSTs, and records
   the outcome. A failed attempt is retried after ``callback_retry_backoff_seconds`` doubling
@@ -23,17 +23,16 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
-import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
 import httpx
 
 from ..settings import ServiceSettings
-from ..storage.store import JobRecord, JobStore, store_outage_errors
+from ..storage.store import JobRecord, JobStore
+from .leased import LeasedDeliverer
 
 log = logging.getLogger("dsareg.service.callbacks")
 
@@ -41,11 +40,9 @@ SIGNATURE_HEADER = "X-Dsareg-Signature"
 DELIVERY_HEADER = "X-Dsareg-Delivery"
 ATTEMPT_HEADER = "X-Dsareg-Attempt"
 JOB_HEADER = "X-Dsareg-Job"
-POLL_SECONDS = 0.25
 MAX_BACKOFF_SECONDS = 300.0
 LEASE_MARGIN_SECONDS = 5.0
 MAX_URL_LENGTH = 2048
-DELIVERY_THREADS = 4
 
 
 # ---- which URLs ----------------------------------------------------------------------------
@@ -109,51 +106,24 @@ def backoff_seconds(settings: ServiceSettings, attempts: int) -> float:
 # ---- delivering -----------------------------------------------------------------------------
 
 
-class CallbackDeliverer:
+class CallbackDeliverer(LeasedDeliverer):
     """The API process's delivery loop (see the module docstring). ``payload(job)`` → the body bytes."""
+
+    name = "callbacks"
 
     def __init__(self, store: JobStore, settings: ServiceSettings, payload: Callable[[JobRecord], bytes],
                  user_agent: str = "dsareg"):
+        super().__init__()
         self.store, self.settings, self.payload = store, settings, payload
         self.lease_seconds = settings.callbacks.callback_timeout_seconds + LEASE_MARGIN_SECONDS
         self.headers = {"Content-Type": "application/json", "User-Agent": user_agent}
-        self._halt = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="callbacks", daemon=True)
-        self._pool = ThreadPoolExecutor(DELIVERY_THREADS, thread_name_prefix="callback")
         self._http = httpx.Client(timeout=settings.callbacks.callback_timeout_seconds, follow_redirects=False)
 
-    def start(self) -> None:
-        self._thread.start()
+    def due(self, now: float) -> list[str]:
+        return self.store.due_callbacks(now)
 
-    def stop(self) -> None:
-        self._halt.set()
-        self._thread.join(5)
-        self._pool.shutdown(wait=False, cancel_futures=True)
-
-    def _run(self) -> None:
-        while not self._halt.wait(POLL_SECONDS):
-            try:
-                self.deliver_due()
-            except store_outage_errors() as exc:
-                log.warning("callbacks skipped: job store unavailable (%s)", type(exc).__name__)
-            except Exception:
-                log.exception("callback round failed")
-
-    def deliver_due(self) -> int:
-        """Claim every due callback and hand it to the pool; how many were claimed."""
-        claimed = 0
-        for job_id in self.store.due_callbacks(time.time()):
-            row = self.store.claim_callback(job_id, time.time(), self.lease_seconds)
-            if row is not None:
-                claimed += 1
-                self._pool.submit(self._deliver_logged, row)
-        return claimed
-
-    def _deliver_logged(self, row: dict[str, Any]) -> None:
-        try:
-            self.deliver(row)
-        except Exception:  # the lease expires and the delivery is tried again
-            log.exception("job %s: callback delivery raised", row["job_id"])
+    def claim(self, job_id: str, now: float) -> dict[str, Any] | None:
+        return self.store.claim_callback(job_id, now, self.lease_seconds)
 
     def deliver(self, row: dict[str, Any]) -> str:
         """One attempt of a claimed delivery; the state it left (delivered / pending / failed)."""

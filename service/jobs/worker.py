@@ -27,6 +27,7 @@ from ..storage.blobs import BlobStore
 from ..pacs.dicom_jobs import STORED_FILES, pacs_job, pacs_problem
 from ..pacs.dicomweb import PacsError
 from ..pacs.dimse.export import dimse_job
+from .exports import export_target, source_of
 from ..storage.diskspace import has_room, is_disk_full
 from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
 from ..problems import TYPE_BASE
@@ -263,15 +264,18 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
                      label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
     if control.lost:
         return "lost"
-    if pacs is not None:
+    held = export_target(pacs, dimse) if settings.jobs.export_after_review else None  # stored once approved
+    if held is not None:
+        result.setdefault("dicom", {})["source"] = source_of(pacs, dimse)
+    elif pacs is not None:
         control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
         result = pacs.store_back(result, out_dir)
-    if dimse is not None:
+    if dimse is not None and held is None:
         control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
         result = dimse.export(result, out_dir, STORED_FILES)
     control.progress({"stage": "saving", "iteration": 0, "loss": None, "fraction": SAVING_FRACTION})
     artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
-    outcome = finish.complete("succeeded", result=result, artifacts=artifacts)
+    outcome = finish.complete("succeeded", result=result, artifacts=artifacts, export=held)
     if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete
         for name, digest in artifacts.items():
             if not blobs.exists(digest):

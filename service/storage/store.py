@@ -43,6 +43,8 @@ FINISHED = ("succeeded", "failed", "canceled")
 DECISIONS = ("approved", "rejected")
 REVIEW_FILTERS = ("none", *DECISIONS)
 """``list(review=…)``: jobs never reviewed, or whose latest review has this decision."""
+EXPORT_STATES = ("awaiting_review", "pending", "exporting", "done", "failed", "skipped")
+"""A held PACS export (service/jobs/exports.py): held until approved, then leased and stored like a callback."""
 
 
 def new_job_id() -> str:
@@ -97,6 +99,7 @@ class JobRecord:
     previous_id: str | None = None  # the job a tracking job started from (``POST …/track``)
     callback: dict[str, Any] | None = None  # delivery state of the completion callback (read by ``get``)
     review: dict[str, Any] | None = None  # {"decision", "comment", "by", "at" (epoch s)}: the latest review
+    export: dict[str, Any] | None = None  # the held PACS export (export_after_review; read by ``get``)
 
 
 class ConflictError(Exception):
@@ -160,7 +163,8 @@ class JobStore(abc.ABC):
 
     @abc.abstractmethod
     def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
-                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool: ...
+                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None,
+                 export: dict | None = None) -> bool: ...
 
     @abc.abstractmethod
     def release(self, job_id: str, worker_id: str, *, reason: str | None = None) -> bool:
@@ -209,6 +213,20 @@ class JobStore(abc.ABC):
     def finish_callback(self, job_id: str, attempt: int, *, state: str, status_code: int | None,
                         error: str | None, next_attempt_at: float | None) -> bool:
         """Record the outcome of delivery ``attempt`` (``delivered``, ``pending`` again, or ``failed``)."""
+        raise NotImplementedError
+
+    # PACS exports held for review (service/jobs/exports.py): the same lease pattern as callbacks
+    def due_exports(self, now: float, limit: int = 20) -> list[str]:
+        """Approved succeeded jobs whose export is due (pending and its time has come, or its lease expired)."""
+        raise NotImplementedError
+
+    def claim_export(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
+        """Take one due export (``attempts`` + 1); None when another process has it or it is not due."""
+        raise NotImplementedError
+
+    def finish_export(self, job_id: str, attempt: int, *, state: str, outcome: dict | None, error: dict | None,
+                      next_attempt_at: float | None) -> bool:
+        """Record export ``attempt``: ``done``, ``pending`` again (a retry) or ``failed``; an audit event each."""
         raise NotImplementedError
 
 
@@ -298,6 +316,25 @@ job_previous = sa.Table(
 )
 """The job a tracking job started from (``Link: rel="previous"``)."""
 
+job_exports = sa.Table(
+    "job_exports", metadata,
+    sa.Column("job_id", sa.String(32), primary_key=True),
+    sa.Column("target", sa.Text, nullable=False),  # JSON: {"via": "stow-rs", "server", "study_uid"} | {"via": "c-store", "peers"}
+    sa.Column("state", sa.String(16), nullable=False),  # EXPORT_STATES
+    sa.Column("attempts", sa.Integer, nullable=False, default=0),
+    sa.Column("next_attempt_at", sa.Float, nullable=False, default=0.0),
+    sa.Column("lease_until", sa.Float),
+    sa.Column("last_attempt_at", sa.Float),
+    sa.Column("done_at", sa.Float),
+    sa.Column("outcome", sa.Text),  # JSON: what was stored
+    sa.Column("last_error", sa.Text),  # JSON: the pacs-error problem of the last failed attempt
+    sa.Index("ix_job_exports_state", "state", "next_attempt_at"),
+)
+"""One row per succeeded job whose PACS export waits for a review (``export_after_review``)."""
+
+EXPORT_COLUMNS = ("target", "state", "attempts", "next_attempt_at", "last_attempt_at", "done_at", "outcome",
+                  "last_error")
+
 CALLBACK_COLUMNS = ("url", "delivery_id", "state", "attempts", "next_attempt_at", "last_attempt_at", "delivered_at",
                     "last_status", "last_error")
 
@@ -365,6 +402,7 @@ class SqlJobStore(JobStore):
             request_hash=m["request_hash"], input_bytes=m["input_bytes"] or 0,
             review=_load(m["review"]), callback_url=m.get("cb_url"), previous_id=m.get("previous_id"),
             callback={name: m.get(f"cb_{name}") for name in CALLBACK_COLUMNS} if m.get("cb_url") else None,
+            export=_export_row(m) if m.get("ex_state") else None,
         )
 
     def _event(self, conn: Any, job_id: str, event: str, worker_id: str | None = None, attempt: int | None = None,
@@ -414,8 +452,10 @@ class SqlJobStore(JobStore):
     def get(self, job_id: str) -> JobRecord | None:
         """The job, with its callback's delivery state and its previous job (outer joins)."""
         query = (sa.select(jobs, *(job_callbacks.c[name].label(f"cb_{name}") for name in CALLBACK_COLUMNS),
+                           *(job_exports.c[name].label(f"ex_{name}") for name in EXPORT_COLUMNS),
                            job_previous.c.previous_id)
                  .select_from(jobs.outerjoin(job_callbacks, job_callbacks.c.job_id == jobs.c.id)
+                              .outerjoin(job_exports, job_exports.c.job_id == jobs.c.id)
                               .outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
                  .where(jobs.c.id == job_id))
         with self.engine.connect() as conn:
@@ -488,7 +528,21 @@ class SqlJobStore(JobStore):
             ).rowcount
             if done:
                 self._event(conn, job_id, "reviewed", detail=record)
+                self._review_export(conn, job_id, decision, now)
         return self.get(job_id) if done else None
+
+    def _review_export(self, conn: Any, job_id: str, decision: str, now: float) -> None:
+        """The latest review decides a held export: approved → due now (also again after ``skipped`` or
+        ``failed``); rejected → ``skipped`` unless it is already under way or done."""
+        if decision == "approved":
+            before, values = ("awaiting_review", "skipped", "failed"), {"state": "pending", "attempts": 0,
+                                                                          "next_attempt_at": 0.0, "last_error": None}
+        else:
+            before, values = ("awaiting_review", "pending"), {"state": "skipped"}
+        moved = conn.execute(job_exports.update().where(job_exports.c.job_id == job_id,
+                                                        job_exports.c.state.in_(before)).values(**values)).rowcount
+        if moved:
+            self._event(conn, job_id, "export_queued" if decision == "approved" else "export_skipped")
 
     def delete(self, job_id: str) -> list[str]:
         with self.writer.begin() as conn:
@@ -496,6 +550,7 @@ class SqlJobStore(JobStore):
             conn.execute(job_blobs.delete().where(job_blobs.c.job_id == job_id))
             conn.execute(job_events.delete().where(job_events.c.job_id == job_id))
             conn.execute(job_callbacks.delete().where(job_callbacks.c.job_id == job_id))
+            conn.execute(job_exports.delete().where(job_exports.c.job_id == job_id))
             conn.execute(job_previous.delete().where(job_previous.c.job_id == job_id))
             conn.execute(jobs.delete().where(jobs.c.id == job_id))
             still = set()
@@ -555,8 +610,10 @@ class SqlJobStore(JobStore):
         return True, bool(cancel)
 
     def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
-                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None) -> bool:
-        """Finish the job if this worker still owns it.
+                 error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None,
+                 export: dict | None = None) -> bool:
+        """Finish the job if this worker still owns it (``export``: a PACS target held for review, recorded in
+        the same transaction, so a job that succeeded never loses it).
 
         With ``attempt``: also when its lease expired meanwhile (e.g. the database was down while
         the job finished) and the sweeper put it back in the queue, as long as no worker claimed it
@@ -583,6 +640,10 @@ class SqlJobStore(JobStore):
                     conn.execute(job_blobs.insert().values(job_id=job_id, sha256=digest, role=f"artifact:{name}"))
                 attempt = conn.execute(sa.select(jobs.c.attempts).where(jobs.c.id == job_id)).scalar_one()
                 self._event(conn, job_id, status, worker_id, attempt)
+                if export is not None and status == "succeeded":
+                    conn.execute(job_exports.insert().values(job_id=job_id, target=_dump(export),
+                                                             state="awaiting_review", attempts=0, next_attempt_at=0.0))
+                    self._event(conn, job_id, "export_awaiting_review", detail=export)
         return bool(done)
 
     def release(self, job_id: str, worker_id: str, *, reason: str | None = None) -> bool:
@@ -721,6 +782,48 @@ class SqlJobStore(JobStore):
                 job_callbacks.c.attempts == attempt).values(**values)).rowcount
         return bool(done)
 
+    # ---- PACS exports held for review -----------------------------------------------------------
+    def _export_due(self, now: float):
+        pending = sa.and_(job_exports.c.state == "pending", job_exports.c.next_attempt_at <= now)
+        abandoned = sa.and_(job_exports.c.state == "exporting", job_exports.c.lease_until < now)
+        approved = sa.select(jobs.c.id).where(jobs.c.id == job_exports.c.job_id, jobs.c.status == "succeeded",
+                                              jobs.c.review_decision == "approved").exists()
+        return sa.and_(sa.or_(pending, abandoned), approved)
+
+    def due_exports(self, now: float, limit: int = 20) -> list[str]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(sa.select(job_exports.c.job_id).where(self._export_due(now))
+                                     .order_by(job_exports.c.next_attempt_at).limit(limit)).scalars())
+
+    def claim_export(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
+        with self.writer.begin() as conn:
+            won = conn.execute(job_exports.update().where(job_exports.c.job_id == job_id, self._export_due(now)).values(
+                state="exporting", lease_until=now + lease_seconds, attempts=job_exports.c.attempts + 1,
+                last_attempt_at=now)).rowcount
+            if not won:
+                return None
+            row = conn.execute(sa.select(job_exports).where(job_exports.c.job_id == job_id)).first()
+        return {**dict(row._mapping), "target": _load(row._mapping["target"])}
+
+    def finish_export(self, job_id: str, attempt: int, *, state: str, outcome: dict | None, error: dict | None,
+                      next_attempt_at: float | None) -> bool:
+        if state not in ("done", "pending", "failed"):
+            raise ValueError(state)
+        values: dict[str, Any] = {"state": state, "lease_until": None, "outcome": _dump(outcome),
+                                  "last_error": _dump(error)}
+        if state == "done":
+            values["done_at"] = time.time()
+        if next_attempt_at is not None:
+            values["next_attempt_at"] = next_attempt_at
+        event = {"done": "exported", "pending": "export_retry", "failed": "export_failed"}[state]
+        with self.writer.begin() as conn:
+            done = conn.execute(job_exports.update().where(
+                job_exports.c.job_id == job_id, job_exports.c.state == "exporting",
+                job_exports.c.attempts == attempt).values(**values)).rowcount
+            if done:
+                self._event(conn, job_id, event, attempt=attempt, detail=outcome if state == "done" else error)
+        return bool(done)
+
     def ping(self) -> bool:
         try:
             with self.writer.begin() as conn:
@@ -730,6 +833,12 @@ class SqlJobStore(JobStore):
             return True
         except Exception:  # noqa: BLE001 - readiness must answer, not raise
             return False
+
+
+def _export_row(m: Any) -> dict[str, Any]:
+    row = {name: m.get(f"ex_{name}") for name in EXPORT_COLUMNS}
+    return {**row, "target": _load(row["target"], {}), "outcome": _load(row["outcome"]),
+            "last_error": _load(row["last_error"])}
 
 
 def upgrade_schema(engine: sa.engine.Engine) -> list[str]:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dsareg_engine.overlay import FINAL_BGR, INITIAL_BGR, Caption, crop_box, display_base, overlay_image
-from dsareg_engine.plots import loss_figure
+from dsareg_engine.plots import drawn_loss_figure, loss_figure
 
 
 def _vessel(shape=(200, 240), shift=0):
@@ -162,3 +162,29 @@ def test_unmatched_model_parts_are_filled_in_their_own_colour(tmp_path):
 
     assert magenta(image) > magenta(plain) + 5 * unmatched.sum()  # the fill, enlarged by the overlay's zoom
     assert magenta(plain) == 0
+
+
+@pytest.mark.parametrize("decades", [0.3, 0.9, 1.3, 2.6])
+def test_loss_plot_text_fits_and_tick_labels_do_not_overlap(decades):
+    """Every label lies inside the image, the y label with room to spare, and no two y tick labels overlap
+    (the page shows the plot whole; the earlier label ran nearly the full axes height, minor labels crowded)."""
+    top, bottom = 0.08, 0.08 / 10 ** decades
+    middle = float(np.sqrt(top * bottom))
+    history = [("ap+lat:1/4", list(np.geomspace(top, middle, 40))), ("ap+lat:1/2", list(np.geomspace(middle, bottom, 30))),
+               ("ap+lat:1/1:refine", [bottom] * 11)]
+    figure = drawn_loss_figure(history, 800, 450, "Loss per iteration - job 0123456789abcdef0123456789abcdef")
+    renderer = figure.canvas.get_renderer()
+    (axes,) = figure.axes
+    whole = figure.bbox
+    texts = [axes.yaxis.label, axes.xaxis.label, axes.title, axes.get_legend()]
+    for artist in texts:
+        box = artist.get_window_extent(renderer)
+        assert whole.x0 <= box.x0 and box.x1 <= whole.x1 and whole.y0 <= box.y0 and box.y1 <= whole.y1, artist
+    assert axes.yaxis.label.get_window_extent(renderer).height <= 0.8 * axes.bbox.height
+    labelled = [t for t in axes.yaxis.get_ticklabels(which="both") if t.get_visible() and t.get_text()]
+    boxes = [t.get_window_extent(renderer) for t in labelled]
+    shown = [box for box in boxes if axes.bbox.y0 - 2 <= box.y0 and box.y1 <= axes.bbox.y1 + 2]  # within the axes
+    shown.sort(key=lambda box: box.y0)
+    assert len(shown) >= 2
+    for low, high in zip(shown, shown[1:]):
+        assert low.y1 <= high.y0 + 0.5, (low, high)

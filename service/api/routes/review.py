@@ -1,4 +1,5 @@
-"""``POST /v1/registrations/{job_id}/review``: a person approves or rejects a finished job.
+"""``POST /v1/registrations/{job_id}/review``: a person approves or rejects a finished job;
+``GET /v1/registrations/{job_id}/audit``: the job's audit log.
 
 The latest review is on the job (``review``); every review is a ``reviewed`` event in the job's
 audit log (``job_events``), so a later review replaces the shown one without losing the earlier.
@@ -14,7 +15,7 @@ from ...problems import Problem, problem_responses
 from ..deps import Ctx, OwnedJob, Principal
 from ..openapi import resource_router
 from ..schemas.jobs import JobStatus, status_body
-from ..schemas.review import ReviewRequest, reviewer_label
+from ..schemas.review import AuditLog, ReviewRequest, audit_event, reviewer_label
 
 log = logging.getLogger("dsareg.service")
 
@@ -37,3 +38,14 @@ def review_job(body: ReviewRequest, ctx: Ctx, job: OwnedJob, who: Principal) -> 
         raise Problem(404, f"no registration job with id '{job.id}'", kind="job-not-found")
     log.info("job %s: reviewed (%s)", job.id, body.decision)
     return JSONResponse(status_body(reviewed))
+
+
+@router.get(
+    "/v1/registrations/{job_id}/audit", response_model=AuditLog, summary="The job's audit log",
+    description="Every recorded event of the job, oldest first: submission, claims, the end state, reviews and the "
+                "PACS export held for review, each with who did it (an API key's label, never the key) and details.",
+    responses=problem_responses(401, 403, 404),
+)
+def get_audit(ctx: Ctx, job: OwnedJob) -> Response:
+    items = [audit_event(row, job.owner) for row in ctx.store.events(job.id)]
+    return JSONResponse(AuditLog(job_id=job.id, items=items).model_dump(mode="json"))

@@ -11,7 +11,7 @@ from ...engine_adapter import engine
 from ...problems import ProblemDetails
 from .payloads import Verdict
 from ...storage.store import JobRecord
-from .review import Review, review_model
+from .review import ExportState, Review, export_model, review_model
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
 STATUS_TEXT = ("The job's state. `succeeded` means the job ran to the end and has a result; whether to trust the pose "
@@ -105,6 +105,9 @@ class JobStatus(BaseModel):
                           '"study_uid", "pairing", "ap", "lat", "volume"}} (absent otherwise).')
     review: Review | None = Field(None, description="A person's latest review (POST /v1/registrations/{id}/review); "
                                                     "null until then.")
+    export: ExportState | None = Field(
+        None, description="The PACS export held for review (DSAREG_EXPORT_AFTER_REVIEW=true): absent when the server "
+                          "exports at once, or the job stores nothing into a PACS.")
     links: JobLinks
 
 
@@ -244,7 +247,7 @@ def job_status(job: JobRecord) -> JobStatus:
         cancel_requested=job.cancel_requested, progress=_progress(job), result=result,
         error=ProblemDetails(**job.error) if job.error and job.status == "failed" else None,
         warnings=job.warnings, callback=_callback_state(job), review=review_model(job.review),
-        links=job_links(job.id, job),
+        export=export_model(job.export), links=job_links(job.id, job),
     )
 
 
@@ -255,8 +258,9 @@ def status_body(job: JobRecord) -> dict[str, Any]:
 
 def _drop_absent_links(body: dict[str, Any]) -> dict[str, Any]:
     body["links"] = {k: v for k, v in body["links"].items() if v is not None}
-    if body.get("source", 0) is None:
-        del body["source"]
+    for optional in ("source", "export"):
+        if optional in body and body[optional] is None:
+            del body[optional]
     return body
 
 

@@ -56,6 +56,15 @@ def test_review_is_typed_in_openapi(keyed_server):
         assert "Review" in json.dumps(doc["components"]["schemas"][model]["properties"]["review"])
     params = {p["name"]: p for p in doc["paths"]["/v1/registrations"]["get"]["parameters"]}
     assert params["review"]["schema"]["enum"] == ["none", "approved", "rejected"]
+    audit = doc["paths"]["/v1/registrations/{job_id}/audit"]["get"]
+    assert audit["operationId"] == "get_audit" and {"401", "403", "404"} <= set(audit["responses"])
+    assert audit["responses"]["200"]["content"]["application/json"]["schema"]["$ref"].endswith("/AuditLog")
+    event = doc["components"]["schemas"]["AuditEvent"]
+    assert set(event["required"]) == {"at", "event", "actor"} and "details" in event["properties"]
+    export = doc["components"]["schemas"]["ExportState"]
+    assert export["properties"]["state"]["enum"] == ["awaiting_review", "pending", "exporting", "done", "failed",
+                                                     "skipped"]
+    assert "ExportState" in json.dumps(doc["components"]["schemas"]["JobStatus"]["properties"]["export"])
 
 
 @needs_engine
@@ -97,6 +106,19 @@ def test_review_round_trip_scoped_and_audited(keyed_server, example_case):
         assert alpha.get("/v1/registrations", params={"review": "later"}).json()["field"] == "review"
         assert beta.get("/v1/registrations", params={"review": "approved"}).json()["items"] == []
         assert beta.get(f"/v1/registrations/{done}").status_code == 403
+        # the audit log over HTTP: typed events, who without secrets, the owner's only
+        audit = alpha.get(f"/v1/registrations/{done}/audit")
+        assert audit.status_code == 200, audit.text
+        items = audit.json()["items"]
+        assert [i["event"] for i in items][:1] == ["queued"] and items[0]["actor"] == label
+        assert [(i["details"], i["actor"]) for i in items if i["event"] == "reviewed"] == [
+            ({"decision": "rejected", "comment": "LAT off"}, label),
+            ({"decision": "approved", "comment": "re-checked: fine"}, label)]
+        assert any(i["event"] == "succeeded" and i["actor"].startswith("worker:") for i in items), items
+        assert all(i["at"].endswith("Z") for i in items) and "export" not in alpha.get(f"/v1/registrations/{done}").json()
+        assert ALPHA not in audit.text and hashlib.sha256(ALPHA.encode()).hexdigest() not in audit.text
+        assert beta.get(f"/v1/registrations/{done}/audit").status_code == 403
+        assert alpha.get("/v1/registrations/0123456789abcdef0123456789abcdef/audit").status_code == 404
     reviews = [detail for event, detail in _events(keyed_server, done) if event == "reviewed"]
     assert [(d["decision"], d["comment"], d["by"]) for d in reviews] == [
         ("rejected", "LAT off", label), ("approved", "re-checked: fine", label)]
@@ -185,6 +207,18 @@ def test_review_page_in_chromium(keyed_server, example_case, tmp_path):
                      "return i.length === 2 && [...i].every(x => x.complete && x.naturalWidth > 0)", what="overlays")
         browser.wait("const p = document.querySelector('.plot img'); return p && p.complete && p.naturalWidth > 0",
                      what="loss plot")
+        # the loss plot at a readable scale, scaled smoothly (a chart, not pixels), and whole in the screenshot
+        browser.resize(1280, 1500)
+        browser.run("window.scrollTo(0, 0)")
+        width, bottom, viewport, rendering = browser.run(
+            "const p = document.querySelector('.plot img'); const r = p.getBoundingClientRect(); "
+            "return [r.width / p.naturalWidth, r.bottom, window.innerHeight, getComputedStyle(p).imageRendering]")
+        assert 0.9 <= width <= 1.1 and rendering != "pixelated", (width, rendering)
+        assert bottom <= viewport, (bottom, viewport)
+        history = browser.wait("const items = [...document.querySelectorAll('#history li')].map(li => li.innerText); "
+                               "return items.length >= 3 && items", what="history")
+        assert any("queued" in item and "key:" in item for item in history), history
+        assert any("succeeded" in item and "worker:" in item for item in history), history
         assert browser.run("return document.querySelector('.views img').src").startswith("blob:")
         browser.click("#toggle-masks")
         browser.wait("return document.querySelector('.views figcaption').textContent.includes('mask')", what="masks")
@@ -196,6 +230,7 @@ def test_review_page_in_chromium(keyed_server, example_case, tmp_path):
         browser.screenshot(tmp_path / "job.png")
         browser.click("#approve")  # click 2: approve
         browser.wait("return document.getElementById('review-state').innerText.includes('approved')", what="approved")
+        browser.wait("return document.getElementById('history').innerText.includes('reviewed')", what="history")
         with keyed_server.client(headers={"Authorization": f"Bearer {ALPHA}"}) as alpha:
             review = alpha.get(f"/v1/registrations/{job_id}").json()["review"]
         assert review["decision"] == "approved" and review["comment"].startswith("Contours follow")

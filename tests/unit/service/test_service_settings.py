@@ -48,7 +48,10 @@ def test_client_file_names_reduced_to_a_safe_suffix():
 # ---- grouped settings, flat environment names (issue 25) ----------------------------------------------------
 BASE_COMMIT = "ad8dd6e"  # the last flat ServiceSettings
 BASE_NAMES_FILE = Path(__file__).parent / "data" / "settings_env_names.txt"
-ADDED_SINCE_BASE = {"DSAREG_DICOM_QUERY_PEER", "DSAREG_DICOM_QUERY_RETRY_SECONDS"}  # issue 22: the patient's volume
+ADDED_SINCE_BASE = {"DSAREG_DICOM_QUERY_PEER", "DSAREG_DICOM_QUERY_RETRY_SECONDS",  # issue 22: the patient's volume
+                    # issue 23: PACS exports held for review
+                    "DSAREG_EXPORT_AFTER_REVIEW", "DSAREG_EXPORT_MAX_ATTEMPTS", "DSAREG_EXPORT_RETRY_BACKOFF_SECONDS"}
+"""Settings added after the base commit (each a new env name; none of the base's may go or change)."""
 
 
 def _env_names_of(settings_source: str) -> list[str]:

@@ -151,3 +151,54 @@ def test_previous_job_is_read_by_get_and_list_and_deleted_with_the_job(store):
     assert listed == {first.id: None, second.id: first.id}
     store.delete(second.id)
     assert store.get(second.id) is None and store.due_callbacks(time.time() + 1e6) == []
+
+
+def _succeeded(store: SqlJobStore, export: dict | None) -> JobRecord:
+    job, _ = _job(store, digest=f"{time.time_ns():064x}"[-64:])
+    store.claim_job(job.id, "w1", 30)
+    assert store.complete(job.id, "w1", "succeeded", result={}, export=export)
+    return store.get(job.id)
+
+
+TARGET = {"via": "stow-rs", "server": "http://127.0.0.1:8042/dicom-web", "study_uid": "1.2.3"}
+
+
+def test_a_held_export_waits_for_an_approval_and_a_rejection_skips_it(store):
+    held, plain = _succeeded(store, TARGET), _succeeded(store, None)
+    assert held.export["state"] == "awaiting_review" and held.export["target"] == TARGET and plain.export is None
+    assert store.due_exports(time.time()) == []  # not before a review
+    store.review(held.id, "rejected", "", "key:1")
+    assert store.get(held.id).export["state"] == "skipped" and store.due_exports(time.time()) == []
+    store.review(held.id, "approved", "", "key:1")  # the latest review decides
+    assert store.get(held.id).export["state"] == "pending" and store.due_exports(time.time()) == [held.id]
+    row = store.claim_export(held.id, time.time(), lease_seconds=60)
+    assert row["attempts"] == 1 and row["state"] == "exporting" and row["target"] == TARGET
+    assert store.claim_export(held.id, time.time(), 60) is None  # one attempt at a time
+    store.review(held.id, "rejected", "", "key:1")  # under way: not recalled
+    assert store.get(held.id).export["state"] == "exporting"
+    assert store.finish_export(held.id, 1, state="done", outcome={"via": "stow-rs", "sop_instance_uids": ["1"]},
+                               error=None, next_attempt_at=None)
+    events = [e["event"] for e in store.events(held.id)]
+    assert events[-7:] == ["export_awaiting_review", "reviewed", "export_skipped", "reviewed", "export_queued",
+                           "reviewed", "exported"], events
+    done = store.get(held.id).export
+    assert done["state"] == "done" and done["done_at"] and done["outcome"]["sop_instance_uids"] == ["1"]
+
+
+def test_an_abandoned_export_is_taken_over_and_a_rejected_job_is_never_due(store):
+    job = _succeeded(store, TARGET)
+    store.review(job.id, "approved", "", "key:1")
+    store.claim_export(job.id, time.time(), lease_seconds=0.05)  # its API process dies
+    time.sleep(0.1)
+    assert store.due_exports(time.time()) == [job.id]
+    second = store.claim_export(job.id, time.time(), 60)
+    assert second["attempts"] == 2
+    assert not store.finish_export(job.id, 1, state="failed", outcome=None, error={"detail": "late"}, next_attempt_at=None)
+    assert store.finish_export(job.id, 2, state="pending", outcome=None, error={"detail": "refused"},
+                               next_attempt_at=time.time() + 30)
+    assert store.due_exports(time.time()) == [] and store.due_exports(time.time() + 31) == [job.id]
+    assert store.get(job.id).export["last_error"] == {"detail": "refused"}
+    store.review(job.id, "rejected", "", "key:1")
+    assert store.get(job.id).export["state"] == "skipped" and store.due_exports(time.time() + 1e6) == []
+    store.delete(job.id)
+    assert store.get(job.id) is None

@@ -215,6 +215,10 @@ function reviewSection(job) {
         headers: { "Content-Type": "application/json" }, body: JSON.stringify({ decision, comment: comment.value }) });
       say(`Saved: ${decision}.`);
       document.getElementById("review-state").replaceWith(reviewSection(updated).querySelector("#review-state"));
+      const shown = document.getElementById("export-state");
+      if (shown && updated.export) shown.replaceWith(exportState(updated.export));
+      document.getElementById("history").replaceWith(historySection(updated).querySelector("#history"));
+      if (updated.export && ["pending", "exporting"].includes(updated.export.state)) watchExport(job.id, 30);
     } catch (error) { say("The review was not saved: " + error.message, true); }
   };
   return el("section", { "aria-labelledby": "review-h", class: "review-form" }, el("h3", { id: "review-h" }, "Review"), current,
@@ -223,6 +227,50 @@ function reviewSection(job) {
     el("div", { class: "actions" },
       el("button", { type: "button", class: "approve", id: "approve", disabled: !finished, onclick: () => send("approved") }, "Approve"),
       el("button", { type: "button", class: "reject", id: "reject", disabled: !finished, onclick: () => send("rejected") }, "Reject")));
+}
+
+const EXPORT_WORDS = {
+  awaiting_review: "held until the job is approved",
+  pending: "approved; being sent",
+  exporting: "being sent",
+  done: "stored",
+  failed: "failed",
+  skipped: "not sent (rejected)",
+};
+
+function exportState(exp) {
+  if (!exp) return null;
+  const where = `${exp.via === "stow-rs" ? "STOW-RS" : "C-STORE"} to ${exp.destination}`;
+  return el("p", { id: "export-state" }, "PACS export: ", badge(EXPORT_WORDS[exp.state] || exp.state, exp.state === "done" ? "ok" : exp.state),
+    ` (${where}${exp.attempts ? `, ${exp.attempts} attempt${exp.attempts === 1 ? "" : "s"}` : ""})`,
+    exp.error && exp.state !== "done" ? [el("br"), el("span", { class: "error" }, exp.error.detail || exp.error.title)] : null);
+}
+
+async function watchExport(id, polls) {
+  // the export runs in the service after the approval: follow it for a while (every 1 s)
+  await new Promise((done) => setTimeout(done, 1000));
+  const shown = document.getElementById("export-state");
+  if (!shown || !location.hash.endsWith(id)) return;
+  let job;
+  try { job = await api("/v1/registrations/" + encodeURIComponent(id)); } catch (error) { return; }
+  if (!job.export) return;
+  shown.replaceWith(exportState(job.export));
+  if (["pending", "exporting"].includes(job.export.state) && polls > 1) { watchExport(id, polls - 1); return; }
+  document.getElementById("history").replaceWith(historySection(job).querySelector("#history"));
+}
+
+function historySection(job) {
+  const list = el("ol", { class: "history", id: "history" });
+  api(`/v1/registrations/${job.id}/audit`).then((log) => {
+    list.replaceChildren(...log.items.map((item) => {
+      const details = item.details || {};
+      const note = item.event === "reviewed" ? `${details.decision}${details.comment ? ` “${details.comment}”` : ""}`
+        : details.detail || (details.via ? `${details.via} ${details.server || (details.peers || []).join(", ") || ""}` : "");
+      return el("li", {}, el("time", { datetime: item.at }, item.at.replace("T", " ").slice(0, 19)), " ",
+        el("strong", {}, item.event.replaceAll("_", " ")), " · ", item.actor, note ? ` · ${note}` : "");
+    }));
+  }).catch((error) => list.replaceChildren(el("li", { class: "error" }, "Could not load the history: " + error.message)));
+  return el("section", { "aria-labelledby": "history-h" }, el("h3", { id: "history-h" }, "History"), list);
 }
 
 async function showJob(id) {
@@ -238,10 +286,11 @@ async function showJob(id) {
   view.append(el("p", {}, el("a", { href: "#/" }, "← All jobs")),
     el("h2", {}, "Job ", el("code", {}, id), " ", badge(job.status)),
     el("div", { class: "job" },
-      el("div", {}, viewsSection(job), el("div", { class: "views" },
+      el("div", {}, viewsSection(job), el("div", { class: "plots" },
         plotFigure(job.links.loss_plot, "Loss per iteration of the registration", "Loss per iteration"),
         plotFigure(job.links.animation, "Animation of the registration converging", "Animation"))),
-      el("div", {}, reviewSection(job), verdictSection(job), el("h3", {}, "Metrics"), metricsList(job))));
+      el("div", {}, reviewSection(job), exportState(job.export), verdictSection(job), el("h3", {}, "Metrics"),
+        metricsList(job), historySection(job))));
 }
 
 // ---- the key and the router ---------------------------------------------------------------------

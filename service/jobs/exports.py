@@ -1,0 +1,164 @@
+"""PACS exports held for review (``DSAREG_EXPORT_AFTER_REVIEW=true``).
+
+* **Held**: a job whose DICOM results would go to a PACS (STOW-RS for a DICOMweb reference with
+  ``store_results``; C-STORE for a DIMSE reference with ``store_results`` or for a study received
+  over DIMSE with export destinations) is completed by its worker *without* the store; the
+  target (:func:`export_target`) is written with the job's completion, in the same transaction
+  (``job_exports``, state ``awaiting_review``): nothing can be lost between the two.
+* **Released by a review**: an approval makes it ``pending`` in the same transaction as the review
+  (``SqlJobStore.review``); a rejection makes it ``skipped``; nothing is ever sent for a job whose
+  latest review is not an approval (the store's due query checks it).
+* **Delivered by the API process** (:class:`ExportDeliverer`, the loop of completion callbacks,
+  :mod:`.leased`), in both topologies: claimed with a lease, stored, recorded (``done``, or a
+  ``pacs-error`` and a retry after ``export_retry_backoff_seconds`` doubling, ``export_max_attempts``
+  in all, then ``failed``). An API killed between the approval and the store, or during it, leaves
+  the row pending or leased: after the restart it is stored then (at least once; a PACS keeps one
+  copy of a SOP Instance UID stored twice). Every step is an audit event of the job.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from ..pacs.dicom_jobs import STORED_FILES, PacsJob
+from ..pacs.dicomweb import DicomwebClient, PacsError, resolve_server
+from ..pacs.dimse.export import export_to
+from ..pacs.dimse.pull import DimsePullJob
+from ..problems import TYPE_BASE
+from ..settings import ServiceSettings
+from ..storage.blobs import BlobStore
+from ..storage.store import JobRecord, JobStore
+from .leased import LeasedDeliverer
+
+log = logging.getLogger("dsareg.service.exports")
+
+STOW, CSTORE = "stow-rs", "c-store"
+MAX_BACKOFF_SECONDS = 300.0
+LEASE_MARGIN_SECONDS = 5.0
+
+
+def export_target(pacs: Any, dimse: Any) -> dict[str, Any] | None:
+    """Where the worker would store this job's results (``pacs``/``dimse``: the worker's PACS job objects)."""
+    if isinstance(pacs, PacsJob) and pacs.reference.store_results:
+        source = pacs.reference.source.dicomweb
+        return {"via": STOW, "server": source.url, "study_uid": source.study_uid}
+    if isinstance(pacs, DimsePullJob) and pacs.reference.store_results:
+        return {"via": CSTORE, "peers": [pacs.reference.source.dimse.peer]}
+    if dimse is not None and dimse.document.get("export"):
+        return {"via": CSTORE, "peers": list(dimse.document["export"])}
+    return None
+
+
+def source_of(pacs: Any, dimse: Any) -> dict[str, Any] | None:
+    """``result.dicom.source`` as the inline export would have written it."""
+    if pacs is not None:
+        return pacs.source_info
+    return None if dimse is None else dimse.document.get("source")
+
+
+def pacs_error(detail: str, **extra: Any) -> dict[str, Any]:
+    return {"type": TYPE_BASE + "pacs-error", "title": "PACS error", "status": 502, "detail": detail, **extra}
+
+
+def lease_seconds(settings: ServiceSettings, target: dict[str, Any]) -> float:
+    """Longer than one attempt can take (every retry of the transport at its timeout)."""
+    if target.get("via") == STOW:
+        work = (settings.dicomweb.dicomweb_timeout_seconds * (settings.dicomweb.dicomweb_retries + 1)
+                + settings.dicomweb.dicomweb_retry_backoff_seconds * 2 ** settings.dicomweb.dicomweb_retries)
+    else:
+        per_peer = (3 * settings.dimse.dicom_timeout_seconds * (settings.dimse.dicom_export_retries + 1)
+                    + settings.dimse.dicom_export_backoff_seconds * 2 ** settings.dimse.dicom_export_retries)
+        work = per_peer * max(1, len(target.get("peers") or []))
+    return work + LEASE_MARGIN_SECONDS
+
+
+def _stow(target: dict[str, Any], files: list[tuple[str, bytes]], uids: list[str],
+          settings: ServiceSettings) -> tuple[dict | None, dict | None]:
+    server = resolve_server(settings, target["server"])
+    if server is None:
+        return None, pacs_error(f"PACS {target['server']}: no longer one of this server's DSAREG_DICOMWEB_SERVERS",
+                                server=target["server"], step="configuration")
+    started = time.perf_counter()
+    try:
+        with DicomwebClient(server, timeout=settings.dicomweb.dicomweb_timeout_seconds, retries=settings.dicomweb.dicomweb_retries,
+                            backoff=settings.dicomweb.dicomweb_retry_backoff_seconds,
+                            max_bytes=settings.limits.max_upload_bytes) as client:
+            stored = client.store(target["study_uid"], [data for _, data in files])
+    except PacsError as exc:
+        return None, pacs_error(str(exc), **exc.problem_extra())
+    return {"via": STOW, "server": server.url, "study_uid": target["study_uid"], "sop_instance_uids": uids,
+            "confirmed": bool(uids) and set(uids) <= set(stored),
+            "seconds": round(time.perf_counter() - started, 3)}, None
+
+
+def _cstore(target: dict[str, Any], files: list[tuple[str, bytes]],
+            settings: ServiceSettings) -> tuple[dict | None, dict | None]:
+    with tempfile.TemporaryDirectory(prefix="dsareg-export-") as tmp:
+        paths = []
+        for name, data in files:
+            (Path(tmp) / name).write_bytes(data)
+            paths.append(Path(tmp) / name)
+        results = [export_to(settings, peer, paths) for peer in target["peers"]]
+    outcome = {"via": CSTORE, "peers": results}
+    failed = [item["error"] for item in results if item["status"] != "stored"]
+    if failed:
+        first = failed[0]
+        return outcome, pacs_error(first["detail"], peer=first["peer"], step=first["step"], dimse_status=first["status"])
+    return outcome, None
+
+
+def store_results(job: JobRecord, target: dict[str, Any], read: Any,
+                  settings: ServiceSettings) -> tuple[dict | None, dict | None]:
+    """One export attempt of ``job``'s REG and overlays: ``(outcome, None)`` or ``(outcome or None, pacs-error)``."""
+    missing = [name for name in STORED_FILES if name not in (job.artifacts or {})]
+    if missing:
+        return None, pacs_error(f"the job has no {', '.join(missing)} to export", step="results")
+    files = [(name, read(job.artifacts[name])) for name in STORED_FILES]
+    instances = ((job.result or {}).get("dicom") or {}).get("instances") or {}
+    uids = [str(instances[name]["sop_instance_uid"]) for name in STORED_FILES if name in instances]
+    if target.get("via") == STOW:
+        return _stow(target, files, uids, settings)
+    return _cstore(target, files, settings)
+
+
+class ExportDeliverer(LeasedDeliverer):
+    """The API process's loop that stores approved jobs' results into their PACS (see the module docstring)."""
+
+    name = "exports"
+
+    def __init__(self, store: JobStore, blobs: BlobStore, settings: ServiceSettings):
+        super().__init__(threads=2)
+        self.store, self.blobs, self.settings = store, blobs, settings
+
+    def due(self, now: float) -> list[str]:
+        return self.store.due_exports(now)
+
+    def claim(self, job_id: str, now: float) -> dict[str, Any] | None:
+        job = self.store.get(job_id)
+        if job is None or not job.export:
+            return None
+        return self.store.claim_export(job_id, now, lease_seconds(self.settings, job.export["target"]))
+
+    def deliver(self, row: dict[str, Any]) -> str:
+        job = self.store.get(row["job_id"])
+        if job is None:
+            return "gone"
+        outcome, error = store_results(job, row["target"], self.blobs.read, self.settings)
+        attempt = row["attempts"]
+        if error is None:
+            state, next_at = "done", None
+        elif attempt >= self.settings.jobs.export_max_attempts:
+            state, next_at = "failed", None
+        else:
+            delay = min(MAX_BACKOFF_SECONDS, self.settings.jobs.export_retry_backoff_seconds * 2.0 ** (attempt - 1))
+            state, next_at = "pending", time.time() + delay
+        if error is not None:
+            error = {**error, "attempts": attempt, "instance": f"/v1/registrations/{job.id}"}
+        self.store.finish_export(job.id, attempt, state=state, outcome=outcome, error=error, next_attempt_at=next_at)
+        log.log(logging.INFO if state == "done" else logging.WARNING, "job %s: export attempt %d %s%s", job.id,
+                attempt, state, f" ({error['detail']})" if error else "")
+        return state

@@ -1,0 +1,80 @@
+"""The delivery loop shared by completion callbacks and held PACS exports (API process only).
+
+Every ``POLL_SECONDS`` the loop asks the store what is due (:meth:`LeasedDeliverer.due`), takes
+each item with a lease (:meth:`claim`: a conditional UPDATE, so two API replicas never run the
+same attempt) and runs it on a small thread pool (:meth:`deliver`). An API that dies mid-attempt
+leaves the row with a lease; once it has passed, a deliverer (after a restart, or another
+replica) takes it again: at least once, never lost.
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from ..storage.store import store_outage_errors
+
+log = logging.getLogger("dsareg.service.deliveries")
+
+POLL_SECONDS = 0.25
+DELIVERY_THREADS = 4
+
+
+class LeasedDeliverer(abc.ABC):
+    """A thread that claims due items from the store and delivers each on a thread pool."""
+
+    name = "deliveries"
+
+    def __init__(self, threads: int = DELIVERY_THREADS):
+        self._halt = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._pool = ThreadPoolExecutor(threads, thread_name_prefix=self.name)
+
+    @abc.abstractmethod
+    def due(self, now: float) -> list[str]:
+        """Job ids whose item is due now."""
+
+    @abc.abstractmethod
+    def claim(self, job_id: str, now: float) -> dict[str, Any] | None:
+        """Take the item with a lease; None when another deliverer has it or it is no longer due."""
+
+    @abc.abstractmethod
+    def deliver(self, row: dict[str, Any]) -> str:
+        """One attempt of a claimed item; the state it left."""
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._halt.set()
+        self._thread.join(5)
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def _run(self) -> None:
+        while not self._halt.wait(POLL_SECONDS):
+            try:
+                self.deliver_due()
+            except store_outage_errors() as exc:
+                log.warning("%s skipped: job store unavailable (%s)", self.name, type(exc).__name__)
+            except Exception:
+                log.exception("%s round failed", self.name)
+
+    def deliver_due(self) -> int:
+        """Claim every due item and hand it to the pool; how many were claimed."""
+        claimed = 0
+        for job_id in self.due(time.time()):
+            row = self.claim(job_id, time.time())
+            if row is not None:
+                claimed += 1
+                self._pool.submit(self._deliver_logged, row)
+        return claimed
+
+    def _deliver_logged(self, row: dict[str, Any]) -> None:
+        try:
+            self.deliver(row)
+        except Exception:  # the lease expires and the item is tried again
+            log.exception("job %s: %s attempt raised", row["job_id"], self.name)
