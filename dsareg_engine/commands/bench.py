@@ -334,23 +334,26 @@ def bench_track(args: argparse.Namespace) -> int:
 
 def _partial_cases(mesh, args: argparse.Namespace):
     """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
-    from ..simulation.partial_filling import early_filling, extra_territory, full_visibility, selective_injection
     from ..geometry.vessel_tree import vessel_tree
+    from ..simulation import partial_filling as made
+    from ..simulation.phantom import make_vessel_phantom
 
     tree = vessel_tree(mesh)
     rng = np.random.default_rng(args.seed)
+    per_fraction = {"early_filling": lambda f: made.early_filling(mesh, f, tree),
+                    "selective_injection": lambda f: made.selective_injection(mesh, f, rng, tree),
+                    "reflux_injection": lambda f: made.reflux_injection(mesh, f, rng, tree)}
     rows = []
     for kind in args.kinds:
         if kind == "full":
-            rows.append(("full", 1.0, lambda: full_visibility(mesh)))
+            rows.append(("full", 1.0, lambda: made.full_visibility(mesh)))
         elif kind == "extra_territory":
-            rows.append(("extra_territory", None, lambda: extra_territory(mesh, tree)))
+            rows.append(("extra_territory", None, lambda: made.extra_territory(mesh, tree)))
+        elif kind == "foreign_territory":
+            other = make_vessel_phantom(seed=args.seed + 3)
+            rows.append((kind, None, lambda other=other: made.foreign_territory(mesh, other, tree)))
         else:
-            for fraction in args.fractions:
-                if kind == "early_filling":
-                    rows.append((kind, fraction, lambda f=fraction: early_filling(mesh, f, tree)))
-                else:
-                    rows.append((kind, fraction, lambda f=fraction: selective_injection(mesh, f, rng, tree)))
+            rows += [(kind, fraction, lambda f=fraction, kind=kind: per_fraction[kind](f)) for fraction in args.fractions]
     if not args.no_safety:
         rows += [("wrong_tree", None, "wrong_tree"), ("swapped_views", None, "swapped_views"),
                  ("swapped_views+early_filling", 0.5, "swapped_early")]

@@ -132,7 +132,9 @@ def _add_partial(which) -> None:
     partial.add_argument("--fractions", type=float, nargs="+", default=[0.4, 0.5, 0.6],
                          help="visible fractions of the model's faces (early filling and one branch)")
     partial.add_argument("--kinds", nargs="+", default=["full", "early_filling", "selective_injection", "extra_territory"],
-                         choices=["full", "early_filling", "selective_injection", "extra_territory"], help="rows to run")
+                         choices=["full", "early_filling", "selective_injection", "extra_territory", "reflux_injection",
+                                  "foreign_territory"],
+                         help="rows to run (reflux_injection, foreign_territory: the second generator family)")
     partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
     partial.add_argument("--options", default="{}", help="extra registration options as JSON")
     partial.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_partial"))

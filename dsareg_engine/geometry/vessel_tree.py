@@ -47,6 +47,15 @@ class VesselTree:
         tolerance = DOWNSTREAM_TOLERANCE_DIAMETERS * max(float(self.thickness_mm[vertex]), 0.5)
         return (from_inflow[vertex] + from_point <= from_inflow + tolerance) & (from_inflow >= from_inflow[vertex] - tolerance)
 
+    def downstream_sets(self, vertices: np.ndarray) -> np.ndarray:
+        """``(K, V)`` bool: :meth:`downstream_of` for each of ``vertices`` ``(K,)`` (one batched Dijkstra)."""
+        vertices = np.asarray(vertices, dtype=np.int64)
+        from_inflow = self.distances_from(self.inflow)
+        from_points = csgraph.dijkstra(self.graph, directed=False, indices=vertices)
+        start = from_inflow[vertices][:, None]
+        tolerance = DOWNSTREAM_TOLERANCE_DIAMETERS * np.maximum(self.thickness_mm[vertices], 0.5)[:, None]
+        return (start + from_points <= from_inflow[None] + tolerance) & (from_inflow[None] >= start - tolerance)
+
 
 def vessel_tree(mesh: TriangleMesh, inflow_mm: np.ndarray | None = None) -> VesselTree:
     """Build the tree of ``mesh``; ``inflow_mm`` (mesh mm) picks the inflow, else :func:`guess_inflow`."""

@@ -79,10 +79,17 @@ class Initialization:
     seconds: float
     coverage: dict | None = None
     """The coverage search's best candidate: score and per-view precision / recall (None when it did not run)."""
+    branch: dict | None = None
+    """The branch search's best part: parts searched, its score and share of the faces (None when it did not run)."""
+    fit_faces: np.ndarray | None = None
+    """``(F,)`` bool: the part of the model the fit renders (the branch search's matching part), or None: all of it."""
+    centroid_score: float = 1.0
+    """The centroid search's best score for the whole model (what decides whether the partial searches run)."""
 
     def metrics(self) -> dict:
         return {
             "coverage": self.coverage,
+            "branch": self.branch,
             "method": self.method,
             "candidates_scored": int(self.candidates_scored),
             "seconds": round(self.seconds, 3),
@@ -92,7 +99,7 @@ class Initialization:
 
 
 GIVEN_INITIALIZATION = {"method": "given", "candidates_scored": 0, "seconds": 0.0, "best_score": None, "runner_up_score": None,
-                        "coverage": None}
+                        "coverage": None, "branch": None}
 """``metrics.initialization`` when the starts came from a given pose."""
 
 
@@ -320,7 +327,8 @@ def search_initial_poses(
         lambda trial: score_candidates(windows, trial, centre, points, settings), grid[top], settings.refine_steps_deg)
     chosen = _distinct(rotations, refined, max(count, 2), settings.distinct_deg)
     poses = _poses(rotations[chosen], centres[chosen], mesh.centroid)
-    found = Initialization(poses[:count], refined[chosen], "search", len(grid) + extra, time.perf_counter() - started)
+    found = Initialization(poses[:count], refined[chosen], "search", len(grid) + extra, time.perf_counter() - started,
+                           centroid_score=float(refined[chosen][0]))
     if coverage is None or found.scores[0] < COVERAGE_GATE:
         return found
     return _with_coverage_starts(found, mesh, masks, rig, centre, points, grid, count, settings, coverage, started)

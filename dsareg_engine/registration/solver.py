@@ -27,11 +27,12 @@ from ..geometry.pose import validate_rigid
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from ..render.jacobian import jacobian_available
 from ..vision.vessel_target import binary_mask, is_coverage
-from ..geometry.vessel_tree import select_region
+from ..geometry.vessel_tree import compact, select_region
 from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
-from .initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
+from .branch_search import with_branch_starts
+from .initialization import COVERAGE_GATE, GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .options import RegistrationOptions
 from .partial import looks_partial, match_fractions, trimmed_weight
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
@@ -144,6 +145,9 @@ class _Problem:
         """Per (view, scale): the pixel window ``(x0, y0, x1, y1)`` the loss is evaluated in (see set_windows)."""
         self.partial = False
         """Partial visibility (see :mod:`.partial`): background far from the vessels weighs little in the loss."""
+        self.fit_mesh = mesh
+        """What the loss renders: the mesh, or the part of it the branch search matched to the images
+        (:mod:`.branch_search`); the pose, the signals and the views are always the whole mesh's."""
 
     def _footprint(self, view, poses: np.ndarray) -> np.ndarray:
         """Pixel bounding box ``(u_min, v_min, u_max, v_max)`` of the mesh's vertices under all ``poses`` in ``view``."""
@@ -190,20 +194,22 @@ class _Problem:
                 return False
         return True
 
-    def mesh_tensors(self, dtype: torch.dtype, stage: Stage | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Vertices and faces for rendering a stage: a decimated level of detail for Adam stages.
+    def mesh_tensors(self, dtype: torch.dtype, stage: Stage | None = None, fit: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vertices and faces for rendering a stage (or with ``fit``: the fitted part, :attr:`fit_mesh`; else the
+        whole mesh): a decimated level of detail for Adam stages.
 
         Faces much smaller than a pixel cost a whole blur disc each and make the soft
         silhouette swell; decimating to about ``LOD_FACE_AREA_PX`` px² per face (as projected
         at the stage's scale) keeps cost and swelling in check. The final L-BFGS stage
         always uses the full mesh so accuracy does not depend on the decimation.
         """
-        faces_wanted = self.mesh.n_faces
+        source = self.fit_mesh if stage is not None or fit else self.mesh
+        faces_wanted = source.n_faces
         if stage is not None and (stage.optimizer == "adam" if stage.level_of_detail is None else stage.level_of_detail):
-            faces_wanted = level_of_detail_faces(self.mesh.n_faces, self.mean_face_area_px * stage.scale**2)
-        key = (dtype, faces_wanted)
+            faces_wanted = level_of_detail_faces(source.n_faces, self.mean_face_area_px * stage.scale**2)
+        key = (dtype, faces_wanted, source is self.mesh)
         if key not in self._mesh_tensors:
-            mesh = self.mesh if faces_wanted >= self.mesh.n_faces else _decimated(self.mesh, faces_wanted)
+            mesh = source if faces_wanted >= source.n_faces else _decimated(source, faces_wanted)
             self._mesh_tensors[key] = mesh.torch(dtype, self.device)
         return self._mesh_tensors[key]
 
@@ -231,8 +237,8 @@ class _Problem:
         return self._signed_distance[view_name]
 
     def update_border_shifts(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> None:
-        """Re-measure each view's target border shift against the full mesh at ``mesh_to_world``."""
-        vertices, faces = self.mesh_tensors(torch.float64)
+        """Re-measure each view's target border shift against the fitted mesh at ``mesh_to_world``."""
+        vertices, faces = self.mesh_tensors(torch.float64, fit=True)
         for name in views:
             view = self.rig.views[name]
             pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
@@ -503,7 +509,9 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     if searched is not None:
         initial = searched.poses[0]
     problem = _Problem(mesh, targets, rig, options, device, initial)
-    problem.partial = searched is not None and searched.method == "search+coverage"
+    problem.partial = searched is not None and searched.method.startswith("search+")
+    if searched is not None and searched.fit_faces is not None:
+        problem.fit_mesh = compact(mesh, searched.fit_faces)
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -677,7 +685,10 @@ def _initialize(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, opti
         return None
     visible = {name: mask for name, mask in masks.items()
                if name in rig.views and mask.shape == rig.views[name].image_size[::-1] and mask.any()}
-    return search_initial_poses(mesh, visible, rig, max(options.starts, SEARCH_MIN_STARTS))
+    found = search_initial_poses(mesh, visible, rig, max(options.starts, SEARCH_MIN_STARTS))
+    if found.centroid_score < COVERAGE_GATE:
+        return found
+    return with_branch_starts(found, mesh, visible, rig)
 
 
 def _check_inputs(masks: dict[str, np.ndarray], rig: Rig, used_views: tuple[str, ...]) -> None:

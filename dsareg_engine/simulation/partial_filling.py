@@ -10,6 +10,14 @@ Three ways a clinical run and a 3D model disagree (the images are rendered from 
 * :func:`extra_territory` — a model holding a territory the run does not inject (e.g. the other
   carotid's): the model is the mesh plus a mirrored copy of it joined at the inflow.
 
+A second, different family (to measure the engine on cases its branch search was not built from):
+
+* :func:`reflux_injection` — a catheter tip placed at random (not at the point whose branch has
+  the asked share), contrast refluxing a few mm back into the parent vessel and the branch filled
+  only part of its length: not a clean subtree;
+* :func:`foreign_territory` — the model holds another vessel tree (e.g. another phantom) joined at
+  the inflow and spreading away from the mesh, not a mirror copy.
+
 Fractions are of the model's faces. Distances come from :mod:`dsareg_engine.geometry.vessel_tree`.
 """
 
@@ -30,7 +38,8 @@ class PartialCase:
     Attributes:
         model: what is registered.
         visible: what the images are rendered from.
-        kind: ``"early_filling"``, ``"selective_injection"``, ``"extra_territory"`` or ``"full"``.
+        kind: ``"early_filling"``, ``"selective_injection"``, ``"extra_territory"``, ``"reflux_injection"``,
+            ``"foreign_territory"`` or ``"full"``.
         visible_fraction: visible faces / model faces.
     """
 
@@ -81,3 +90,55 @@ def extra_territory(mesh: TriangleMesh, tree: VesselTree | None = None) -> Parti
     faces = np.concatenate([mesh.faces, mesh.faces[:, ::-1] + len(mesh.vertices)])  # a mirror turns the winding
     model = TriangleMesh(vertices, faces)
     return PartialCase(model, mesh, "extra_territory", mesh.n_faces / model.n_faces)
+
+
+def reflux_injection(mesh: TriangleMesh, fraction: float, rng: np.random.Generator, tree: VesselTree | None = None,
+                     reflux_mm: tuple[float, float] = (4.0, 12.0), filled: tuple[float, float] = (0.85, 1.0)) -> PartialCase:
+    """A tip at a random vertex whose branch holds ``fraction`` / 0.85 ± 0.15 of the faces; the branch filled over a
+    random share ``filled`` of its geodesic length from the tip, plus every vertex within a random
+    ``reflux_mm`` of the tip along the surface (contrast flowing back into the parent vessel)."""
+    tree = tree or vessel_tree(mesh)
+    from_inflow = tree.distances_from(tree.inflow)
+    eligible = rng.permutation(np.flatnonzero(from_inflow > 0.1 * from_inflow.max()))[:200]
+    branches = tree.downstream_sets(eligible)
+    shares = branches[:, mesh.faces].all(axis=2).mean(axis=1)
+    near = np.flatnonzero(np.abs(shares - fraction / 0.85) <= 0.15)  # the fill and the reflux change the share
+    pick = int(rng.choice(near)) if len(near) else int(np.argmin(np.abs(shares - fraction)))
+    from_tip = tree.distances_from(int(eligible[pick]))
+    branch = branches[pick]
+    reach = rng.uniform(*filled) * from_tip[branch].max()
+    visible = (branch & (from_tip <= reach)) | (from_tip <= rng.uniform(*reflux_mm))
+    keep = visible[mesh.faces].all(axis=1)
+    return PartialCase(mesh, compact(mesh, keep), "reflux_injection", float(keep.mean()))
+
+
+def foreign_territory(mesh: TriangleMesh, other: TriangleMesh, tree: VesselTree | None = None,
+                      other_tree: VesselTree | None = None) -> PartialCase:
+    """The model = the mesh and ``other`` (another vessel tree) scaled to the mesh's RMS radius, its inflow placed
+    on the mesh's and turned so that its centre lies opposite the mesh's centre; the images show the mesh alone."""
+    tree, other_tree = tree or vessel_tree(mesh), other_tree or vessel_tree(other)
+    origin, other_origin = mesh.vertices[tree.inflow], other.vertices[other_tree.inflow]
+    away = origin - mesh.centroid
+    toward = other.centroid - other_origin
+    turn = _turn_between(toward / np.linalg.norm(toward), away / np.linalg.norm(away))
+    scale = _rms_radius(mesh) / _rms_radius(other)
+    placed = scale * (other.vertices - other_origin) @ turn.T + origin
+    model = TriangleMesh(np.concatenate([mesh.vertices, placed]), np.concatenate([mesh.faces, other.faces + len(mesh.vertices)]))
+    return PartialCase(model, mesh, "foreign_territory", mesh.n_faces / model.n_faces)
+
+
+def _rms_radius(mesh: TriangleMesh) -> float:
+    return float(np.sqrt(((mesh.vertices - mesh.centroid) ** 2).sum(axis=1).mean()))
+
+
+def _turn_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation ``(3, 3)`` turning unit vector ``a`` onto unit vector ``b`` (Rodrigues; a half turn when opposite)."""
+    axis, cosine = np.cross(a, b), float(a @ b)
+    if np.linalg.norm(axis) < 1e-9:
+        if cosine > 0:
+            return np.eye(3)
+        side = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+        side /= np.linalg.norm(side)
+        return 2.0 * np.outer(side, side) - np.eye(3)
+    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + skew + skew @ skew / (1.0 + cosine)

@@ -97,17 +97,30 @@ class ConfidenceSignals(BaseModel):
         default_factory=dict, description="Per view: fraction (0–1) of the model's vertices projecting outside the image.")
     stopped_on_tolerance: bool | None = Field(
         None, description="True when the final stage stopped because the pose stopped changing (not the iteration cap).")
+    unmatched_fraction: dict[str, float] | None = Field(
+        None, description="Per view: fraction (0–1) of the model's registered silhouette farther than 2 px from any "
+                          "vessel of the mask (model branches the run did not fill, or a wrong pose).")
+    uncovered_fraction: dict[str, float] | None = Field(
+        None, description="Per view: fraction (0–1) of the vessel mask farther than 2 px from the model's silhouette "
+                          "(vessels the model lacks, or a wrong pose).")
+    partial_loss: bool | None = Field(
+        None, description="True when the fit used the loss for partial visibility (background farther than 2 px "
+                          "from the vessels weighed 0.05), because the images show only part of the model.")
 
 
 class Confidence(BaseModel):
-    """The verdict on the pose and why. `failed`: some view's Dice < 0.5; `check`: any view's Dice < 0.7, a
-    distinct pose fits almost as well, a border shift ≥ 1.5 px, > 25 % of the model outside an image, or the
-    iteration cap was hit; else `ok`."""
+    """The verdict on the pose and why. `check` with the partial-visibility reason ("the model has vessels the
+    images do not show"): every view has `unmatched_fraction` ≥ 0.1 and `uncovered_fraction` ≤ 0.05, consistently
+    across views (the Dice rules are then skipped). Otherwise `failed`: some view's Dice < 0.5; `check`: any
+    view's Dice < 0.7, a distinct pose fits almost as well, a border shift ≥ 1.5 px, > 25 % of the model outside
+    an image, or the iteration cap was hit; else `ok`."""
 
     model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
         "verdict": "failed", "reasons": ["ap: the model's silhouette overlaps the vessels poorly (dice 0.25)"],
         "signals": {"dice": {"ap": 0.25, "lat": 0.31}, "runner_up": None, "border_shift_px": {"ap": 0.1, "lat": 0.0},
-                    "outside_fraction": {"ap": 0.0, "lat": 0.0}, "stopped_on_tolerance": True}}]})
+                    "outside_fraction": {"ap": 0.0, "lat": 0.0}, "stopped_on_tolerance": True,
+                    "unmatched_fraction": {"ap": 0.61, "lat": 0.58}, "uncovered_fraction": {"ap": 0.47, "lat": 0.52},
+                    "partial_loss": False}}]})
 
     verdict: Verdict = Field(description="ok: use the pose; check: look at the overlays first; failed: do not use it.")
     reasons: list[str] = Field(default_factory=list,
@@ -115,17 +128,42 @@ class Confidence(BaseModel):
     signals: ConfidenceSignals = Field(default_factory=ConfidenceSignals)
 
 
+class CoverageSearch(BaseModel):
+    """Best candidate of the coverage search (partial visibility): how much of the vessels the whole model explains."""
+
+    model_config = ConfigDict(extra="allow")
+
+    best_score: float = Field(description="1 − F₂ of precision and recall, mean over the views (0 best, 1 worst).")
+    precision: list[float] = Field(description="Per view (AP, LAT order): share (0–1) of the model's points on or next to vessels.")
+    recall: list[float] = Field(description="Per view: share (0–1) of the vessel pixels the model reaches.")
+
+
+class BranchSearch(BaseModel):
+    """Best part of the branch search (partial visibility): the model cut to one branch and what lies downstream."""
+
+    model_config = ConfigDict(extra="allow")
+
+    parts_searched: int = Field(description="Parts of the model (branches) searched, count.")
+    best_score: float | None = Field(None, description="The best part's search score (0 best, 1 worst).")
+    faces_fraction: float | None = Field(None, description="The best part's share (0–1) of the model's faces.")
+
+
 class Initialization(BaseModel):
     """Where the optimization started: a given pose, or a search over candidate poses."""
 
     model_config = ConfigDict(extra="allow")
 
-    method: Literal["given", "search"] = Field(description="given: the geometry's / options' initial pose; "
-                                                           "search: the best candidates of a pose search.")
-    candidates_scored: int = Field(0, description="Candidate poses scored by the search (0 when given).")
+    method: Literal["given", "search", "search+coverage", "search+branch", "search+coverage+branch"] = Field(
+        description="given: the geometry's / options' initial pose; search: the best candidates of a pose search; "
+                    "+coverage / +branch: the images looked partial and the coverage search's / the branch search's "
+                    "candidates lead the starts (docs/concepts/verdict.md).")
+    candidates_scored: int = Field(0, description="Rotations scored by the whole-model searches (0 when given).")
     seconds: float = Field(0.0, description="Time of the search, seconds.")
-    best_score: float | None = Field(None, description="Search score of the best candidate (higher is better).")
-    runner_up_score: float | None = Field(None, description="Score of the second-best candidate.")
+    best_score: float | None = Field(None, description="Search score of the best start (0 best, 1 worst).")
+    runner_up_score: float | None = Field(None, description="Score of the second-best start.")
+    coverage: CoverageSearch | None = Field(None, description="The coverage search's best candidate (null when it did "
+                                                              "not run: the whole model's search scored < 0.3).")
+    branch: BranchSearch | None = Field(None, description="The branch search's best part (null when it did not run).")
 
 
 class Motion(BaseModel):

@@ -132,9 +132,16 @@ def test_openapi_types_the_whole_result(contract_server):
     signals = _schema(doc, "ConfidenceSignals")["properties"]
     assert signals["dice"]["additionalProperties"] == {"type": "number"}
     assert {"outside_fraction", "border_shift_px", "runner_up", "stopped_on_tolerance"} <= set(signals)
+    for partial in ("unmatched_fraction", "uncovered_fraction"):  # partial visibility, per view 0-1
+        assert {"type": "object", "additionalProperties": {"type": "number"}} in signals[partial]["anyOf"], partial
+    assert {"type": "boolean"} in signals["partial_loss"]["anyOf"]
     for open_model in ("Confidence", "ConfidenceSignals", "ResultMetrics", "RegistrationResult", "DicomResult"):
         assert _schema(doc, open_model).get("additionalProperties") is True, open_model  # the engine may add fields
-    assert _enum(doc, _schema(doc, "Initialization")["properties"]["method"]) == ["given", "search"]
+    initialization = _schema(doc, "Initialization")["properties"]
+    assert _enum(doc, initialization["method"]) == ["given", "search", "search+coverage", "search+branch",
+                                                   "search+coverage+branch"]
+    assert {"$ref": "#/components/schemas/CoverageSearch"} in initialization["coverage"]["anyOf"]
+    assert {"parts_searched", "best_score", "faces_fraction"} <= set(_schema(doc, "BranchSearch")["properties"])
     assert {"rotation_deg", "translation_mm"} <= set(_schema(doc, "Motion")["required"])
     result = _schema(doc, "RegistrationResult")["properties"]
     assert _enum(doc, result["verdict"]) == ["ok", "check", "failed"]

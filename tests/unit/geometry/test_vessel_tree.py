@@ -51,6 +51,15 @@ def test_downstream_of_a_branch_point_is_that_branch(phantom):
     assert downstream[np.argmax(mesh.vertices[:, 0])]  # the right branch's tip
 
 
+def test_downstream_sets_batch_equals_one_at_a_time(phantom):
+    tree = vessel_tree(phantom)
+    vertices = np.random.default_rng(2).choice(len(phantom.vertices), size=7, replace=False)
+    batch = tree.downstream_sets(vertices)
+    assert batch.shape == (7, len(phantom.vertices))
+    for row, vertex in zip(batch, vertices):
+        assert np.array_equal(row, tree.downstream_of(int(vertex)))
+
+
 def test_phantom_inflow_is_its_trunk_base(phantom):
     tree = vessel_tree(phantom)
     trunk_base = phantom.vertices[:12].mean(axis=0)  # the first ring of the trunk (see make_vessel_phantom)

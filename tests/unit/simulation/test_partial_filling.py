@@ -46,3 +46,28 @@ def test_extra_territory_doubles_the_model_and_shows_the_original(phantom_tree):
     normals = np.cross(b - a, c - a)
     outward = ((a + b + c) / 3 - copy.mean(axis=0))
     assert np.mean(np.sum(normals * outward, axis=1) > 0) > 0.5  # the mirrored copy still winds outward
+
+
+def test_reflux_injection_is_a_partly_filled_branch_with_reflux(phantom_tree):
+    from dsareg_engine.simulation.partial_filling import reflux_injection
+
+    mesh, tree = phantom_tree
+    case = reflux_injection(mesh, 0.5, np.random.default_rng(4), tree, reflux_mm=(10.0, 10.0))
+    assert case.kind == "reflux_injection" and 0.15 < case.visible_fraction < 0.85
+    inflow = mesh.vertices[tree.inflow]
+    assert np.min(np.linalg.norm(case.visible.vertices - inflow, axis=1)) > 5.0  # the inflow is not filled
+
+
+def test_foreign_territory_joins_another_tree_at_the_inflow(phantom_tree):
+    from dsareg_engine.simulation.partial_filling import foreign_territory
+
+    mesh, tree = phantom_tree
+    other = make_vessel_phantom(seed=3)
+    case = foreign_territory(mesh, other, tree)
+    assert case.model.n_faces == mesh.n_faces + other.n_faces and case.visible is mesh
+    placed = case.model.vertices[len(mesh.vertices):]
+    inflow = mesh.vertices[tree.inflow]
+    assert np.min(np.linalg.norm(placed - inflow, axis=1)) < 1e-6  # its inflow on the mesh's
+    assert (placed.mean(axis=0) - inflow) @ (mesh.centroid - inflow) < 0  # spreading away from the mesh
+    rms = lambda v: np.sqrt(((v - v.mean(axis=0)) ** 2).sum(axis=1).mean())
+    assert rms(placed) == pytest.approx(rms(mesh.vertices), rel=1e-6)
