@@ -111,16 +111,21 @@ class Source(BaseModel):
     dicomweb: DicomwebSource
 
 
-class DicomwebRegistrationRequest(BaseModel):
-    """``POST /v1/registrations`` with ``Content-Type: application/json``: inputs by reference."""
+class ReferenceRequestFields(BaseModel):
+    """What every by-reference JSON body carries besides its ``source`` (DICOMweb here, DIMSE in pacs/dimse)."""
 
     model_config = ConfigDict(extra="forbid")
-    source: Source
     options: dict[str, Any] = Field(default_factory=dict, description="RegistrationOptions, as in the multipart form.")
-    store_results: bool = Field(True, description="STOW-RS the REG and the overlays back into the study.")
     callback_url: str | None = Field(
         None, max_length=2048, description="POSTed the job summary once the job ends (see docs/api/callbacks.md); "
                                            "must start with one of the server's DSAREG_CALLBACK_ALLOWED prefixes.")
+
+
+class DicomwebRegistrationRequest(ReferenceRequestFields):
+    """``POST /v1/registrations`` with ``Content-Type: application/json``: inputs by reference."""
+
+    source: Source
+    store_results: bool = Field(True, description="STOW-RS the REG and the overlays back into the study.")
 
 
 # ---- errors --------------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine, fetched_case_files
-from ..dicomweb import StudyReference
+from ..dicomweb import ReferenceRequestFields, StudyReference
 from .query import DimsePacsError, retrieve, scu_ae
 from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
 
@@ -45,16 +45,11 @@ class DimseSourceField(BaseModel):
     dimse: DimseSource
 
 
-class DimseRegistrationRequest(BaseModel):
+class DimseRegistrationRequest(ReferenceRequestFields):
     """``POST /v1/registrations`` (``application/json``) with inputs retrieved over DIMSE (C-MOVE or C-GET)."""
 
-    model_config = ConfigDict(extra="forbid")
     source: DimseSourceField
-    options: dict[str, Any] = Field(default_factory=dict, description="RegistrationOptions, as in the multipart form.")
     store_results: bool = Field(True, description="C-STORE the REG and the overlays back to the peer.")
-    callback_url: str | None = Field(
-        None, max_length=2048, description="POSTed the job summary once the job ends (see docs/api/callbacks.md); "
-                                           "must start with one of the server's DSAREG_CALLBACK_ALLOWED prefixes.")
 
 
 def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str) -> list[bytes]:
