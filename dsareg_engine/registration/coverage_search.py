@@ -8,8 +8,10 @@ and every candidate is scored at a wrong position. Here each rotation gets its o
 1. per view, the model's points are splatted onto a canvas twice the size of a window around
    the mask (``S``: the pixels they hit; ``S⁺``: those grown by 1 px) and cross-correlated (FFT)
    with the mask ``M`` and its 1-px dilation ``M⁺``, for every pixel shift ``s`` up to half the
-   window: precision ``P(s) = Σ S(p + s) M⁺(p) / |S|`` (model pixels on or next to vessels) and
-   recall ``R(s) = Σ S⁺(p + s) M(p) / |M|`` (vessel pixels the model reaches);
+   window: precision ``P(s) = Σ S(p + s) M⁺(p) / Σ S(p + s) (D(p) + w (1 − D(p)))`` (model pixels on or
+   next to vessels, of those on the detector ``D`` and, weighed ``w`` < 1, those past its edge: the field
+   of view may cut the model, but hiding a part past the edge must not be free) and recall ``R(s) = Σ S⁺(p + s) M(p) / |M|`` (vessel pixels the
+   model reaches);
 2. each view's shift of best ``F_β(P, R)`` (β = 2), stacked, gives the 3D translation by least
    squares through the views' pixel-per-mm Jacobian (one rigid position explains both views),
    at which ``P`` and ``R`` are read back in both views;
@@ -29,9 +31,12 @@ import numba
 import numpy as np
 import scipy.fft
 
-from ..geometry.rig import ViewGeometry
+from ..geometry.rig import Rig, ViewGeometry
+from ..mesh import TriangleMesh
 from ..render.serial_kernels import KernelPair
 from . import search_kernels
+from .rotation_grid import grid_spacing_deg, rotation_grid
+from .rotation_refine import distinct, hill_climb, poses_from
 
 
 @dataclass(frozen=True)
@@ -47,6 +52,9 @@ class CoverageSettings:
         rotations: size of its SO(3) grid (coarser than the centroid search's: each candidate costs FFTs).
         refine_top: best candidates refined by the hill-climb.
         refine_steps_deg: rotation steps of the hill-climb, one round each.
+        past_edge_weight: a model pixel past the detector's edge counts this much against precision (one on
+            the detector but off the vessels counts 1): the field of view may cut the model, but a pose must
+            not win by hiding what it cannot explain past the edge.
     """
 
     window_px: int = 40
@@ -57,16 +65,19 @@ class CoverageSettings:
     rotations: int = 512
     refine_top: int = 16
     refine_steps_deg: tuple[float, ...] = (12.0, 6.0, 3.0)
+    past_edge_weight: float = 0.5
 
 
 @dataclass
 class CoverageView:
-    """One view's canvas: its geometry, the conjugate spectra of the mask and of its 1-px dilation, the
-    mask's pixel count and the largest shift searched (canvas px)."""
+    """One view's canvas: its geometry, the conjugate spectra of the mask, of its 1-px dilation and of the
+    detector's area (1 on the detector, 0 past its edges), the mask's pixel count and the largest shift
+    searched (canvas px)."""
 
     view: ViewGeometry
     mask_spectrum: np.ndarray
     near_spectrum: np.ndarray
+    detector_spectrum: np.ndarray
     mask_pixels: float
     max_shift_px: int
 
@@ -95,8 +106,10 @@ def coverage_view(view: ViewGeometry, mask: np.ndarray, centre_world: np.ndarray
     padded[max(-r0, 0): max(-r0, 0) + src.shape[0], max(-c0, 0): max(-c0, 0) + src.shape[1]] = src
     occupied = (padded > 0.05).astype(np.float32)
     near = cv2.dilate(occupied, np.ones((3, 3), np.uint8))
-    return CoverageView(canvas_view, np.conj(scipy.fft.rfft2(occupied)), np.conj(scipy.fft.rfft2(near)),
-                        float(occupied.sum()), canvas // 4)
+    detector = np.zeros((canvas, canvas), np.float32)
+    detector[max(-r0, 0): max(level.height - r0, 0), max(-c0, 0): max(level.width - c0, 0)] = 1.0
+    spectra = [np.conj(scipy.fft.rfft2(image)) for image in (occupied, near, detector)]
+    return CoverageView(canvas_view, *spectra, float(occupied.sum()), canvas // 4)
 
 
 _SPLAT = KernelPair(search_kernels.splat_images)
@@ -124,11 +137,14 @@ def _correlate(images: np.ndarray, spectrum: np.ndarray, shifts: np.ndarray) -> 
     return overlap[:, shifts][:, :, shifts]
 
 
-def _precision_recall(canvas: CoverageView, rotations: np.ndarray, centre: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _precision_recall(canvas: CoverageView, rotations: np.ndarray, centre: np.ndarray, points: np.ndarray,
+                      past_edge_weight: float) -> np.ndarray:
     """``(B, K, K, 2)`` precision and recall of every candidate over every shift (see the module)."""
     shifts = np.arange(-canvas.max_shift_px, canvas.max_shift_px + 1) % canvas.view.width
     hits = _splats(canvas, rotations, centre, points, 0)
-    precision = _correlate(hits, canvas.near_spectrum, shifts) / np.maximum(hits.sum(axis=(1, 2)), 1.0)[:, None, None]
+    on_detector = _correlate(hits, canvas.detector_spectrum, shifts)
+    past_edge = hits.sum(axis=(1, 2))[:, None, None] - on_detector
+    precision = _correlate(hits, canvas.near_spectrum, shifts) / np.maximum(on_detector + past_edge_weight * past_edge, 1.0)
     recall = _correlate(_splats(canvas, rotations, centre, points, 1), canvas.mask_spectrum, shifts) / max(canvas.mask_pixels, 1.0)
     return np.clip(np.stack([precision, recall], axis=-1), 0.0, 1.0)
 
@@ -160,7 +176,7 @@ def coverage_scores(canvases: list[CoverageView], rotations: np.ndarray, centre:
     for first in range(0, len(rotations), settings.chunk):
         chunk = rotations[first: first + settings.chunk]
         rows = np.arange(len(chunk))
-        maps = [_precision_recall(canvas, chunk, centre, points) for canvas in canvases]
+        maps = [_precision_recall(canvas, chunk, centre, points, settings.past_edge_weight) for canvas in canvases]
         moves = []
         for values, canvas in zip(maps, canvases):
             best = f_score(values, settings.beta).reshape(len(chunk), -1).argmax(axis=1)
@@ -178,3 +194,44 @@ def coverage_scores(canvases: list[CoverageView], rotations: np.ndarray, centre:
         places.append(centre + translation)
         detail.append(precision_recall)
     return np.concatenate(scores), np.concatenate(places), np.concatenate(detail)
+
+
+@dataclass
+class CoverageCandidates:
+    """The coverage search's distinct best candidates: ``poses`` ``(K, 4, 4)`` mesh_to_world, best first,
+    ``scores`` ``(K,)`` (``1 − F_β``, 0 best), ``best_detail`` ``(V, 2)`` the best one's per-view (precision,
+    recall), ``scored`` rotations scored in all."""
+
+    poses: np.ndarray
+    scores: np.ndarray
+    best_detail: np.ndarray
+    scored: int
+
+
+def search_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
+                       count: int, distinct_deg: float, settings: CoverageSettings = CoverageSettings()) -> CoverageCandidates:
+    """Grid of ``settings.rotations`` scored by coverage, the best refined by the hill-climb, ``count`` distinct
+    (``distinct_deg`` apart) kept. ``centre`` (world mm): where the masks' centroids triangulate; ``points``
+    ``(N, 3)``: the mesh's surface points less its centroid."""
+    radius = float(np.sqrt(((mesh.vertices - mesh.centroid) ** 2).sum(axis=1).mean()))
+    canvases = [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
+    grid = np.concatenate([np.eye(3)[None], rotation_grid(settings.rotations)])
+    scores, _, _ = coverage_scores(canvases, grid, centre, points, settings)
+    top = distinct(grid, scores, settings.refine_top, 0.75 * grid_spacing_deg(settings.rotations))
+    rotations, refined, centres, extra = hill_climb(
+        lambda trial: coverage_scores(canvases, trial, centre, points, settings)[:2], grid[top], settings.refine_steps_deg)
+    chosen = distinct(rotations, refined, count, distinct_deg)
+    _, _, detail = coverage_scores(canvases, rotations[chosen[:1]], centre, points, settings)
+    return CoverageCandidates(poses_from(rotations[chosen], centres[chosen], mesh.centroid), refined[chosen], detail[0],
+                              len(grid) + extra)
+
+
+def refine_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
+                       poses: np.ndarray, settings: CoverageSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Poses ``(K, 4, 4)`` hill-climbed on ``settings``' canvases (e.g. finer ones) from ``poses``' rotations;
+    returns the refined poses and their scores ``(K,)`` (arguments as :func:`search_by_coverage`)."""
+    radius = float(np.sqrt(((mesh.vertices - mesh.centroid) ** 2).sum(axis=1).mean()))
+    canvases = [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
+    rotations, scores, centres, _ = hill_climb(
+        lambda trial: coverage_scores(canvases, trial, centre, points, settings)[:2], poses[:, :3, :3], settings.refine_steps_deg)
+    return poses_from(rotations, centres, mesh.centroid), scores

@@ -31,8 +31,9 @@ from ..geometry.rig import Rig, ViewGeometry
 from ..mesh import TriangleMesh
 from ..render.serial_kernels import KernelPair
 from . import search_kernels
-from .coverage_search import CoverageSettings, coverage_scores, coverage_view
-from .rotation_grid import angles_between_deg, axis_angle_matrices, grid_spacing_deg, rotation_grid
+from .coverage_search import CoverageSettings, search_by_coverage
+from .rotation_grid import grid_spacing_deg, rotation_grid
+from .rotation_refine import distinct, hill_climb, poses_from
 
 
 @dataclass(frozen=True)
@@ -273,39 +274,6 @@ def score_candidates(
     return 1.0 - similarity / len(windows), place
 
 
-def _local_moves(step_deg: float) -> np.ndarray:
-    """``(13, 3, 3)``: the identity and ±``step_deg`` about the axes and about 3 diagonals."""
-    axes = np.concatenate([np.eye(3), np.array([[1, 1, 1], [1, -1, 1], [1, 1, -1]]) / np.sqrt(3.0)])
-    vectors = np.radians(step_deg) * np.concatenate([axes, -axes])
-    return np.concatenate([np.eye(3)[None], axis_angle_matrices(vectors)])
-
-
-def _hill_climb(score, rotations, steps_deg) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Refine rotations ``(M, 3, 3)`` by rounds of local moves (``score(rotations)`` → scores, centres);
-    returns rotations, scores, centres, count scored."""
-    scored = 0
-    scores = centres = None
-    for step in steps_deg:
-        moves = _local_moves(step)  # world-frame turns applied on the left
-        trial = np.einsum("kij,mjl->mkil", moves, rotations).reshape(-1, 3, 3)
-        trial_scores, trial_centres = score(trial)
-        scored += len(trial)
-        pick = np.arange(len(rotations)) * len(moves) + trial_scores.reshape(len(rotations), len(moves)).argmin(axis=1)
-        rotations, scores, centres = trial[pick], trial_scores[pick], trial_centres[pick]
-    return rotations, scores, centres, scored
-
-
-def _distinct(rotations: np.ndarray, scores: np.ndarray, count: int, min_deg: float) -> list[int]:
-    """Indices of the best ``count`` candidates at least ``min_deg`` apart in rotation."""
-    chosen: list[int] = []
-    for index in np.argsort(scores, kind="stable"):
-        if all(angles_between_deg(rotations[[index]], rotations[other])[0] >= min_deg for other in chosen):
-            chosen.append(int(index))
-            if len(chosen) == count:
-                break
-    return chosen
-
-
 def search_initial_poses(
     mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, count: int, settings: SearchSettings = SearchSettings(),
     coverage: CoverageSettings | None = CoverageSettings(),
@@ -322,49 +290,33 @@ def search_initial_poses(
     points = np.ascontiguousarray(surface_points(mesh, settings.points) - mesh.centroid)
     grid = np.concatenate([np.eye(3)[None], rotation_grid(settings.rotations)])  # the mesh's own axes first
     scores, _ = score_candidates(windows, grid, centre, points, settings)
-    top = _distinct(grid, scores, settings.refine_top, 0.75 * grid_spacing_deg(settings.rotations))
-    rotations, refined, centres, extra = _hill_climb(
+    top = distinct(grid, scores, settings.refine_top, 0.75 * grid_spacing_deg(settings.rotations))
+    rotations, refined, centres, extra = hill_climb(
         lambda trial: score_candidates(windows, trial, centre, points, settings), grid[top], settings.refine_steps_deg)
-    chosen = _distinct(rotations, refined, max(count, 2), settings.distinct_deg)
-    poses = _poses(rotations[chosen], centres[chosen], mesh.centroid)
+    chosen = distinct(rotations, refined, max(count, 2), settings.distinct_deg)
+    poses = poses_from(rotations[chosen], centres[chosen], mesh.centroid)
     found = Initialization(poses[:count], refined[chosen], "search", len(grid) + extra, time.perf_counter() - started,
                            centroid_score=float(refined[chosen][0]))
     if coverage is None or found.scores[0] < COVERAGE_GATE:
         return found
-    return _with_coverage_starts(found, mesh, masks, rig, centre, points, grid, count, settings, coverage, started)
+    return _with_coverage_starts(found, mesh, masks, rig, centre, points, count, settings, coverage, started)
 
 
-def _poses(rotations: np.ndarray, centres: np.ndarray, mesh_centroid: np.ndarray) -> np.ndarray:
-    """``(K, 4, 4)`` mesh_to_world placing the mesh centroid at ``centres`` ``(K, 3)`` turned by ``rotations``."""
-    poses = np.tile(np.eye(4), (len(rotations), 1, 1))
-    poses[:, :3, :3] = rotations
-    poses[:, :3, 3] = centres - rotations @ mesh_centroid
-    return poses
-
-
-def _with_coverage_starts(found: Initialization, mesh, masks, rig, centre, points, grid, count, settings,
+def _with_coverage_starts(found: Initialization, mesh, masks, rig, centre, points, count, settings,
                           coverage: CoverageSettings, started: float) -> Initialization:
     """Score the grid by coverage (:mod:`.coverage_search`); when its best candidate explains the vessels
     while leaving part of the model unmatched (:func:`looks_partial`), its distinct best candidates lead the starts."""
-    radius = float(np.sqrt(((mesh.vertices - mesh.centroid) ** 2).sum(axis=1).mean()))
-    canvases = [coverage_view(rig.views[name], mask, centre, radius, coverage) for name, mask in masks.items()]
-    grid = np.concatenate([np.eye(3)[None], rotation_grid(coverage.rotations)])
-    scores, _, _ = coverage_scores(canvases, grid, centre, points, coverage)
-    top = _distinct(grid, scores, coverage.refine_top, 0.75 * grid_spacing_deg(coverage.rotations))
-    rotations, refined, centres, extra = _hill_climb(
-        lambda trial: coverage_scores(canvases, trial, centre, points, coverage)[:2], grid[top], coverage.refine_steps_deg)
-    chosen = _distinct(rotations, refined, max(count, 2), settings.distinct_deg)
-    _, _, detail = coverage_scores(canvases, rotations[chosen[:1]], centre, points, coverage)
-    found.coverage = {"best_score": round(float(refined[chosen[0]]), 4),
-                      "precision": [round(float(v), 3) for v in detail[0, :, 0]],
-                      "recall": [round(float(v), 3) for v in detail[0, :, 1]]}
-    found.candidates_scored += len(grid) + extra
+    searched = search_by_coverage(mesh, masks, rig, centre, points, max(count, 2), settings.distinct_deg, coverage)
+    best = searched.best_detail
+    found.coverage = {"best_score": round(float(searched.scores[0]), 4),
+                      "precision": [round(float(v), 3) for v in best[:, 0]],
+                      "recall": [round(float(v), 3) for v in best[:, 1]]}
+    found.candidates_scored += searched.scored
     found.seconds = time.perf_counter() - started
-    if not looks_partial(detail[0]):
+    if not looks_partial(best):
         return found
-    partial = _poses(rotations[chosen], centres[chosen], mesh.centroid)[:PARTIAL_STARTS]
-    found.poses = np.concatenate([partial, found.poses])[:count + PARTIAL_STARTS]
-    found.scores = np.concatenate([refined[chosen][:PARTIAL_STARTS], found.scores])[:count + PARTIAL_STARTS]
+    found.poses = np.concatenate([searched.poses[:PARTIAL_STARTS], found.poses])[:count + PARTIAL_STARTS]
+    found.scores = np.concatenate([searched.scores[:PARTIAL_STARTS], found.scores])[:count + PARTIAL_STARTS]
     found.method = "search+coverage"
     return found
 
