@@ -150,9 +150,18 @@ def _compile_backward() -> None:
 
 
 def _compile_search() -> None:
-    """The pose search's kernels, through a tiny job without an initial pose (their real argument types)."""
+    """The pose search's kernels, through a tiny job without an initial pose (their real argument types), and the
+    coverage search's splat (which that job's fully visible phantom does not reach), with its argument types."""
+    import numba
+    import numpy as np
+
+    from .registration.coverage_search import _SPLAT
+
     with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-search-") as work_dir:
         warm_up_job(Path(work_dir), pose_search=True)
+    points, turns = np.zeros((1, 3)), np.eye(3)[None].copy()
+    offsets, intrinsics = np.array([[0.0, 0.0, 10.0]]), np.array([1.0, 1.0, 0.0, 0.0])
+    _SPLAT.pick(numba.get_num_threads())(points, turns, offsets, intrinsics, 0, np.zeros((1, 4, 4), np.float32))
 
 
 def _warm_up_tracking() -> None:
@@ -195,10 +204,11 @@ def _group_dispatchers(name: str) -> list:
 
         return [jacobian_kernel("soft_log_keep_tangents")[0], jacobian_kernel("normal_equations")[0],
                 jacobian_numba.gather_faces_with_tangents]
+    from .registration.coverage_search import _SPLAT
     from .registration.initialization import _SEARCH_KERNELS
     from numba import get_num_threads
 
-    return [pair.pick(get_num_threads()) for pair in _SEARCH_KERNELS.values()]
+    return [pair.pick(get_num_threads()) for pair in (*_SEARCH_KERNELS.values(), _SPLAT)]
 
 
 def group_cached(name: str) -> bool:

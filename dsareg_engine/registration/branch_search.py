@@ -5,8 +5,7 @@ territories meets a run that injects one. No placement of the *whole* model matc
 images, and the whole-model searches (:mod:`.initialization`, :mod:`.coverage_search`) rank
 wrong poses that pile the model onto the vessels above the right one (measured on the paper's
 mesh: the true rotation scores 0.17–0.21 by coverage, wrong ones 0.09–0.12). Cut to the part the
-run filled, the model matches the images like a fully visible one, and the centroid search
-finds it (the filled part scores 0.15–0.27, every other part ≥ 0.3). So:
+run filled, the model matches the images like a fully visible one. So:
 
 1. **Parts.** ``samples`` vertices are drawn (fixed seed) among those farther than
    ``min_distance`` (a fraction of the longest path) from the inflow; each gives its branch and
@@ -17,14 +16,22 @@ finds it (the filled part scores 0.15–0.27, every other part ≥ 0.3). So:
    the model less the other territory). Parts holding ``min_fraction``–``max_fraction`` of the
    faces are kept — the branches, nearest the inflow first, then the rests — unless they overlap an
    already kept part by more than ``overlap`` (Jaccard), up to ``max_parts``.
-2. **Search.** Each part alone runs the centroid search (no coverage search); its best pose
-   places the whole model (a part keeps the model's frame).
-3. **Starts and fit.** When the best part scores below :data:`PART_MATCHES` (and the whole model's
-   best), its pose is the only start and the loss renders that part alone (the pose, the verdict's
+2. **Search.** Each part alone, and the whole model, run the coverage search
+   (:func:`~.coverage_search.search_by_coverage`, symmetric ``F_1``); each one's best pose is
+   hill-climbed again on finer canvases and scored there; that pose places the whole model (a part
+   keeps the model's frame). Not the centroid search: it places a candidate by the mean of its
+   points, which a part's few faces of a thick stub past the filled vessels pull off (measured:
+   a part holding the filled tree and 2 % more faces, a 35 mm stub of the other tree's trunk, was
+   placed 12 mm off at its true rotation and scored 0.59 against 0.21 for the filled tree alone,
+   so it was never found); the coverage search places each candidate by the shift that best
+   overlaps the vessels.
+3. **Starts and fit.** When the best part scores below :data:`PART_MATCHES` and beats the whole
+   model by :data:`PART_MARGIN`, its pose is the only start and the loss renders that part alone (the pose, the verdict's
    signals and the overlays stay the whole model's): the whole-model candidates, which pile the
    model onto the vessels, would win the loss, and the whole model's unfilled branches pull a fit
    a few mm off (measured on the phantom: a start 2° / 1.9 mm off ended 3.9 mm off). Else the
-   parts scoring better than the whole model lead the multi-start, the whole model fitted. Either
+   parts scoring better than the whole model lead the multi-start (their scores, on the coverage
+   scale, stand before the centroid search's in ``scores``), the whole model fitted. Either
    way the loss for partial visibility (:mod:`.partial`) is on.
 
 Shapes: ``K`` parts, ``V`` vertices, ``F`` faces.
@@ -145,7 +152,7 @@ def with_branch_starts(found: Initialization, mesh: TriangleMesh, masks: dict[st
     if not len(parts.scores):
         return found
     best_poses, best_scores = parts.poses[: settings.starts], parts.scores[: settings.starts]
-    if best_scores[0] < min(parts.whole_score, PART_MATCHES):  # the part matches like a fully visible model
+    if best_scores[0] < min(parts.whole_score - PART_MARGIN, PART_MATCHES):  # the part matches like a fully visible model
         found.poses, found.scores, found.method = best_poses[:1], best_scores[:1], "search+branch"
         found.fit_faces = parts.faces[0]
         return found
@@ -162,3 +169,7 @@ PART_MATCHES = 0.2
 Measured (512 px, clinical rig; docs/benchmarks/partial.md): the filled part 0.03–0.14 (0.14 with a third of the
 model past the detector's edge), the next best part 0.25–0.34, the whole model 0.31–0.41. The whole-model
 searches' candidates then lose to wrong poses in the loss, so the matching part's pose is the only start."""
+PART_MARGIN = 0.05
+"""... and beats the whole model's score by this much (measured: 0.09–0.49 where a part was filled; 0.005–0.008
+on early filling, where a part holding the filled proximal tree scores like the whole model and the whole
+model's fit is the better one)."""

@@ -89,6 +89,43 @@ def test_a_helper_compiles_a_group_that_this_process_then_loads_from_the_cache(t
     assert report == {"before": False, "after": True, "hits": 2, "misses": 0, "signatures": 2}, report
 
 
+@pytest.mark.slow
+def test_the_search_group_holds_the_coverage_searchs_splat(tmp_path):
+    """A partial-visibility job's coverage and branch searches splat with ``splat_images``: after the search
+    group was compiled (by the background helper, another process) it loads from the cache, not compiled in
+    the job."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    compiled = _python("""
+        from dsareg_engine.threads import set_cpu_threads
+        from dsareg_engine import warmup
+        set_cpu_threads(1)
+        warmup.compile_group("search")
+    """, env)
+    assert compiled.returncode == 0, compiled.stderr[-3000:]
+    done = _python("""
+        import json
+        import numpy as np
+        from dsareg_engine.threads import set_cpu_threads
+        from dsareg_engine import warmup
+        from dsareg_engine.registration.coverage_search import _SPLAT, _splats, coverage_view, CoverageSettings
+        from dsareg_engine.geometry.rig import ViewGeometry
+        set_cpu_threads(1)
+        cached = warmup.group_cached("search")
+        view = ViewGeometry(image_size=(64, 64), pixel_spacing_mm=(1.0, 1.0), sid_mm=1000.0,
+                            principal_point_px=(31.5, 31.5), world_to_view=np.eye(4))
+        mask = np.zeros((64, 64), bool)
+        mask[20:40, 30:34] = True
+        canvas = coverage_view(view, mask, np.array([0.0, 0.0, 700.0]), 10.0, CoverageSettings())
+        points = np.ascontiguousarray(np.random.default_rng(0).normal(size=(50, 3)))
+        _splats(canvas, np.eye(3)[None].repeat(2, axis=0), np.array([0.0, 0.0, 700.0]), points, 1)
+        stats = _SPLAT.pick(1).stats
+        print(json.dumps({"cached": cached, "hits": sum(stats.cache_hits.values()), "misses": sum(stats.cache_misses.values())}))
+    """, env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report == {"cached": True, "hits": 1, "misses": 0}, report
+
+
 def test_a_kernel_helper_dies_with_the_process_that_started_it(tmp_path):
     """A killed worker leaves no compile behind (fault tests count every process of the service)."""
     import os
