@@ -5,6 +5,7 @@ The runs; their arguments are in :mod:`dsareg_engine.commands.bench_cli` (parsed
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 
@@ -397,27 +398,43 @@ def bench_partial(args: argparse.Namespace) -> int:
           "| partial reason | median CPU s |")
     print("|---|---|---|---|---|---|---|")
     confusion = {(right, verdict): 0 for right in (True, False) for verdict in ("ok", "check", "failed")}
-    for name, _, case in _partial_cases(mesh, args):
-        rows = []
-        for index in range(args.cases):
-            model, masks, fraction, truth = _partial_case(mesh, rig, rng, case, args)
-            options = RegistrationOptions(seed=args.seed + index, **extra, ground_truth_mesh_to_world=truth.tolist())
-            cpu = time.process_time()
-            result = register(model, masks, rig, options)
-            confidence = result.metrics["confidence"]
-            add = result.metrics["ground_truth"]["add_mm"]
-            right = add < 1.0 and name != "wrong_tree"
-            confusion[(right, confidence["verdict"])] += 1
-            rows.append({"add": add, "right": right, "verdict": confidence["verdict"], "cpu": time.process_time() - cpu,
-                         "fraction": fraction,
-                         "partial": any("do not show" in reason for reason in confidence["reasons"])})
-        add = np.array([row["add"] for row in rows])
-        verdicts = " / ".join(str(sum(row["verdict"] == v for row in rows)) for v in ("ok", "check", "failed"))
-        print(f"| {name} | {np.mean([row['fraction'] for row in rows]):.2f} | {np.mean([row['right'] for row in rows]) * 100:.0f} % | "
-              f"{np.median(add):.3f} / {add.max():.3f} | {verdicts} | {sum(row['partial'] for row in rows)}/{len(rows)} | "
-              f"{np.median([row['cpu'] for row in rows]):.1f} |", flush=True)
+    with contextlib.ExitStack() as stack:
+        cases_out = stack.enter_context(open(args.cases_out, "w")) if args.cases_out else None
+        for name, _, case in _partial_cases(mesh, args):
+            rows = []
+            for index in range(args.cases):
+                row, details = _partial_row(name, index, _partial_case(mesh, rig, rng, case, args), rig, args, extra)
+                confusion[(row["right"], row["verdict"])] += 1
+                rows.append(row)
+                if cases_out is not None:
+                    cases_out.write(json.dumps({"row": name, "case": index, **row, **details}) + "\n")
+                    cases_out.flush()
+            _print_partial_row(name, rows)
     print("\n| pose \\ verdict | ok | check | failed |\n|---|---|---|---|")
     for right in (True, False):
         print(f"| {'right (ADD < 1 mm)' if right else 'wrong (ADD ≥ 1 mm, or another tree)'} | "
               + " | ".join(str(confusion[(right, v)]) for v in ("ok", "check", "failed")) + " |")
     return 0
+
+
+def _partial_row(name: str, index: int, made, rig, args: argparse.Namespace, extra: dict) -> tuple[dict, dict]:
+    """Register one ``bench partial`` case: its table entry and, for ``--cases-out``, the verdict's reasons and
+    what the pose search did."""
+    model, masks, fraction, truth = made
+    options = RegistrationOptions(seed=args.seed + index, **extra, ground_truth_mesh_to_world=truth.tolist())
+    cpu = time.process_time()
+    result = register(model, masks, rig, options)
+    confidence = result.metrics["confidence"]
+    add = result.metrics["ground_truth"]["add_mm"]
+    row = {"add": add, "right": add < 1.0 and name != "wrong_tree", "verdict": confidence["verdict"],
+           "cpu": time.process_time() - cpu, "fraction": fraction,
+           "partial": any("do not show" in reason for reason in confidence["reasons"])}
+    return row, {"reasons": confidence["reasons"], "initialization": result.metrics["initialization"]}
+
+
+def _print_partial_row(name: str, rows: list[dict]) -> None:
+    add = np.array([row["add"] for row in rows])
+    verdicts = " / ".join(str(sum(row["verdict"] == v for row in rows)) for v in ("ok", "check", "failed"))
+    print(f"| {name} | {np.mean([row['fraction'] for row in rows]):.2f} | {np.mean([row['right'] for row in rows]) * 100:.0f} % | "
+          f"{np.median(add):.3f} / {add.max():.3f} | {verdicts} | {sum(row['partial'] for row in rows)}/{len(rows)} | "
+          f"{np.median([row['cpu'] for row in rows]):.1f} |", flush=True)

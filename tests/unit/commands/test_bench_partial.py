@@ -1,0 +1,21 @@
+"""``dsareg bench partial``: its table and its per-case lines."""
+
+import json
+
+from dsareg_engine.cli import main
+
+
+def test_bench_partial_prints_its_rows_and_writes_one_line_per_case(tmp_path, capsys):
+    cases = tmp_path / "cases.jsonl"
+    assert main(["bench", "partial", "--size", "160", "--cases", "1", "--kinds", "full", "selective_injection",
+                 "--fractions", "0.5", "--no-safety", "--cases-out", str(cases)]) == 0
+    printed = capsys.readouterr().out
+    rows = [line for line in printed.splitlines() if line.startswith("| full |") or line.startswith("| selective_injection |")]
+    assert len(rows) == 2 and "| pose \\ verdict | ok | check | failed |" in printed
+    lines = [json.loads(line) for line in cases.read_text().splitlines()]
+    assert [line["row"] for line in lines] == ["full", "selective_injection"]
+    for line in lines:
+        assert {"add", "right", "verdict", "cpu", "fraction", "partial", "reasons", "initialization"} <= set(line)
+        assert line["verdict"] in ("ok", "check", "failed") and line["add"] >= 0.0
+    assert lines[0]["fraction"] == 1.0 and 0.15 < lines[1]["fraction"] < 0.85
+    assert lines[1]["initialization"]["method"].startswith("search")
