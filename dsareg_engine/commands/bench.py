@@ -392,8 +392,9 @@ def bench_partial(args: argparse.Namespace) -> int:
     rig = clinical_biplane_rig(args.size)
     rng = np.random.default_rng(args.seed + 1)
     extra = json.loads(args.options)
+    masks = "true masks" if args.corruption == "none" else f"masks with segmentation errors ({args.corruption})"
     print(f"mesh {mesh.n_faces} faces, clinical rig {args.size}x{args.size} px, {args.cases} cases per row, no initial pose, "
-          f"true masks of the visible part, options {extra}")
+          f"{masks} of the visible part, options {extra}")
     print("| row | visible fraction | success (ADD < 1 mm) | ADD mm median / max | verdicts ok / check / failed "
           "| partial reason | median CPU s |")
     print("|---|---|---|---|---|---|---|")
@@ -403,7 +404,8 @@ def bench_partial(args: argparse.Namespace) -> int:
         for name, _, case in _partial_cases(mesh, args):
             rows = []
             for index in range(args.cases):
-                row, details = _partial_row(name, index, _partial_case(mesh, rig, rng, case, args), rig, args, extra)
+                made = _corrupted(_partial_case(mesh, rig, rng, case, args), args.corruption, rng)
+                row, details = _partial_row(name, index, made, rig, args, extra)
                 confusion[(row["right"], row["verdict"])] += 1
                 rows.append(row)
                 if cases_out is not None:
@@ -415,6 +417,16 @@ def bench_partial(args: argparse.Namespace) -> int:
         print(f"| {'right (ADD < 1 mm)' if right else 'wrong (ADD ≥ 1 mm, or another tree)'} | "
               + " | ".join(str(confusion[(right, v)]) for v in ("ok", "check", "failed")) + " |")
     return 0
+
+
+def _corrupted(made, corruption: str, rng):
+    """A case with its masks put through a simulated segmentation error (:mod:`..simulation.segmentation_errors`)."""
+    from ..simulation.segmentation_errors import corrupt
+
+    if corruption == "none":
+        return made
+    model, masks, fraction, truth = made
+    return model, {name: corrupt(mask, corruption, rng) for name, mask in masks.items()}, fraction, truth
 
 
 def _partial_row(name: str, index: int, made, rig, args: argparse.Namespace, extra: dict) -> tuple[dict, dict]:

@@ -137,6 +137,9 @@ def _add_partial(which) -> None:
                          help="rows to run (reflux_injection, foreign_territory: the second generator family)")
     partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
     partial.add_argument("--options", default="{}", help="extra registration options as JSON")
+    partial.add_argument("--corruption", default="none", choices=list(CORRUPTIONS),
+                         help="segmentation errors applied to every mask (as in bench robustness; all = wider borders, "
+                         "missing segments, a catheter, speckle)")
     partial.add_argument("--cases-out", metavar="FILE.jsonl", help="also write one JSON line per case (ADD, verdict, "
                          "reasons, what the pose search did)")
     partial.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_partial"))

@@ -144,7 +144,8 @@ class BranchSearch(BaseModel):
     model_config = ConfigDict(extra="allow")
 
     parts_searched: int = Field(description="Parts of the model (branches) searched, count.")
-    best_score: float | None = Field(None, description="The best part's search score (0 best, 1 worst).")
+    best_score: float | None = Field(None, description="The best part's coverage score, 1 − F1 (0 best, 1 worst).")
+    whole_score: float | None = Field(None, description="The whole model's coverage score by the same search (0 best, 1 worst).")
     faces_fraction: float | None = Field(None, description="The best part's share (0–1) of the model's faces.")
 
 
