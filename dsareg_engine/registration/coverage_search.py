@@ -35,6 +35,7 @@ from ..geometry.rig import Rig, ViewGeometry
 from ..mesh import TriangleMesh
 from ..render.serial_kernels import KernelPair
 from . import search_kernels
+from .parameterization import mesh_radius_mm
 from .rotation_grid import grid_spacing_deg, rotation_grid
 from .rotation_refine import distinct, hill_climb, poses_from
 
@@ -211,13 +212,19 @@ class CoverageCandidates:
     scored: int
 
 
+def _canvases(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray,
+              settings: CoverageSettings) -> list[CoverageView]:
+    """One canvas per view of ``masks``, sized for ``mesh``'s RMS radius at ``centre``."""
+    radius = mesh_radius_mm(mesh.vertices)
+    return [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
+
+
 def search_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
                        count: int, distinct_deg: float, settings: CoverageSettings = CoverageSettings()) -> CoverageCandidates:
     """Grid of ``settings.rotations`` scored by coverage, the best refined by the hill-climb, ``count`` distinct
     (``distinct_deg`` apart) kept. ``centre`` (world mm): where the masks' centroids triangulate; ``points``
     ``(N, 3)``: the mesh's surface points less its centroid."""
-    radius = float(np.sqrt(((mesh.vertices - mesh.centroid) ** 2).sum(axis=1).mean()))
-    canvases = [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
+    canvases = _canvases(mesh, masks, rig, centre, settings)
     grid = np.concatenate([np.eye(3)[None], rotation_grid(settings.rotations)])
     scores, _, _ = coverage_scores(canvases, grid, centre, points, settings)
     top = distinct(grid, scores, settings.refine_top, 0.75 * grid_spacing_deg(settings.rotations))
@@ -233,8 +240,7 @@ def refine_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Ri
                        poses: np.ndarray, settings: CoverageSettings) -> tuple[np.ndarray, np.ndarray]:
     """Poses ``(K, 4, 4)`` hill-climbed on ``settings``' canvases (e.g. finer ones) from ``poses``' rotations;
     returns the refined poses and their scores ``(K,)`` (arguments as :func:`search_by_coverage`)."""
-    radius = float(np.sqrt(((mesh.vertices - mesh.centroid) ** 2).sum(axis=1).mean()))
-    canvases = [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
+    canvases = _canvases(mesh, masks, rig, centre, settings)
     rotations, scores, centres, _ = hill_climb(
         lambda trial: coverage_scores(canvases, trial, centre, points, settings)[:2], poses[:, :3, :3], settings.refine_steps_deg)
     return poses_from(rotations, centres, mesh.centroid), scores
