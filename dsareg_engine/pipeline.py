@@ -28,6 +28,7 @@ from .errors import DsaregInputError
 from .io.case import Case, CaseFiles, load_case_files
 from .io.dicom_identity import DicomSources
 from .io.limits import DEFAULT_LIMITS, InputLimits
+from .io.input_decisions import InputDecision, with_close_calls
 from .io.volume_kind import VolumeReading
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
@@ -125,7 +126,8 @@ def run_registration_case(
     result = register(case.mesh, case.fitted, case.rig, options, progress=progress, should_stop=should_stop)
     return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
                          images=case.images, label=label, progress=progress, warnings=case.warnings,
-                         readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
+                         readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None,
+                         decisions=case.decisions)
 
 
 def verdict_of(data: dict) -> tuple[str, bool | None]:
@@ -157,9 +159,11 @@ def mm_per_pixel_at_mesh(view, mesh_to_view: np.ndarray, mesh=None) -> float | N
 def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_dir: Path, mesh=None, rig=None,
                   animation: bool = False, *, images: dict[str, np.ndarray] | None = None, label: str | None = None,
                   progress: Callable[[dict], None] | None = None, warnings: list[str] | None = None,
-                  readings: dict[str, dict] | None = None, volume: dict | None = None) -> dict:
+                  readings: dict[str, dict] | None = None, volume: dict | None = None,
+                  decisions: list[InputDecision] | None = None) -> dict:
     """Write result.json (with ``warnings`` when any, ``image_reading``: what was read from each multi-frame XA
-    run, and ``volume``: what was read from a volume input), overlays, masks and the loss plot (and the
+    run, ``volume``: what was read from a volume input, and ``input_decisions``: the decisions about the inputs,
+    close calls lowering the verdict to ``check``), overlays, masks and the loss plot (and the
     animation) for a finished registration."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = result.to_dict()
@@ -169,6 +173,7 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
         data["warnings"] = [str(warning) for warning in warnings]
     if readings:
         data["image_reading"] = readings
+    data = with_close_calls(data, list(decisions or []))
     report = _outputs_progress(progress, len(result.views) + 2)
     report()
     (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))

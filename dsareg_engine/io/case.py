@@ -13,6 +13,7 @@ from ..mesh import TriangleMesh
 from ..vision.vessel_target import binary_mask
 from .dicom_identity import DicomSources
 from .image_io import LoadedImage, read_image
+from .input_decisions import InputDecision
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
 from ..vision.segmentation import SEGMENTATION_METHODS, vessel_coverage
@@ -43,6 +44,8 @@ class Case:
         readings: per view, what was read from a multi-frame XA run (frames and mask frames used,
             recipe, shift found; :mod:`.xa_run`); empty for other images.
         volume: for a volume input, what was read from it (kind, thresholds, voxels kept).
+        decisions: what was decided about each input, on which measure and with what margin
+            (:mod:`.input_decisions`); close calls lower the verdict to ``check``.
         sources: the identity of the DICOM inputs (SOP, study, series, frame of reference, patient and
             study attributes), taken when they were read: what the DICOM outputs refer to, so that
             nothing parses the inputs again (:mod:`.dicom_identity`).
@@ -58,6 +61,7 @@ class Case:
     readings: dict[str, dict] = field(default_factory=dict)
     volume: VolumeReadout | None = None
     sources: DicomSources = field(default_factory=DicomSources)
+    decisions: list[InputDecision] = field(default_factory=list)
 
     @property
     def fitted(self) -> dict[str, np.ndarray]:

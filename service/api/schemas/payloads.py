@@ -324,6 +324,24 @@ class VolumeRead(BaseModel):
     faces: int = Field(description="Faces of the extracted surface, before decimation to the working budget.")
 
 
+class InputDecisionRecord(BaseModel):
+    """One decision about an input (`dsareg_engine.io.input_decisions`): what was decided, on which measure, and
+    how close the call was. A close call (`close`) makes the verdict at least `check`, with a reason."""
+
+    model_config = ConfigDict(extra="allow")
+
+    input: str = Field(description="`ap`, `lat`, `mesh` or `volume`.")
+    what: str = Field(description="What was decided, e.g. `run kind`, `units`, `volume kind`, `handedness`.")
+    chosen: str = Field(description="The outcome, e.g. `native`, `mm`, `cta`.")
+    basis: str = Field(description="What the measure is, in words.")
+    measure: float | None = Field(None, description="The number decided on; null for a tag or an option.")
+    threshold: float | None = Field(None, description="Where the decision turns, in the measure's units.")
+    band: float | None = Field(None, description="Half-width of the close-call band around the threshold.")
+    margin: float | None = Field(None, description="measure − threshold.")
+    close: bool = Field(description="|margin| < band: a close call (the verdict is at least `check`).")
+    source: Literal["measured", "tag", "option"] = Field(description="Measured, read from a tag, or given.")
+
+
 class RegistrationResult(BaseModel):
     """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
     `succeeded` only ran to the end. Later versions may add fields; clients must ignore unknown ones."""
@@ -348,6 +366,9 @@ class RegistrationResult(BaseModel):
                           "failed (do not use it). Null only for results of versions before the verdict.")
     dicom: DicomResult | None = Field(None, description="The DICOM objects written (and fetched/stored in a PACS).")
     volume: VolumeRead | None = Field(None, description="For a volume input: what was read from it.")
+    input_decisions: list[InputDecisionRecord] | None = Field(
+        None, description="The decisions taken about the inputs (run kind, mask frames, frames combined, volume kind "
+                          "and window, units, handedness), each with its measure and margin.")
 
 
 # ---- putting them into the OpenAPI document -----------------------------------------------
