@@ -183,7 +183,8 @@ def load_case(
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
                 readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
-                volume=volume_readout, sources=_sources(images, volume_sources))
+                volume=volume_readout, sources=_sources(images, volume_sources),
+                decisions=[decision for name in VIEW_NAMES for decision in images[name].decisions])
 
 
 def _sources(images: dict[str, LoadedImage], volume: DicomSources) -> DicomSources:

@@ -27,6 +27,7 @@ from ..errors import DsaregInputError
 from ..geometry.rig import ViewGeometry
 from . import rad as rad_format
 from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
+from .input_decisions import InputDecision
 from .limits import DEFAULT_LIMITS, InputLimits
 from .xa_run import RunReading
 
@@ -45,6 +46,7 @@ class LoadedImage:
     reading: dict = field(default_factory=dict)  # multi-frame XA: what was read and done (xa_run)
     dicom: DicomIdentity | None = None  # DICOM: what the DICOM outputs refer to (taken from the one parse)
     dicom_unreadable: bool = False  # DICOM whose identity attributes could not be converted
+    decisions: list[InputDecision] = field(default_factory=list)  # what was decided about the input (input_decisions)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -267,7 +269,7 @@ def read_dicom_image(
     automatic subtraction of native runs); the geometry comes from the frame used.
     """
     from .dicom_xa import view_from_xa
-    from .xa_run import read_run, run_kind, subtracted_record
+    from .xa_run import read_run, subtracted_record
 
     header, failure = parse_dicom(data, field_name)
     rows, cols = dicom_number(header, "Rows", 0, field_name), dicom_number(header, "Columns", 0, field_name)
@@ -300,20 +302,21 @@ def read_dicom_image(
     intercept = dicom_number(dataset, "RescaleIntercept", 0.0, field_name, kind=float)
     stack = stack * slope + intercept
     reading = reading if reading is not None else RunReading(frame=frame)
-    native = read_run(stack, dataset, reading, field_name)
+    native, call = read_run(stack, dataset, reading, field_name)
     if native is not None:
         pixels, chosen, record, warnings = native.pixels, native.geometry_frame, native.record, native.warnings
+        decisions = native.decisions
     else:
         pixels, chosen, warnings = _stored_frame(stack, dataset, reading.frame, field_name)
-        record = subtracted_record(len(stack), chosen, reading.frame, "single frame" if len(stack) == 1 else
-                                   "read as stored" if reading.subtraction == "off" else run_kind(dataset, stack)[1])
+        record = subtracted_record(len(stack), chosen, reading.frame, call.why)
+        decisions = [call.decision] if call.decision is not None else []
     geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
     warnings.extend(geometry_warnings)
     pixels = np.ascontiguousarray(pixels, dtype=np.float32)
     identity, unreadable = identity_or_none(dataset)
     return LoadedImage(
         pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings,
-        reading=record, dicom=identity, dicom_unreadable=unreadable,
+        reading=record, dicom=identity, dicom_unreadable=unreadable, decisions=decisions,
     )
 
 

@@ -1,11 +1,11 @@
 """A multi-frame XA run → the one DSA image registration fits, and a record of how it was made.
 
-**Native or subtracted.** A run is *native* (stored unsubtracted; the viewer subtracts) when it
-carries a Mask Subtraction Sequence (:mod:`.xa_recipe`) or Recommended Viewing Mode (0028,1090)
-``SUB``; *subtracted* when its Image Type or Derivation Description says so. Otherwise its content
-decides: a native run shows the same anatomy (bone edges, texture) in every frame, so the
-band-passed first frame stands far above the frame-to-frame noise (ratio > ``STATIC_RATIO``); a
-subtracted run's pre-contrast frames are noise. Subtracted runs (and ``subtraction="off"``) are
+**Native or subtracted** (:mod:`.xa_run_kind`). A run is *native* (stored unsubtracted; the viewer
+subtracts) when it carries a Mask Subtraction Sequence (:mod:`.xa_recipe`) or Recommended Viewing
+Mode (0028,1090) ``SUB``; *subtracted* when its Image Type or Derivation Description says so.
+Otherwise its content decides, at a physical scale: anatomy common to the early frames far above
+the frame-to-frame noise is native. Every decision is an :class:`~.input_decisions.InputDecision`
+(run kind; the mask frames when no recipe names them). Subtracted runs (and ``subtraction="off"``) are
 read as before: the frame of maximum vessel opacification, a given frame, or the MinIP of all frames.
 
 **Native runs, in the log domain.** Pixel Intensity Relationship (0028,1040) ``LIN`` (values ∝
@@ -34,9 +34,10 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..vision.xa_motion import MotionSettings, estimate_shift, shift_image
+from .input_decisions import InputDecision
 from .xa_recipe import SubtractionItem, parse_recipe
+from .xa_run_kind import decide_run_kind
 
-STATIC_RATIO = 4.0
 ARTERIAL_FRACTION = 0.3
 ARRIVAL_FRACTION = 0.01
 ARRIVAL_NOISE = 4.0
@@ -99,20 +100,16 @@ class ImageReading:
 @dataclass
 class RunImage:
     """The image made from a run: ``pixels`` ``(H, W)`` float32, the frame whose geometry applies,
-    ``record`` (JSON-ready: what was read and done) and warnings."""
+    ``record`` (JSON-ready: what was read and done), warnings and the decisions taken."""
 
     pixels: np.ndarray
     geometry_frame: int | None
     record: dict
     warnings: list[str] = field(default_factory=list)
+    decisions: list[InputDecision] = field(default_factory=list)
 
 
-# ---- native or subtracted ----------------------------------------------------------------------
-
-
-def _band(image: np.ndarray) -> np.ndarray:
-    image = image.astype(np.float32)
-    return cv2.GaussianBlur(image, (0, 0), 1.0) - cv2.GaussianBlur(image, (0, 0), 4.0)
+# ---- native or subtracted (:mod:`.xa_run_kind`) ----------------------------------------------------
 
 
 def _robust_std(values: np.ndarray) -> float:
@@ -120,32 +117,10 @@ def _robust_std(values: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(values - np.median(values))))
 
 
-def static_ratio(stack: np.ndarray) -> float:
-    """Band-passed structure of an early frame over the frame-to-frame noise (the quietest
-    adjacent pair of the first four frames): large when anatomy is in every frame."""
-    pairs = range(min(3, len(stack) - 1))
-    noise, first = min((_robust_std(_band(stack[i + 1] - stack[i])) / np.sqrt(2.0), i) for i in pairs)
-    structure = float(np.std(_band(stack[first])))
-    if structure <= 0:
-        return 0.0
-    return structure / max(noise, 1e-6 * float(np.abs(stack[first]).mean()) + 1e-12)
-
-
-def run_kind(dataset, stack: np.ndarray) -> tuple[str, str]:
-    """``("native" | "subtracted", why)``."""
-    if "MaskSubtractionSequence" in dataset:
-        return "native", "it carries a Mask Subtraction Sequence"
-    mode = str(getattr(dataset, "RecommendedViewingMode", "") or "").strip().upper()
-    if mode == "SUB":
-        return "native", "Recommended Viewing Mode is SUB"
-    image_type = "\\".join(str(v) for v in (getattr(dataset, "ImageType", None) or [])).upper()
-    derivation = str(getattr(dataset, "DerivationDescription", "") or "").upper()
-    if "SUBTRACT" in image_type or "SUBTRACT" in derivation:
-        return "subtracted", "its Image Type / Derivation Description says subtracted"
-    ratio = static_ratio(stack)
-    if ratio > STATIC_RATIO:
-        return "native", f"anatomy in every frame (structure {ratio:.0f}x the frame-to-frame noise)"
-    return "subtracted", f"no anatomy common to the frames (structure {ratio:.1f}x the noise)"
+def run_kind(dataset, stack: np.ndarray, field_name: str = "image") -> tuple[str, str]:
+    """``("native" | "subtracted", why)`` (:func:`.xa_run_kind.decide_run_kind`)."""
+    kind, why, _ = decide_run_kind(dataset, stack, field_name)
+    return kind, why
 
 
 # ---- the log domain --------------------------------------------------------------------------------
@@ -207,17 +182,25 @@ def opacification(difference: np.ndarray) -> float:
     return float(np.maximum(0.0, -difference - 3.0 * sigma).sum())
 
 
-def found_pairs(logs: np.ndarray, field_name: str) -> tuple[dict[int, Pair], int]:
-    """No recipe: the mask is the mean of the frames before contrast arrives; ``(pairs, arrival)``."""
+def found_pairs(logs: np.ndarray, field_name: str) -> tuple[dict[int, Pair], int, InputDecision]:
+    """No recipe: the mask is the mean of the frames before contrast arrives; ``(pairs, arrival, decision)``.
+
+    Contrast has arrived in the first frame whose darkening against frame 0 exceeds both ``ARRIVAL_FRACTION``
+    of the peak's and ``ARRIVAL_NOISE`` times the quietest frame's. The decision's measure is the darkening
+    of the last mask frame over that threshold (close to 1: the mask may hold some contrast)."""
     small = logs[:, ::2, ::2] if max(logs.shape[1:]) > 256 else logs
     scores = np.array([0.0] + [opacification(small[n] - small[0]) for n in range(1, len(small))])
     if scores.max() <= 0:
         raise DsaregInputError("no frame of the native run shows contrast (every frame looks like the first)",
                                field=field_name, accepted="a run whose later frames show contrast-filled vessels")
     quiet = float(scores[1:].min())  # the quietest frame: noise (and motion) only
-    arrival = int(np.argmax(scores > max(ARRIVAL_FRACTION * scores.max(), ARRIVAL_NOISE * quiet)))
-    masks = tuple(range(max(1, arrival)))
-    return {n: Pair(n, (n,), masks) for n in range(max(1, arrival), len(logs))}, max(1, arrival)
+    threshold = max(ARRIVAL_FRACTION * scores.max(), ARRIVAL_NOISE * quiet)
+    arrival = max(1, int(np.argmax(scores > threshold)))
+    masks = tuple(range(arrival))
+    decision = InputDecision(field_name, "mask frames", ",".join(str(m) for m in masks),
+                             "darkening of the last mask frame / the contrast-arrival threshold",
+                             round(float(scores[arrival - 1]) / max(threshold, 1e-12), 3), 1.0, 0.5)
+    return {n: Pair(n, (n,), masks) for n in range(arrival, len(logs))}, arrival, decision
 
 
 def _difference(logs: np.ndarray, pair: Pair, step: int = 1) -> np.ndarray:
@@ -288,13 +271,15 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
     logs, intensity, warnings = log_domain(stack, dataset, field_name)
     items = parse_recipe(dataset, len(stack), field_name=field_name)
     record: dict = {"frames": len(stack), "run": "native", "why": why, **intensity}
+    decisions: list[InputDecision] = []
     if items:
         pairs = recipe_pairs(items, len(stack))
         record["recipe"] = [item.describe() for item in items]
         if not pairs:
             raise DsaregInputError("the Mask Subtraction Sequence subtracts no frame", field=f"{field_name}.MaskSubtractionSequence")
     else:
-        pairs, arrival = found_pairs(logs, field_name)
+        pairs, arrival, found = found_pairs(logs, field_name)
+        decisions.append(found)
         record["recipe"] = f"none in the file: mask = the frames before contrast arrives (frame index {arrival})"
     scores = _frame_scores(logs, pairs)
     geometry_frame, used = _choose(scores, reading, pairs, len(stack), field_name)
@@ -320,23 +305,45 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
     warnings.append(f"{field_name}: native run of {len(stack)} frames ({why}): {text} minus mask frame(s) "
                     f"{', '.join(str(m) for m in pair.masks)} in the log domain, mask moved by "
                     f"({move[0]:+.2f}, {move[1]:+.2f}) px (down, right) (0-based frame indices)")
-    return RunImage(pixels, geometry_frame, record, warnings)
+    return RunImage(pixels, geometry_frame, record, warnings, decisions)
 
 
-def read_run(stack: np.ndarray, dataset, reading: RunReading, field_name: str) -> RunImage | None:
-    """A native run's DSA image, or ``None`` for a subtracted run (read as stored by the caller).
+@dataclass(frozen=True)
+class RunKindCall:
+    """How a run is taken: ``kind`` (``"native"``, ``"subtracted"``, ``"single frame"``), ``why``, and the
+    decision (``None`` for a single frame)."""
 
-    ``stack``: ``(N, H, W)`` after the rescale, before any MONOCHROME1 inversion.
-    """
+    kind: str
+    why: str
+    decision: InputDecision | None = None
+
+
+def classify_run(stack: np.ndarray, dataset, reading: RunReading, field_name: str) -> RunKindCall:
+    """Native or subtracted (``subtraction="off"``: subtracted, as the user said)."""
     if reading.subtraction not in SUBTRACTIONS:
         raise DsaregInputError(f"subtraction '{reading.subtraction}' is not understood",
                                field="options.subtraction", accepted=", ".join(SUBTRACTIONS))
-    if len(stack) < 2 or reading.subtraction == "off":
-        return None
-    kind, why = run_kind(dataset, stack)
-    if kind != "native":
-        return None
-    return read_native(stack, dataset, reading, why, field_name)
+    if len(stack) < 2:
+        return RunKindCall("single frame", "single frame")
+    if reading.subtraction == "off":
+        return RunKindCall("subtracted", "read as stored", InputDecision(
+            field_name, "run kind", "subtracted", "options.subtraction is off", source="option"))
+    kind, why, decision = decide_run_kind(dataset, stack, field_name)
+    return RunKindCall(kind, why, decision)
+
+
+def read_run(stack: np.ndarray, dataset, reading: RunReading, field_name: str) -> tuple[RunImage | None, RunKindCall]:
+    """``(a native run's DSA image or None for a subtracted run (read as stored by the caller), the call)``;
+    the image's ``decisions`` start with the run-kind decision.
+
+    ``stack``: ``(N, H, W)`` after the rescale, before any MONOCHROME1 inversion.
+    """
+    call = classify_run(stack, dataset, reading, field_name)
+    if call.kind != "native":
+        return None, call
+    image = read_native(stack, dataset, reading, call.why, field_name)
+    image.decisions.insert(0, call.decision)
+    return image, call
 
 
 def subtracted_record(n_frames: int, chosen: int | None, frame, why: str) -> dict:

@@ -2,12 +2,14 @@
 
 Background: an ellipsoidal skull shell (bone) around an ellipsoidal brain (soft tissue), traced
 per pixel ray (chord lengths through both ellipsoids), and a smooth ±8 % soft-tissue field; the
-skull is placed off-centre so its rim crosses the field of view. Each pixel counts
-``Poisson(N0 · exp(−attenuation))`` photons, blurred 0.5 px, stored 12-bit ``LIN`` (values ∝
-intensity; no attenuation at ~4000). Tags: classic multi-frame XA (geometry only in the XA positioner / distance tags),
-Recommended Viewing Mode ``SUB`` and a Mask Subtraction Sequence ``AVG_SUB`` (mask frames
-1–2, applied to frames 3–N). The patient moves by ``motion_px`` between the mask and the
-contrast frames.
+skull is placed off-centre so its rim crosses the field of view; optionally a contrast-filled
+catheter (in every frame). Each pixel counts ``Poisson(N0 · exp(−attenuation))`` photons, blurred
+0.5 px, stored by :func:`encode` (default 12-bit ``LIN``: values ∝ intensity, no attenuation at
+~97 % of full scale; or ``LOG`` / ``DISP``, 8–16 bits, MONOCHROME1 or 2). Tags: classic
+multi-frame XA (geometry only in the XA positioner / distance tags) and, with ``recipe``,
+Recommended Viewing Mode ``SUB`` and a Mask Subtraction Sequence ``AVG_SUB`` (the mask frames,
+applied to the frames after them). The patient moves between the mask and the contrast frames by
+``rotation_deg`` about the image centre (counter-clockwise as displayed) then ``motion_px``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from ..geometry.rig import Rig, ViewGeometry
 from .phantom import make_vessel_phantom
 from .synthetic_dsa import _smooth_field
-from .native_run import (REFERENCE_PX, XA_SOP, NativeRunCase, Plane, base_dataset, classic_geometry, peak_of,
+from .native_run import (IODINE_PER_MM, REFERENCE_PX, XA_SOP, NativeRunCase, Plane, base_dataset, classic_geometry, peak_of,
                          pose_in_view, subtracted_xa, to_bytes, vessel_frames)
 
 PLANES = {"ap": Plane(4.0, 3.0, 1100.0, 760.0, 1.1), "lat": Plane(88.0, -2.0, 1150.0, 780.0, 1.1)}
@@ -36,6 +38,10 @@ class SkullRunSettings:
         photons: ``N0``, photons per pixel without attenuation at 160 px per side (scaled with the pixel area).
         skull_centre_mm, skull_radii_mm, bone_mm: the skull (world LPS, about the isocentre).
         bone_per_mm, tissue_per_mm: attenuation coefficients, 1/mm.
+        recipe: write Recommended Viewing Mode SUB and the Mask Subtraction Sequence (else neither).
+        rotation_deg: in-plane patient rotation of the contrast frames (counter-clockwise as displayed).
+        catheter_mm: diameter of a contrast-filled catheter in every frame (0: none).
+        bits, relationship, photometric: the pixel encoding (:func:`encode`).
     """
 
     size_px: int = 160
@@ -49,6 +55,12 @@ class SkullRunSettings:
     bone_mm: float = 7.0
     bone_per_mm: float = 0.04
     tissue_per_mm: float = 0.012
+    recipe: bool = True
+    rotation_deg: float = 0.0
+    catheter_mm: float = 0.0
+    bits: int = 12
+    relationship: str = "LIN"
+    photometric: str = "MONOCHROME2"
 
 
 def pixel_rays(view: ViewGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -89,28 +101,54 @@ def _photons(settings: SkullRunSettings) -> float:
     return settings.photons * (REFERENCE_PX / settings.size_px) ** 2
 
 
-def _counts(attenuation: np.ndarray, settings: SkullRunSettings, rng: np.random.Generator) -> np.ndarray:
-    expected = _photons(settings) * np.exp(-attenuation)
-    counts = rng.poisson(expected).astype(np.float32)
-    counts = cv2.GaussianBlur(counts, (0, 0), 0.5)
-    gain = 4000.0 / _photons(settings)  # no attenuation → ~4000 of 4095
-    return np.clip(np.round(counts * gain), 0, 4095).astype(np.uint16)
+def _intensity(attenuation: np.ndarray, settings: SkullRunSettings, rng: np.random.Generator) -> np.ndarray:
+    """Detected intensity (1 = no attenuation): Poisson photon counts, blurred 0.5 px."""
+    counts = rng.poisson(_photons(settings) * np.exp(-attenuation)).astype(np.float32)
+    return cv2.GaussianBlur(counts, (0, 0), 0.5) / _photons(settings)
 
 
-def _moved(image: np.ndarray, motion_px: tuple[float, float]) -> np.ndarray:
-    from ..vision.xa_motion import shift_image
+def encode(intensity: np.ndarray, bits: int, relationship: str, photometric: str) -> np.ndarray:
+    """Stored values of ``intensity`` (1 = no attenuation). ``LIN``: ∝ intensity (1 → 97 % of full
+    scale); ``LOG``: ∝ log intensity, full scale spanning attenuation 6..0;
+    ``DISP``: ``LOG`` through a gamma-0.7 display curve. MONOCHROME1 turns the values around
+    (the Pixel Intensity Relationship Sign written is then −1)."""
+    top = float(2 ** bits - 1)
+    if relationship == "LIN":
+        values = 0.97 * top * intensity
+    else:
+        level = np.clip(1.0 + np.log(np.maximum(intensity, 1e-6)) / 6.0, 0.0, 1.0)  # 1: no attenuation
+        values = top * (level if relationship == "LOG" else level ** 0.7)
+    if photometric == "MONOCHROME1":
+        values = top - values
+    return np.clip(np.round(values), 0, top).astype(np.uint16 if bits > 8 else np.uint8)
 
-    return shift_image(image, motion_px)
+
+def _moved(image: np.ndarray, motion_px: tuple[float, float], rotation_deg: float = 0.0) -> np.ndarray:
+    """``image`` turned by ``rotation_deg`` about its centre (counter-clockwise as displayed), then moved
+    by ``(down, right)`` px (cv2's rotation matrix; independent of the reader's motion model)."""
+    height, width = image.shape
+    matrix = cv2.getRotationMatrix2D(((width - 1) / 2.0, (height - 1) / 2.0), rotation_deg, 1.0)
+    matrix[:, 2] += (motion_px[1], motion_px[0])
+    return cv2.warpAffine(image.astype(np.float32), matrix, (width, height), flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REPLICATE)
 
 
 def _dataset(stack: np.ndarray, plane: Plane, name: str, settings: SkullRunSettings):
     ds = base_dataset(XA_SOP, stack.shape[1], stack.shape[2], len(stack), "A" if name == "ap" else "B")
     ds.ImageType = ["ORIGINAL", "PRIMARY", "BIPLANE A" if name == "ap" else "BIPLANE B"]
-    ds.PhotometricInterpretation = "MONOCHROME2"
-    ds.PixelIntensityRelationship, ds.PixelIntensityRelationshipSign = "LIN", 1
-    ds.RecommendedViewingMode = "SUB"
+    ds.PhotometricInterpretation = settings.photometric
+    ds.PixelIntensityRelationship = settings.relationship
+    ds.PixelIntensityRelationshipSign = -1 if settings.photometric == "MONOCHROME1" else 1
+    if settings.bits <= 8:
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
+    else:
+        ds.BitsStored, ds.HighBit = settings.bits, settings.bits - 1
     ds.FrameTime = 250.0
     classic_geometry(ds, plane, stack.shape[1])
+    ds.PixelData = stack.tobytes()
+    if not settings.recipe:
+        return ds
+    ds.RecommendedViewingMode = "SUB"
     from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
 
@@ -119,7 +157,6 @@ def _dataset(stack: np.ndarray, plane: Plane, name: str, settings: SkullRunSetti
     item.MaskFrameNumbers = list(settings.mask_frames)
     item.ApplicableFrameRange = [max(settings.mask_frames) + 1, len(stack)]
     ds.MaskSubtractionSequence = Sequence([item])
-    ds.PixelData = stack.tobytes()
     return ds
 
 
@@ -133,15 +170,20 @@ def make_skull_run(seed: int = 0, settings: SkullRunSettings = SkullRunSettings(
     for name, view in rig.views.items():
         iodine, vessels[name] = vessel_frames(mesh, view, pose, list(settings.fill), list(settings.strength))
         still = skull_attenuation(view, settings, rng)
-        moved = _moved(still, settings.motion_px)
+        if settings.catheter_mm > 0:
+            from .synthetic_dsa import _catheter_mm
+
+            still = still + IODINE_PER_MM * _catheter_mm(view, vessels[name], settings.catheter_mm, rng).astype(np.float32)
+        moved = _moved(still, settings.motion_px, settings.rotation_deg)
         masks = {n - 1 for n in settings.mask_frames}
-        stack = np.array([_counts((still if k in masks or k < min(masks) else moved) + iodine[k], settings, rng)
-                          for k in range(len(iodine))])
+        intensity = [_intensity((still if k in masks or k < min(masks) else moved) + iodine[k], settings, rng)
+                     for k in range(len(iodine))]
+        stack = np.array([encode(frame, settings.bits, settings.relationship, settings.photometric)
+                          for frame in intensity])
         files[name] = to_bytes(_dataset(stack, PLANES[name], name, settings))
         peak = peak_of(list(settings.fill), list(settings.strength))
-        contrast = np.log(np.maximum(stack[peak].astype(np.float64), 1.0))
-        expected = cv2.GaussianBlur(4000.0 * np.exp(-moved), (0, 0), 0.5)
-        clean = np.log(np.clip(expected, 1.0, 4095.0))  # the noise-free mask, aligned
+        contrast = np.log(np.maximum(intensity[peak], 1.0 / _photons(settings)))
+        clean = np.log(cv2.GaussianBlur(np.exp(-moved), (0, 0), 0.5))  # the noise-free mask, aligned
         subtracted[name] = subtracted_xa((contrast - clean).astype(np.float32), PLANES[name], name)
     return NativeRunCase(files=files, subtracted=subtracted, mesh=mesh, mesh_to_world=pose, rig=rig,
                          motion_px={name: settings.motion_px for name in rig.views},

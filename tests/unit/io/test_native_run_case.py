@@ -36,7 +36,11 @@ def test_native_run_pair_registers(run, files, tmp_path):
     add = mean_distance_mm(pose, run.mesh_to_world, run.mesh.vertices)
     assert add < 0.3, add
     assert data["metrics"]["confidence"]["verdict"] == "ok"
-    reading = json.loads((tmp_path / "result.json").read_text())["image_reading"]
+    result = json.loads((tmp_path / "result.json").read_text())
+    reading = result["image_reading"]
+    kinds = {d["input"]: d for d in result["input_decisions"] if d["what"] == "run kind"}
+    assert set(kinds) == {"ap", "lat"}  # each view's decision reaches the result, read from the recipe tag
+    assert all(d["chosen"] == "native" and d["source"] == "tag" and not d["close"] for d in kinds.values())
     for name in ("ap", "lat"):
         assert reading[name]["run"] == "native" and reading[name]["frame_index"] == run.peak_frame
         assert reading[name]["mask_frame_numbers"] == [1, 2]
@@ -54,3 +58,4 @@ def test_per_view_frames(files, run):
     with pytest.raises(DsaregInputError, match="given twice") as info:
         load_case_files(referenced, reading=ImageReading(ap_frame=7))
     assert info.value.field == "options.frames.ap"
+
