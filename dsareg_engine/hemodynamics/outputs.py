@@ -1,0 +1,41 @@
+"""``hemodynamics.json``: per vertex of the model file as given, arrays with ``null`` where not measurable.
+
+Arrays (one value per vertex, in the order of the file's vertices, :mod:`.model_points`): ``arrival_s``,
+``peak_s``, ``peak_opacity``, ``arrival_s_ap``, ``arrival_s_lat``, ``agreement_s``; ``overlap_ap`` /
+``overlap_lat`` (bool: that view is not clean there). Times are seconds on the AP run's clock (t = 0 at its
+first frame); ``frame_times_s`` gives each run's frame times on that clock.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+HEMODYNAMICS_JSON = "hemodynamics.json"
+ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s")
+DIGITS = 4
+
+
+def nullable(values: np.ndarray) -> list[float | None]:
+    """Floats rounded to ``DIGITS``, ``None`` for NaN."""
+    return [None if not math.isfinite(v) else round(float(v), DIGITS) for v in np.asarray(values, float)]
+
+
+def hemodynamics_document(per_vertex: dict[str, np.ndarray], frame_times_s: dict[str, np.ndarray],
+                          summary: dict) -> dict:
+    """The JSON document from per-file-vertex arrays (``ARRAYS`` and ``clean_ap`` / ``clean_lat``)."""
+    document = {"vertex_order": summary.get("vertex_order"), "vertices": int(len(per_vertex["arrival_s"])),
+                "clock": "seconds from the first AP frame",
+                "frame_times_s": {name: [round(float(t), DIGITS) for t in times] for name, times in frame_times_s.items()}}
+    document.update({name: nullable(per_vertex[name]) for name in ARRAYS})
+    for view in ("ap", "lat"):
+        document[f"overlap_{view}"] = [bool(not v) for v in per_vertex[f"clean_{view}"]]
+    document["summary"] = summary
+    return document
+
+
+def write_json(path: Path, document: dict) -> None:
+    Path(path).write_text(json.dumps(document, separators=(",", ":")))
