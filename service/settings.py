@@ -139,6 +139,15 @@ class LimitSettings(_Group):
         5e10, ge=0.0, description="Refuse jobs estimated above this many pixel-iterations "
                                   "(starts × max_iterations × final-stage pixels of the views); 0: no limit.")
     max_volume_bytes: int | None = Field(None, ge=1, description="Refuse larger decoded volumes (engine default 1 GiB).")
+    # DICOM instances, wherever they come from (service/pacs/instance_check.py): checked before they cost
+    max_dicom_instance_bytes: int = Field(
+        1088 * 1024 * 1024, ge=1024,
+        description="One DICOM instance at most this many bytes as received and, for a deflated transfer syntax, as "
+                    "inflated (bounded while streaming); more: C-STORE 0xA700, nothing kept.")
+    max_dicom_pixel_bytes: int = Field(
+        1024 * 1024 * 1024, ge=1024,
+        description="Rows × Columns × Number of Frames × Samples per Pixel × Bits Allocated / 8 of one DICOM instance "
+                    "(from its header) at most; more: C-STORE 0xA700.")
 
     @property
     def input_limits(self) -> dict[str, int]:
@@ -259,6 +268,10 @@ class DimseSettings(_Group):
     dicom_export_backoff_seconds: float = Field(0.5, ge=0.0, description="First export retry delay (doubles each retry).")
     dicom_timeout_seconds: float = Field(20.0, gt=0.0, description="Timeout of DIMSE connections, associations and "
                                                                    "messages (SCU and SCP).")
+    dicom_interrupted_wait_seconds: float = Field(
+        300.0, gt=0.0, description="Instances answered Success in an association that ended without release (abort, "
+                                   "dropped connection, listener killed) are kept; they join their study when the "
+                                   "sender comes back, or after this long without it.")
     dicom_job_owner_key_hash: str | None = Field(
         None, description="SHA-256 hex of the API key that owns jobs made from DICOM studies (it sees them in the "
                           "API); default the first configured key, or anonymous when auth is off.")

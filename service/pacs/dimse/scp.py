@@ -9,8 +9,11 @@ Association policy (checked on A-ASSOCIATE-RQ, in ``EVT_REQUESTED``, answered A-
 * the data folder must have at least ``min_free_bytes`` free: rejected-transient, "local limit
   exceeded" otherwise (a C-STORE that would go below it answers A700 "out of resources").
 
-C-STORE: the instance is stored as received (its transfer syntax kept), fsynced, indexed
-(:mod:`service.pacs.dimse.inbox`), then answered 0000. An A-RELEASE-RQ commits the association's
+C-STORE: the data set is held at most ``max_dicom_instance_bytes`` while it arrives
+(:mod:`.receive_bound`), its header checked (:mod:`service.pacs.instance_check`: size as inflated,
+pixel dimensions, SOP class, UIDs, truncation; a failure status and nothing kept otherwise); then
+it is stored as received (its transfer syntax kept), fsynced, indexed (:mod:`.inbox`), and
+answered 0000. An A-RELEASE-RQ commits the association's
 instances before the release is confirmed; an aborted association (A-ABORT, a dropped
 connection) discards them. The C-STOREs of a C-MOVE dsareg asked for (Move Originator AE Title =
 ours) are committed as ``retrieved``: the job that asked reads them; they make no job of their own.
@@ -28,7 +31,9 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
+from ..instance_check import InstanceLimits, InstanceRefused, check_instance
 from .inbox import Inbox, StoredInstance, fsync_file
+from .receive_bound import bound_association
 
 log = logging.getLogger("dsareg.dimse")
 
@@ -109,6 +114,7 @@ class StoreScp:
         self.settings, self.inbox, self.blobs = settings, inbox, blobs
         self.on_commit = on_commit or (lambda studies: None)
         self.peers = configured_peers(settings)
+        self.limits = InstanceLimits.of(settings)
         self.node = uuid.uuid4().hex[:12]
         self._numbers = itertools.count(1)
         self._ids: dict[int, str] = {}
@@ -116,7 +122,7 @@ class StoreScp:
         self._closed: dict[int, float] = {}
         self._retrievals: set[str] = set()  # associations carrying the C-STOREs of our own C-MOVE
         self._lock = threading.Lock()
-        self.stats = {"associations": 0, "rejected": 0, "stored": 0, "aborted": 0, "refused": 0}
+        self.stats = {"associations": 0, "rejected": 0, "stored": 0, "aborted": 0, "refused": 0, "invalid": 0}
 
     # ---- association policy ---------------------------------------------------------------------
     def policy(self, assoc: Any) -> tuple[int, int, int] | None:
@@ -148,6 +154,8 @@ class StoreScp:
             self.stats["rejected"] += 1
             event.assoc.acse.send_reject(*reason)
             event.assoc.kill()
+            return
+        bound_association(event.assoc, self.limits.max_instance_bytes)
 
     def association_id(self, assoc: Any) -> str:
         with self._lock:
@@ -159,18 +167,20 @@ class StoreScp:
 
     # ---- C-STORE ----------------------------------------------------------------------------------
     def on_store(self, event: Any) -> int:
-        """Store, fsync, index, then answer (0000; A700 out of space or storage failed; C000 unreadable)."""
+        """Check, store, fsync, index, then answer (0000; A700 too large, out of space or storage failed;
+        A900 / C000 an instance that does not check, :mod:`service.pacs.instance_check`)."""
         if self._disk_low():
             self.stats["refused"] += 1
             return OUT_OF_RESOURCES
         association = self.association_id(event.assoc)
         try:
-            ds = event.dataset
-            study, series, sop = str(ds.StudyInstanceUID), str(ds.SeriesInstanceUID), str(ds.SOPInstanceUID)
-            sop_class = str(event.request.AffectedSOPClassUID)
-        except Exception:  # noqa: BLE001 - any undecodable header
-            log.warning("C-STORE without readable Study/Series/SOP Instance UIDs refused")
-            return CANNOT_UNDERSTAND
+            checked = self.check(event)
+        except InstanceRefused as exc:
+            self.stats["invalid"] += 1
+            log.warning("C-STORE refused (0x%04X): %s", exc.status, exc.reason)
+            return exc.status
+        study, series, sop, sop_class = (checked.study_uid, checked.series_uid, checked.sop_instance_uid,
+                                         checked.sop_class_uid)
         try:
             data = bytes(event.encoded_dataset(include_meta=True))
             digest, size = self.blobs.put_bytes(data)
@@ -190,6 +200,16 @@ class StoreScp:
                 self._studies.setdefault(association, set()).add(study)
         self.stats["stored"] += 1
         return SUCCESS
+
+    def check(self, event: Any):
+        """The checked header of the C-STORE's data set (:class:`InstanceRefused` otherwise)."""
+        buffer = event.request.DataSet
+        if getattr(buffer, "exceeded", False):
+            raise InstanceRefused(OUT_OF_RESOURCES, f"more than {self.limits.max_instance_bytes} bytes received")
+        request = event.request
+        return check_instance(buffer.getbuffer(), str(event.context.transfer_syntax),
+                              str(request.AffectedSOPClassUID), str(request.AffectedSOPInstanceUID),
+                              STORAGE_CLASSES, self.limits)
 
     # ---- end of an association ---------------------------------------------------------------------
     # The association's thread reports a release (EVT_RELEASED) or an abort (EVT_ABORTED, also for a

@@ -15,6 +15,7 @@ from service.pacs.dimse.scp import StoreScp, start_server
 from service.settings import ServiceSettings
 from service.storage.blobs import BlobStore
 from service.storage.store import SqlJobStore
+from tests.support.dicom_bombs import DEFLATED, EXPLICIT, XA, deflate_bomb, deflated, encoded, part10, xa_header
 from tests.support.servers import free_port
 
 
@@ -80,3 +81,47 @@ def test_abort_discards_what_the_association_stored(node, study):
         time.sleep(0.05)
     assert scp.inbox.counts() == {}
     assert not any(scp.blobs.exists(hashlib.sha256(d).hexdigest()) for d in study.instances()[:5])
+
+
+def _send_files(port: int, paths, syntaxes=(EXPLICIT, DEFLATED)) -> list[int]:
+    """Send files as they are (pynetdicom chunked send: no decoding on our side); their C-STORE statuses."""
+    from pynetdicom import _config
+
+    ae = AE(ae_title="SCU")
+    for syntax in syntaxes:  # one context each: the SCP accepts one syntax per context
+        ae.add_requested_context(XA, syntax)
+    previous, _config.STORE_SEND_CHUNKED_DATASET = _config.STORE_SEND_CHUNKED_DATASET, True
+    try:
+        assoc = ae.associate("127.0.0.1", port, ae_title="DSAREG")
+        assert assoc.is_established
+        statuses = [int(assoc.send_c_store(path).Status) for path in paths]
+        assoc.release()
+    finally:
+        _config.STORE_SEND_CHUNKED_DATASET = previous
+    return statuses
+
+
+def test_bombs_and_malformed_instances_get_failure_statuses_and_nothing_is_kept(node, tmp_path):
+    scp, port = node(max_dicom_instance_bytes=4 << 20, max_dicom_pixel_bytes=2 << 20)
+    files = tmp_path / "send"
+    files.mkdir()
+
+    def file(name, ds, data, syntax=EXPLICIT):
+        return part10(data, XA, str(ds.SOPInstanceUID), syntax, files / name)
+
+    bomb, big, liar, cut, bad_uid, good = (xa_header(rows=512, columns=512), xa_header(rows=1024, columns=1024),
+                                           xa_header(65535, 65535, 2000), xa_header(64, 64), xa_header(),
+                                           xa_header(32, 32))
+    bad_uid.StudyInstanceUID = "../../x"
+    sent = [file("bomb.dcm", bomb, deflate_bomb(bomb, 64 << 20), DEFLATED),  # 64 kB deflated, 64 MiB inflated
+            file("big.dcm", big, encoded(big, pixel_bytes=6 << 20)),  # 6 MiB received: past the bound as it arrives
+            file("liar.dcm", liar, encoded(liar, pixel_bytes=128)),
+            file("cut.dcm", cut, encoded(cut)[:-500]),
+            file("uid.dcm", bad_uid, encoded(bad_uid)),
+            file("good.dcm", good, deflated(encoded(good)), DEFLATED)]
+    assert _send_files(port, sent) == [0xA700, 0xA700, 0xA700, 0xC000, 0xA900, 0x0000]
+    # the association went on after each failure; only the good one is indexed and on disk
+    (item,) = scp.inbox.study(good.StudyInstanceUID)
+    assert item.sop_instance_uid == good.SOPInstanceUID and scp.stats["invalid"] == 5
+    stored = [p for p in (tmp_path / "blobs").rglob("*") if p.is_file()]
+    assert len(stored) == 1 and stored[0].stat().st_size < 10_000

@@ -51,6 +51,8 @@ BASE_NAMES_FILE = Path(__file__).parent / "data" / "settings_env_names.txt"
 ADDED_SINCE_BASE = {"DSAREG_DICOM_QUERY_PEER", "DSAREG_DICOM_QUERY_RETRY_SECONDS",  # issue 22: the patient's volume
                     # issue 23: PACS exports held for review
                     "DSAREG_EXPORT_AFTER_REVIEW", "DSAREG_EXPORT_MAX_ATTEMPTS", "DSAREG_EXPORT_RETRY_BACKOFF_SECONDS"}
+ADDED_SINCE_BASE |= {"DSAREG_MAX_DICOM_INSTANCE_BYTES", "DSAREG_MAX_DICOM_PIXEL_BYTES",  # issue 33: hostile peers
+                     "DSAREG_DICOM_INTERRUPTED_WAIT_SECONDS"}
 """Settings added after the base commit (each a new env name; none of the base's may go or change)."""
 
 
