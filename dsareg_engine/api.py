@@ -12,7 +12,8 @@ name, so an API process that only validates options never loads the renderer.
   (from a loaded case), :class:`RegistrationCanceled`
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
   DICOM: :class:`DicomSources` / :class:`DicomIdentity` (a loaded case carries them: ``case.sources``),
-  :func:`read_sources` (from bytes, without a case), :func:`write_dicom_outputs`
+  :func:`read_sources` (from bytes, without a case), :func:`write_dicom_outputs`;
+  whose case it is: :func:`case_identity` (patient, study, series per input), :func:`with_source`, :func:`case_search_text`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
   :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_kernels`, :func:`warm_up_job` (a worker's first job's set-up),
   :func:`compile_later_groups` (the kernels no first job needs, in the background)
@@ -51,6 +52,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .geometry.spec import GeometrySpec, is_canonical_geometry, parse_geometry
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.xa_run import ImageReading
+    from .io.case_identity import case_identity, case_search_text, with_source
     from .io.dicom_identity import DicomIdentity, DicomSources, read_sources
     from .io.dicom_out import write_dicom_outputs
     from .io.dicom_xa import c_arm_rotation
@@ -89,6 +91,9 @@ _LAZY = {
     "DicomIdentity": "dsareg_engine.io.dicom_identity",
     "c_arm_rotation": "dsareg_engine.io.dicom_xa",
     "read_sources": "dsareg_engine.io.dicom_identity",
+    "case_identity": "dsareg_engine.io.case_identity",
+    "case_search_text": "dsareg_engine.io.case_identity",
+    "with_source": "dsareg_engine.io.case_identity",
     "write_dicom_outputs": "dsareg_engine.io.dicom_out",
     "set_cpu_threads": "dsareg_engine.threads",
     "default_cpu_threads": "dsareg_engine.threads",
@@ -137,6 +142,8 @@ __all__ = [
     "RigSpec",
     "VolumeReading",
     "c_arm_rotation",
+    "case_identity",
+    "case_search_text",
     "default_cpu_threads",
     "geometry_argument",
     "input_file",
@@ -163,6 +170,7 @@ __all__ = [
     "validate_rigid",
     "verdict_meets",
     "warm_up_job",
+    "with_source",
     "warm_up_parsers",
     "warm_up_renderer",
     "warm_up_kernels",

@@ -158,12 +158,34 @@ def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: s
 
 def case_summary(case: Any) -> dict[str, Any]:
     summary: dict[str, Any] = {"warnings": [str(w) for w in getattr(case, "warnings", []) or []]}
+    try:  # whose case it is, from the headers the readers kept (the caller sets the source and file names)
+        summary["case"] = json_safe(engine.case_identity(case.sources, source="upload"))
+    except Exception:  # noqa: BLE001 - informative only: the job is accepted without it
+        summary["case"] = None
     try:
         summary["faces"] = int(case.mesh.n_faces)
         summary["views"] = {name: list(mask.shape[::-1]) for name, mask in case.masks.items()}
     except Exception:  # noqa: BLE001, S110 - the summary is informative only
         pass
     return summary
+
+
+def job_case(identity: dict[str, Any] | None, source: str,
+             file_names: dict[str, list[str]] | None = None) -> tuple[dict[str, Any], str | None]:
+    """A job's case identity (``identity`` from the validator's summary, with its source and upload file
+    names set) and the text ``?q=`` searches."""
+    case = engine.with_source(identity, source=source, file_names=file_names)
+    return case, engine.case_search_text(case)
+
+
+def fetched_case(files: Any, source: str) -> tuple[dict[str, Any], str | None]:
+    """The case identity of inputs a worker fetched from a PACS (headers only; never fails the job)."""
+    try:
+        sources = engine.read_sources(files.ap, files.lat, files.volume)
+        identity = json_safe(engine.case_identity(sources, source=source))
+    except Exception:  # noqa: BLE001 - informative only
+        identity = None
+    return job_case(identity, source)
 
 
 # ---- running and outputs -----------------------------------------------------------------------

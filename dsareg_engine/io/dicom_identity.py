@@ -24,6 +24,8 @@ STUDY_KEYWORDS = (
     "StudyInstanceUID", "StudyDate", "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber",
     "StudyDescription",
 )
+SERIES_KEYWORDS = ("Modality", "SeriesNumber", "SeriesDescription")
+"""Series attributes kept for the reviewer's view of the case (:mod:`.case_identity`), never written out."""
 
 
 class UnreadableIdentity(ValueError):
@@ -40,6 +42,7 @@ class DicomIdentity:
         patient: ``(keyword, value)`` of the :data:`PATIENT_KEYWORDS` present and non-empty, in that order
             (values as pydicom converts them; copied, never shared with the parsed dataset).
         study: the same for :data:`STUDY_KEYWORDS`.
+        series: the same for :data:`SERIES_KEYWORDS` (modality, series number and description).
     """
 
     sop_class_uid: str
@@ -49,6 +52,7 @@ class DicomIdentity:
     frame_of_reference_uid: str | None = None
     patient: tuple[tuple[str, Any], ...] = ()
     study: tuple[tuple[str, Any], ...] = ()
+    series: tuple[tuple[str, Any], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,8 @@ def identity_of(dataset) -> DicomIdentity | None:
             sop_class_uid=str(dataset.SOPClassUID), sop_instance_uid=str(dataset.SOPInstanceUID),
             study_instance_uid=_top(dataset, "StudyInstanceUID"), series_instance_uid=_top(dataset, "SeriesInstanceUID"),
             frame_of_reference_uid=_top(dataset, "FrameOfReferenceUID"),
-            patient=_present(dataset, PATIENT_KEYWORDS), study=_present(dataset, STUDY_KEYWORDS))
+            patient=_present(dataset, PATIENT_KEYWORDS), study=_present(dataset, STUDY_KEYWORDS),
+            series=_present(dataset, SERIES_KEYWORDS))
     except Exception as exc:  # noqa: BLE001 - a malformed value: no identity, said so
         raise UnreadableIdentity(str(exc)[:200]) from None
 

@@ -24,12 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from ..storage.blobs import BlobStore
-from ..pacs.dicom_jobs import STORED_FILES, pacs_job, pacs_problem
+from ..pacs.dicom_jobs import STORED_FILES, PacsJob, pacs_job, pacs_problem
 from ..pacs.dicomweb import PacsError
 from ..pacs.dimse.export import dimse_job
 from .exports import export_target, source_of
 from ..storage.diskspace import has_room, is_disk_full
-from ..engine_adapter import collect_artifacts, engine, run_job, stored_case_files
+from ..engine_adapter import collect_artifacts, engine, fetched_case, run_job, stored_case_files
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
 from ..storage.store import JobRecord, JobStore, random_token, store_for, store_outage_errors
@@ -260,6 +260,7 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
         files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.limits.input_limits)
     else:
         files = pacs.fetch()
+        _record_case(finish.store, job, files, "dicomweb" if isinstance(pacs, PacsJob) else "dimse", settings)
     result = run_job(files, job.options, out_dir, limits=settings.limits.input_limits, control=control,
                      label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
     if control.lost:
@@ -281,6 +282,15 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
             if not blobs.exists(digest):
                 blobs.put_file(out_dir / name)
     return outcome
+
+
+def _record_case(store: JobStore, job: JobRecord, files: Any, source: str, settings: ServiceSettings) -> None:
+    """Whose case a job by PACS reference is, once its inputs were fetched (informative: never fails the job)."""
+    case, search = fetched_case(files, source)
+    try:
+        with_store_retries(lambda: store.set_case(job.id, case, search), settings, "recording the case", job.id)
+    except Exception:  # noqa: BLE001 - the registration goes on without it
+        log.warning("job %s: the case identity was not recorded", job.id)
 
 
 def _stopped(job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher) -> str:

@@ -100,6 +100,8 @@ class JobRecord:
     callback: dict[str, Any] | None = None  # delivery state of the completion callback (read by ``get``)
     review: dict[str, Any] | None = None  # {"decision", "comment", "by", "at" (epoch s)}: the latest review
     export: dict[str, Any] | None = None  # the held PACS export (export_after_review; read by ``get``)
+    case: dict[str, Any] | None = None  # whose case (patient, study, series; engine case_identity): owner's eyes only
+    case_search: str | None = None  # what ``list(q=…)`` matches (lower-case; engine case_search_text)
 
 
 class ConflictError(Exception):
@@ -126,7 +128,12 @@ class JobStore(abc.ABC):
 
     @abc.abstractmethod
     def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,
-             review: str | None = None) -> tuple[list[JobRecord], str | None]: ...
+             review: str | None = None, q: str | None = None) -> tuple[list[JobRecord], str | None]:
+        """Newest first; ``q``: only jobs whose ``case_search`` contains it (case-insensitive)."""
+
+    def set_case(self, job_id: str, case: dict[str, Any], search: str | None) -> None:
+        """Record whose case a job is, once its inputs were read (jobs by PACS reference: by the worker)."""
+        raise NotImplementedError
 
     @abc.abstractmethod
     def review(self, job_id: str, decision: str, comment: str, by: str) -> JobRecord | None:
@@ -262,6 +269,8 @@ jobs = sa.Table(
     # added later: databases made before gain them on start (upgrade_schema); nullable for that reason
     sa.Column("review_decision", sa.String(16)),
     sa.Column("review", sa.Text),
+    sa.Column("case_identity", sa.Text),  # JSON: patient, study, series per input (never logged)
+    sa.Column("case_search", sa.Text),  # lower-case text ?q= searches (patient ID and name, study)
     sa.UniqueConstraint("owner", "idempotency_key", name="uq_jobs_owner_idempotency"),
     sa.Index("ix_jobs_status_created", "status", "created_at"),
     sa.Index("ix_jobs_created", "created_at", "id"),
@@ -403,6 +412,7 @@ class SqlJobStore(JobStore):
             review=_load(m["review"]), callback_url=m.get("cb_url"), previous_id=m.get("previous_id"),
             callback={name: m.get(f"cb_{name}") for name in CALLBACK_COLUMNS} if m.get("cb_url") else None,
             export=_export_row(m) if m.get("ex_state") else None,
+            case=_load(m.get("case_identity")), case_search=m.get("case_search"),
         )
 
     def _event(self, conn: Any, job_id: str, event: str, worker_id: str | None = None, attempt: int | None = None,
@@ -417,7 +427,7 @@ class SqlJobStore(JobStore):
             attempts=0, max_attempts=job.max_attempts, cancel_requested=False, options=_dump(job.options),
             geometry=job.geometry, inputs=_dump([vars(f) for f in job.inputs]), warnings=_dump(job.warnings),
             idempotency_key=job.idempotency_key, request_hash=job.request_hash, input_bytes=job.input_bytes,
-            artifacts=_dump({}),
+            artifacts=_dump({}), case_identity=_dump(job.case), case_search=job.case_search,
         )
         try:
             with self.writer.begin() as conn:
@@ -463,7 +473,7 @@ class SqlJobStore(JobStore):
         return None if row is None else self._row_to_job(row)
 
     def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,
-             review: str | None = None) -> tuple[list[JobRecord], str | None]:
+             review: str | None = None, q: str | None = None) -> tuple[list[JobRecord], str | None]:
         query = sa.select(jobs, job_previous.c.previous_id).select_from(  # summaries link to a previous job
             jobs.outerjoin(job_previous, job_previous.c.job_id == jobs.c.id))
         if owner is not None:
@@ -474,6 +484,9 @@ class SqlJobStore(JobStore):
             query = query.where(jobs.c.review_decision.is_(None))
         elif review is not None:
             query = query.where(jobs.c.review_decision == review)
+        if q:
+            pattern = "%" + q.lower().replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+            query = query.where(jobs.c.case_search.like(pattern, escape="\\"))
         if cursor:
             created, job_id = decode_cursor(cursor)
             query = query.where(sa.or_(jobs.c.created_at < created, sa.and_(jobs.c.created_at == created, jobs.c.id < job_id)))
@@ -483,6 +496,11 @@ class SqlJobStore(JobStore):
         records = [self._row_to_job(r) for r in rows[:limit]]
         next_cursor = _encode_cursor(records[-1].created_at, records[-1].id) if len(rows) > limit and records else None
         return records, next_cursor
+
+    def set_case(self, job_id: str, case: dict[str, Any], search: str | None) -> None:
+        with self.writer.begin() as conn:
+            conn.execute(jobs.update().where(jobs.c.id == job_id)
+                         .values(case_identity=_dump(case), case_search=search))
 
     def count_by_status(self) -> dict[str, int]:
         with self.engine.connect() as conn:

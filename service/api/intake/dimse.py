@@ -19,6 +19,7 @@ import json
 import logging
 from typing import Any
 
+from ...engine_adapter import job_case
 from ...pacs.dimse.grouping import PlannedJob
 from ...pacs.dimse.inbox import StoredInstance
 from ...problems import Problem
@@ -89,9 +90,10 @@ async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
     inputs, options = await _planned_inputs(ctx, study_uid, job, by_uid)
     options_json = options.model_dump(mode="json")
     await check_queue(ctx, owner)
-    warnings = await validate_inputs(ctx, inputs, None, options)
+    warnings, identity = await validate_inputs(ctx, inputs, None, options)
     record = new_job(ctx, owner, key, options_json=options_json, geometry=None, inputs=inputs, warnings=warnings,
-                     request_hash=fingerprint(inputs, None, options_json), input_bytes=sum(i.size for i in inputs))
+                     request_hash=fingerprint(inputs, None, options_json), input_bytes=sum(i.size for i in inputs),
+                     case=job_case(identity, "dimse"))
     stored, _ = await create_job(ctx, record)
     if stored is None:  # an equal request won the race
         again = await asyncio.to_thread(ctx.store.find_idempotent, owner, key)

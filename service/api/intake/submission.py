@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 
 from ...budgets import check_job_cost, parse_json_part
-from ...engine_adapter import check_options, engine, image_reading_json, submitted_geometry, volume_reading
+from ...engine_adapter import check_options, engine, image_reading_json, job_case, submitted_geometry, volume_reading
 from ...jobs.callbacks import url_problem
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
@@ -175,10 +175,12 @@ async def check_queue(ctx: ServiceContext, who: str) -> None:
                       headers={"Retry-After": "30"})
 
 
-async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry: str | None, options: Any) -> list[str]:
-    """Parse the inputs in a validator process (422 with the field if they are unusable); the warnings."""
+async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry: str | None,
+                          options: Any) -> tuple[list[str], dict[str, Any] | None]:
+    """Parse the inputs in a validator process (422 with the field if they are unusable); the warnings and
+    the case identity the headers gave (source ``upload``, no file names: :func:`job_case` sets them)."""
     if ctx.validator is None:
-        return []
+        return [], None
     outcome = await ctx.validator.validate({
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
         "reading": image_reading_json(options),
@@ -196,18 +198,21 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         raise Problem(422, outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
     views = (outcome.summary or {}).get("views") or {}
     check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.limits.max_job_cost)
-    return list((outcome.summary or {}).get("warnings", []))
+    return list((outcome.summary or {}).get("warnings", [])), (outcome.summary or {}).get("case")
 
 
 def new_job(ctx: ServiceContext, who: str, key: str | None, *, options_json: dict[str, Any], geometry: str | None,
             inputs: list[InputFile], warnings: list[str], request_hash: str, input_bytes: int,
-            callback_url: str | None = None, previous_id: str | None = None) -> JobRecord:
+            callback_url: str | None = None, previous_id: str | None = None,
+            case: tuple[dict[str, Any], str | None] | None = None) -> JobRecord:
+    """``case``: the case identity and its search text (:func:`service.engine_adapter.job_case`)."""
     now = time.time()
     return JobRecord(
         id=new_job_id(), owner=who, status="queued", created_at=now, updated_at=now,
         max_attempts=ctx.settings.jobs.max_attempts, options=options_json, geometry=geometry, inputs=inputs,
         warnings=warnings, idempotency_key=key, request_hash=request_hash, input_bytes=input_bytes,
-        callback_url=callback_url, previous_id=previous_id,
+        callback_url=callback_url, previous_id=previous_id, case=case[0] if case else None,
+        case_search=case[1] if case else None,
     )
 
 
@@ -265,9 +270,11 @@ async def submit_files(ctx: ServiceContext, files: dict[str, list[UploadFile]], 
     if (previous := await find_replay(ctx, who, key, request_hash)) is not None:
         return previous
     await check_queue(ctx, who)  # back-pressure before the expensive parse
-    warnings = await validate_inputs(ctx, inputs, geometry, options)
+    warnings, identity = await validate_inputs(ctx, inputs, geometry, options)
+    names = {role: [u.filename or "" for u in uploads] for role, uploads in files.items()}
     job = new_job(ctx, who, key, options_json=options_json, geometry=geometry, inputs=inputs, warnings=warnings,
-                  request_hash=request_hash, input_bytes=total, callback_url=callback_url, previous_id=previous_id)
+                  request_hash=request_hash, input_bytes=total, callback_url=callback_url, previous_id=previous_id,
+                  case=job_case(identity, "upload", names))
     stored, answer = await create_job(ctx, job)
     if stored is None:
         return answer  # type: ignore[return-value]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from urllib.parse import quote
 
 from fastapi import Query, Request
 from fastapi.responses import JSONResponse, Response
@@ -70,7 +71,7 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
 
 
 def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | None,
-              review: str | None = None) -> dict:
+              review: str | None = None, q: str | None = None) -> dict:
     if status is not None and status not in STATUSES:
         raise Problem(422, f"unknown status '{status[:20]}'", field="status", accepted=", ".join(STATUSES))
     if review is not None and review not in REVIEW_FILTERS:
@@ -80,11 +81,13 @@ def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | 
             decode_cursor(cursor)
         except Exception:  # noqa: BLE001
             raise Problem(400, "the cursor is not valid; use next_cursor from a previous page", field="cursor") from None
-    records, next_cursor = ctx.store.list(owner=who, status=status, limit=limit, cursor=cursor, review=review)
+    q = q.strip() if q else None
+    records, next_cursor = ctx.store.list(owner=who, status=status, limit=limit, cursor=cursor, review=review,
+                                          q=q or None)
     next_link = None
     if next_cursor:
         next_link = (f"/v1/registrations?limit={limit}&cursor={next_cursor}" + (f"&status={status}" if status else "")
-                     + (f"&review={review}" if review else ""))
+                     + (f"&review={review}" if review else "") + (f"&q={quote(q, safe='')}" if q else ""))
     return {"items": [summary_body(r) for r in records], "next_cursor": next_cursor, "links": {"next": next_link}}
 
 
@@ -101,10 +104,14 @@ def list_jobs(
                     "without padding, at most 200 characters). Any other value → 400 with field `cursor`."),
     review: str | None = Query(None, description="Only jobs never reviewed (none) or whose latest review is "
                                                  "approved / rejected.", json_schema_extra={"enum": list(REVIEW_FILTERS)}),
+    q: str | None = Query(None, max_length=64,
+                          description="Only jobs whose case matches: part of the patient ID or name, study date "
+                                      "(YYYY-MM-DD), study description or accession number (case-insensitive). "
+                                      "Never logged."),
     *,
     who: Principal,
 ) -> Response:
-    return JSONResponse(list_page(ctx, who, status, limit, cursor, review))
+    return JSONResponse(list_page(ctx, who, status, limit, cursor, review, q))
 
 
 @router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",

@@ -11,6 +11,7 @@ from ...engine_adapter import engine
 from ...problems import ProblemDetails
 from .payloads import Verdict
 from ...storage.store import JobRecord
+from .case import CaseIdentity, case_model
 from .review import ExportState, Review, export_model, review_model
 
 Status = Literal["queued", "running", "succeeded", "failed", "canceled"]
@@ -20,6 +21,8 @@ VERDICT_TEXT = ("= result.metrics.confidence.verdict: ok (use the pose), check (
                 "(do not use the pose). Null until the job succeeded (and for results of versions before the verdict).")
 
 EXAMPLE_ID = "0b5a6f3c9d2e4f1a8b7c6d5e4f3a2b1c"
+CASE_TEXT = ("Whose case it is (patient, study, series of each input, source), from the inputs' DICOM headers; "
+             "null until the inputs were read (jobs by PACS reference: once a worker fetched them).")
 
 
 class Progress(BaseModel):
@@ -105,6 +108,7 @@ class JobStatus(BaseModel):
                           '"study_uid", "pairing", "ap", "lat", "volume"}} (absent otherwise).')
     review: Review | None = Field(None, description="A person's latest review (POST /v1/registrations/{id}/review); "
                                                     "null until then.")
+    case: CaseIdentity | None = Field(None, description=CASE_TEXT)
     export: ExportState | None = Field(
         None, description="The PACS export held for review (DSAREG_EXPORT_AFTER_REVIEW=true): absent when the server "
                           "exports at once, or the job stores nothing into a PACS.")
@@ -136,6 +140,7 @@ class JobSummary(BaseModel):
     dice: dict[str, float] | None = Field(None, description="Dice per view of the registered silhouette.")
     error: str | None = Field(None, description="Title and detail of the problem, for failed jobs.")
     review: Review | None = Field(None, description="A person's latest review; null until then.")
+    case: CaseIdentity | None = Field(None, description=CASE_TEXT)
     links: JobLinks
 
 
@@ -247,7 +252,7 @@ def job_status(job: JobRecord) -> JobStatus:
         cancel_requested=job.cancel_requested, progress=_progress(job), result=result,
         error=ProblemDetails(**job.error) if job.error and job.status == "failed" else None,
         warnings=job.warnings, callback=_callback_state(job), review=review_model(job.review),
-        export=export_model(job.export), links=job_links(job.id, job),
+        export=export_model(job.export), case=case_model(job.case), links=job_links(job.id, job),
     )
 
 
@@ -294,7 +299,7 @@ def job_summary(job: JobRecord) -> JobSummary:
         finished_at=iso(job.finished_at), seconds=seconds, progress=_progress(job),
         converged=metrics.get("converged") if isinstance(metrics.get("converged"), bool) else None,
         verdict=_verdict(result) if result else None, reasons=_reasons(result) if result else None,
-        dice=dice or None, error=error, review=review_model(job.review), links=links,
+        dice=dice or None, error=error, review=review_model(job.review), case=case_model(job.case), links=links,
     )
 
 

@@ -202,3 +202,18 @@ def test_an_abandoned_export_is_taken_over_and_a_rejected_job_is_never_due(store
     assert store.get(job.id).export["state"] == "skipped" and store.due_exports(time.time() + 1e6) == []
     store.delete(job.id)
     assert store.get(job.id) is None
+
+
+def test_case_identity_is_stored_and_searched(store):
+    plain = _job(store, digest="b" * 64)[0]
+    now = time.time()
+    job = JobRecord(id=new_job_id(), owner="anonymous", status="queued", created_at=now, updated_at=now,
+                    inputs=[InputFile("mesh", "c" * 64, 3, ".obj")], case={"source": "upload", "patient_id": "P_1%"},
+                    case_search="p_1% | angio")
+    store.create(job)
+    assert store.get(job.id).case == {"source": "upload", "patient_id": "P_1%"} and store.get(plain.id).case is None
+    found = lambda q: [j.id for j in store.list(owner="anonymous", status=None, limit=10, cursor=None, q=q)[0]]  # noqa: E731
+    assert found("P_1%") == [job.id] and found("ANGIO") == [job.id]
+    assert found("p%1") == [] and found("px1") == []  # % and _ are literal, not wildcards
+    store.set_case(plain.id, {"source": "dicomweb", "patient_id": "Q-7"}, "q-7")
+    assert found("q-7") == [plain.id] and store.get(plain.id).case["source"] == "dicomweb"

@@ -76,7 +76,7 @@ function clearView() {
 
 // ---- the list ---------------------------------------------------------------------------------
 
-const filters = { verdict: "", status: "", review: "" };
+const filters = { verdict: "", status: "", review: "", q: "" };
 
 function select(name, label, choices) {
   const id = "filter-" + name;
@@ -85,10 +85,33 @@ function select(name, label, choices) {
   return el("label", { for: id }, label, control);
 }
 
+function searchBox() {
+  // the search text goes in the API request only: never into the page's own URL (the hash), never logged
+  const input = el("input", { id: "search", type: "search", maxlength: 64, value: filters.q, spellcheck: "false",
+    placeholder: "patient ID, name, study" });
+  const form = el("form", { class: "search", role: "search", onsubmit: (e) => {
+    e.preventDefault(); filters.q = input.value.trim(); showList(); } },
+  el("label", { for: "search" }, "Search"), input, el("button", { type: "submit" }, "Search"));
+  return form;
+}
+
+function casePatient(c) {
+  if (!c) return el("span", { class: "muted" }, "—");
+  const who = [c.patient_name, c.patient_id ? `(${c.patient_id})` : null].filter(Boolean).join(" ");
+  return who || el("span", { class: "muted" }, c.source === "upload" ? "upload, no DICOM patient" : "—");
+}
+
+function caseStudy(c) {
+  if (!c) return el("span", { class: "muted" }, "—");
+  return [c.study_date, c.study_description].filter(Boolean).join(" · ") || el("span", { class: "muted" }, "—");
+}
+
 function jobRow(job) {
   const dice = job.dice ? Object.entries(job.dice).map(([v, d]) => `${v} ${d.toFixed(3)}`).join(", ") : "";
   return el("tr", {},
     el("td", { class: "id" }, el("a", { href: "#/job/" + job.id }, job.id.slice(0, 12))),
+    el("td", { class: "patient" }, casePatient(job.case)),
+    el("td", { class: "study" }, caseStudy(job.case)),
     el("td", {}, (job.created_at || "").replace("T", " ").slice(0, 19)),
     el("td", {}, badge(job.status)),
     el("td", {}, badge(job.verdict)),
@@ -104,17 +127,18 @@ async function showList() {
     select("status", "Status", [["", "any"], ["succeeded", "succeeded"], ["failed", "failed"], ["running", "running"],
       ["queued", "queued"], ["canceled", "canceled"]]),
     select("review", "Review", [["", "any"], ["none", "not reviewed"], ["approved", "approved"], ["rejected", "rejected"]]),
-    el("button", { type: "button", onclick: showList }, "Refresh")));
+    el("button", { type: "button", onclick: showList }, "Refresh")), searchBox());
   const query = new URLSearchParams({ limit: "100" });
   if (filters.status) query.set("status", filters.status);
   if (filters.review) query.set("review", filters.review);
+  if (filters.q) query.set("q", filters.q);
   try {
     const page = await api("/v1/registrations?" + query);
     const items = page.items.filter((job) => !filters.verdict || job.verdict === filters.verdict);
     say(`${items.length} job${items.length === 1 ? "" : "s"}` + (page.next_cursor ? " (newest 100 only)" : ""));
     view.append(el("table", { id: "jobs" },
       el("caption", { class: "muted" }, "Newest first. Open a job to look at it and review it."),
-      el("thead", {}, el("tr", {}, ["Job", "Created (UTC)", "Status", "Verdict", "Dice", "Review"].map(
+      el("thead", {}, el("tr", {}, ["Job", "Patient", "Study", "Created (UTC)", "Status", "Verdict", "Dice", "Review"].map(
         (h) => el("th", { scope: "col" }, h)))),
       el("tbody", {}, items.map(jobRow))));
   } catch (error) {
@@ -123,6 +147,25 @@ async function showList() {
 }
 
 // ---- one job ----------------------------------------------------------------------------------
+
+const SOURCE_WORDS = { upload: "uploaded files", dicomweb: "fetched by DICOMweb", dimse: "received over DIMSE" };
+
+function caseSection(job) {
+  // whose case: every value is untrusted header text, so only ever text nodes (el() never parses markup)
+  const c = job.case;
+  if (!c) return el("section", { id: "case", class: "case" }, el("p", { class: "muted" }, "Case: not known yet (the inputs have not been read)."));
+  const rows = [["Patient", casePatient(c)], ["Study", caseStudy(c)], ["Accession", c.accession_number],
+    ["Source", SOURCE_WORDS[c.source] || c.source]].filter(([, v]) => v);
+  const inputs = (c.inputs || []).map((i) => el("li", {}, el("strong", {}, i.role.toUpperCase()), ": ",
+    [i.modality, i.series_number ? `series ${i.series_number}` : null, i.series_description,
+      i.instances > 1 ? `${i.instances} instances` : null, i.file_names.length ? i.file_names.join(", ") : null]
+      .filter(Boolean).join(" · ") || "—"));
+  return el("section", { id: "case", class: "case", "aria-label": "Case" },
+    el("dl", { class: "case-facts" }, rows.map(([k, v]) => [el("dt", {}, k), el("dd", { "data-field": k.toLowerCase() }, v)])),
+    inputs.length ? el("ul", { class: "case-inputs" }, inputs) : null,
+    c.mismatch && c.mismatch.length ? el("p", { class: "error", role: "alert" },
+      "The inputs disagree on " + c.mismatch.join(", ").replaceAll("_", " ") + ": they may not be one patient's study.") : null);
+}
 
 function rotationDeg(m) {
   const trace = m[0][0] + m[1][1] + m[2][2];
@@ -284,7 +327,7 @@ async function showJob(id) {
   say("");
   document.title = `Job ${id.slice(0, 8)} · dsareg review`;
   view.append(el("p", {}, el("a", { href: "#/" }, "← All jobs")),
-    el("h2", {}, "Job ", el("code", {}, id), " ", badge(job.status)),
+    el("h2", {}, "Job ", el("code", {}, id), " ", badge(job.status)), caseSection(job),
     el("div", { class: "job" },
       el("div", {}, viewsSection(job), el("div", { class: "plots" },
         plotFigure(job.links.loss_plot, "Loss per iteration of the registration", "Loss per iteration"),
