@@ -103,6 +103,11 @@ class Browser:
         path.write_bytes(base64.b64decode(self._call("GET", "/screenshot")))
         return path
 
+    def element_screenshot(self, css: str, path: Path) -> Path:
+        """A PNG of one element as drawn (e.g. a WebGL canvas)."""
+        path.write_bytes(base64.b64decode(self._call("GET", f"/element/{self.find(css)}/screenshot")))
+        return path
+
     def close(self) -> None:
         try:
             self.http.delete(self.session)

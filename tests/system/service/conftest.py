@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import json
+
 import pytest
 from tests.support.service_testkit import Server, make_example_case
 
@@ -18,5 +20,17 @@ def server(tmp_path_factory):
     loaded 2-core machine (load 25) the warm-up took more than the default 90 s."""
     srv = Server(tmp_path_factory.mktemp("srv") / "data", workers=1, host="0.0.0.0",
                  env={"DSAREG_MAX_UPLOAD_BYTES": str(4 * 1024 * 1024)}).start(timeout=240)
+    yield srv
+    srv.stop()
+
+
+ALPHA, BETA = "review-alpha-key-0123456789", "review-beta-key-9876543210"
+
+
+@pytest.fixture(scope="session")
+def keyed_server(tmp_path_factory):
+    """One server with two API keys for the review tests (test_service_review*.py): 1 worker."""
+    srv = Server(tmp_path_factory.mktemp("review") / "data", workers=1,
+                 env={"DSAREG_API_KEYS": json.dumps([ALPHA, BETA])}).start(timeout=240)
     yield srv
     srv.stop()

@@ -16,17 +16,9 @@ import sqlalchemy as sa
 from tests.support.service_testkit import Server, needs_engine, submit, wait_for
 from tests.support.webdriver import Browser, browser_binaries
 
-ALPHA, BETA = "review-alpha-key-0123456789", "review-beta-key-9876543210"
+from tests.system.service.conftest import ALPHA, BETA
 SLOW = {"starts": 2, "max_iterations": 400, "seed": 5}
 SHOTS = Path(__file__).resolve().parents[3] / "docs" / "images"
-
-
-@pytest.fixture(scope="module")
-def keyed_server(tmp_path_factory):
-    srv = Server(tmp_path_factory.mktemp("review") / "data", workers=1,
-                 env={"DSAREG_API_KEYS": json.dumps([ALPHA, BETA])}).start()
-    yield srv
-    srv.stop()
 
 
 def _clients(srv):
@@ -129,7 +121,8 @@ def _old_schema() -> sa.MetaData:
     """The tables as they were before reviews (no review columns, no event detail)."""
     from service.storage.store import metadata
 
-    new = {("jobs", "review"), ("jobs", "review_decision"), ("job_events", "detail")}
+    new = {("jobs", "review"), ("jobs", "review_decision"), ("job_events", "detail"), ("jobs", "case_identity"),
+           ("jobs", "case_search")}
     old = sa.MetaData()
     for table in metadata.sorted_tables:
         columns = [c for c in table.columns if (table.name, c.name) not in new]
@@ -155,6 +148,7 @@ def test_existing_database_gains_review_columns(tmp_path):
     try:
         with srv.client() as c:
             assert c.get(f"/v1/registrations/{'a' * 32}").json()["review"] is None
+            assert c.get(f"/v1/registrations/{'a' * 32}").json()["case"] is None
             r = c.post(f"/v1/registrations/{'a' * 32}/review", json={"decision": "rejected", "comment": "no result"})
             assert r.status_code == 200, r.text
             assert r.json()["review"]["by"] == "anonymous"

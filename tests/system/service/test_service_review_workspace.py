@@ -1,0 +1,94 @@
+"""The review workspace in a real headless Chromium against a real server with two keys: whose case a
+job is (patient and study from the DICOM headers), shown as text only (a StudyDescription carrying
+markup runs nothing), searchable by the owner and by no one else."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import pydicom
+import pytest
+from tests.support.service_testkit import FAST_OPTIONS, needs_engine, wait_for
+from tests.support.webdriver import Browser, browser_binaries
+from tests.system.service.conftest import ALPHA, BETA
+
+from dsareg_engine.simulation.native_run import to_bytes
+from dsareg_engine.simulation.native_run_skull import SkullRunSettings, make_skull_run
+
+PATIENT_ID = "RV-0042"
+PAYLOAD = '<img src=x onerror="window.__xss=1">'
+
+
+def _identified(data: bytes) -> bytes:
+    dataset = pydicom.dcmread(io.BytesIO(data))
+    dataset.PatientID, dataset.PatientName, dataset.StudyDate = PATIENT_ID, "Roe^Ada", "20261130"
+    dataset.StudyDescription, dataset.StudyInstanceUID = PAYLOAD, "1.2.826.0.1.3680043.10.511.42"  # one study
+    return to_bytes(dataset)
+
+
+@pytest.fixture(scope="module")
+def dicom_job(keyed_server, tmp_path_factory):
+    """A job of native XA runs (DICOM) whose headers name a patient and carry markup in the study."""
+    case = make_skull_run(0, SkullRunSettings(size_px=96))
+    path = tmp_path_factory.mktemp("mesh") / "tree.obj"
+    case.mesh.save(path)
+    files = [("mesh", ("tree.obj", path.read_bytes(), "application/octet-stream")),
+             ("ap", ("run 3 ap.dcm", _identified(case.files["ap"]), "application/dicom")),
+             ("lat", ("lat.dcm", _identified(case.files["lat"]), "application/dicom"))]
+    with keyed_server.client(headers={"Authorization": f"Bearer {ALPHA}"}) as alpha:
+        response = alpha.post("/v1/registrations", files=files, data={"options": json.dumps(FAST_OPTIONS)})
+        assert response.status_code == 202, response.text
+        job = wait_for(alpha, response.json()["id"], timeout=240)
+    assert job["status"] == "succeeded", job
+    return job
+
+
+@needs_engine
+def test_case_identity_is_the_owners_only(keyed_server, dicom_job):
+    case = dicom_job["case"]
+    assert (case["patient_id"], case["patient_name"], case["study_date"]) == (PATIENT_ID, "Roe, Ada", "2026-11-30")
+    assert case["study_description"] == PAYLOAD and case["source"] == "upload" and case["mismatch"] == []
+    assert [(i["role"], i["modality"], i["file_names"]) for i in case["inputs"]][:2] == [
+        ("ap", "XA", ["run 3 ap.dcm"]), ("lat", "XA", ["lat.dcm"])]
+    with keyed_server.client(headers={"Authorization": f"Bearer {ALPHA}"}) as alpha, \
+            keyed_server.client(headers={"Authorization": f"Bearer {BETA}"}) as beta:
+        found = lambda c, q: [j["id"] for j in c.get("/v1/registrations", params={"q": q}).json()["items"]]  # noqa: E731
+        assert dicom_job["id"] in found(alpha, "rv-004") and dicom_job["id"] in found(alpha, "2026-11-30")
+        assert dicom_job["id"] not in found(alpha, "RV-0043")
+        assert found(beta, PATIENT_ID) == [] and beta.get(f"/v1/registrations/{dicom_job['id']}").status_code == 403
+        summary = next(j for j in alpha.get("/v1/registrations").json()["items"] if j["id"] == dicom_job["id"])
+        assert summary["case"] == case
+        assert alpha.get("/v1/registrations", params={"q": "x" * 65}).status_code == 422
+    logs = keyed_server.logs()
+    assert PATIENT_ID not in logs and PATIENT_ID.lower() not in logs and "Roe" not in logs
+
+
+@needs_engine
+def test_workspace_in_chromium(keyed_server, dicom_job, tmp_path):
+    browser_binaries()
+    browser = Browser(tmp_path / "profile", width=1280, height=800)
+    try:
+        browser.open(keyed_server.url + "/ui/")
+        browser.type("#api-key", ALPHA + "\ue007")
+        browser.type("#search", PATIENT_ID.lower() + "\ue007")
+        row = browser.wait("const r = [...document.querySelectorAll('#jobs tbody tr')]; "
+                           "return r.length === 1 && r[0].innerText", what="one job found")
+        assert "Roe, Ada (RV-0042)" in row and "2026-11-30" in row and PAYLOAD in row, row
+        assert PATIENT_ID not in browser.run("return location.href")
+        browser.open("about:blank")
+        started = time.monotonic()  # a full load of the job page (a deep link), not a hash change
+        browser.open(keyed_server.url + f"/ui/#/job/{dicom_job['id']}")
+        browser.wait("const i = document.querySelectorAll('.views img[data-view]'); return i.length === 2 && "
+                     "[...i].every(x => x.complete && x.naturalWidth > 0) && document.getElementById('case')",
+                     what="job page")
+        load_s = time.monotonic() - started
+        facts = browser.run("return document.getElementById('case').innerText")
+        assert PATIENT_ID in facts and "Roe, Ada" in facts and PAYLOAD in facts, facts
+        assert browser.run("return document.querySelectorAll('#case img, #jobs img').length") == 0
+        assert browser.run("return window.__xss === undefined")
+        print(f"job page loaded in {load_s:.2f} s")
+        assert load_s <= 2.0, load_s
+    finally:
+        browser.close()
