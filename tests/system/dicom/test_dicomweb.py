@@ -159,6 +159,9 @@ def test_register_by_reference_stores_reg_and_overlays_in_the_pacs(service, orth
         result = job["result"]
         dicom = result["dicom"]
         assert dicom["stored"]["confirmed"] and dicom["stored"]["study_uid"] == study.study_uid
+        # whose case: recorded by the worker from the fetched headers
+        assert (job["case"]["source"], job["case"]["patient_id"], job["case"]["study_uid"]) == (
+            "dicomweb", "DSAREG-PHANTOM-1", study.study_uid)
         reg_uid = dicom["instances"]["reg.dcm"]["sop_instance_uid"]
         assert set(dicom["stored"]["sop_instance_uids"]) == {
             dicom["instances"][n]["sop_instance_uid"] for n in ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm")}

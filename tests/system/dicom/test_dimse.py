@@ -135,6 +135,7 @@ def test_storescu_study_becomes_one_job_and_the_results_reach_storescp(node, stu
         assert queued_s <= STABLE_S + 2.0 + 12.0
         assert job["source"]["dimse"]["calling_ae"] == "STORESCU"
         assert job["source"]["dimse"]["study_uid"] == study_uid
+        assert (job["case"]["source"], job["case"]["patient_id"]) == ("dimse", "DSAREG-PHANTOM-1")
         done = wait_for(client, job["id"], timeout=300)
         assert done["status"] == "succeeded", done
         exported = done["result"]["dicom"]["exported"]
