@@ -389,11 +389,13 @@ def bench_partial(args: argparse.Namespace) -> int:
     from ..simulation.clinical_rig import clinical_biplane_rig
 
     mesh = load_mesh_argument(args.mesh)
-    rig = clinical_biplane_rig(args.size)
+    width, height = args.size
+    rig = clinical_biplane_rig(width, detector_mm=args.detector_mm, rows_px=height)
     rng = np.random.default_rng(args.seed + 1)
     extra = json.loads(args.options)
     masks = "true masks" if args.corruption == "none" else f"masks with segmentation errors ({args.corruption})"
-    print(f"mesh {mesh.n_faces} faces, clinical rig {args.size}x{args.size} px, {args.cases} cases per row, no initial pose, "
+    print(f"mesh {mesh.n_faces} faces, clinical rig {width}x{height} px, detector {args.detector_mm:g} mm wide, "
+          f"{args.cases} cases per row, no initial pose, "
           f"{masks} of the visible part, options {extra}")
     print("| row | visible fraction | success (ADD < 1 mm) | ADD mm median / max | verdicts ok / check / failed "
           "| partial reason | median CPU s |")

@@ -3,6 +3,8 @@ torch (the runs are in :mod:`dsareg_engine.commands.bench`, imported when a benc
 
 from __future__ import annotations
 
+import argparse
+
 from ..registration.options import CONFIGURATIONS
 from ..simulation.segmentation_errors import CORRUPTIONS
 from .deferred import deferred
@@ -121,6 +123,17 @@ def _add_autoinit(which) -> None:
     auto.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_autoinit"))
 
 
+def _image_size(text: str) -> tuple[int, int]:
+    """``"512"`` → (512, 512); ``"1000x774"`` → (1000, 774) (width, height in px)."""
+    try:
+        sides = tuple(int(side) for side in text.lower().split("x"))
+    except ValueError:
+        sides = ()
+    if len(sides) not in (1, 2) or min(sides) < 16:
+        raise argparse.ArgumentTypeError(f"image size {text!r}: give one side in px (512) or width x height (1000x774)")
+    return (sides[0], sides[-1])
+
+
 def _add_partial(which) -> None:
     """``dsareg bench``: partial visibility."""
     partial = which.add_parser("partial", help="no initial pose, images showing part of the model (early filling, "
@@ -128,7 +141,9 @@ def _add_partial(which) -> None:
     _add_mesh(partial)
     partial.add_argument("--cases", type=int, default=4, help="random poses per row")
     partial.add_argument("--seed", type=int, default=0, help="random seed of the poses and injection points")
-    partial.add_argument("--size", type=int, default=512, help="image side in px")
+    partial.add_argument("--size", type=_image_size, default=(512, 512), metavar="PX or WxH",
+                         help="image side in px, or width x height (e.g. 1000x774, a clinical flat detector's aspect)")
+    partial.add_argument("--detector-mm", type=float, default=400.0, help="detector width in mm (square pixels)")
     partial.add_argument("--fractions", type=float, nargs="+", default=[0.4, 0.5, 0.6],
                          help="visible fractions of the model's faces (early filling and one branch)")
     partial.add_argument("--kinds", nargs="+", default=["full", "early_filling", "selective_injection", "extra_territory"],

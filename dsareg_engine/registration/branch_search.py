@@ -15,7 +15,11 @@ run filled, the model matches the images like a fully visible one. So:
    the inflow it may lie inside the filled one, whose faces are then no branch but the rest of
    the model less the other territory). Parts holding ``min_fraction``–``max_fraction`` of the
    faces are kept — the branches, nearest the inflow first, then the rests — unless they overlap an
-   already kept part by more than ``overlap`` (Jaccard), up to ``max_parts``.
+   already kept part by more than ``overlap`` (Jaccard), up to ``max_parts``. Before them come the
+   **proximal parts**: the faces nearest the inflow along the tree, ``proximal_shares`` of them (an
+   early arterial frame fills the tree from its root; no branch or rest is such a part, and on the
+   paper's mesh the best of them used to be a rest holding 76–78 % of the faces, or a distal branch
+   of 18 %, 1–4 mm off).
 2. **Search.** Each part alone, and the whole model, run the coverage search
    (:func:`~.coverage_search.search_by_coverage`, symmetric ``F_1``); each one's best pose is
    hill-climbed again on finer canvases and scored there; that pose places the whole model (a part
@@ -31,8 +35,11 @@ run filled, the model matches the images like a fully visible one. So:
    model onto the vessels, would win the loss, and the whole model's unfilled branches pull a fit
    a few mm off (measured on the phantom: a start 2° / 1.9 mm off ended 3.9 mm off). Else the
    parts scoring better than the whole model lead the multi-start (their scores, on the coverage
-   scale, stand before the centroid search's in ``scores``), the whole model fitted. Either
-   way the loss for partial visibility (:mod:`.partial`) is on.
+   scale, stand before the centroid search's in ``scores``), the whole model fitted. A proximal part
+   that scores best, below :data:`PART_MATCHES` and below the whole model, is the only start too, but the
+   *whole* model is fitted from it (an early frame shows the tree up to a front that no proximal share
+   meets exactly; the loss for partial visibility lets the unfilled distal branches lie on background).
+   Either way the loss for partial visibility (:mod:`.partial`) is on.
 
 Shapes: ``K`` parts, ``V`` vertices, ``F`` faces.
 """
@@ -45,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.rig import Rig
-from ..geometry.vessel_tree import compact, vessel_tree
+from ..geometry.vessel_tree import VesselTree, compact, vessel_tree
 from ..mesh import TriangleMesh
 from .coverage_search import CoverageSettings, refine_by_coverage, search_by_coverage
 from .initialization import Initialization, surface_points, triangulate_mask_centroids
@@ -60,7 +67,7 @@ class BranchSettings:
         min_distance: only vertices farther than this fraction of the longest inflow path.
         min_fraction / max_fraction: a part holds this share of the model's faces.
         overlap: a part overlapping a kept one by more than this (Jaccard, faces) is dropped.
-        max_parts: parts searched at most.
+        max_parts: branches and rests searched at most (the proximal parts come on top).
         starts: best parts whose poses become starts.
         beta: the parts' coverage score is ``F_β`` (1: a part's branches off the vessels cost as much as vessels
             it leaves uncovered, so the part that fits the filled vessels tightest wins).
@@ -69,6 +76,10 @@ class BranchSettings:
             these steps, and the parts are ranked by that score (on the coarse canvas a part of the model with a
             third of it past the detector's edge scored as well as wrong parts, 0.11–0.16; on the fine one
             0.14 against ≥ 0.25, measured on the paper's mesh).
+        proximal_shares: proximal parts tried first: the faces nearest the inflow, these shares of them (an early
+            arterial frame; see :func:`proximal_parts`).
+        coarse_points / coarse_top: the coarse search splats this many of a part's points and hill-climbs its this many
+            best rotations (the fine refinement then uses all ``points``).
     """
 
     samples: int = 400
@@ -82,10 +93,22 @@ class BranchSettings:
     points: int = 2500
     fine_window_px: int = 96
     fine_steps_deg: tuple[float, ...] = (3.0, 1.5, 0.75)
+    proximal_shares: tuple[float, ...] = (0.3, 0.4, 0.5, 0.6, 0.75)
+    coarse_points: int = 1000
+    coarse_top: int = 6
 
 
-def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSettings()) -> np.ndarray:
-    """``(K, F)`` bool: the model's parts to try, branches first (see the module, step 1)."""
+def proximal_parts(mesh: TriangleMesh, tree: VesselTree, shares: tuple[float, ...]) -> np.ndarray:
+    """``(len(shares), F)`` bool: per share, the faces nearest the inflow along the tree (a face's farthest vertex),
+    that share of them — the tree as an early arterial frame fills it."""
+    face_distance = tree.distances_from(tree.inflow)[mesh.faces].max(axis=1)
+    return np.array([face_distance <= np.quantile(face_distance, share) for share in shares], dtype=bool
+                    ).reshape(-1, mesh.n_faces)
+
+
+def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSettings()) -> tuple[np.ndarray, np.ndarray]:
+    """The model's parts to try (see the module, step 1): ``(K, F)`` bool faces, proximal parts first, then the
+    branches, then the rests; and ``(K,)`` bool, True for a proximal part."""
     tree = vessel_tree(mesh)
     from_inflow = tree.distances_from(tree.inflow)
     eligible = np.flatnonzero(from_inflow > settings.min_distance * from_inflow.max())
@@ -93,27 +116,32 @@ def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSetting
     picked = rng.choice(eligible, size=min(settings.samples, len(eligible)), replace=False)
     picked = picked[np.argsort(from_inflow[picked], kind="stable")]
     downstream = tree.downstream_sets(picked)[:, mesh.faces].all(axis=2)
-    faces = np.concatenate([downstream, ~downstream])  # the branches first: a rest overlapping a branch is dropped
+    proximal = proximal_parts(mesh, tree, settings.proximal_shares)
+    faces = np.concatenate([proximal, downstream, ~downstream])  # a later part overlapping an earlier one is dropped
     share = faces.mean(axis=1)
-    kept: list[np.ndarray] = []
-    for part in faces[(share >= settings.min_fraction) & (share <= settings.max_fraction)]:
-        if all((part & other).sum() <= settings.overlap * (part | other).sum() for other in kept):
-            kept.append(part)
-            if len(kept) == settings.max_parts:
+    kept: list[int] = []
+    for index in np.flatnonzero((share >= settings.min_fraction) & (share <= settings.max_fraction)):
+        part = faces[index]
+        if all((part & faces[other]).sum() <= settings.overlap * (part | faces[other]).sum() for other in kept):
+            kept.append(int(index))
+            if sum(other >= len(proximal) for other in kept) == settings.max_parts:
                 break
-    return np.array(kept, dtype=bool).reshape(-1, mesh.n_faces)
+    kept_index = np.array(kept, dtype=int)
+    return faces[kept_index].reshape(-1, mesh.n_faces), kept_index < len(proximal)
 
 
 @dataclass
 class BranchCandidates:
     """Per part searched, best first: ``poses`` ``(K, 4, 4)`` mesh_to_world, ``scores`` ``(K,)`` (the coverage
-    search's ``1 − F_β``, 0 best), ``faces`` ``(K, F)`` bool, ``fractions`` ``(K,)`` the part's share of the faces;
-    ``whole_score`` the whole model's score by the same search; ``seconds`` wall."""
+    search's ``1 − F_β``, 0 best), ``faces`` ``(K, F)`` bool, ``fractions`` ``(K,)`` the part's share of the faces,
+    ``proximal`` ``(K,)`` bool (a proximal part); ``whole_score`` the whole model's score by the same search;
+    ``seconds`` wall."""
 
     poses: np.ndarray
     scores: np.ndarray
     faces: np.ndarray
     fractions: np.ndarray
+    proximal: np.ndarray
     whole_score: float
     seconds: float
 
@@ -123,21 +151,21 @@ def search_parts(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, set
     """Run the coverage search (``F_β``, β = ``settings.beta``) on every candidate part of ``mesh`` and on the
     whole of it (steps 1–2 of the module)."""
     started = time.perf_counter()
-    parts = candidate_parts(mesh, settings)
+    parts, proximal = candidate_parts(mesh, settings)
     centre = triangulate_mask_centroids(masks, rig)
-    coarse = CoverageSettings(beta=settings.beta)
+    coarse = CoverageSettings(beta=settings.beta, refine_top=settings.coarse_top)
     fine = CoverageSettings(beta=settings.beta, window_px=settings.fine_window_px, refine_steps_deg=settings.fine_steps_deg)
     poses, scores = [], []
     for part in [*parts, np.ones(mesh.n_faces, bool)]:
         piece = compact(mesh, part)
         points = np.ascontiguousarray(surface_points(piece, settings.points) - piece.centroid)
-        found = search_by_coverage(piece, masks, rig, centre, points, 1, 0.0, coarse)
+        found = search_by_coverage(piece, masks, rig, centre, points[: settings.coarse_points], 1, 0.0, coarse)
         refined, score = refine_by_coverage(piece, masks, rig, centre, points, found.poses[:1], fine)
         poses.append(refined[0])  # a part keeps the model's frame: its pose places the whole model
         scores.append(float(score[0]))
     order = np.argsort(scores[:-1], kind="stable")
     return BranchCandidates(np.array(poses[:-1]).reshape(-1, 4, 4)[order], np.array(scores[:-1])[order], parts[order],
-                            parts.mean(axis=1)[order], scores[-1], time.perf_counter() - started)
+                            parts.mean(axis=1)[order], proximal[order], scores[-1], time.perf_counter() - started)
 
 
 def with_branch_starts(found: Initialization, mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig,
@@ -148,10 +176,14 @@ def with_branch_starts(found: Initialization, mesh: TriangleMesh, masks: dict[st
     found.seconds += parts.seconds
     found.branch = {"parts_searched": int(len(parts.scores)), "whole_score": round(parts.whole_score, 4),
                     "best_score": round(float(parts.scores[0]), 4) if len(parts.scores) else None,
-                    "faces_fraction": round(float(parts.fractions[0]), 3) if len(parts.scores) else None}
+                    "faces_fraction": round(float(parts.fractions[0]), 3) if len(parts.scores) else None,
+                    "proximal": bool(parts.proximal[0]) if len(parts.scores) else None}
     if not len(parts.scores):
         return found
     best_poses, best_scores = parts.poses[: settings.starts], parts.scores[: settings.starts]
+    if parts.proximal[0] and best_scores[0] < min(parts.whole_score, PART_MATCHES):  # an early frame: fit the whole model
+        found.poses, found.scores, found.method = best_poses[:1], best_scores[:1], "search+branch"
+        return found
     if best_scores[0] < min(parts.whole_score - PART_MARGIN, PART_MATCHES):  # the part matches like a fully visible model
         found.poses, found.scores, found.method = best_poses[:1], best_scores[:1], "search+branch"
         found.fit_faces = parts.faces[0]

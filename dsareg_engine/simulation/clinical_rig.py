@@ -26,7 +26,8 @@ class CArmPlane:
     Attributes:
         angle_deg: turn about world +y from the AP position (right-hand rule).
         sod_mm: source to isocentre; sid_mm: source to detector.
-        detector_mm: side of the square detector; size_px: image side in pixels.
+        detector_mm: width of the detector; size_px: image width in pixels (square pixels).
+        rows_px: image height in pixels (None: square, ``size_px``), e.g. 774 for a 1000-px-wide detector.
         mirrored: image columns run against the view frame's right-handed x (det −1).
         principal_offset_px: where the central ray meets the image, relative to the centre.
     """
@@ -38,6 +39,7 @@ class CArmPlane:
     size_px: int = 256
     mirrored: bool = False
     principal_offset_px: tuple[float, float] = (0.0, 0.0)
+    rows_px: int | None = None
 
     def view(self) -> ViewGeometry:
         world_to_view = np.eye(4)
@@ -45,25 +47,29 @@ class CArmPlane:
         if self.mirrored:
             world_to_view = np.diag([-1.0, 1.0, 1.0, 1.0]) @ world_to_view
         spacing = self.detector_mm / self.size_px
-        centre = (self.size_px - 1) / 2.0
+        rows = self.rows_px or self.size_px
         ap = ViewGeometry(
-            image_size=(self.size_px, self.size_px),
+            image_size=(self.size_px, rows),
             pixel_spacing_mm=(spacing, spacing),
             sid_mm=self.sid_mm,
-            principal_point_px=(centre + self.principal_offset_px[0], centre + self.principal_offset_px[1]),
+            principal_point_px=((self.size_px - 1) / 2.0 + self.principal_offset_px[0],
+                                (rows - 1) / 2.0 + self.principal_offset_px[1]),
             world_to_view=world_to_view,
         )
         return rotated_view(ap, self.angle_deg, np.array([0.0, 1.0, 0.0]))
 
 
-def clinical_biplane_rig(size_px: int = 256, angle_between_deg: float = 107.0, detector_mm: float = 400.0) -> Rig:
-    """AP at −10°, LAT ``angle_between_deg`` further, LAT mirrored, SIDs 1100 / 1200 mm, SODs 750 / 800 mm.
+def clinical_biplane_rig(size_px: int = 256, angle_between_deg: float = 107.0, detector_mm: float = 400.0,
+                         rows_px: int | None = None) -> Rig:
+    """AP at −10°, LAT ``angle_between_deg`` further, LAT mirrored, SIDs 1100 / 1200 mm, SODs 750 / 800 mm;
+    images ``size_px`` wide and ``rows_px`` high (None: square), ``detector_mm`` wide (square pixels).
 
     No initial pose (``rig.initial_pose_given`` is False), like a geometry read from DICOM headers.
     """
     offset = size_px / 100.0
-    ap = CArmPlane(-10.0, 750.0, 1100.0, detector_mm, size_px, False, (3.0 * offset, -2.0 * offset))
-    lat = CArmPlane(-10.0 + angle_between_deg, 800.0, 1200.0, detector_mm, size_px, True, (-4.0 * offset, 5.0 * offset))
+    ap = CArmPlane(-10.0, 750.0, 1100.0, detector_mm, size_px, False, (3.0 * offset, -2.0 * offset), rows_px)
+    lat = CArmPlane(-10.0 + angle_between_deg, 800.0, 1200.0, detector_mm, size_px, True, (-4.0 * offset, 5.0 * offset),
+                    rows_px)
     return Rig(views={"ap": ap.view(), "lat": lat.view()})
 
 

@@ -147,6 +147,8 @@ class BranchSearch(BaseModel):
     best_score: float | None = Field(None, description="The best part's coverage score, 1 − F1 (0 best, 1 worst).")
     whole_score: float | None = Field(None, description="The whole model's coverage score by the same search (0 best, 1 worst).")
     faces_fraction: float | None = Field(None, description="The best part's share (0–1) of the model's faces.")
+    proximal: bool | None = Field(None, description="True when the best part is a proximal one (the faces nearest the "
+                                  "inflow, as an early arterial frame fills them): the whole model is then fitted from its pose.")
 
 
 class Initialization(BaseModel):

@@ -7,10 +7,10 @@ from dsareg_engine.cli import main
 
 def test_bench_partial_prints_its_rows_and_writes_one_line_per_case(tmp_path, capsys):
     cases = tmp_path / "cases.jsonl"
-    assert main(["bench", "partial", "--size", "160", "--cases", "1", "--kinds", "full", "selective_injection",
+    assert main(["bench", "partial", "--size", "160x128", "--cases", "1", "--kinds", "full", "selective_injection",
                  "--fractions", "0.5", "--no-safety", "--corruption", "catheter", "--cases-out", str(cases)]) == 0
     printed = capsys.readouterr().out
-    assert "masks with segmentation errors (catheter) of the visible part" in printed
+    assert "masks with segmentation errors (catheter) of the visible part" in printed and "rig 160x128 px" in printed
     rows = [line for line in printed.splitlines() if line.startswith("| full |") or line.startswith("| selective_injection |")]
     assert len(rows) == 2 and "| pose \\ verdict | ok | check | failed |" in printed
     lines = [json.loads(line) for line in cases.read_text().splitlines()]

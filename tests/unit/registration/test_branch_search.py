@@ -3,15 +3,16 @@
 import numpy as np
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
-from dsareg_engine.registration.branch_search import BranchSettings, candidate_parts, search_parts
+from dsareg_engine.registration.branch_search import BranchSettings, candidate_parts, search_parts, with_branch_starts
+from dsareg_engine.registration.initialization import Initialization
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
-from dsareg_engine.simulation.partial_filling import extra_territory
+from dsareg_engine.simulation.partial_filling import early_filling, extra_territory
 
 
 def test_parts_are_distinct_branches_in_the_size_range(phantom):
     settings = BranchSettings(samples=200, max_parts=12)
-    parts = candidate_parts(phantom, settings)
-    assert 2 <= len(parts) <= 12 and parts.shape[1] == phantom.n_faces
+    parts, proximal = candidate_parts(phantom, settings)
+    assert 2 <= len(parts) <= 12 + len(settings.proximal_shares) and parts.shape[1] == phantom.n_faces
     share = parts.mean(axis=1)
     assert np.all((share >= settings.min_fraction) & (share <= settings.max_fraction))
     for i in range(len(parts)):
@@ -22,6 +23,31 @@ def test_parts_are_distinct_branches_in_the_size_range(phantom):
     inflow_faces = np.any(phantom.faces == tree.inflow, axis=1)
     holds_inflow = parts[:, inflow_faces].any(axis=1)
     assert holds_inflow.any() and not holds_inflow.all()
+    # the proximal parts come first, one per share, each holding the faces nearest the inflow
+    assert proximal[: len(settings.proximal_shares)].all() and not proximal[len(settings.proximal_shares):].any()
+    assert np.allclose(share[proximal], settings.proximal_shares, atol=0.01)
+    from_inflow = tree.distances_from(tree.inflow)[phantom.faces].max(axis=1)
+    for part in parts[proximal]:
+        assert from_inflow[part].max() <= from_inflow[~part].min()
+
+
+def _mean_distance_mm(mesh, pose, truth):
+    return np.linalg.norm(mesh.vertices @ (pose[:3, :3] - truth[:3, :3]).T + pose[:3, 3] - truth[:3, 3], axis=1).mean()
+
+
+def test_an_early_frame_starts_from_a_proximal_part_and_fits_the_whole_model(phantom):
+    # The images show the 55 % of the tree nearest the inflow, a share no proximal part holds. A proximal part
+    # (0.5 or 0.6) must lead, alone, and the whole model be fitted from it (a part holding 78 % of the faces,
+    # proximal tree and distal branches, used to win at 1–2 mm: its pose then led the multi-start).
+    rig = clinical_biplane_rig(192)
+    truth = random_visible_pose(phantom, rig, np.random.default_rng(2), 30.0)
+    masks = render_masks(early_filling(phantom, 0.55).visible, rig, truth)
+    start = Initialization(np.eye(4)[None], np.ones(1), "search", 0, 0.0)
+    found = with_branch_starts(start, phantom, masks, rig, BranchSettings(samples=150, max_parts=8))
+    assert found.branch["proximal"] and 0.45 <= found.branch["faces_fraction"] <= 0.65
+    assert found.branch["best_score"] < found.branch["whole_score"]
+    assert found.method == "search+branch" and len(found.poses) == 1 and found.fit_faces is None
+    assert _mean_distance_mm(phantom, found.poses[0], truth) < 2.0
 
 
 def test_the_filled_territory_is_found_among_the_parts(phantom):
@@ -32,7 +58,5 @@ def test_the_filled_territory_is_found_among_the_parts(phantom):
     truth = random_visible_pose(case.model, rig, np.random.default_rng(3), 30.0)
     found = search_parts(case.model, render_masks(case.visible, rig, truth), rig, BranchSettings(samples=150, max_parts=6))
     assert abs(found.fractions[0] - 0.5) < 0.1  # the original half (and a few faces past the inflow)
-    original = phantom.vertices
-    moved = original @ found.poses[0][:3, :3].T + found.poses[0][:3, 3]
-    assert np.linalg.norm(moved - (original @ truth[:3, :3].T + truth[:3, 3]), axis=1).mean() < 5.0
+    assert _mean_distance_mm(phantom, found.poses[0], truth) < 5.0
     assert found.scores[0] < 0.3 < found.scores[-1]
