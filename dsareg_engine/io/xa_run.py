@@ -16,7 +16,7 @@ The DSA image of contrast frame ``n`` is ``D_n = log C_n − log M_n`` (0 where 
 negative in the vessels: vessels dark, as the readers deliver DSA), with ``M_n`` the recipe's
 mask (moved by its Mask Sub-pixel Shift) or, without a recipe, the mean of the frames before
 contrast arrives. The mask is then moved onto the contrast frame by the patient motion found on
-the background (:mod:`dsareg_engine.vision.xa_motion`); the move is recorded.
+the background (:mod:`dsareg_engine.vision.xa_motion`: a rotation and a shift); the move is recorded.
 
 **Which frame.** ``None``: the contrast frame of maximum opacification (the largest integrated
 darkening ``Σ max(0, −D − 3σ)``); ``"minip"``: the per-pixel minimum of ``D`` over the arterial
@@ -33,14 +33,16 @@ import cv2
 import numpy as np
 
 from ..errors import DsaregInputError
-from ..vision.xa_motion import MotionSettings, estimate_shift, shift_image
+from ..vision.xa_motion import Motion, MotionSettings, estimate_motion, move_image, shift_image
 from .input_decisions import InputDecision
 from .xa_recipe import SubtractionItem, parse_recipe
-from .xa_run_kind import decide_run_kind
+from .xa_run_kind import decide_run_kind, grid_factor, on_grid
 
 ARTERIAL_FRACTION = 0.3
 ARRIVAL_FRACTION = 0.01
 ARRIVAL_NOISE = 4.0
+ARRIVAL_SIGMAS = 5.0
+MOVE_MM = 0.1
 CONTRAST_SIGMAS = 5.0
 SUBTRACTIONS = ("auto", "off")
 
@@ -176,30 +178,47 @@ def recipe_pairs(items: list[SubtractionItem], n_frames: int) -> dict[int, Pair]
     return pairs
 
 
-def opacification(difference: np.ndarray) -> float:
-    """Integrated darkening beyond the noise: ``Σ max(0, −D − 3σ)`` (σ: robust spread of ``D``)."""
+def opacification(difference: np.ndarray, sigmas: float = 3.0) -> float:
+    """Integrated darkening beyond the noise: ``Σ max(0, −D − k σ)`` (σ: robust spread of ``D``, k = ``sigmas``)."""
     sigma = _robust_std(difference)
-    return float(np.maximum(0.0, -difference - 3.0 * sigma).sum())
+    return float(np.maximum(0.0, -difference - sigmas * sigma).sum())
 
 
-def found_pairs(logs: np.ndarray, field_name: str) -> tuple[dict[int, Pair], int, InputDecision]:
-    """No recipe: the mask is the mean of the frames before contrast arrives; ``(pairs, arrival, decision)``.
+def _moved_px(first: np.ndarray, frame: np.ndarray) -> float:
+    """How far ``frame`` moved from ``first`` (grid px): the shift plus the rotation's move at the image edge."""
+    motion = estimate_motion(first, frame, MotionSettings(iterations=6, coarse_side_px=512, fine_side_px=512))
+    return float(np.abs(motion.shift_px).max() + abs(np.radians(motion.rotation_deg)) * max(first.shape) / 2.0)
 
-    Contrast has arrived in the first frame whose darkening against frame 0 exceeds both ``ARRIVAL_FRACTION``
-    of the peak's and ``ARRIVAL_NOISE`` times the quietest frame's. The decision's measure is the darkening
-    of the last mask frame over that threshold (close to 1: the mask may hold some contrast)."""
-    small = logs[:, ::2, ::2] if max(logs.shape[1:]) > 256 else logs
-    scores = np.array([0.0] + [opacification(small[n] - small[0]) for n in range(1, len(small))])
+
+def found_pairs(logs: np.ndarray, field_name: str, grid_factor: int = 1, move_px: float = 0.1
+                ) -> tuple[dict[int, Pair], int, InputDecision]:
+    """No recipe: the mask is the mean of the frames before anything changes; ``(pairs, arrival, decision)``.
+
+    On the frames area-averaged by ``grid_factor`` (about 1 mm pixels, :mod:`.xa_run_kind`: the noise
+    averaged out, the vessels kept), each frame's darkening against frame 0 beyond ``ARRIVAL_SIGMAS`` σ
+    is measured. Contrast has arrived in the first frame whose darkening exceeds both
+    ``ARRIVAL_FRACTION`` of the peak's and ``ARRIVAL_NOISE`` times the quietest frame's; an earlier
+    frame that moved more than ``move_px`` (grid px, :mod:`dsareg_engine.vision.xa_motion`) from frame
+    0 ends the masks there. The decision's measure is the last mask frame's darkening over its
+    threshold or its move over ``move_px``, the larger (close to 1: the mask may hold contrast or motion)."""
+    small = np.array([on_grid(frame, grid_factor) for frame in logs])
+    scores = np.array([0.0] + [opacification(small[n] - small[0], ARRIVAL_SIGMAS) for n in range(1, len(small))])
     if scores.max() <= 0:
         raise DsaregInputError("no frame of the native run shows contrast (every frame looks like the first)",
                                field=field_name, accepted="a run whose later frames show contrast-filled vessels")
     quiet = float(scores[1:].min())  # the quietest frame: noise (and motion) only
     threshold = max(ARRIVAL_FRACTION * scores.max(), ARRIVAL_NOISE * quiet)
-    arrival = max(1, int(np.argmax(scores > threshold)))
+    arrival, measure = max(1, int(np.argmax(scores > threshold))), 0.0
+    for n in range(1, arrival):
+        moved = _moved_px(small[0], small[n]) / move_px
+        if moved > 1.0:
+            arrival = n
+            break
+        measure = max(moved, float(scores[n] / max(threshold, 1e-12)))
     masks = tuple(range(arrival))
     decision = InputDecision(field_name, "mask frames", ",".join(str(m) for m in masks),
-                             "darkening of the last mask frame / the contrast-arrival threshold",
-                             round(float(scores[arrival - 1]) / max(threshold, 1e-12), 3), 1.0, 0.5)
+                             "contrast or motion in the last mask frame / the arrival threshold",
+                             round(measure, 3), 1.0, 0.5)
     return {n: Pair(n, (n,), masks) for n in range(arrival, len(logs))}, arrival, decision
 
 
@@ -220,18 +239,18 @@ def _frame_scores(logs: np.ndarray, pairs: dict[int, Pair]) -> dict[int, float]:
 
 def _corrected(logs: np.ndarray, pair: Pair, reading: RunReading, warnings: list[str], field_name: str
                ) -> tuple[np.ndarray, dict]:
-    """``D`` of one pair with the mask moved by the recipe's shift and the motion found; the move."""
+    """``D`` of one pair with the mask moved by the recipe's shift and the rigid motion found; the move."""
     contrast = logs[list(pair.contrast)].mean(axis=0)
     mask = shift_image(logs[list(pair.masks)].mean(axis=0), pair.shift_px)
-    found = (0.0, 0.0)
+    found = Motion()
     if reading.motion_correction:
-        found, _ = estimate_shift(mask, contrast, MotionSettings())
-        if found == (0.0, 0.0):
+        found = estimate_motion(mask, contrast, MotionSettings())
+        if found.none:
             warnings.append(f"{field_name}: no patient motion could be estimated for frame {pair.frame}")
-        mask = shift_image(mask, found)
-    total = (pair.shift_px[0] + found[0], pair.shift_px[1] + found[1])
-    move = {"recipe_px": [round(v, 4) for v in pair.shift_px], "found_px": [round(v, 4) for v in found],
-            "total_px": [round(v, 4) for v in total]}
+        mask = move_image(mask, found.shift_px, found.rotation_deg)
+    total = (pair.shift_px[0] + found.shift_px[0], pair.shift_px[1] + found.shift_px[1])
+    move = {"recipe_px": [round(v, 4) for v in pair.shift_px], "found_px": [round(v, 4) for v in found.shift_px],
+            "total_px": [round(v, 4) for v in total], "rotation_deg": round(found.rotation_deg, 4)}
     return (contrast - mask).astype(np.float32), move
 
 
@@ -278,7 +297,8 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
         if not pairs:
             raise DsaregInputError("the Mask Subtraction Sequence subtracts no frame", field=f"{field_name}.MaskSubtractionSequence")
     else:
-        pairs, arrival, found = found_pairs(logs, field_name)
+        factor, grid_mm = grid_factor(dataset, stack.shape[1:])
+        pairs, arrival, found = found_pairs(logs, field_name, factor, MOVE_MM / grid_mm)
         decisions.append(found)
         record["recipe"] = f"none in the file: mask = the frames before contrast arrives (frame index {arrival})"
     scores = _frame_scores(logs, pairs)
@@ -296,15 +316,18 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
         "frame_indices": used, "mask_frame_indices": list(pair.masks),
         "mask_frame_numbers": [m + 1 for m in pair.masks], "contrast_frame_indices": list(pair.contrast),
         "mask_shift_px": moves[geometry_frame], "motion_correction": reading.motion_correction,
-        "shift_convention": "mask moved by (down, right) px onto the contrast frame",
+        "shift_convention": "mask moved by the recipe's shift, turned by rotation_deg about the image centre "
+                            "(counter-clockwise as displayed), then moved by found_px (down, right) onto the contrast frame",
     })
     if len(used) > 1:
         record["mask_shift_px_per_frame"] = {str(f): moves[f]["total_px"] for f in used}
     text = "MinIP of frames " + ", ".join(str(f) for f in used) if len(used) > 1 else f"frame {geometry_frame}"
     move = moves[geometry_frame]["total_px"]
+    turn = moves[geometry_frame]["rotation_deg"]
     warnings.append(f"{field_name}: native run of {len(stack)} frames ({why}): {text} minus mask frame(s) "
                     f"{', '.join(str(m) for m in pair.masks)} in the log domain, mask moved by "
-                    f"({move[0]:+.2f}, {move[1]:+.2f}) px (down, right) (0-based frame indices)")
+                    f"({move[0]:+.2f}, {move[1]:+.2f}) px (down, right) and turned {turn:+.2f} deg "
+                    "(0-based frame indices)")
     return RunImage(pixels, geometry_frame, record, warnings, decisions)
 
 

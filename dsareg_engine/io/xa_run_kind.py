@@ -58,7 +58,15 @@ def _spacing_mm(dataset, shape: tuple[int, int], settings: RunKindSettings) -> f
     return settings.assumed_fov_mm / max(shape)
 
 
-def _on_grid(frame: np.ndarray, factor: int) -> np.ndarray:
+def grid_factor(dataset, shape: tuple[int, int], settings: RunKindSettings = RunKindSettings()) -> tuple[int, float]:
+    """``(pixels per side averaged into one grid pixel, the grid pixel's size mm)``: about ``grid_mm``."""
+    spacing = _spacing_mm(dataset, shape, settings)
+    factor = max(1, int(round(settings.grid_mm / spacing)))
+    return factor, factor * spacing
+
+
+def on_grid(frame: np.ndarray, factor: int) -> np.ndarray:
+    """``frame`` ``(H, W)`` area-averaged ``factor`` × ``factor`` (the remainder rows/columns dropped)."""
     frame = frame.astype(np.float32)
     if factor <= 1:
         return frame
@@ -80,7 +88,7 @@ def static_ratio(stack: np.ndarray, spacing_mm: float, settings: RunKindSettings
     """
     factor = max(1, int(round(settings.grid_mm / spacing_mm)))
     coarse_px = settings.coarse_mm / (spacing_mm * factor)
-    early = [_on_grid(frame, factor) for frame in stack[:4]]
+    early = [on_grid(frame, factor) for frame in stack[:4]]
 
     def band(image: np.ndarray) -> np.ndarray:
         return cv2.GaussianBlur(image, (0, 0), 1.0) - cv2.GaussianBlur(image, (0, 0), coarse_px)
@@ -115,7 +123,7 @@ def decide_run_kind(dataset, stack: np.ndarray, field_name: str,
     spacing = _spacing_mm(dataset, stack.shape[1:], settings)
     ratio = static_ratio(stack, spacing, settings)
     decision = InputDecision(field_name, "run kind", "native" if ratio > settings.threshold else "subtracted",
-                             BASIS, round(ratio, 3), settings.threshold, settings.band)
+                             BASIS, round(float(ratio), 3), settings.threshold, settings.band)
     if ratio > settings.threshold:
         return "native", f"anatomy in every frame (structure {ratio:.1f}x the frame-to-frame noise at 1-8 mm)", decision
     return "subtracted", f"no anatomy common to the frames (structure {ratio:.1f}x the noise at 1-8 mm)", decision

@@ -277,6 +277,8 @@ class MaskShift(BaseModel):
     recipe_px: list[float] = Field(description="From the run's Mask Sub-pixel Shift (0 when it has none).")
     found_px: list[float] = Field(description="The patient motion measured on the background.")
     total_px: list[float] = Field(description="Applied in all (recipe + found).")
+    rotation_deg: float | None = Field(None, description="The patient rotation measured with found_px, about the "
+                                       "image centre, counter-clockwise as displayed (applied after the recipe's shift).")
 
 
 class ImageReadingRecord(BaseModel):
@@ -305,6 +307,12 @@ class ImageReadingRecord(BaseModel):
     pixel_intensity_relationship: str | None = Field(None, description="LIN, LOG or DISP, as read.")
     sign: int | None = Field(None, description="Pixel Intensity Relationship Sign as applied.")
     mask_shift_px: MaskShift | None = None
+    contrast_frame_indices: list[int] | None = Field(None, description="Native runs: the contrast frames averaged "
+                                                     "for the frame used (the recipe's Contrast Frame Averaging).")
+    motion_correction: bool | None = Field(None, description="Native runs: whether patient motion was corrected.")
+    shift_convention: str | None = Field(None, description="How the mask was moved onto the contrast frame, in words.")
+    mask_shift_px_per_frame: dict[str, list[float]] | None = Field(
+        None, description="Combined frames: per frame index, the total shift [down, right] px of its mask.")
 
 
 class VolumeRead(BaseModel):

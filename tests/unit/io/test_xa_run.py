@@ -139,3 +139,21 @@ def test_subtracted_runs_are_read_as_before(skull):
     image = read_image(to_bytes(dataset), "run.dcm")
     assert image.reading["run"] == "subtracted" and image.reading["frame_index"] == 3
     np.testing.assert_array_equal(image.pixels, frames[3])
+
+
+def test_no_recipe_run_with_rotation_masks_and_rotation_found():
+    """No recipe, 3 mask frames, the head turned 0.5° and moved (0.8, −0.5) px at contrast arrival, a
+    contrast-filled catheter: the masks are the three still frames, the rigid move is found."""
+    fill = (0.0, 0.0, 0.0, 0.1, 0.3, 0.55, 0.8, 1.0, 1.2, 1.3)
+    settings = SkullRunSettings(size_px=512, fill=fill, strength=(1.0,) * 10, mask_frames=(1, 2, 3),
+                                motion_px=(0.8, -0.5), rotation_deg=0.5, recipe=False, catheter_mm=2.0)
+    run = make_skull_run(1, settings)
+    image = read_image(run.files["lat"], "lat.dcm", field_name="lat")
+    record = image.reading
+    assert record["run"] == "native" and record["mask_frame_indices"] == [0, 1, 2]
+    assert record["mask_shift_px"]["rotation_deg"] == pytest.approx(0.5, abs=0.03)
+    np.testing.assert_allclose(record["mask_shift_px"]["found_px"], (0.8, -0.5), atol=0.08)
+    kinds = {decision.what: decision for decision in image.decisions}
+    assert kinds["run kind"].chosen == "native" and not kinds["run kind"].close
+    assert kinds["mask frames"].chosen == "0,1,2" and not kinds["mask frames"].close
+    assert _vessel_correlation(image.pixels, run.vessels["lat"]) > 0.8  # 512 px: lower dose per pixel
