@@ -71,7 +71,7 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     """
     options = options if isinstance(options, RegistrationOptions) else parse_options(options)
     case = load_case_files(files, options.segmentation, limits, reading=image_reading(options),
-                           volume_reading=VolumeReading.from_options(options))
+                           volume_reading=VolumeReading.from_options(options), mesh_units=options.mesh_units)
     if should_stop is not None and should_stop():
         raise RegistrationCanceled("stopped before start")
     if progress is not None:

@@ -147,13 +147,14 @@ def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
 
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
                   limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None,
-                  volume: dict[str, Any] | None = None) -> Any:
+                  volume: dict[str, Any] | None = None, mesh_units: str | None = None) -> Any:
     """Read a job's stored inputs as the worker will (the API's validator calls this); ``reading``:
-    :func:`image_reading_json` of the job's options; ``volume``: :func:`volume_reading` of them."""
+    :func:`image_reading_json` of the job's options; ``volume``: :func:`volume_reading` of them; ``mesh_units``:
+    the options' ``mesh_units``."""
     files = stored_case_files(inputs, geometry, read, limits)
     return engine.load_case_files(files, segmentation, input_limits(limits),
                                   reading=engine.ImageReading(**reading) if reading else None,
-                                  volume_reading=engine.VolumeReading(**(volume or {})))
+                                  volume_reading=engine.VolumeReading(**(volume or {})), mesh_units=mesh_units)
 
 
 def case_summary(case: Any) -> dict[str, Any]:

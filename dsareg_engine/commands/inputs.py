@@ -155,8 +155,10 @@ def describe(path: Path, reading=None) -> list[str]:
         lines += [
             f"  kind: mesh ({result.format})",
             f"  faces: {result.original_faces} (working: {result.mesh.n_faces})",
+            f"  unit: {_unit_text(result.unit)}",
             f"  extent mm: {np.round(extent, 2).tolist()}",
         ]
+        lines += _unit_check_lines(result)
         lines += [f"  warning: {w}" for w in result.warnings]
     elif kind in ("volume", "rad-volume"):
         volume = read_volume(data, path.name, field_name=field_name)
@@ -176,6 +178,23 @@ def describe(path: Path, reading=None) -> list[str]:
         lines += reading_lines(image.reading)
         lines += [f"  warning: {w}" for w in image.warnings]
     return lines
+
+
+def _unit_text(unit) -> str:
+    """How ``inspect`` names the unit a mesh was read in."""
+    return unit.unit + {"tag": " (the format's unit)", "option": " (as given)"}.get(unit.source, " (no unit in the "
+                                                                                              "format: mm assumed)")
+
+
+def _unit_check_lines(result) -> list[str]:
+    """A line when the mesh's size is implausible for head arteries in the unit read (the registration refuses it)."""
+    from ..io.mesh_units import unit_decision
+
+    try:
+        unit_decision(result.mesh, result.unit, "mesh")
+    except DsaregInputError as exc:
+        return [f"  units: refused: {exc.message} (accepted: {exc.accepted})"]
+    return []
 
 
 def _vessel_lines(volume, reading, field_name: str) -> list[str]:

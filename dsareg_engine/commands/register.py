@@ -50,6 +50,8 @@ def add_parser(subparsers) -> None:
         parser.add_argument(f"--{name}-frame", metavar="N|minip",
                             help=f"multi-frame XA: the {name.upper()} frame to use (0-based) or 'minip' (default: "
                                  "maximum opacification; native runs are subtracted first); the views may differ")
+    parser.add_argument("--mesh-units", choices=("mm", "cm", "m"),
+                        help="the --mesh file's unit (default: the format's own, metres for GLB, else mm)")
     parser.add_argument("--options", metavar="JSON|FILE", help=options_help())
     region = parser.add_mutually_exclusive_group()
     region.add_argument("--region-box", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
@@ -106,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
         options["ground_truth_mesh_to_world"] = load_pose(args.ground_truth).tolist()
     if args.animation:
         options["animation"] = True
+    if args.mesh_units:
+        options["mesh_units"] = args.mesh_units
     if args.region_box:
         options["region"] = {"box_mm": [args.region_box[:3], args.region_box[3:]]}
     elif args.region_sphere:
@@ -130,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         ap=ap_bytes, ap_name=Path(args.ap).name,
         lat=lat_bytes, lat_name=Path(args.lat).name,
         geometry=geometry, segmentation=parsed.segmentation, reading=image_reading(parsed),
-        volume_reading=VolumeReading.from_options(parsed),
+        volume_reading=VolumeReading.from_options(parsed), mesh_units=parsed.mesh_units,
     )
     printer = ProgressPrinter()
     for warning in case.warnings:

@@ -16,6 +16,7 @@ from .image_io import LoadedImage, read_image
 from .input_decisions import InputDecision
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
+from .mesh_units import MeshUnit, unit_decision
 from ..vision.segmentation import SEGMENTATION_METHODS, vessel_coverage
 from .xa_run import ImageReading
 from .volume_io import read_volume
@@ -99,7 +100,8 @@ class CaseFiles:
 
 
 def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS,
-                    reading: ImageReading | None = None, volume_reading: VolumeReading | None = None) -> Case:
+                    reading: ImageReading | None = None, volume_reading: VolumeReading | None = None,
+                    mesh_units: str | None = None) -> Case:
     """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's.
 
     ``reading`` (e.g. from the job's options) adds to the files' own: frames given by both must agree.
@@ -108,7 +110,7 @@ def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputL
     case = load_case(mesh=files.mesh, mesh_name=files.mesh_name, volume=files.volume, volume_name=files.volume_name,
                      ap=files.ap, ap_name=files.ap_name, lat=files.lat, lat_name=files.lat_name,
                      geometry=files.geometry, segmentation=segmentation, limits=limits,
-                     reading=own.merged(reading), volume_reading=volume_reading)
+                     reading=own.merged(reading), volume_reading=volume_reading, mesh_units=mesh_units)
     case.warnings[:0] = list(files.warnings)
     return case
 
@@ -129,6 +131,7 @@ def load_case(
     frame: int | str | None = None,
     reading: ImageReading | None = None,
     volume_reading: VolumeReading | None = None,
+    mesh_units: str | None = None,
 ) -> Case:
     """Read, validate and segment the inputs of one case.
 
@@ -145,6 +148,8 @@ def load_case(
         reading: per-view frames and the subtraction of native runs (:class:`.xa_run.ImageReading`);
             when given, ``frame`` is not used.
         volume_reading: how to read vessels from a volume (kind, thresholds); ``None`` = detect.
+        mesh_units: the mesh file's unit (``mm``, ``cm``, ``m``); ``None``: the format's own (GLB: metres), else
+            mm. A model whose size is implausible for head arteries in that unit is refused (:mod:`.mesh_units`).
 
     Raises:
         DsaregInputError: with ``field`` naming the input at fault.
@@ -155,8 +160,9 @@ def load_case(
         raise DsaregInputError(
             f"unknown method '{segmentation}'", field="segmentation", accepted=", ".join(SEGMENTATION_METHODS)
         )
+    decisions: list[InputDecision] = []
     surface, volume_readout, volume_sources = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings,
-                                                            kinds, volume_reading)
+                                                            kinds, volume_reading, mesh_units, decisions)
 
     images: dict[str, LoadedImage] = {}
     reading = reading if reading is not None else ImageReading.both(frame)
@@ -184,7 +190,7 @@ def load_case(
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
                 readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
                 volume=volume_readout, sources=_sources(images, volume_sources),
-                decisions=[decision for name in VIEW_NAMES for decision in images[name].decisions])
+                decisions=decisions + [decision for name in VIEW_NAMES for decision in images[name].decisions])
 
 
 def _sources(images: dict[str, LoadedImage], volume: DicomSources) -> DicomSources:
@@ -196,10 +202,13 @@ def _sources(images: dict[str, LoadedImage], volume: DicomSources) -> DicomSourc
 
 def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | list[bytes] | None,
                   volume_name: str | None, limits: InputLimits, warnings: list[str],
-                  kinds: dict[str, str], volume_reading: VolumeReading | None = None,
+                  kinds: dict[str, str], volume_reading: VolumeReading | None = None, mesh_units: str | None = None,
+                  decisions: list[InputDecision] | None = None,
                   ) -> tuple[TriangleMesh, VolumeReadout | None, DicomSources]:
     """The vessel surface from exactly one of a mesh or a volume (read by its kind, meshed, decimated), and for a
-    volume what was read from it and its DICOM identities (``DicomSources.volume``)."""
+    volume what was read from it and its DICOM identities (``DicomSources.volume``); the mesh's unit (its size
+    checked) is appended to ``decisions``."""
+    decisions = [] if decisions is None else decisions
     has_mesh = mesh is not None and (len(mesh) > 0 or mesh_name is not None)
     has_volume = volume is not None
     if has_mesh == has_volume:
@@ -209,7 +218,8 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
             accepted="a surface mesh (OBJ/STL/PLY/OFF/GLB) or a 3D volume (NIfTI/NRRD/DICOM/.rad)",
         )
     if has_mesh:
-        result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh")
+        result = read_mesh_detailed(mesh, mesh_name, limits, field_name="mesh", units=mesh_units)
+        decisions.append(unit_decision(result.mesh, result.unit, "mesh"))
         kinds["mesh"] = result.format
         warnings.extend(result.warnings)
         return result.mesh, None, DicomSources()
@@ -217,6 +227,7 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
     warnings.extend(loaded.warnings)
     extraction = extract_vessels(loaded, volume_reading, field_name="volume")
     surface = extraction.mesh
+    unit_decision(surface, MeshUnit("mm", "tag"), "volume")  # a size no head has: a wrong voxel spacing
     kinds["volume"] = loaded.kind
     if surface.n_faces > limits.working_faces:
         original = surface.n_faces

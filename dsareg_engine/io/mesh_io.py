@@ -3,7 +3,8 @@
 Nothing here touches the filesystem: the bytes are parsed by trimesh from memory with
 no resolver, so ``mtllib`` and texture references are never followed. The format is
 detected from the content; the file name's extension is only a hint (a warning says
-when it disagrees). Coordinates are taken as millimetres.
+when it disagrees). Coordinates are scaled to millimetres from the file's unit: glTF/GLB's metre,
+millimetres for the formats that state none, or the unit the caller gives (:mod:`.mesh_units`).
 
 Meshes larger than ``limits.working_faces`` are decimated with quadric error
 simplification (fast-simplification, through trimesh), which keeps thin tubes: its
@@ -32,6 +33,7 @@ from ..mesh import (  # noqa: F401 - decimate and _cluster_decimate re-exported 
     mesh_from_arrays,
 )
 from .limits import DEFAULT_LIMITS, InputLimits
+from .mesh_units import MeshUnit, mesh_unit
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +49,8 @@ class MeshReadResult:
     format: str
     original_faces: int
     warnings: list[str] = field(default_factory=list)
+    unit: MeshUnit = MeshUnit("mm", "measured")
+    """The unit the file was read in (its coordinates were multiplied by ``unit.scale_mm``)."""
 
 
 def detect_mesh_format(data: bytes) -> str | None:
@@ -115,9 +119,12 @@ def read_mesh(data: bytes, filename: str | None = None, limits: InputLimits = DE
 
 
 def read_mesh_detailed(
-    data: bytes, filename: str | None = None, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "mesh"
+    data: bytes, filename: str | None = None, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "mesh",
+    units: str | None = None,
 ) -> MeshReadResult:
-    """Parse, validate and (above the working budget) decimate a mesh.
+    """Parse, validate and (above the working budget) decimate a mesh, in mm.
+
+    ``units``: the file's unit (``mm``, ``cm``, ``m``); ``None``: the format's own (GLB: metres), else mm.
 
     Raises:
         DsaregInputError: empty/truncated/unknown data, non-finite vertices, no faces,
@@ -144,7 +151,9 @@ def read_mesh_detailed(
             field=field_name,
             accepted=f"at most {limits.max_faces} faces (decimate it first)",
         )
+    unit = mesh_unit(fmt, units)
     vertices, faces = _parse(data, fmt, field_name)
+    vertices = vertices * unit.scale_mm
     mesh = validate_mesh_arrays(vertices, faces, limits, field_name=field_name)
     original = mesh.n_faces
     if original > limits.working_faces:
@@ -152,7 +161,7 @@ def read_mesh_detailed(
         warnings.append(
             f"{field_name}: decimated from {original} to {mesh.n_faces} faces (working budget {limits.working_faces})"
         )
-    return MeshReadResult(mesh=mesh, format=fmt, original_faces=original, warnings=warnings)
+    return MeshReadResult(mesh=mesh, format=fmt, original_faces=original, warnings=warnings, unit=unit)
 
 
 # an ``f`` line with a vertex reference ``0`` (``0``, ``0/…``): OBJ indices are 1-based

@@ -134,6 +134,10 @@ class RegistrationOptions(BaseModel):
         "estimated halfway between tissue and vessels.")
     volume_vessel_max: float | None = Field(
         None, description="CTA: HU from which a voxel is bone (default 700); ignored for other kinds.")
+    mesh_units: Literal["mm", "cm", "m"] | None = Field(
+        None, description="The mesh file's length unit; null = the format's own (glTF/GLB: metres) or else "
+        "millimetres. A model whose size is implausible for head arteries in that unit is refused at submission. "
+        "Reported in result input_decisions (what: units).")
     animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available (tracking: the CPU, faster there).")
 

@@ -185,6 +185,7 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
         "reading": image_reading_json(options),
         "volume_reading": volume_reading(options),
+        "mesh_units": options.mesh_units,
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.limits.input_limits,
         "require_cuda": options.device == "cuda" and ctx.settings.jobs.executor == "embedded",
     })

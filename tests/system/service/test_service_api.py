@@ -199,6 +199,11 @@ def test_unreadable_files_are_422_with_field(server, example_case):
             r = c.post("/v1/registrations", files={**base, field: junk}, data=data)
             body = _assert_problem(r, 422)
             assert body.get("field", "").startswith(field), body
+        # the phantom (about 100 mm) said to be in metres: 100 m across, refused at submission naming the unit
+        r = c.post("/v1/registrations", files=base, data={**data, "options": json.dumps({**FAST_OPTIONS,
+                                                                                          "mesh_units": "m"})})
+        body = _assert_problem(r, 422, field="mesh")
+        assert "mm across read in m" in body["detail"] and "options.mesh_units" in body["accepted"], body
         assert c.get("/readyz").status_code == 200
 
 

@@ -48,6 +48,18 @@ def test_inspect_every_kind(files, capsys):
     assert "PHANTOM" not in out and "Anonymous" not in out
 
 
+def test_inspect_shows_the_unit_and_the_extent_in_mm(files, tmp_path, capsys):
+    phantom = make_vessel_phantom(depth=1)
+    in_metres = trimesh.Trimesh(phantom.vertices / 1000.0, phantom.faces, process=False)
+    in_metres.export(str(tmp_path / "tree.glb"))
+    in_metres.export(str(tmp_path / "tree_m.stl"))
+    assert main(["inspect", str(tmp_path / "tree.glb"), str(tmp_path / "tree_m.stl")]) == 0
+    glb, stl = capsys.readouterr().out.split("tree_m.stl:")
+    extent = np.round(np.ptp(phantom.vertices, axis=0), 2).tolist()
+    assert "unit: m (the format's unit)" in glb and f"extent mm: {extent}" in glb and "refused" not in glb
+    assert "unit: mm (no unit in the format" in stl and "units: refused" in stl and "probably m" in stl
+
+
 def test_inspect_bad_file_exits_2(files, capsys):
     assert main(["inspect", str(files / "noise.bin")]) == 2
     assert "not a recognised" in capsys.readouterr().err

@@ -29,6 +29,8 @@ def _export(mesh, file_type: str) -> bytes:
 )
 def test_formats_round_trip(phantom, file_type, fmt):
     data = _export(phantom, file_type)
+    if fmt == "glb":  # glTF's unit is the metre (tests/unit/io/test_mesh_units.py)
+        data = _export(phantom.transformed(np.diag([1e-3, 1e-3, 1e-3, 1.0])), file_type)
     assert detect_mesh_format(data) == fmt
     result = read_mesh_detailed(data, f"vessels.{fmt}")
     assert result.format == fmt and not result.warnings
