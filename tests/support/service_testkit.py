@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from dsareg_engine.metrics import dice  # noqa: F401 - re-exported to the tests
+from tests.support.result_contract import assert_result_contract
 from tests.support.servers import free_port
 
 REPO = Path(__file__).resolve().parents[2]
@@ -191,6 +192,8 @@ def wait_for(client: httpx.Client, job_id: str, statuses=("succeeded", "failed",
     while time.monotonic() < deadline:
         body = client.get(f"/v1/registrations/{job_id}").json()
         if body.get("status") in statuses and (predicate is None or predicate(body)):
+            if body.get("result") is not None:  # every result the tests read holds the closed contract
+                assert_result_contract(body["result"], f"job {job_id}'s result")
             return body
         time.sleep(0.2)
     raise AssertionError(f"job {job_id} not in {statuses} after {timeout} s: {body}")

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine
 from ...problems import ProblemDetails
+from .closed import CLOSED
 from .payloads import Verdict
 from ...storage.store import JobRecord
 from .case import CaseIdentity, case_model
@@ -26,7 +27,7 @@ CASE_TEXT = ("Whose case it is (patient, study, series of each input, source), f
 
 
 class Progress(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [
         {"stage": "ap+lat:1/2", "iteration": 15, "loss": 0.0152, "fraction": 0.21}]})
 
     stage: str = Field(description="Current stage: 'queued', 'start', an optimization stage named "
@@ -48,6 +49,8 @@ def _link(description: str) -> Any:
 class JobLinks(BaseModel):
     """Links of a job; only those that lead somewhere now are present."""
 
+    model_config = CLOSED
+
     self: str = Field(description="The job's status.")
     cancel: str | None = _link("Cancel (POST); present while queued or running.")
     result: str | None = _link("Result JSON; present when succeeded.")
@@ -68,6 +71,8 @@ class JobLinks(BaseModel):
 class CallbackState(BaseModel):
     """Delivery of the job's completion callback (``callback_url``; docs/api/callbacks.md)."""
 
+    model_config = CLOSED
+
     url: str = Field(description="The callback_url of the submission.")
     state: Literal["pending", "delivering", "delivered", "failed"] = Field(
         description="pending: waits for the job to end or for the next attempt; delivering: an attempt is under way; "
@@ -82,7 +87,7 @@ class CallbackState(BaseModel):
 
 
 class JobStatus(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "id": EXAMPLE_ID, "status": "running", "created_at": "2026-01-01T10:00:00Z",
         "started_at": "2026-01-01T10:00:01Z", "finished_at": None, "attempts": 1, "cancel_requested": False,
         "progress": {"stage": "simultaneous", "iteration": 120, "loss": 0.083, "fraction": 0.4},
@@ -118,7 +123,7 @@ class JobStatus(BaseModel):
 class JobSummary(BaseModel):
     """One job in a list: state, verdict and times; the full result is behind ``links.result``."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "id": EXAMPLE_ID, "status": "succeeded", "created_at": "2026-01-01T10:00:00Z",
         "started_at": "2026-01-01T10:00:01Z", "finished_at": "2026-01-01T10:00:09Z", "seconds": 8.2,
         "progress": {"stage": "ap+lat:1/1:refine", "iteration": 11, "loss": 0.0019, "fraction": 1.0},
@@ -145,6 +150,8 @@ class JobSummary(BaseModel):
 
 
 class JobList(BaseModel):
+    model_config = CLOSED
+
     items: list[JobSummary] = Field(description="Newest first; each a summary (GET links.self for the job, "
                                                 "links.result for its result).")
     next_cursor: str | None = Field(None, description="Pass as ?cursor= for the next page; null on the last page.")
@@ -152,6 +159,8 @@ class JobList(BaseModel):
 
 
 class Health(BaseModel):
+    model_config = CLOSED
+
     status: Literal["ok", "unavailable"]
     checks: dict[str, Any] = Field(default_factory=dict)
 
@@ -310,7 +319,7 @@ def summary_body(job: JobRecord) -> dict[str, Any]:
 class JobProgressEvent(BaseModel):
     """The data of a ``progress`` event of ``GET /v1/registrations/{id}/events`` (JSON, one line)."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "id": EXAMPLE_ID, "status": "running",
         "progress": {"stage": "ap+lat:1/2", "iteration": 15, "loss": 0.0152, "fraction": 0.21}}]})
 

@@ -1,8 +1,7 @@
 """Typed payloads of the OpenAPI document: geometry, options, result (and the multipart parts).
 
-The API keeps its runtime models permissive (a result is the engine's JSON, whatever fields
-later versions add); these models *document* the payloads with descriptions, units, examples
-and enums, and :func:`document` puts them into ``/openapi.json``:
+These models declare the payloads with descriptions, units, examples and enums, and
+:func:`document` puts them into ``/openapi.json``:
 
 * ``components.schemas``: ``RegistrationOptions``, ``ViewSpec`` and ``LatFromAp`` (the engine's own
   models, so the fields cannot drift), ``GeometryFile`` (the engine's ``RigSpec``, its view names spelled
@@ -11,9 +10,10 @@ and enums, and :func:`document` puts them into ``/openapi.json``:
 * the ``POST /v1/registrations`` multipart parts, each with its schema and encoding;
 * ``JobStatus.result`` and ``GET …/result`` point at ``RegistrationResult``.
 
-Result models allow extra fields (``additionalProperties``), so fields that later engine
-versions add (e.g. ``verdict``, ``metrics.initialization``) stay valid: known ones are
-documented, unknown ones pass.
+The result contract is closed: every model here refuses undeclared fields (``CLOSED``, published as
+``additionalProperties: false``), so every field the engine writes into ``result.json`` must be
+declared here, with a description (docs/api/result-contract.md); the tests validate every result they
+produce against :class:`RegistrationResult` (tests/support/result_contract.py).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine
+from .closed import CLOSED
 
 Matrix4 = list[list[float]]
 Matrix34 = list[list[float]]
@@ -39,7 +40,7 @@ class GeometryFile(engine.RigSpec):
     Instead of JSON, the part may be a preset name (`paper`), or be left out when both images are
     DICOM XA (or `.rad`) files whose headers carry the geometry."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "views": {"ap": {"image_size": [800, 800], "pixel_spacing_mm": [0.3, 0.3], "sid_mm": 1200.0,
                          "world_to_view": [[0, 0, -1, 0], [0, 1, 0, 0], [1, 0, 0, 750], [0, 0, 0, 1]]}},
         "lat_from_ap": {"angle_deg": 90.0}, "initial_mesh_to_world": IDENTITY}]})
@@ -53,7 +54,7 @@ class GeometryFile(engine.RigSpec):
 class GroundTruthErrors(BaseModel):
     """Errors against `options.ground_truth_mesh_to_world` (synthetic studies)."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     rotation_error_deg: float | None = Field(None, description="Angle of the rotation difference, degrees.")
     translation_error_mm: float | None = Field(
@@ -75,7 +76,7 @@ class Verdict(str, Enum):
 class RunnerUp(BaseModel):
     """The best start that ended at a distinct pose, and how well it and the kept pose fit."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     distance_mm: float = Field(description="Mean vertex distance of that pose from the kept one, mm.")
     best_fit: float = Field(description="Fit of the kept pose (tolerant F-score, 0–1, mean over the views).")
@@ -85,7 +86,7 @@ class RunnerUp(BaseModel):
 class ConfidenceSignals(BaseModel):
     """The measurements the verdict is made of (see docs/api/results.md)."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     dice: dict[str, float] = Field(
         default_factory=dict, description="Per view: Dice (0–1) of the registered silhouette with the vessel mask "
@@ -115,7 +116,7 @@ class Confidence(BaseModel):
     view's Dice < 0.7, a distinct pose fits almost as well, a border shift ≥ 1.5 px, > 25 % of the model outside
     an image, or the iteration cap was hit; else `ok`."""
 
-    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "verdict": "failed", "reasons": ["ap: the model's silhouette overlaps the vessels poorly (dice 0.25)"],
         "signals": {"dice": {"ap": 0.25, "lat": 0.31}, "runner_up": None, "border_shift_px": {"ap": 0.1, "lat": 0.0},
                     "outside_fraction": {"ap": 0.0, "lat": 0.0}, "stopped_on_tolerance": True,
@@ -131,7 +132,7 @@ class Confidence(BaseModel):
 class CoverageSearch(BaseModel):
     """Best candidate of the coverage search (partial visibility): how much of the vessels the whole model explains."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     best_score: float = Field(description="1 − F₂ of precision and recall, mean over the views (0 best, 1 worst).")
     precision: list[float] = Field(description="Per view (AP, LAT order): share (0–1) of the model's points on or next to vessels.")
@@ -141,7 +142,7 @@ class CoverageSearch(BaseModel):
 class BranchSearch(BaseModel):
     """Best part of the branch search (partial visibility): the model cut to one branch and what lies downstream."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     parts_searched: int = Field(description="Parts of the model (branches) searched, count.")
     best_score: float | None = Field(None, description="The best part's coverage score, 1 − F1 (0 best, 1 worst).")
@@ -154,7 +155,7 @@ class BranchSearch(BaseModel):
 class Initialization(BaseModel):
     """Where the optimization started: a given pose, or a search over candidate poses."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     method: Literal["given", "search", "search+coverage", "search+branch", "search+coverage+branch"] = Field(
         description="given: the geometry's / options' initial pose; search: the best candidates of a pose search; "
@@ -172,7 +173,7 @@ class Initialization(BaseModel):
 class Motion(BaseModel):
     """Motion since the previous pose (tracking jobs: `POST …/track`, `options.mode: "track"`)."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     rotation_deg: float = Field(description="Angle of the relative rotation, degrees.")
     translation_mm: float = Field(description="Displacement of the model's centroid, world mm.")
@@ -183,7 +184,7 @@ class Motion(BaseModel):
 class ResultMetrics(BaseModel):
     """How the registration went."""
 
-    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "loss": 0.0019, "iterations": {"ap+lat:1/4": 17, "ap+lat:1/2": 27, "ap+lat:1/1": 37, "ap+lat:1/1:refine": 11},
         "seconds": {"ap+lat:1/4": 0.72, "ap+lat:1/2": 0.64, "ap+lat:1/1": 1.68, "ap+lat:1/1:refine": 0.41,
                     "total": 5.5},
@@ -215,7 +216,7 @@ class ResultMetrics(BaseModel):
 class ViewResult(BaseModel):
     """Per-view outcome."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     world_to_view: Matrix4 = Field(description="4x4 world mm → view frame (the geometry's, unchanged).")
     mesh_to_view: Matrix4 = Field(description="4x4 = world_to_view · mesh_to_world.")
@@ -227,7 +228,7 @@ class ViewResult(BaseModel):
 class DicomInstance(BaseModel):
     """One DICOM object the job wrote (`GET …/dicom/{name}`)."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     sop_class_uid: str
     sop_instance_uid: str
@@ -238,7 +239,7 @@ class DicomInstance(BaseModel):
 class DicomSource(BaseModel):
     """Where the inputs of a job by reference came from."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     server: str | None = Field(None, description="The DICOMweb base URL.")
     study_uid: str | None = None
@@ -249,7 +250,7 @@ class DicomSource(BaseModel):
 class DicomStored(BaseModel):
     """What was stored back into the PACS (STOW-RS) for a job by reference with `store_results`."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     server: str | None = None
     study_uid: str | None = None
@@ -261,7 +262,7 @@ class DicomStored(BaseModel):
 class DicomResult(BaseModel):
     """The DICOM results: REG (model → C-arm frame) and Secondary Captures."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     instances: dict[str, DicomInstance] = Field(
         default_factory=dict, description="By file name (`reg.dcm`, `overlay_ap.dcm`, `overlay_lat.dcm`, `loss.dcm`).")
@@ -272,7 +273,7 @@ class DicomResult(BaseModel):
 class MaskShift(BaseModel):
     """How far the mask was moved onto the contrast frame, ``[down, right]`` px."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     recipe_px: list[float] = Field(description="From the run's Mask Sub-pixel Shift (0 when it has none).")
     found_px: list[float] = Field(description="The patient motion measured on the background.")
@@ -284,7 +285,7 @@ class MaskShift(BaseModel):
 class ImageReadingRecord(BaseModel):
     """What was read from one multi-frame XA run (frame indices are 0-based, frame numbers 1-based as in DICOM)."""
 
-    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "frames": 10, "run": "native", "why": "it carries a Mask Subtraction Sequence",
         "pixel_intensity_relationship": "LIN", "sign": 1,
         "recipe": [{"operation": "AVG_SUB", "frames": "3-10", "mask_frame_numbers": [1, 2]}],
@@ -318,7 +319,7 @@ class ImageReadingRecord(BaseModel):
 class VolumeRead(BaseModel):
     """What was read from a volume input: its kind, the vessel window, the voxels kept."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     kind: Literal["cta", "mra", "3d-dsa"] = Field(description="How the volume was read.")
     kind_source: str = Field(description="Why: the DICOM tags / values that decided, or `options.volume_kind`.")
@@ -338,7 +339,7 @@ class InputDecisionRecord(BaseModel):
     """One decision about an input (`dsareg_engine.io.input_decisions`): what was decided, on which measure, and
     how close the call was. A close call (`close`) makes the verdict at least `check`, with a reason."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     input: str = Field(description="`ap`, `lat`, `mesh` or `volume`.")
     what: str = Field(description="What was decided, e.g. `run kind`, `units`, `volume kind`, `handedness`.")
@@ -354,9 +355,10 @@ class InputDecisionRecord(BaseModel):
 
 class RegistrationResult(BaseModel):
     """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
-    `succeeded` only ran to the end. Later versions may add fields; clients must ignore unknown ones."""
+    `succeeded` only ran to the end. Every field is declared (none undeclared is written); a later version may
+    declare more, so clients should ignore fields they do not know."""
 
-    model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "mesh_to_world": IDENTITY, "initial_mesh_to_world": IDENTITY, "verdict": "ok",
         "views": {"ap": {"world_to_view": IDENTITY, "mesh_to_view": IDENTITY,
                          "projection_matrix": [[692.8, 0, 399.5, 0], [0, 692.8, 399.5, 0], [0, 0, 1, 0]],

@@ -9,6 +9,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from ...problems import ProblemDetails
+from .closed import CLOSED
 
 Decision = Literal["approved", "rejected"]
 ReviewFilter = Literal["none", "approved", "rejected"]
@@ -18,7 +19,7 @@ MAX_COMMENT_CHARS = 2000
 class ReviewRequest(BaseModel):
     """``POST /v1/registrations/{job_id}/review``: a person's decision on a finished job."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [
         {"decision": "approved", "comment": "Contours follow the vessels in both views."}]})
 
     decision: Decision = Field(description="approved: the pose may be used (and exported); rejected: it may not.")
@@ -28,6 +29,8 @@ class ReviewRequest(BaseModel):
 
 class Review(BaseModel):
     """The latest review of the job; earlier ones stay in the job's audit log."""
+
+    model_config = CLOSED
 
     decision: Decision
     comment: str = Field(description="The reviewer's comment (may be empty).")
@@ -55,6 +58,8 @@ ExportStateName = Literal["awaiting_review", "pending", "exporting", "done", "fa
 
 class ExportState(BaseModel):
     """The PACS export of a job held for review (``DSAREG_EXPORT_AFTER_REVIEW=true``; docs/review.md)."""
+
+    model_config = CLOSED
 
     state: ExportStateName = Field(
         description="awaiting_review: the results wait for an approval; pending: approved, the store is due (or "
@@ -102,6 +107,8 @@ def export_model(row: dict[str, Any] | None) -> ExportState | None:
 class AuditEvent(BaseModel):
     """One entry of a job's audit log (table ``job_events``), oldest first."""
 
+    model_config = CLOSED
+
     at: str = Field(description="When, ISO 8601 UTC.")
     event: str = Field(description="What happened: queued, claimed, succeeded, failed, canceled, cancel_requested, "
                                    "lease_expired, released[:reason], reviewed, export_awaiting_review, "
@@ -116,6 +123,8 @@ class AuditEvent(BaseModel):
 
 
 class AuditLog(BaseModel):
+    model_config = CLOSED
+
     job_id: str
     items: list[AuditEvent] = Field(description="Every event of the job, oldest first.")
 

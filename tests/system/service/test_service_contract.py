@@ -135,8 +135,8 @@ def test_openapi_types_the_whole_result(contract_server):
     for partial in ("unmatched_fraction", "uncovered_fraction"):  # partial visibility, per view 0-1
         assert {"type": "object", "additionalProperties": {"type": "number"}} in signals[partial]["anyOf"], partial
     assert {"type": "boolean"} in signals["partial_loss"]["anyOf"]
-    for open_model in ("Confidence", "ConfidenceSignals", "ResultMetrics", "RegistrationResult", "DicomResult"):
-        assert _schema(doc, open_model).get("additionalProperties") is True, open_model  # the engine may add fields
+    for closed_model in ("Confidence", "ConfidenceSignals", "ResultMetrics", "RegistrationResult", "DicomResult"):
+        assert _schema(doc, closed_model).get("additionalProperties") is False, closed_model  # the closed contract
     initialization = _schema(doc, "Initialization")["properties"]
     assert _enum(doc, initialization["method"]) == ["given", "search", "search+coverage", "search+branch",
                                                    "search+coverage+branch"]

@@ -156,7 +156,7 @@ def test_published_schema_documents_the_payloads(ux_server):
     assert options["configuration"]["enum"] == ["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"]
     assert options["starts"]["description"] and options["starts"]["maximum"] == 64
     assert "mm" in schemas["ViewSpec"]["properties"]["sid_mm"]["description"]
-    assert schemas["RegistrationResult"].get("additionalProperties", True) is not False  # tolerant of new fields
+    assert schemas["RegistrationResult"].get("additionalProperties") is False  # closed: every field declared
     body = document["paths"]["/v1/registrations"]["post"]["requestBody"]["content"]["multipart/form-data"]
     parts = body["schema"]["properties"]
     assert parts["options"]["contentSchema"] == {"$ref": "#/components/schemas/RegistrationOptions"}

@@ -72,14 +72,14 @@ def test_cli_track_from_a_previous_result(phantom, synthetic_case, tmp_path, cap
     save_rig(Rig(rig.views, np.eye(4)), tmp_path / "geometry.json")
     for name, mask in masks.items():
         cv2.imwrite(str(tmp_path / f"{name}.png"), mask.astype(np.uint8) * 255)
-    (tmp_path / "previous").mkdir()
-    (tmp_path / "previous" / "result.json").write_text(json.dumps({"mesh_to_world": previous.tolist(), "metrics": {}}))
+    (tmp_path / "previous").mkdir()  # the pose of a previous result (not a whole result.json: the contract sweep reads those)
+    (tmp_path / "previous" / "pose.json").write_text(json.dumps({"mesh_to_world": previous.tolist(), "metrics": {}}))
     save_pose(tmp_path / "truth.json", truth)
     common = ["register", "--mesh", str(tmp_path / "mesh.ply"), "--ap", str(tmp_path / "ap.png"), "--lat", str(tmp_path / "lat.png"),
               "--geometry", str(tmp_path / "geometry.json")]
     assert main([*common, "--track", "--out", str(tmp_path / "x")]) == 2  # --track needs --initial
     assert "--initial" in capsys.readouterr().err
-    code = main([*common, "--initial", str(tmp_path / "previous" / "result.json"), "--track",
+    code = main([*common, "--initial", str(tmp_path / "previous" / "pose.json"), "--track",
                  "--ground-truth", str(tmp_path / "truth.json"), "--out", str(tmp_path / "next")])
     assert code == 0
     assert "motion since --initial" in capsys.readouterr().out

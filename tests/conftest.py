@@ -1,0 +1,17 @@
+"""For every test: at the session's end, every ``result.json`` the tests wrote under their temporary folders
+must hold the closed result contract (tests/support/result_contract.py); a breach is an error of the session."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _results_hold_the_contract(tmp_path_factory):
+    yield
+    from tests.support.result_contract import sweep_results
+
+    broken = sweep_results(tmp_path_factory.getbasetemp())
+    lines = [f"{path}: {error}" for path, errors in broken.items() for error in errors]
+    assert not lines, "result.json files break the result contract (declare the fields in " \
+                      "service/api/schemas/payloads.py):\n" + "\n".join(lines[:40])
