@@ -11,13 +11,15 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from .closed import CLOSED
+
 TEXT = "Untrusted text from the inputs' DICOM headers (plain text, at most 128 characters); null when absent."
 
 
 class CaseInput(BaseModel):
     """One input of the case (a role), as its DICOM header or its upload names it."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = CLOSED
 
     role: Literal["ap", "lat", "volume", "mesh"] = Field(description="Which input: the AP or LAT image, the "
                                                                      "volume or the mesh.")
@@ -32,7 +34,7 @@ class CaseInput(BaseModel):
 class CaseIdentity(BaseModel):
     """Patient and study of the case (from its first DICOM input: AP, LAT, then volume) and each input."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+    model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "source": "dicomweb", "patient_name": "Doe, Jane", "patient_id": "P-0042", "study_date": "2026-11-30",
         "study_description": "Cerebral angiography", "accession_number": "A-17", "study_uid": "1.2.826.0.1.3680043.2",
         "inputs": [{"role": "ap", "file_names": [], "modality": "XA", "series_number": "3",
