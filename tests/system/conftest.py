@@ -1,0 +1,39 @@
+"""The system tests' split: those that assert answer-time bounds run alone, the rest on 2 processes.
+
+`.ci/run` runs ``pytest -n 2 --dist loadfile -m "not timed"`` (unit and system tests on two processes, each
+module on one of them, so a module's server is started once) and then ``pytest -m timed tests/system``
+serially: the tests below time answers on real processes (a callback within 2 s, a page load ≤ 2 s, a
+review answer < 2 s, a REG in the PACS ≤ 2 s after the job, a cancel < 10 s, every fault test's bound) and must
+not share the 2 cores with another test. A test that adds such a bound adds its module (or its node id) here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).parent
+TIMED = (
+    "faults/",  # kills, freezes and restarts real processes; answer-time bounds on each
+    "service/test_service_contract.py::test_callback_delivered_signed_within_2_s_of_the_job_end",
+    "service/test_service_events.py",  # the first event within 5 s
+    "service/test_service_review_workspace.py",  # the job page loads in ≤ 2 s
+    "dicom/test_dimse.py",  # the REG in Orthanc ≤ 2 s after the job
+    "dicom/test_export_after_review.py",  # the review answers in < 2 s
+    "scaleout/test_scaleout_celery.py",  # a cancel stops the Celery worker's job in < 10 s
+)
+
+
+def timed(item: pytest.Item) -> bool:
+    path = Path(str(item.path))
+    if not path.is_relative_to(HERE):
+        return False
+    node = path.relative_to(HERE).as_posix() + item.nodeid[len(item.nodeid.split("::")[0]):]
+    return any(node.startswith(prefix) for prefix in TIMED)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if timed(item):
+            item.add_marker(pytest.mark.timed)
