@@ -8,8 +8,9 @@ Two ways to run it (same settings, ``DSAREG_DICOM_*``):
   workers: the same pieces, opened by that process.
 
 The ``intake`` (``submit`` / ``prevalidate`` coroutines, :class:`service.api.intake.dimse.DimseIntake`)
-is given by whoever composes the node. Only one listener per job database: at start it
-discards what associations of an earlier, dead listener left uncommitted.
+is given by whoever composes the node. Only one listener per job database: at start it marks
+``interrupted`` what associations of an earlier, dead listener left open — instances answered
+Success are kept and join their study when the sender comes back (:mod:`.inbox`).
 """
 
 from __future__ import annotations
@@ -36,10 +37,11 @@ class DicomListener:
         self.server = None
 
     def start(self) -> None:
-        orphans = self.inbox.discard_stale(live=set())
-        if orphans:
-            self.blobs.delete(orphans, min_age_seconds=0.0)
-            log.warning("discarded %d instance file(s) of associations an earlier listener left open", len(orphans))
+        kept = self.inbox.interrupt_stale(live=set())
+        if kept:
+            log.warning("kept %d instance(s) answered Success in associations an earlier listener left open "
+                        "(interrupted: they join their study when the sender comes back, or after %g s)", kept,
+                        self.settings.dimse.dicom_interrupted_wait_seconds)
         self.dispatcher.start()
         self.server = start_server(self.settings, self.scp)
         dimse = self.settings.dimse

@@ -14,9 +14,11 @@ C-STORE: the data set is held at most ``max_dicom_instance_bytes`` while it arri
 pixel dimensions, SOP class, UIDs, truncation; a failure status and nothing kept otherwise); then
 it is stored as received (its transfer syntax kept), fsynced, indexed (:mod:`.inbox`), and
 answered 0000. An A-RELEASE-RQ commits the association's
-instances before the release is confirmed; an aborted association (A-ABORT, a dropped
-connection) discards them. The C-STOREs of a C-MOVE dsareg asked for (Move Originator AE Title =
-ours) are committed as ``retrieved``: the job that asked reads them; they make no job of their own.
+instances before the release is confirmed; an instance answered 0000 in an association that
+ends otherwise (A-ABORT, a dropped connection, a killed listener) is kept, ``interrupted``, until
+the sender comes back (:mod:`.inbox`): a sender retries only what failed. The C-STOREs of a
+C-MOVE dsareg asked for (Move Originator AE Title = ours) become ``retrieved`` when their
+association ends: the job that asked reads them; they make no job of their own.
 """
 
 from __future__ import annotations
@@ -120,7 +122,6 @@ class StoreScp:
         self._ids: dict[int, str] = {}
         self._studies: dict[str, set[str]] = {}
         self._closed: dict[int, float] = {}
-        self._retrievals: set[str] = set()  # associations carrying the C-STOREs of our own C-MOVE
         self._lock = threading.Lock()
         self.stats = {"associations": 0, "rejected": 0, "stored": 0, "aborted": 0, "refused": 0, "invalid": 0}
 
@@ -181,6 +182,8 @@ class StoreScp:
             return exc.status
         study, series, sop, sop_class = (checked.study_uid, checked.series_uid, checked.sop_instance_uid,
                                          checked.sop_class_uid)
+        moved_for = str(getattr(event.request, "MoveOriginatorApplicationEntityTitle", None) or "").strip()
+        ours = moved_for == self.settings.dimse.dicom_ae_title
         try:
             data = bytes(event.encoded_dataset(include_meta=True))
             digest, size = self.blobs.put_bytes(data)
@@ -188,15 +191,13 @@ class StoreScp:
             if local is not None:
                 fsync_file(local)
             calling = str(event.assoc.requestor.ae_title).strip()
-            self.inbox.add(StoredInstance(sop, study, series, sop_class, digest, size, calling, time.time()), association)
+            self.inbox.add(StoredInstance(sop, study, series, sop_class, digest, size, calling, time.time()), association,
+                           "retrieving" if ours else "received")
         except Exception:
             log.exception("C-STORE of an instance could not be stored")
             return OUT_OF_RESOURCES
-        moved_for = str(getattr(event.request, "MoveOriginatorApplicationEntityTitle", None) or "").strip()
-        with self._lock:
-            if moved_for == self.settings.dimse.dicom_ae_title:
-                self._retrievals.add(association)
-            else:
+        if not ours:
+            with self._lock:
                 self._studies.setdefault(association, set()).add(study)
         self.stats["stored"] += 1
         return SUCCESS
@@ -229,15 +230,13 @@ class StoreScp:
             association = self._ids.get(id(event.assoc))
         if association is None:
             return  # nothing stored (an echo)
-        with self._lock:
-            state = "retrieved" if association in self._retrievals else "committed"
         try:
-            count = self.inbox.commit_association(association, state)
-        except Exception:
-            log.exception("association %s: its instances could not be committed", association)
+            count = self.inbox.commit_association(association)
+        except Exception:  # a full disk, a database out: the rows stay open, interrupted by the sweep, kept
+            log.exception("association %s: its instances could not be committed (kept, committed later)", association)
             return
         if count:
-            log.info("association %s released: %d instance(s) %s", association, count, state)
+            log.info("association %s released: %d instance(s) committed", association, count)
 
     def on_released(self, event: Any) -> None:
         with self._lock:
@@ -248,13 +247,13 @@ class StoreScp:
             self.on_commit(studies)
 
     def on_aborted(self, event: Any) -> None:
-        """A-ABORT or a connection lost without release: what it stored is dropped."""
+        """A-ABORT or a connection lost without release: what it stored (answered Success) is kept, interrupted."""
         with self._lock:
             association = self._ids.get(id(event.assoc))
             self._forget(event.assoc)
             self._studies.pop(association, None)
         if association is not None:
-            self._discard(association)
+            self._interrupt(association)
 
     def on_closed(self, event: Any) -> None:
         with self._lock:
@@ -262,32 +261,38 @@ class StoreScp:
                 self._closed[id(event.assoc)] = time.monotonic()
 
     def _forget(self, assoc: Any) -> None:
-        self._retrievals.discard(self._ids.get(id(assoc), ""))
         self._ids.pop(id(assoc), None)
         self._closed.pop(id(assoc), None)
 
-    def _discard(self, association: str) -> None:
-        orphans = self.inbox.discard_association(association)
-        if orphans:
+    def _interrupt(self, association: str) -> None:
+        try:
+            kept = self.inbox.interrupt_association(association)
+        except Exception:  # the sweep marks them later
+            log.exception("association %s ended without release; its instances are marked later", association)
+            return
+        if kept:
             self.stats["aborted"] += 1
-            self.blobs.delete(orphans, min_age_seconds=0.0)
-            log.warning("association %s ended without release: %d stored instance file(s) discarded", association,
-                        len(orphans))
+            log.warning("association %s ended without release: %d instance(s) answered Success kept, waiting for "
+                        "the sender (at most %g s)", association, kept, self.settings.dimse.dicom_interrupted_wait_seconds)
 
-    def sweep(self, grace_seconds: float = 10.0) -> None:
-        """Discard what associations closed long ago without release or abort (and any dead process) left."""
+    def sweep(self, grace_seconds: float = 10.0) -> list[str]:
+        """Mark interrupted what associations closed long ago without release or abort (and any dead process) left;
+        commit interrupted instances whose sender did not come back in time. The studies that became stable-able."""
         now = time.monotonic()
         with self._lock:
             dead = [key for key, closed in self._closed.items() if now - closed > grace_seconds]
             for key in dead:
                 self._closed.pop(key, None)
-                self._retrievals.discard(self._ids.get(key, ""))
                 self._studies.pop(self._ids.pop(key, ""), None)
             live = set(self._ids.values())
-        orphans = self.inbox.discard_stale(live, older_than_seconds=grace_seconds)
-        if orphans:
-            self.blobs.delete(orphans, min_age_seconds=0.0)
-            log.warning("%d stored instance file(s) of associations that ended without release discarded", len(orphans))
+        kept = self.inbox.interrupt_stale(live, older_than_seconds=grace_seconds)
+        if kept:
+            log.warning("%d instance(s) of associations that ended without release kept, waiting for the sender", kept)
+        studies = self.inbox.promote_interrupted(self.settings.dimse.dicom_interrupted_wait_seconds)
+        if studies:
+            log.warning("%d study(ies) with interrupted instances committed: the sender did not come back within %g s",
+                        len(studies), self.settings.dimse.dicom_interrupted_wait_seconds)
+        return studies
 
 
 def make_ae(settings: Any):

@@ -188,24 +188,27 @@ def test_orthanc_sends_a_study_and_gets_the_reg_back(node, orthanc, study, tmp_p
     assert_pose(reg, frame, study.mesh_to_world)
 
 
-def test_aborted_association_leaves_no_job_and_no_files(node, study, tmp_path):
+def test_aborted_association_keeps_what_was_answered_and_the_rest_completes_the_study(node, study, tmp_path):
+    """A sender that aborts after n - 3 Success answers retries only the 3 it had not sent: one job, whole study."""
     study_uid, paths = renamed_study(study, tmp_path / "study")
     before = node.logs().count("ended without release")
     statuses = scu_send(node.dicom_port, paths, "ABORTER", abort_after=len(paths) - 3)
     assert statuses and set(statuses) == {0}
     wait_log(node, "ended without release", timeout=15, count=before + 1)
-    # no row of the study is left in the inbox, in any state: no job can be made of it
-    with sqlite3.connect(node.data_dir / "jobs.sqlite3") as db:
-        assert db.execute("SELECT count(*) FROM dimse_instances WHERE study_uid = ?", (study_uid,)).fetchone() == (0,)
+    with sqlite3.connect(node.data_dir / "jobs.sqlite3") as db:  # kept, waiting for the sender: no job yet
+        assert db.execute("SELECT state, count(*) FROM dimse_instances WHERE study_uid = ? GROUP BY state",
+                          (study_uid,)).fetchall() == [("interrupted", len(paths) - 3)]
     with node.client() as client:
         assert jobs_of_study(client, study_uid) == []
-    import hashlib
-
-    blobs = node.data_dir / "blobs"
-    digests = {hashlib.sha256(p.read_bytes()).hexdigest() for p in paths}
-    stored = {p.name for p in blobs.glob("??/*")}
-    # what the peer sent was stored as sent; none of it is left
-    assert not digests & stored
+    assert set(scu_send(node.dicom_port, paths[-3:], "ABORTER")) == {0}
+    deadline = time.monotonic() + STABLE_S + 30
+    with node.client() as client:
+        while not (jobs := jobs_of_study(client, study_uid)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(STABLE_S + 1.0)
+        jobs = jobs_of_study(client, study_uid)
+    assert len(jobs) == 1, jobs  # 0 lost, 0 duplicated
+    assert jobs[0]["source"]["dimse"]["volume"]["instances"] == len(paths) - 2
 
 
 def _pull_reference(study_uid: str, paths, peer: str, **more) -> dict:

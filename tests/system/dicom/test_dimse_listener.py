@@ -105,7 +105,7 @@ def test_killed_between_two_associations_of_one_study(topology, study, tmp_path)
     assert jobs[0]["source"]["dimse"]["volume"]["instances"] == len(volume)
 
 
-def test_killed_mid_association_then_the_study_is_sent_again(topology, study, tmp_path):
+def test_killed_mid_association_then_the_sender_sends_the_rest(topology, study, tmp_path):
     api, listener = topology
     study_uid, paths = renamed_study(study, tmp_path / "study")
     import pydicom
@@ -118,16 +118,17 @@ def test_killed_mid_association_then_the_study_is_sent_again(topology, study, tm
     assert assoc.is_established
     for path in paths[:10]:
         assert assoc.send_c_store(pydicom.dcmread(path)).Status == 0
-    listener.kill()  # the association dies with it: those 10 instances must not make a job
+    listener.kill()  # the association dies with it: those 10 were answered Success, so they are kept
     time.sleep(0.5)
     assert not assoc.is_established
     listener.start()
-    assert "associations an earlier listener left open" in listener.logs()
-    assert settle_and_count(api, study_uid, wait_s=STABLE_S + 2.0) == []
-    assert storescu(listener.port, paths).returncode == 0
+    assert "kept 10 instance(s) answered Success in associations an earlier listener left open" in listener.logs()
+    assert settle_and_count(api, study_uid, wait_s=STABLE_S + 2.0) == []  # waiting for the sender
+    assert set(scu_send(listener.port, paths[10:], "SCU")) == {0}  # the sender sends only the rest
     jobs = settle_and_count(api, study_uid)
     assert len(jobs) == 1, jobs
-    assert storescu(listener.port, paths).returncode == 0  # and once more: still one job
+    assert jobs[0]["source"]["dimse"]["volume"]["instances"] == len(paths) - 2  # the whole study
+    assert storescu(listener.port, paths).returncode == 0  # and everything once more: still one job
     assert len(settle_and_count(api, study_uid)) == 1
 
 

@@ -26,7 +26,7 @@ def node(tmp_path):
                   "dicom_peers": [{"ae_title": "SCU", "host": "127.0.0.1", "port": 1}], **settings}
         config = ServiceSettings(**values)
         store = SqlJobStore(config.effective_database_url)
-        scp = StoreScp(config, Inbox(store.engine, store.writer), BlobStore(tmp_path))
+        scp = StoreScp(config, Inbox(store.engine, store.writer), BlobStore(config.storage.data_dir))
         server = start_server(config, scp)
         made.append((server, store))
         return scp, config.dimse.dicom_port
@@ -69,18 +69,55 @@ def test_success_means_stored_on_disk_and_indexed_and_release_commits(node, stud
     assert kept == pydicom.dcmread(io.BytesIO(study.ap)) and kept.file_meta.TransferSyntaxUID == "1.2.840.10008.1.2.1"
 
 
-def test_abort_discards_what_the_association_stored(node, study):
+def test_abort_keeps_what_was_answered_success_until_the_sender_comes_back(node, study):
     scp, port = node()
+    sent = study.instances()
     assoc = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
-    for data in study.instances()[:5]:
+    for data in sent[:5]:
         assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(data))).Status == 0x0000
     assert scp.inbox.counts() == {"received": 5}
     assoc.abort()
     deadline = time.monotonic() + 10
-    while scp.inbox.counts() and time.monotonic() < deadline:
+    while scp.inbox.counts() != {"interrupted": 5} and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert scp.inbox.counts() == {}
-    assert not any(scp.blobs.exists(hashlib.sha256(d).hexdigest()) for d in study.instances()[:5])
+    assert scp.inbox.counts() == {"interrupted": 5}  # kept on disk and indexed, not yet part of the study
+    kept = [row.sha256 for row in _rows(scp)]
+    assert len(kept) == 5 and all(scp.blobs.exists(digest) for digest in kept)
+    study_uid = pydicom.dcmread(io.BytesIO(sent[0])).StudyInstanceUID
+    assert scp.inbox.study(study_uid) == [] and scp.inbox.stable_studies(0.0) == []
+    # the sender comes back with only what it had not sent: the study is whole, each instance once
+    assoc = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
+    for data in sent[5:]:
+        assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(data))).Status == 0x0000
+    assoc.release()
+    assert scp.inbox.counts() == {"committed": len(sent)}
+    assert sorted(i.sop_instance_uid for i in scp.inbox.study(study_uid)) == sorted(
+        pydicom.dcmread(io.BytesIO(d)).SOPInstanceUID for d in sent)
+
+
+def _rows(scp):
+    import sqlalchemy as sa
+
+    from service.pacs.dimse.inbox import instances
+
+    with scp.inbox.engine.connect() as conn:
+        return conn.execute(sa.select(instances)).all()
+
+
+def test_interrupted_instances_join_their_study_when_the_sender_does_not_come_back(node, study):
+    scp, port = node(dicom_interrupted_wait_seconds=2.0)
+    assoc = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
+    for data in study.instances()[:3]:
+        assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(data))).Status == 0x0000
+    assoc.abort()
+    deadline = time.monotonic() + 10
+    while scp.inbox.counts() != {"interrupted": 3} and time.monotonic() < deadline:
+        time.sleep(0.05)
+    study_uid = pydicom.dcmread(io.BytesIO(study.ap)).StudyInstanceUID
+    assert scp.sweep() == [] and scp.inbox.counts() == {"interrupted": 3}  # within the wait: still waiting
+    time.sleep(2.1)
+    assert scp.sweep() == [study_uid] and scp.inbox.counts() == {"committed": 3}
+    assert scp.inbox.stable_studies(0.0) == [study_uid]
 
 
 def _send_files(port: int, paths, syntaxes=(EXPLICIT, DEFLATED)) -> list[int]:
@@ -125,3 +162,31 @@ def test_bombs_and_malformed_instances_get_failure_statuses_and_nothing_is_kept(
     assert item.sop_instance_uid == good.SOPInstanceUID and scp.stats["invalid"] == 5
     stored = [p for p in (tmp_path / "blobs").rglob("*") if p.is_file()]
     assert len(stored) == 1 and stored[0].stat().st_size < 10_000
+
+
+def test_a_full_disk_mid_association_keeps_what_was_answered_success(node, study, tmp_path):
+    """The data folder on a small tmpfs filled half-way through an association: the instance that hit ENOSPC is
+    answered 0xA700, the ones answered 0000 before it stay (files and index); the sender retries only the failed
+    one and the rest, and the study is whole, each instance once."""
+    from tests.support.faults_kit import empty_disk, fill_disk, tmpfs
+
+    sent = study.instances()
+    with tmpfs(tmp_path / "disk", 64 << 20) as disk:
+        scp, port = node(data_dir=disk)
+        assoc = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
+        for data in sent[:3]:
+            assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(data))).Status == 0x0000
+        fill_disk(disk)
+        assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(sent[3]))).Status == 0xA700
+        assoc.release()  # the commit may fail on the full disk: the rows stay, never dropped
+        assert sum(scp.inbox.counts().values()) == 3
+        empty_disk(disk)
+        scp.sweep(grace_seconds=0.0)  # what the failed commit left open is kept as interrupted
+        assert set(scp.inbox.counts()) <= {"committed", "interrupted"} and sum(scp.inbox.counts().values()) == 3
+        assoc = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
+        for data in sent[3:]:
+            assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(data))).Status == 0x0000
+        assoc.release()
+        assert scp.inbox.counts() == {"committed": len(sent)}
+        rows = _rows(scp)
+        assert all(scp.blobs.exists(row.sha256) for row in rows) and len({row.sop_instance_uid for row in rows}) == len(sent)
