@@ -18,7 +18,7 @@ from typing import Any
 
 from .procwatch import WakeLink
 from ..settings import ServiceSettings
-from .worker import worker_main
+from .worker import worker_id_prefix, worker_main
 
 log = logging.getLogger("dsareg.service.executor")
 
@@ -133,9 +133,27 @@ class EmbeddedProcessExecutor(Executor):
                         continue
                     log.warning("worker process %d (pid %s) exited with %s; restarting", index, process.pid, process.exitcode)
                     process.join(0)
+                    self._requeue_jobs_of(index, process.pid)
                     self.restarts += 1
                     backoff[index] = time.monotonic() + 2.0
                     self._spawn(index)
+
+    def _requeue_jobs_of(self, index: int, pid: int) -> None:
+        """The dead worker's job goes back to the queue now, not when its lease ends (its attempt counts)."""
+        if self.store is None:
+            return
+        try:
+            if not self.store.expire_claims(worker_id_prefix(pid, index)):
+                return
+            requeued, failed = self.store.recover_expired()
+        except Exception:  # noqa: BLE001 - the store out: the sweeper recovers the lease later
+            log.exception("worker %d (pid %s) died; its job is requeued when its lease ends", index, pid)
+            return
+        for job_id in requeued:
+            log.warning("job %s: its worker (pid %s) died, requeued at once", job_id, pid)
+        for job_id in failed:
+            log.warning("job %s: its worker (pid %s) died, no attempts left (or canceled)", job_id, pid)
+        self.requeued(requeued)
 
     def notify(self) -> None:
         with self._links_lock:  # held only for non-blocking one-byte writes

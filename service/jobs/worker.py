@@ -40,8 +40,13 @@ STORING_FRACTION = 0.985  # STOW-RS / C-STORE of the DICOM results into the PACS
 SAVING_FRACTION = 0.99  # artifacts into the blob store, then the result into the job store
 
 
+def worker_id_prefix(pid: int, index: int) -> str:
+    """What every worker id of process ``pid`` (slot ``index``) on this host starts with."""
+    return f"{socket.gethostname()[:40]}-{pid}-w{index}-"
+
+
 def make_worker_id(index: int) -> str:
-    return f"{socket.gethostname()[:40]}-{os.getpid()}-w{index}-{random_token(3)}"
+    return worker_id_prefix(os.getpid(), index) + random_token(3)
 
 
 class _JobControl:

@@ -178,6 +178,10 @@ class JobStore(abc.ABC):
         """Give a claimed job back to the queue (worker shutting down, disk full), without using up an
         attempt; ``reason`` (e.g. ``disk_full``) is kept in the job's ``released`` event name."""
 
+    def expire_claims(self, worker_prefix: str) -> int:
+        """End the leases of a dead worker's running jobs now (worker ids starting with ``worker_prefix``)."""
+        return 0
+
     @abc.abstractmethod
     def recover_expired(self) -> tuple[list[str], list[str]]:
         """Requeue (or fail, when out of attempts) running jobs whose lease expired."""
@@ -229,6 +233,10 @@ class JobStore(abc.ABC):
 
     def claim_export(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
         """Take one due export (``attempts`` + 1); None when another process has it or it is not due."""
+        raise NotImplementedError
+
+    def renew_export(self, job_id: str, attempt: int, until: float) -> bool:
+        """Extend the lease of export ``attempt`` while it runs; False when it is no longer that attempt's."""
         raise NotImplementedError
 
     def finish_export(self, job_id: str, attempt: int, *, state: str, outcome: dict | None, error: dict | None,
@@ -677,6 +685,14 @@ class SqlJobStore(JobStore):
                 self._event(conn, job_id, f"released:{reason}"[:32] if reason else "released", worker_id)
         return bool(done)
 
+    def expire_claims(self, worker_prefix: str) -> int:
+        """End now the leases of the running jobs of a worker known dead (ids starting with ``worker_prefix``):
+        the next :meth:`recover_expired` requeues them without waiting for the lease."""
+        owned = sa.func.substr(jobs.c.worker_id, 1, len(worker_prefix)) == worker_prefix
+        with self.writer.begin() as conn:
+            return conn.execute(jobs.update().where(jobs.c.status == "running", owned)
+                                .values(lease_expires_at=0.0)).rowcount
+
     def recover_expired(self) -> tuple[list[str], list[str]]:
         now = time.time()
         requeued: list[str] = []
@@ -822,6 +838,13 @@ class SqlJobStore(JobStore):
                 return None
             row = conn.execute(sa.select(job_exports).where(job_exports.c.job_id == job_id)).first()
         return {**dict(row._mapping), "target": _load(row._mapping["target"])}
+
+    def renew_export(self, job_id: str, attempt: int, until: float) -> bool:
+        """Extend the lease of an export attempt still running (same attempt, still ``exporting``)."""
+        with self.writer.begin() as conn:
+            return bool(conn.execute(job_exports.update().where(
+                job_exports.c.job_id == job_id, job_exports.c.state == "exporting",
+                job_exports.c.attempts == attempt).values(lease_until=until)).rowcount)
 
     def finish_export(self, job_id: str, attempt: int, *, state: str, outcome: dict | None, error: dict | None,
                       next_attempt_at: float | None) -> bool:

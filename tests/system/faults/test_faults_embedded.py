@@ -89,8 +89,9 @@ def _assert_invariants(srv: Server, ids: list[str], timeout: float = 240) -> Non
 
 
 def test_sigkill_idle_worker_then_busy_worker(tmp_path, case, slow_case):
-    """Killing an idle worker used to leave the shared wake-up lock held: every later POST hung."""
-    srv = Server(tmp_path / "data", workers=2).start()
+    """Killing an idle worker used to leave the shared wake-up lock held: every later POST hung. A killed busy
+    worker's job is requeued as soon as the supervisor sees the death, not when its (30 s) lease ends."""
+    srv = Server(tmp_path / "data", workers=2, env={"DSAREG_LEASE_SECONDS": "30"}).start()
     try:
         with srv.client() as client:
             ids = [submit(client, case, FAST).json()["id"]]  # also warms the validator's cache
@@ -107,12 +108,21 @@ def test_sigkill_idle_worker_then_busy_worker(tmp_path, case, slow_case):
             body = wait_for(client, busy, statuses=("running",), timeout=60,
                             predicate=lambda b: (b.get("progress") or {}).get("iteration", 0) > 0)
             (worker_id,) = _rows(srv.data_dir, "SELECT worker_id FROM jobs WHERE id=?", (busy,))[0]
+            deadline = time.monotonic() + 120
+            while len(_worker_pids(srv)) < 2 and time.monotonic() < deadline:  # the replaced idle one warmed up
+                time.sleep(0.2)
             os.kill(int(worker_id.split("-")[-3]), signal.SIGKILL)
+            killed_at = time.time()
             response, took = timed_post(client, case, {**FAST, "seed": 3})
             assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
             ids.append(response.json()["id"])
             _assert_invariants(srv, ids)
             assert body["status"] == "running" and _events(srv.data_dir)(busy).count("claimed") == 2
+            at = dict(_rows(srv.data_dir, "SELECT event, max(at) FROM job_events WHERE job_id=? GROUP BY event", (busy,)))
+            requeue_s, claim_s = at["lease_expired"] - killed_at, at["claimed"] - killed_at
+            print(f"\nbusy worker SIGKILLed: its job requeued after {requeue_s:.2f} s, claimed again after "
+                  f"{claim_s:.2f} s (lease 30 s)")
+            assert requeue_s <= 5.0 and claim_s <= 15.0, (requeue_s, claim_s)
             assert len(_wait_idle(srv, 2)) == 2  # the supervisor replaced both
     finally:
         if srv.alive():
