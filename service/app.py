@@ -14,6 +14,7 @@ from . import __version__
 from .api.routes import artifacts, events, operations, registrations, review, tracking, ui
 from .api.deps import ServiceContext
 from .api.handlers import install_handlers
+from .api.httpdeadlines import BodyDeadlineMiddleware, HttpDeadlines, with_header_deadline
 from .api.httpfaults import problem_http_protocol
 from .api.lifespan import make_lifespan
 from .api.prometheus import make_metrics
@@ -51,6 +52,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
         generate_unique_id_function=operation_id,
     )
     app.add_middleware(BodyLimitMiddleware, limit=settings.limits.max_upload_bytes)
+    app.add_middleware(BodyDeadlineMiddleware, idle_seconds=settings.server.http_body_idle_timeout_seconds)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
     mount(app, registrations.router, events.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
@@ -59,10 +61,16 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     return app
 
 
-def http_protocol() -> type:
+def http_protocol(settings: ServiceSettings) -> type:
     """The uvicorn HTTP protocol to serve the app with: h11's, its own 400s (a malformed Content-Length,
-    request line or header, answered before the app runs) as problem+json (:mod:`service.api.httpfaults`)."""
-    return problem_http_protocol()
+    request line or header, answered before the app runs) as problem+json (:mod:`service.api.httpfaults`),
+    a request head late past ``http_header_timeout_seconds`` closed (:mod:`service.api.httpdeadlines`)."""
+    return with_header_deadline(problem_http_protocol(), HttpDeadlines.of(settings).header_timeout_s)
+
+
+def uvicorn_options(settings: ServiceSettings) -> dict:
+    """The connection bound of ``dsareg serve`` (``uvicorn.run`` keyword arguments)."""
+    return HttpDeadlines.of(settings).uvicorn_options()
 
 
 # ---- the DICOM node in its own process (`dsareg dicom-listener`) ---------------------------------

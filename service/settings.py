@@ -53,6 +53,14 @@ class ServerSettings(_Group):
                       "(without keys the service binds 127.0.0.1 whatever is asked).")
     port: int = Field(8000, description="TCP port of the API.")
     log_level: str = Field("info", description="Log level of the API and its workers (debug, info, warning, error).")
+    http_header_timeout_seconds: float = Field(
+        10.0, gt=0.0, description="A request's line and headers must arrive within this long of the connection (or "
+                                  "of the previous answer on it): otherwise 408 and the connection is closed.")
+    http_body_idle_timeout_seconds: float = Field(
+        30.0, gt=0.0, description="A request body that stops arriving for this long is answered 408 (problem+json) "
+                                  "and its connection closed.")
+    http_max_connections: int = Field(
+        1000, ge=1, description="Open HTTP connections at most; a request past it is answered 503 at once.")
 
 
 class StorageSettings(_Group):
@@ -235,6 +243,10 @@ class DicomwebSettings(_Group):
     dicomweb_retries: int = Field(2, ge=0, le=10, description="Retries of a DICOMweb request on connection errors, "
                                                               "timeouts and 408/429/502/503/504.")
     dicomweb_retry_backoff_seconds: float = Field(0.5, ge=0.0, description="First retry delay (doubles each retry).")
+    pacs_deadline_seconds: float = Field(
+        600.0, gt=0.0, description="PACS I/O of one job in all (every DICOMweb request of its fetch and store, with "
+                                   "retries; one export attempt): a slow or trickling PACS holds a worker at most this "
+                                   "long, then the job fails with a pacs-error.")
 
     @field_validator("dicomweb_servers", mode="before")
     @classmethod

@@ -136,7 +136,7 @@ def _add_submit(subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from ..app import create_app, http_protocol
+    from ..app import create_app, http_protocol, uvicorn_options
     from ..settings import load_settings
 
     settings = load_settings(
@@ -150,7 +150,8 @@ def run_serve(args: argparse.Namespace) -> int:
         log.warning("no API keys configured: binding to 127.0.0.1 instead of %s", settings.server.host)
     app = create_app(settings)
     uvicorn.run(app, host=host, port=settings.server.port, log_level=settings.server.log_level.lower(), access_log=False,
-                timeout_graceful_shutdown=10, http=http_protocol())  # bad Content-Length → problem+json
+                timeout_graceful_shutdown=10, http=http_protocol(settings),  # bad Content-Length → problem+json
+                **uvicorn_options(settings))  # at most http_max_connections
     return 0
 
 

@@ -11,9 +11,11 @@
 * **Delivered by the API process** (:class:`ExportDeliverer`, the loop of completion callbacks,
   :mod:`.leased`), in both topologies: claimed with a lease, stored, recorded (``done``, or a
   ``pacs-error`` and a retry after ``export_retry_backoff_seconds`` doubling, ``export_max_attempts``
-  in all, then ``failed``). An API killed between the approval and the store, or during it, leaves
-  the row pending or leased: after the restart it is stored then (at least once; a PACS keeps one
-  copy of a SOP Instance UID stored twice). Every step is an audit event of the job.
+  in all, then ``failed``). The lease is short (``EXPORT_LEASE_SECONDS``) and renewed every third of
+  it while the attempt runs: an API killed (or frozen) between the approval and the store, or during
+  it, leaves the row pending or leased for at most that long; after the restart it is stored then
+  (at least once; a PACS keeps one copy of a SOP Instance UID stored twice). Every step is an audit
+  event of the job.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from ..pacs.dicom_jobs import STORED_FILES, PacsJob
-from ..pacs.dicomweb import DicomwebClient, PacsError, resolve_server
+from ..pacs.dicomweb import DicomwebClient, PacsBudget, PacsError, resolve_server
 from ..pacs.dimse.export import export_to
 from ..pacs.dimse.pull import DimsePullJob
 from ..problems import TYPE_BASE
@@ -38,7 +40,7 @@ log = logging.getLogger("dsareg.service.exports")
 
 STOW, CSTORE = "stow-rs", "c-store"
 MAX_BACKOFF_SECONDS = 300.0
-LEASE_MARGIN_SECONDS = 5.0
+EXPORT_LEASE_SECONDS = 15.0  # renewed every 5 s while an attempt runs: recovery after an API crash ≤ 15 s + a poll
 
 
 def export_target(pacs: Any, dimse: Any) -> dict[str, Any] | None:
@@ -64,18 +66,6 @@ def pacs_error(detail: str, **extra: Any) -> dict[str, Any]:
     return {"type": TYPE_BASE + "pacs-error", "title": "PACS error", "status": 502, "detail": detail, **extra}
 
 
-def lease_seconds(settings: ServiceSettings, target: dict[str, Any]) -> float:
-    """Longer than one attempt can take (every retry of the transport at its timeout)."""
-    if target.get("via") == STOW:
-        work = (settings.dicomweb.dicomweb_timeout_seconds * (settings.dicomweb.dicomweb_retries + 1)
-                + settings.dicomweb.dicomweb_retry_backoff_seconds * 2 ** settings.dicomweb.dicomweb_retries)
-    else:
-        per_peer = (3 * settings.dimse.dicom_timeout_seconds * (settings.dimse.dicom_export_retries + 1)
-                    + settings.dimse.dicom_export_backoff_seconds * 2 ** settings.dimse.dicom_export_retries)
-        work = per_peer * max(1, len(target.get("peers") or []))
-    return work + LEASE_MARGIN_SECONDS
-
-
 def _stow(target: dict[str, Any], files: list[tuple[str, bytes]], uids: list[str],
           settings: ServiceSettings) -> tuple[dict | None, dict | None]:
     server = resolve_server(settings, target["server"])
@@ -86,7 +76,8 @@ def _stow(target: dict[str, Any], files: list[tuple[str, bytes]], uids: list[str
     try:
         with DicomwebClient(server, timeout=settings.dicomweb.dicomweb_timeout_seconds, retries=settings.dicomweb.dicomweb_retries,
                             backoff=settings.dicomweb.dicomweb_retry_backoff_seconds,
-                            max_bytes=settings.limits.max_upload_bytes) as client:
+                            max_bytes=settings.limits.max_upload_bytes,
+                            budget=PacsBudget(settings.dicomweb.pacs_deadline_seconds)) as client:
             stored = client.store(target["study_uid"], [data for _, data in files])
     except PacsError as exc:
         return None, pacs_error(str(exc), **exc.problem_extra())
@@ -129,6 +120,7 @@ class ExportDeliverer(LeasedDeliverer):
     """The API process's loop that stores approved jobs' results into their PACS (see the module docstring)."""
 
     name = "exports"
+    renewed_lease_seconds = EXPORT_LEASE_SECONDS
 
     def __init__(self, store: JobStore, blobs: BlobStore, settings: ServiceSettings):
         super().__init__(threads=2)
@@ -141,7 +133,10 @@ class ExportDeliverer(LeasedDeliverer):
         job = self.store.get(job_id)
         if job is None or not job.export:
             return None
-        return self.store.claim_export(job_id, now, lease_seconds(self.settings, job.export["target"]))
+        return self.store.claim_export(job_id, now, self.renewed_lease_seconds)
+
+    def renew(self, row: dict[str, Any], until: float) -> bool:
+        return self.store.renew_export(row["job_id"], row["attempts"], until)
 
     def deliver(self, row: dict[str, Any]) -> str:
         job = self.store.get(row["job_id"])

@@ -4,7 +4,9 @@ Every ``POLL_SECONDS`` the loop asks the store what is due (:meth:`LeasedDeliver
 each item with a lease (:meth:`claim`: a conditional UPDATE, so two API replicas never run the
 same attempt) and runs it on a small thread pool (:meth:`deliver`). An API that dies mid-attempt
 leaves the row with a lease; once it has passed, a deliverer (after a restart, or another
-replica) takes it again: at least once, never lost.
+replica) takes it again: at least once, never lost. A deliverer with ``renewed_lease_seconds``
+claims a short lease and renews it every third of it while the attempt runs (:meth:`renew`), so a
+dead API's item is taken again after that short lease, whatever an attempt may take.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ class LeasedDeliverer(abc.ABC):
     """A thread that claims due items from the store and delivers each on a thread pool."""
 
     name = "deliveries"
+    renewed_lease_seconds: float | None = None  # None: the claim's lease covers a whole attempt
 
     def __init__(self, threads: int = DELIVERY_THREADS):
         self._halt = threading.Event()
@@ -45,6 +48,10 @@ class LeasedDeliverer(abc.ABC):
     @abc.abstractmethod
     def deliver(self, row: dict[str, Any]) -> str:
         """One attempt of a claimed item; the state it left."""
+
+    def renew(self, row: dict[str, Any], until: float) -> bool:
+        """Extend the lease of a claimed item to ``until``; False when it is no longer ours."""
+        return True
 
     def start(self) -> None:
         self._thread.start()
@@ -74,7 +81,22 @@ class LeasedDeliverer(abc.ABC):
         return claimed
 
     def _deliver_logged(self, row: dict[str, Any]) -> None:
+        done = threading.Event()
+        if self.renewed_lease_seconds:
+            threading.Thread(target=self._keep_lease, args=(row, done), name=f"{self.name}-lease", daemon=True).start()
         try:
             self.deliver(row)
         except Exception:  # the lease expires and the item is tried again
             log.exception("job %s: %s attempt raised", row["job_id"], self.name)
+        finally:
+            done.set()
+
+    def _keep_lease(self, row: dict[str, Any], done: threading.Event) -> None:
+        lease = float(self.renewed_lease_seconds or 0.0)
+        while not done.wait(lease / 3.0):
+            try:
+                if not self.renew(row, time.time() + lease):
+                    log.warning("job %s: %s lease lost (taken over, or finished)", row["job_id"], self.name)
+                    return
+            except Exception:  # noqa: BLE001 - the store out: the lease may lapse, the item is tried again
+                log.warning("job %s: %s lease not renewed (job store unavailable)", row["job_id"], self.name)

@@ -17,6 +17,7 @@ from typing import Any
 from .dicomweb import (
     DicomwebClient,
     DicomwebRegistrationRequest,
+    PacsBudget,
     PacsError,
     fetch_inputs,
     parse_reference,
@@ -45,6 +46,7 @@ class PacsJob:
     def __init__(self, reference: DicomwebRegistrationRequest, settings: ServiceSettings):
         self.reference, self.settings = reference, settings
         self.source_info: dict[str, Any] = {}
+        self.budget = PacsBudget(settings.dicomweb.pacs_deadline_seconds)  # the fetch and the store together
 
     def _client(self) -> DicomwebClient:
         source = self.reference.source.dicomweb
@@ -54,7 +56,7 @@ class PacsJob:
         return DicomwebClient(server, timeout=self.settings.dicomweb.dicomweb_timeout_seconds,
                               retries=self.settings.dicomweb.dicomweb_retries,
                               backoff=self.settings.dicomweb.dicomweb_retry_backoff_seconds,
-                              max_bytes=self.settings.limits.max_upload_bytes)
+                              max_bytes=self.settings.limits.max_upload_bytes, budget=self.budget)
 
     def fetch(self) -> Any:
         """The study's AP, LAT and volume instances as ``engine.CaseFiles`` (geometry from the XA headers)."""

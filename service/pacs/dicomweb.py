@@ -5,7 +5,9 @@
   never from the request (no server-side request forgery, no credential injection).
 * UIDs are checked against the DICOM UID syntax before they go into a URL path.
 * Every HTTP call has a timeout; connection errors, timeouts and 429/502/503/504 are retried
-  a bounded number of times with exponential back-off; anything else fails at once.
+  a bounded number of times with exponential back-off; anything else fails at once. All the
+  calls of one job share a :class:`PacsBudget` (``DSAREG_PACS_DEADLINE_SECONDS``): a PACS that
+  answers slowly, or trickles its answers, holds the job's worker at most that long in all.
   A failure raises :class:`PacsError` naming the server, the step and the HTTP status,
   which the worker turns into a failed job (``type .../pacs-error``).
 
@@ -207,16 +209,31 @@ def _multipart_parts(response: httpx.Response) -> list[bytes]:
     return parts
 
 
+class PacsBudget:
+    """The PACS time one job may spend in all, across its clients and requests (seconds)."""
+
+    def __init__(self, seconds: float):
+        self.seconds, self.spent = float(seconds), 0.0
+
+    def remaining(self) -> float:
+        return self.seconds - self.spent
+
+
 class DicomwebClient:
-    """QIDO-RS / WADO-RS / STOW-RS against one configured server, with bounded retries."""
+    """QIDO-RS / WADO-RS / STOW-RS against one configured server, with bounded retries (and a job's budget)."""
 
     def __init__(self, server: PacsServer, *, timeout: float = 30.0, retries: int = 2, backoff: float = 0.5,
-                 max_bytes: int = 512 * 1024 * 1024, transport: httpx.BaseTransport | None = None):
+                 max_bytes: int = 512 * 1024 * 1024, transport: httpx.BaseTransport | None = None,
+                 budget: PacsBudget | None = None):
         self.server = server
         self.retries = max(0, int(retries))
         self.backoff = backoff
         self.max_bytes = max_bytes
+        self.timeout = timeout
         self.deadline = TOTAL_TIME_FACTOR * timeout  # whole answer, so a trickling server cannot hold a job
+        self.budget = budget
+        self.opened = time.monotonic()
+        self.deadline_at = self.opened + (budget.remaining() if budget is not None else float("inf"))
         self.client = httpx.Client(base_url=server.url, auth=server.auth, headers=server.headers,
                                    timeout=httpx.Timeout(timeout, connect=min(timeout, 10.0)), transport=transport,
                                    follow_redirects=False)
@@ -224,6 +241,19 @@ class DicomwebClient:
 
     def close(self) -> None:
         self.client.close()
+        if self.budget is not None:
+            self.budget.spent += time.monotonic() - self.opened
+            self.budget = None
+
+    def _left(self, step: str, attempts: int, error: str | None = None) -> float:
+        """Seconds left of the job's PACS budget; :class:`PacsError` when it is spent."""
+        left = self.deadline_at - time.monotonic()
+        if left <= 0:
+            spent = f"{self.budget.seconds:g}" if self.budget is not None else "its"
+            raise PacsError(self.server.url, step, f"the PACS did not answer within the job's {spent} s "
+                                                   f"(DSAREG_PACS_DEADLINE_SECONDS){'; last: ' + error if error else ''}",
+                            None, attempts)
+        return left
 
     def __enter__(self) -> DicomwebClient:  # noqa: PYI034
         return self
@@ -232,12 +262,14 @@ class DicomwebClient:
         self.close()
 
     def _request(self, method: str, path: str, step: str, ok=(200,), **kwargs) -> httpx.Response:
-        attempts = 0
+        attempts, error = 0, None
         while True:
+            left = self._left(step, attempts, error)
             attempts += 1
             self.calls += 1
             try:
-                response = self._fetch(method, path, step, **kwargs)
+                response = self._fetch(method, path, step, timeout=httpx.Timeout(
+                    min(self.timeout, left), connect=min(self.timeout, 10.0, left)), **kwargs)
             except httpx.TimeoutException as exc:
                 error, status = f"no answer within the timeout ({type(exc).__name__})", None
             except httpx.TransportError as exc:
@@ -251,11 +283,12 @@ class DicomwebClient:
                     raise PacsError(self.server.url, step, error, status, attempts)
             if attempts > self.retries:
                 raise PacsError(self.server.url, step, error, status, attempts)
-            time.sleep(self.backoff * 2 ** (attempts - 1))
+            time.sleep(min(self.backoff * 2 ** (attempts - 1), max(0.0, self.deadline_at - time.monotonic())))
 
     def _fetch(self, method: str, path: str, step: str, **kwargs) -> httpx.Response:
         """One request, its answer read in chunks under a byte cap and a total time limit."""
         started = time.monotonic()
+        limit = min(self.deadline, self.deadline_at - started)
         with self.client.stream(method, path, **kwargs) as response:
             chunks, total = [], 0
             for chunk in response.iter_bytes():  # decoded (Content-Encoding)
@@ -263,8 +296,8 @@ class DicomwebClient:
                 if total > self.max_bytes:
                     raise PacsError(self.server.url, step, f"the answer exceeds {self.max_bytes} bytes "
                                                            "(DSAREG_MAX_UPLOAD_BYTES)", response.status_code)
-                if time.monotonic() - started > self.deadline:
-                    raise httpx.ReadTimeout(f"the answer took over {self.deadline:g} s")
+                if time.monotonic() - started > limit:
+                    raise httpx.ReadTimeout(f"the answer took over {limit:g} s")
                 chunks.append(chunk)
         headers = [(k, v) for k, v in response.headers.multi_items()
                    if k.lower() not in ("content-encoding", "content-length", "transfer-encoding")]

@@ -11,6 +11,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -260,3 +261,40 @@ def empty_disk(path: Path) -> None:
 def variant(case: ExampleCase, n: int) -> ExampleCase:
     """The same case with a mesh of other bytes (a comment line): a new content hash, so a new parse."""
     return dataclasses.replace(case, mesh_obj=case.mesh_obj + f"\n# variant {n}\n".encode())
+
+
+# ---- hostile peers (issue 33) -------------------------------------------------------------------
+class TricklingHttpServer:
+    """A real HTTP server on loopback that answers 200 at once, then its body one byte every ``interval_s``:
+    each read finishes within any timeout, the answer never ends. ``requests`` counts what it was asked."""
+
+    def __init__(self, interval_s: float = 0.5):
+        self.interval_s, self.requests = interval_s, 0
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}/dicom-web"
+        self._stop = threading.Event()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            threading.Thread(target=self._trickle, args=(conn,), daemon=True).start()
+
+    def _trickle(self, conn: socket.socket) -> None:
+        with conn:
+            try:
+                conn.recv(65536)
+                self.requests += 1
+                conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: application/dicom+json\r\nContent-Length: 1000000\r\n\r\n")
+                while not self._stop.wait(self.interval_s):
+                    conn.sendall(b" ")
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self._stop.set()
+        self.sock.close()

@@ -91,3 +91,28 @@ def test_configured_servers_from_settings():
     servers = configured_servers(settings)
     assert set(servers) == {"http://a/dicom-web", "http://b/wado"}
     assert servers["http://a/dicom-web"].auth is not None and servers["http://b/wado"].auth is None
+
+
+def test_a_trickling_pacs_holds_the_client_no_longer_than_the_jobs_budget():
+    """A real server that answers one byte every 0.3 s (each read well within the 1 s timeout; before the budget,
+    each attempt lasted 10 timeouts and was retried): the job's 2.5 s PACS budget ends the fetch, clearly."""
+    import time
+
+    from service.pacs.dicomweb import PacsBudget
+    from tests.support.faults_kit import TricklingHttpServer
+
+    server = TricklingHttpServer(interval_s=0.3)
+    budget = PacsBudget(2.5)
+    started = time.monotonic()
+    try:
+        with DicomwebClient(PacsServer(server.url), timeout=1.0, retries=2, backoff=0.1, budget=budget) as pacs:
+            with pytest.raises(PacsError) as failed:
+                pacs.search_instances("1.2.3", "1.2.4")
+        took = time.monotonic() - started
+    finally:
+        server.close()
+    assert took <= 2.5 + 1.0, took  # the budget, and at most one read timeout past it
+    assert "DSAREG_PACS_DEADLINE_SECONDS" in str(failed.value) and failed.value.step.startswith("search instances")
+    assert budget.remaining() <= 0.0  # spent: a later request of the same job fails at once
+    with DicomwebClient(PacsServer(server.url), timeout=1.0, budget=budget) as pacs, pytest.raises(PacsError):
+        pacs.search_instances("1.2.3", "1.2.4")

@@ -52,7 +52,9 @@ ADDED_SINCE_BASE = {"DSAREG_DICOM_QUERY_PEER", "DSAREG_DICOM_QUERY_RETRY_SECONDS
                     # issue 23: PACS exports held for review
                     "DSAREG_EXPORT_AFTER_REVIEW", "DSAREG_EXPORT_MAX_ATTEMPTS", "DSAREG_EXPORT_RETRY_BACKOFF_SECONDS"}
 ADDED_SINCE_BASE |= {"DSAREG_MAX_DICOM_INSTANCE_BYTES", "DSAREG_MAX_DICOM_PIXEL_BYTES",  # issue 33: hostile peers
-                     "DSAREG_DICOM_INTERRUPTED_WAIT_SECONDS"}
+                     "DSAREG_DICOM_INTERRUPTED_WAIT_SECONDS", "DSAREG_PACS_DEADLINE_SECONDS",
+                     "DSAREG_HTTP_HEADER_TIMEOUT_SECONDS", "DSAREG_HTTP_BODY_IDLE_TIMEOUT_SECONDS",
+                     "DSAREG_HTTP_MAX_CONNECTIONS"}
 """Settings added after the base commit (each a new env name; none of the base's may go or change)."""
 
 

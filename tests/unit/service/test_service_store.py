@@ -217,3 +217,56 @@ def test_case_identity_is_stored_and_searched(store):
     assert found("p%1") == [] and found("px1") == []  # % and _ are literal, not wildcards
     store.set_case(plain.id, {"source": "dicomweb", "patient_id": "Q-7"}, "q-7")
     assert found("q-7") == [plain.id] and store.get(plain.id).case["source"] == "dicomweb"
+
+
+def test_a_dead_workers_claims_end_at_once_and_only_its_own(store):
+    mine, other = _job(store, digest="a" * 64)[0], _job(store, digest="b" * 64)[0]
+    store.claim_job(mine.id, "host-123-w0-abc", 30)
+    store.claim_job(other.id, "host-1234-w0-def", 30)  # another pid that starts with the same digits
+    assert store.recover_expired() == ([], [])  # both leases run for 30 s
+    assert store.expire_claims("host-123-w0-") == 1
+    assert store.recover_expired() == ([mine.id], [])
+    assert store.get(mine.id).status == "queued" and store.get(other.id).status == "running"
+    assert [e["event"] for e in store.events(mine.id)][-1] == "lease_expired"
+
+
+def _lease_until(store: SqlJobStore, job_id: str) -> float:
+    import sqlalchemy as sa
+
+    from service.storage.store import job_exports
+
+    with store.engine.connect() as conn:
+        return conn.execute(sa.select(job_exports.c.lease_until).where(job_exports.c.job_id == job_id)).scalar_one()
+
+
+def test_an_export_lease_is_short_and_renewed_while_the_attempt_runs(store, tmp_path):
+    from service.jobs.exports import EXPORT_LEASE_SECONDS, ExportDeliverer
+    from service.settings import ServiceSettings
+    from service.storage.blobs import BlobStore
+
+    assert EXPORT_LEASE_SECONDS <= 15.0
+    job = _succeeded(store, TARGET)
+    store.review(job.id, "approved", "", "key:1")
+    seen: list[float] = []
+
+    class SlowPacs(ExportDeliverer):
+        renewed_lease_seconds = 0.6
+
+        def deliver(self, row):  # an attempt that takes 4 leases (the PACS itself is not the point here)
+            for _ in range(8):
+                time.sleep(0.3)
+                seen.append(_lease_until(store, row["job_id"]))
+                assert store.due_exports(time.time()) == []  # never looks abandoned while it runs
+            store.finish_export(row["job_id"], row["attempts"], state="done", outcome={}, error=None,
+                                next_attempt_at=None)
+            return "done"
+
+    deliverer = SlowPacs(store, BlobStore(tmp_path), ServiceSettings(data_dir=tmp_path))
+    started = time.time()
+    assert deliverer.deliver_due() == 1
+    deadline = time.monotonic() + 10
+    while store.get(job.id).export["state"] != "done" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    deliverer._pool.shutdown(wait=True)
+    assert store.get(job.id).export["state"] == "done" and len(seen) == 8
+    assert max(seen) > started + 2.0  # renewed past the first 0.6 s lease, again and again
