@@ -28,6 +28,28 @@ def overlay_dcm(view: str) -> str:
     return f"overlay_{view}.dcm"
 
 
+HEMODYNAMICS_JSON = "hemodynamics.json"
+HEMODYNAMICS_PLY = "hemodynamics.ply"
+HEMODYNAMICS_VTK = "hemodynamics.vtk"
+
+
+def parametric_png(view: str) -> str:
+    return f"parametric_{view}.png"
+
+
+def parametric_dcm(view: str) -> str:
+    return f"parametric_{view}.dcm"
+
+
+HEMODYNAMICS_FILES: dict[str, str] = {
+    HEMODYNAMICS_JSON: "application/json",
+    HEMODYNAMICS_PLY: "application/octet-stream",
+    HEMODYNAMICS_VTK: "application/octet-stream",
+    **{parametric_png(view): "image/png" for view in VIEWS},
+}
+"""What the hemodynamics step (``options.hemodynamics``, :mod:`dsareg_engine.hemodynamics.run`) may write."""
+
+
 REGISTRATION_FILES: dict[str, str] = {
     RESULT_JSON: "application/json",
     **{overlay_png(view): "image/png" for view in VIEWS},
@@ -41,8 +63,9 @@ DICOM_FILES: dict[str, str] = {
     REG_DCM: "application/dicom",
     **{overlay_dcm(view): "application/dicom" for view in VIEWS},
     LOSS_DCM: "application/dicom",
+    **{parametric_dcm(view): "application/dicom" for view in VIEWS},
 }
 """What :func:`~dsareg_engine.io.dicom_out.write_dicom_outputs` may write."""
 
-ARTIFACTS: dict[str, str] = {**REGISTRATION_FILES, **DICOM_FILES}
+ARTIFACTS: dict[str, str] = {**REGISTRATION_FILES, **HEMODYNAMICS_FILES, **DICOM_FILES}
 """Every output file of a registration, ``{file name: media type}``."""

@@ -72,16 +72,32 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     options = options if isinstance(options, RegistrationOptions) else parse_options(options)
     case = load_case_files(files, options.segmentation, limits, reading=image_reading(options),
                            volume_reading=VolumeReading.from_options(options), mesh_units=options.mesh_units)
+    if options.hemodynamics:
+        from .hemodynamics.run import check_timed_runs
+
+        check_timed_runs(files)
     if should_stop is not None and should_stop():
         raise RegistrationCanceled("stopped before start")
     if progress is not None:
         progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
     data = run_registration_case(case, options, out_dir, progress=progress, should_stop=should_stop, label=label)
+    if options.hemodynamics:
+        _hemodynamics(files, case, data, Path(out_dir), progress)
     if dicom != "off":
         if progress is not None:
             progress({"stage": "dicom", "iteration": 0, "loss": None, "fraction": DICOM_FRACTION})
         _write_dicom(case.sources, data, Path(out_dir), required=dicom == "required")
     return data
+
+
+def _hemodynamics(files: CaseFiles, case: Case, data: dict, out_dir: Path,
+                  progress: Callable[[dict], None] | None) -> None:
+    """``options.hemodynamics``: arrival times on the registered model (:mod:`dsareg_engine.hemodynamics`)."""
+    from .hemodynamics.run import attach
+
+    if progress is not None:
+        progress({"stage": "hemodynamics", "iteration": 0, "loss": None, "fraction": OUTPUTS_DONE})
+    attach(files, case, data, out_dir)
 
 
 def _write_dicom(sources: DicomSources, data: dict, out_dir: Path, *, required: bool) -> None:
@@ -96,6 +112,10 @@ def _write_dicom(sources: DicomSources, data: dict, out_dir: Path, *, required: 
         sources = DicomSources()
     try:
         data["dicom"] = {"instances": write_dicom_outputs(out_dir, data["mesh_to_world"], sources, out_dir)}
+        if "hemodynamics" in data:
+            from .hemodynamics.dicom import write_parametric_dicom
+
+            data["dicom"]["instances"].update(write_parametric_dicom(out_dir, sources))
     except Exception as exc:
         if required:
             raise

@@ -36,6 +36,7 @@ def add_parser(subparsers) -> None:
     _add_autoinit(which)
     _add_partial(which)
     _add_clinical(which)
+    _add_hemodynamics(which)
 
 
 def _add_render(which) -> None:
@@ -171,6 +172,19 @@ def _add_clinical(which) -> None:
     sub.add_argument("--options", default="{}", help="extra registration options as JSON")
     sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
     sub.set_defaults(func=deferred("dsareg_engine.commands.bench_clinical:bench_clinical"))
+
+
+def _add_hemodynamics(which) -> None:
+    """``dsareg bench hemodynamics``: arrival / peak on the model from simulated bolus runs."""
+    sub = which.add_parser("hemodynamics", help="contrast arrival and time to peak mapped onto the model from "
+                                                "simulated biplane bolus runs with known times")
+    sub.add_argument("--mesh", nargs="+", metavar="FILE", help="mesh files ('phantom' for the built-in one; default it)")
+    sub.add_argument("--cases", type=int, default=2, help="cases (seeds) per row")
+    sub.add_argument("--seed", type=int, default=0, help="first seed")
+    sub.add_argument("--size", type=int, default=512, help="image side in px")
+    sub.add_argument("--rows", nargs="*", default=[], help="only the rows whose name contains one of these words")
+    sub.add_argument("--pictures", metavar="DIR", help="keep the first case's outputs and model pictures per row here")
+    sub.set_defaults(func=deferred("dsareg_engine.commands.bench_hemodynamics:bench_hemodynamics"))
 
 
 def _add_mesh(parser) -> None:

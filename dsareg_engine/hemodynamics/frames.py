@@ -56,15 +56,16 @@ def native_opacity(stack: np.ndarray, dataset, shift_px: tuple[float, float], fi
     items = parse_recipe(dataset, len(stack), field_name=field_name)
     pairs = recipe_pairs(items, len(stack)) if items else found_pairs(logs, field_name)[0]
     first = pairs[min(pairs)]
-    masks: dict[tuple[int, ...], np.ndarray] = {}
+    masks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (masks, recipe shift) → (mask, moved mask)
     out = np.empty(logs.shape, np.float32)
     for frame in range(len(logs)):
         pair = pairs.get(frame, first)
-        if pair.masks not in masks:
-            masks[pair.masks] = logs[list(pair.masks)].mean(axis=0)
-        mask = masks[pair.masks]
-        moved = mask if frame in pair.masks else shift_image(shift_image(mask, pair.shift_px), shift_px)
-        out[frame] = mask - logs[frame] if frame in pair.masks else moved - logs[frame]
+        key = (pair.masks, pair.shift_px)
+        if key not in masks:
+            mask = logs[list(pair.masks)].mean(axis=0)
+            masks[key] = mask, shift_image(shift_image(mask, pair.shift_px), shift_px)
+        mask, moved = masks[key]
+        out[frame] = (mask if frame in pair.masks else moved) - logs[frame]
     notes = [f"native run: each frame minus its mask in the log domain, mask moved by ({shift_px[0]:+.2f}, "
              f"{shift_px[1]:+.2f}) px (down, right); {'recipe' if items else 'masks found'}"]
     return out, notes

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-HEMODYNAMICS_JSON = "hemodynamics.json"
+from ..artifacts import HEMODYNAMICS_JSON, HEMODYNAMICS_PLY, HEMODYNAMICS_VTK  # noqa: F401 - the names, re-exported
+
 ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s")
 DIGITS = 4
 
@@ -39,3 +40,25 @@ def hemodynamics_document(per_vertex: dict[str, np.ndarray], frame_times_s: dict
 
 def write_json(path: Path, document: dict) -> None:
     Path(path).write_text(json.dumps(document, separators=(",", ":")))
+
+
+MESH_ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s")
+
+
+def write_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, rgb: np.ndarray, comments: list[str]) -> None:
+    """An ASCII PLY of the model (mesh frame, mm) with per-vertex ``red green blue`` (uint8) and ``comments``."""
+    lines = ["ply", "format ascii 1.0", *[f"comment {c}" for c in comments], f"element vertex {len(vertices_mm)}",
+             "property float x", "property float y", "property float z", "property uchar red", "property uchar green",
+             "property uchar blue", f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    lines += [f"{x:.5f} {y:.5f} {z:.5f} {r} {g} {b}" for (x, y, z), (r, g, b) in zip(vertices_mm, rgb)]
+    lines += [f"3 {a} {b} {c}" for a, b, c in faces]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def write_vtk(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, arrays: dict[str, np.ndarray]) -> None:
+    """A legacy VTK file (meshio) with the model and per-vertex point-data arrays (NaN where not measured)."""
+    import meshio
+
+    point_data = {name: np.asarray(values, np.float64) for name, values in arrays.items()}
+    meshio.Mesh(np.asarray(vertices_mm, float), [("triangle", np.asarray(faces, np.int64))],
+                point_data=point_data).write(str(path), file_format="vtk", binary=True)

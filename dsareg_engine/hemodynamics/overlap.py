@@ -19,24 +19,33 @@ from .sampling import Projection
 SAME_PART_RADII = 2.0
 
 
+def _candidates(uv: np.ndarray, reach: np.ndarray, r_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(i, j)`` pairs that may touch (``|uv_i − uv_j| < reach_i + r_px_j``): every ``i`` searched out to its reach
+    plus the usual radius, and the few thicker ``j`` searched from their side."""
+    tree = cKDTree(uv)
+    usual = float(np.percentile(r_px, 95))
+    found = tree.query_ball_point(uv, reach + usual, return_sorted=False)
+    first = [np.full(len(x), i) for i, x in enumerate(found)]
+    second = [np.asarray(x, int) for x in found]
+    for j in np.flatnonzero(r_px > usual):
+        near = np.asarray(tree.query_ball_point(uv[j], r_px[j] + float(reach.max())), int)
+        first.append(near)
+        second.append(np.full(len(near), j))
+    return np.concatenate(first).astype(int), np.concatenate(second).astype(int)
+
+
 def overlapped(projection: Projection, centres_mm: np.ndarray, radii_mm: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: the points another model part overlaps in this view (points outside the image: False)."""
-    count = len(radii_mm)
-    flags = np.zeros(count, bool)
+    flags = np.zeros(len(radii_mm), bool)
     inside = np.flatnonzero(projection.inside)
     if len(inside) < 2:
         return flags
     uv = projection.uv_px[inside]
     reach = projection.footprint_px[inside]
     r_px = projection.radius_px[inside]
-    found = cKDTree(uv).query_ball_point(uv, reach + float(r_px.max()), return_sorted=False)
-    lengths = np.fromiter((len(x) for x in found), int, len(found))
-    first = np.repeat(np.arange(len(inside)), lengths)
-    second = np.fromiter((j for x in found for j in x), int, int(lengths.sum()))
-    planar = np.linalg.norm(uv[first] - uv[second], axis=1)
-    touching = planar < reach[first] + r_px[second]
+    first, second = _candidates(uv, reach, r_px)
+    touching = np.linalg.norm(uv[first] - uv[second], axis=1) < reach[first] + r_px[second]
     a, b = inside[first], inside[second]
     apart = np.linalg.norm(centres_mm[a] - centres_mm[b], axis=1) > SAME_PART_RADII * (radii_mm[a] + radii_mm[b])
-    hit = touching & apart
-    flags[a[hit]] = True
+    flags[a[touching & apart]] = True
     return flags

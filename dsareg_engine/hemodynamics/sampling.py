@@ -61,12 +61,10 @@ def project_points(centres_mm: np.ndarray, radii_mm: np.ndarray, view: ViewGeome
     return Projection(np.where(np.isfinite(uv), uv, -1e6), depth, np.where(np.isfinite(radius), radius, 0.0), inside)
 
 
-def _disc_matrix(uv: np.ndarray, inner: np.ndarray, outer: np.ndarray, shape: tuple[int, int],
-                 allowed: np.ndarray | None = None) -> sparse.csr_matrix:
-    """Rows of equal weights (summing to 1) over the pixels with ``inner ≤ distance ≤ outer`` from ``uv``;
-    ``allowed`` ``(H·W,)`` bool keeps only those pixels. A row with no pixel stays empty."""
+def _disc_entries(uv: np.ndarray, inner: np.ndarray, outer: np.ndarray, shape: tuple[int, int], reach: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(point, pixel)`` pairs of the pixels with ``inner ≤ distance ≤ outer`` from ``uv``, on a stencil of ``reach``."""
     height, width = shape
-    reach = int(np.ceil(max(float(outer.max(initial=1.0)), 1.0)))
     offsets = np.arange(-reach, reach + 1)
     dx, dy = (grid.ravel() for grid in np.meshgrid(offsets, offsets))
     base = np.round(uv).astype(np.int64)
@@ -76,13 +74,28 @@ def _disc_matrix(uv: np.ndarray, inner: np.ndarray, outer: np.ndarray, shape: tu
     keep = (distance >= inner[:, None]) & (distance <= outer[:, None]) & (cols >= 0) & (cols < width) \
         & (rows >= 0) & (rows < height)
     point, slot = np.nonzero(keep)
-    pixel = rows[point, slot] * width + cols[point, slot]
+    return point, rows[point, slot] * width + cols[point, slot]
+
+
+def _disc_matrix(uv: np.ndarray, inner: np.ndarray, outer: np.ndarray, shape: tuple[int, int],
+                 allowed: np.ndarray | None = None) -> sparse.csr_matrix:
+    """Rows of equal weights (summing to 1) over the pixels with ``inner ≤ distance ≤ outer`` from ``uv``;
+    ``allowed`` ``(H·W,)`` bool keeps only those pixels. A row with no pixel stays empty. Points are grouped by
+    the stencil they need (a few large vessels do not make every point's stencil large)."""
+    reach = np.ceil(np.maximum(outer, 1.0)).astype(np.int64)
+    points, pixels = [], []
+    for size in np.unique(reach):
+        group = np.flatnonzero(reach == size)
+        point, pixel = _disc_entries(uv[group], inner[group], outer[group], shape, int(size))
+        points.append(group[point])
+        pixels.append(pixel)
+    point, pixel = np.concatenate(points), np.concatenate(pixels)
     if allowed is not None:
         ok = allowed[pixel]
         point, pixel = point[ok], pixel[ok]
     counts = np.bincount(point, minlength=len(uv)).astype(float)
     weights = 1.0 / counts[point]
-    return sparse.csr_matrix((weights, (point, pixel)), shape=(len(uv), height * width))
+    return sparse.csr_matrix((weights, (point, pixel)), shape=(len(uv), shape[0] * shape[1]))
 
 
 @dataclass(frozen=True)

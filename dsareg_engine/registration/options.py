@@ -139,6 +139,10 @@ class RegistrationOptions(BaseModel):
         "millimetres. A model whose size is implausible for head arteries in that unit is refused at submission. "
         "Reported in result input_decisions (what: units).")
     animation: bool = Field(False, description="Also write an animated GIF of the optimization.")
+    hemodynamics: bool = Field(
+        False, description="Also map contrast arrival and time to peak from both runs onto the registered model "
+        "(result.hemodynamics, hemodynamics.json / .ply / .vtk, parametric_{ap,lat}.png); needs multi-frame DICOM XA "
+        "runs with frame timing. The registration itself is unchanged.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available (tracking: the CPU, faster there).")
 
 

@@ -31,6 +31,7 @@ from ..geometry.rig import Rig, ViewGeometry
 from ..geometry.vessel_tree import vessel_tree
 from ..mesh import TriangleMesh
 from .bolus_layers import ray_layers
+from .native_run_texture import fractal_texture
 
 IODINE_PER_MM = 0.12
 GAMMA_ALPHA = 3.0
@@ -51,6 +52,7 @@ class BolusSettings:
         partial: a branch of the tree never fills.
         photons: counts per pixel behind the background (``poisson``); noise_sigma: log-domain σ (``gaussian``).
         supersample: rendering factor per side; blur_px: detector blur σ.
+        lat_delay_s: the LAT run starts this much later than the AP run (its frames are that much later).
     """
 
     shape: str = "gamma"
@@ -68,6 +70,7 @@ class BolusSettings:
     noise_sigma: float = 0.01
     supersample: int = 2
     blur_px: float = 0.6
+    lat_delay_s: float = 0.0
 
 
 def half_rise_fraction(alpha: float = GAMMA_ALPHA) -> float:
@@ -130,8 +133,8 @@ def truth_of(settings: BolusSettings, onset_s: np.ndarray) -> BolusTruth:
 
 
 def iodine_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray, onset_s: np.ndarray,
-                  settings: BolusSettings) -> np.ndarray:
-    """``(T, H, W)`` iodine attenuation (log domain, ≥ 0) of each frame."""
+                  settings: BolusSettings, delay_s: float = 0.0) -> np.ndarray:
+    """``(T, H, W)`` iodine attenuation (log domain, ≥ 0) of each frame; the run starts ``delay_s`` after t = 0."""
     fine = view.resized(view.width * settings.supersample, view.height * settings.supersample)
     mesh_to_view = fine.world_to_view @ mesh_to_world
     vertices = mesh.vertices @ mesh_to_view[:3, :3].T + mesh_to_view[:3, 3]
@@ -139,7 +142,7 @@ def iodine_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndar
     length, onset = ray_layers(vertices, mesh.faces, face_onset, fine.focal_px, fine.principal_point_px, fine.image_size)
     rise = rise_time_s(settings, onset)
     frames = []
-    for t in np.arange(settings.n_frames) / settings.fps:
+    for t in delay_s + np.arange(settings.n_frames) / settings.fps:
         fine_frame = IODINE_PER_MM * (length * concentration(settings, t - onset, rise)).sum(axis=2)
         small = cv2.resize(fine_frame.astype(np.float32), view.image_size, interpolation=cv2.INTER_AREA)
         frames.append(cv2.GaussianBlur(small, (0, 0), settings.blur_px) if settings.blur_px > 0 else small)
@@ -147,9 +150,11 @@ def iodine_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndar
 
 
 def anatomy(shape: tuple[int, int], rng: np.random.Generator, cells: int = 6) -> np.ndarray:
-    """A smooth background attenuation (log domain, about 1 to 2)."""
+    """A background attenuation (log domain, about 1 to 2.5): a smooth field and a fractal texture (the anatomy
+    every frame of a native run shows)."""
     coarse = rng.uniform(0.0, 1.0, (cells, cells)).astype(np.float32)
-    return 1.0 + cv2.resize(coarse, shape[::-1], interpolation=cv2.INTER_CUBIC).clip(0.0, 1.0)
+    smooth = cv2.resize(coarse, shape[::-1], interpolation=cv2.INTER_CUBIC).clip(0.0, 1.0)
+    return (1.2 + smooth + 0.5 * fractal_texture(shape, 2.6, rng)).astype(np.float32)
 
 
 def noisy_log_frames(iodine: np.ndarray, settings: BolusSettings, rng: np.random.Generator) -> np.ndarray:
@@ -165,7 +170,7 @@ def noisy_log_frames(iodine: np.ndarray, settings: BolusSettings, rng: np.random
 @dataclass
 class BolusRun:
     """A simulated biplane pair: per view the log-domain frames ``(T, H, W)`` and the clean iodine, the truth,
-    the mesh, pose and rig, the frame times."""
+    the mesh, pose and rig, the AP run's frame times (the LAT run's are ``lat_delay_s`` later)."""
 
     frames: dict[str, np.ndarray]
     iodine: dict[str, np.ndarray]
@@ -184,7 +189,8 @@ def make_bolus_run(mesh: TriangleMesh, rig: Rig, mesh_to_world: np.ndarray, sett
     onset = vertex_onsets(mesh, settings, rng, inflow_mm)
     frames, iodine = {}, {}
     for name, view in rig.views.items():
-        iodine[name] = iodine_frames(mesh, view, mesh_to_world, onset, settings)
+        delay = settings.lat_delay_s if name == "lat" else 0.0
+        iodine[name] = iodine_frames(mesh, view, mesh_to_world, onset, settings, delay)
         frames[name] = noisy_log_frames(iodine[name], settings, rng).astype(np.float32)
     times = np.arange(settings.n_frames) / settings.fps
     return BolusRun(frames, iodine, truth_of(settings, onset), mesh, np.asarray(mesh_to_world, float), rig, times,

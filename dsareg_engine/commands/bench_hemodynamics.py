@@ -1,0 +1,213 @@
+"""``dsareg bench hemodynamics``: arrival and peak on the model from simulated biplane bolus runs with known times.
+
+Per case: a bolus run is simulated (:mod:`dsareg_engine.simulation.bolus_run`) at the true pose, written as DICOM
+XA runs (:mod:`dsareg_engine.simulation.bolus_dicom`), read as a job reads them (:func:`load_case_files`, native
+runs subtracted), and the hemodynamics step runs at the true pose (registration accuracy is benchmarked
+elsewhere). Per vertex of the model file, the measured values are compared with the truth.
+Columns: mapped (of the vertices contrast reached), arrival error median / p90 and peak-time error median in
+s and frame intervals, the views' agreement median, vertices contrast never reached that got a value, and the
+step's CPU seconds (user + sys, all threads) per job.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry.rig import Rig
+from ..mesh import TriangleMesh
+from ..simulation.bolus_run import BolusSettings
+from ..simulation.native_run import Plane
+
+RUN_SECONDS = 8.0
+FILL_OF_VIEW = 0.6
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One row: a name, the bolus settings, the DICOM layout and the pose (``"random"`` or ``"overlap"``)."""
+
+    name: str
+    settings: BolusSettings
+    layout: str = "recipe"
+    pose: str = "random"
+
+
+SCENARIOS = (
+    Scenario("2 fps, gamma, Poisson, recipe", BolusSettings(fps=2.0)),
+    Scenario("4 fps, gamma, Poisson, recipe", BolusSettings(fps=4.0)),
+    Scenario("7.5 fps, gamma, Poisson, recipe", BolusSettings(fps=7.5)),
+    Scenario("4 fps, ramp, Gaussian, no recipe, LAT 0.3 s later",
+             BolusSettings(fps=4.0, shape="ramp", noise="gaussian", lat_delay_s=0.3), "no-recipe"),
+    Scenario("2 fps, ramp, Gaussian, subtracted", BolusSettings(fps=2.0, shape="ramp", noise="gaussian"), "subtracted"),
+    Scenario("4 fps, gamma, partial filling", BolusSettings(fps=4.0, partial=True)),
+    Scenario("4 fps, ramp, partial filling, no recipe", BolusSettings(fps=4.0, shape="ramp", partial=True), "no-recipe"),
+    Scenario("4 fps, gamma, heavy-overlap view", BolusSettings(fps=4.0), pose="overlap"),
+)
+
+
+def planes_for(mesh: TriangleMesh) -> dict[str, Plane]:
+    """Biplane AP / LAT planes whose field of view the model fills to about ``FILL_OF_VIEW``."""
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    spacing = extent / FILL_OF_VIEW * (1200.0 / 800.0) / 160.0  # detector = field at the isocentre × SID / SOD
+    return {"ap": Plane(-6.0, 8.0, 1200.0, 800.0, spacing), "lat": Plane(94.0, 1.0, 1180.0, 790.0, spacing)}
+
+
+def overlap_pose(mesh: TriangleMesh, rig: Rig) -> np.ndarray:
+    """The model's longest principal axis along the AP rays (the AP view looks down the tree), centred."""
+    centred = mesh.vertices - mesh.centroid
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    ray = rig.views["ap"].world_to_view[2, :3]
+    v, c = np.cross(axis, ray), float(axis @ ray)
+    skew = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    pose = np.eye(4)
+    pose[:3, :3] = np.eye(3) + skew + skew @ skew / (1.0 + c) if c > -0.999 else -np.eye(3)
+    pose[:3, 3] = -pose[:3, :3] @ mesh.centroid
+    return pose
+
+
+def case_files(mesh: TriangleMesh, mesh_bytes: bytes, scenario: Scenario, seed: int, size_px: int, inflow_mm):
+    """``(CaseFiles, pose, truth)`` of one simulated case."""
+    from ..io.case import CaseFiles
+    from ..simulation.bolus_dicom import bolus_xa
+    from ..simulation.bolus_run import make_bolus_run
+    from ..simulation.native_run import pose_in_view
+
+    planes = planes_for(mesh)
+    rig = Rig(views={name: plane.view(size_px) for name, plane in planes.items()})
+    pose = overlap_pose(mesh, rig) if scenario.pose == "overlap" else pose_in_view(mesh, rig, seed)
+    settings = replace(scenario.settings, n_frames=max(32, math.ceil(RUN_SECONDS * scenario.settings.fps)))
+    run = make_bolus_run(mesh, rig, pose, settings, seed=seed, inflow_mm=inflow_mm)
+    files = {name: bolus_xa(run.frames[name], planes[name], name, scenario.layout, settings.fps,
+                            photons=settings.photons, lat_delay_s=settings.lat_delay_s) for name in planes}
+    return CaseFiles(ap=files["ap"], lat=files["lat"], mesh=mesh_bytes, mesh_name="model.obj"), pose, run.truth
+
+
+def score(document: dict, truth, file_to_model: np.ndarray, fps: float, cpu_s: float) -> dict:
+    """One case's numbers (per file vertex)."""
+    def values(name: str) -> np.ndarray:
+        return np.array([np.nan if v is None else v for v in document[name]], float)
+
+    arrival, peak = values("arrival_s"), values("peak_s")
+    never = truth.never[file_to_model]
+    reached = ~never
+    mapped = np.isfinite(arrival) & reached
+    interval = 1.0 / fps
+    error = np.abs(arrival[mapped] - truth.arrival_s[file_to_model][mapped])
+    peak_error = np.abs(peak[mapped] - truth.peak_s[file_to_model][mapped])
+    nan = float("nan")
+    return {"mapped": mapped.sum() / max(reached.sum(), 1), "arrival_med_s": np.median(error) if len(error) else nan,
+            "arrival_p90_s": np.percentile(error, 90) if len(error) else nan,
+            "peak_med_s": np.median(peak_error) if len(peak_error) else nan, "interval_s": interval,
+            "agreement_s": document["summary"].get("agreement_median_s") or nan,
+            "never": int(never.sum()), "never_valued": int((never & np.isfinite(arrival)).sum()), "cpu_s": cpu_s,
+            "overlap_ap": float(np.mean(document["overlap_ap"])), "overlap_lat": float(np.mean(document["overlap_lat"]))}
+
+
+def run_case(mesh, mesh_bytes, scenario: Scenario, seed: int, size_px: int, inflow_mm, picture_dir: Path | None) -> dict:
+    """Simulate, read and measure one case; its numbers."""
+    import json
+
+    from scipy.spatial import cKDTree
+
+    from ..hemodynamics.model_points import vertices_as_given
+    from ..hemodynamics.run import hemodynamics_step
+    from ..io.case import load_case_files
+
+    files, pose, truth = case_files(mesh, mesh_bytes, scenario, seed, size_px, inflow_mm)
+    case = load_case_files(files)
+    with tempfile.TemporaryDirectory() as folder:
+        out = Path(picture_dir) if picture_dir is not None else Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        summary = hemodynamics_step(files, case, {"mesh_to_world": pose.tolist()}, out)
+        document = json.loads((out / "hemodynamics.json").read_text())
+        if picture_dir is not None:
+            write_model_pictures(case, mesh_bytes, document, pose, out)
+    file_to_model = cKDTree(mesh.vertices).query(vertices_as_given(mesh_bytes, "obj"))[1]
+    return score(document, truth, file_to_model, scenario.settings.fps, summary["cpu_s"])
+
+
+def write_model_pictures(case, mesh_bytes: bytes, document: dict, pose: np.ndarray, out: Path) -> None:
+    """``model_{ap,lat}.png``: the coloured model seen from each view (what hemodynamics.ply shows)."""
+    from scipy.spatial import cKDTree
+
+    from ..hemodynamics.colours import TimeScale
+    from ..hemodynamics.model_points import vertices_as_given
+    from ..hemodynamics.picture import model_picture
+    from ..overlay import write_png
+
+    arrival = np.array([np.nan if v is None else v for v in document["arrival_s"]], float)
+    per_working = arrival[cKDTree(vertices_as_given(mesh_bytes, "obj")).query(case.mesh.vertices)[1]]
+    colours = document["summary"]["colour_scale"]
+    scale = TimeScale(colours["low_s"], colours["high_s"])
+    for name, view in case.rig.views.items():
+        write_png(out / f"model_{name}.png", model_picture(case.mesh, per_working, view, pose, scale,
+                                                           f"model seen from {name.upper()}: arrival time"))
+
+
+def table(rows: list[tuple[str, str, list[dict]]]) -> list[str]:
+    """Markdown: one line per (mesh, scenario), the medians over its cases."""
+    lines = ["| model | run | cases | mapped | arrival error median (s / frames) | p90 (s / frames) | peak error median "
+             "(s / frames) | agreement median (s) | never reached: valued / all | overlap AP / LAT | CPU s per job |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for model, name, cases in rows:
+        def median(key: str) -> float:
+            return float(np.nanmedian([c[key] for c in cases]))
+
+        interval = cases[0]["interval_s"]
+        never = sum(c["never"] for c in cases)
+        lines.append(
+            f"| {model} | {name} | {len(cases)} | {100 * median('mapped'):.1f} % | {median('arrival_med_s'):.3f} / "
+            f"{median('arrival_med_s') / interval:.2f} | {median('arrival_p90_s'):.3f} / {median('arrival_p90_s') / interval:.2f} "
+            f"| {median('peak_med_s'):.3f} / {median('peak_med_s') / interval:.2f} | {median('agreement_s'):.3f} | "
+            f"{sum(c['never_valued'] for c in cases)} / {never} | {100 * median('overlap_ap'):.0f} / "
+            f"{100 * median('overlap_lat'):.0f} % | {median('cpu_s'):.2f} (max {max(c['cpu_s'] for c in cases):.2f}) |")
+    return lines
+
+
+def _model(path: str | None) -> tuple[str, TriangleMesh, bytes, np.ndarray | None]:
+    from ..io.mesh_io import read_mesh
+    from ..simulation.native_run import tree_root
+    from ..simulation.phantom import make_vessel_phantom
+
+    if path is None:
+        mesh = make_vessel_phantom(seed=0, depth=4)
+        return "phantom", mesh, _obj_bytes(mesh), tree_root(mesh)
+    data = Path(path).read_bytes()
+    return Path(path).name, read_mesh(data, path), data, None
+
+
+def _obj_bytes(mesh: TriangleMesh) -> bytes:
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in mesh.vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def bench_hemodynamics(args) -> int:
+    """Print the table (see the module docstring)."""
+    scenarios = [s for s in SCENARIOS if not args.rows or any(word in s.name for word in args.rows)]
+    rows = []
+    for path in args.mesh or [None]:
+        model, mesh, data, inflow = _model(None if path == "phantom" else path)
+        if model != "phantom":
+            mesh = _read_as_job(data)
+        for scenario in scenarios:
+            cases = []
+            for k in range(args.cases):
+                picture = Path(args.pictures) / model / scenario.name.replace(" ", "_").replace(",", "") \
+                    if args.pictures and k == 0 else None
+                cases.append(run_case(mesh, data, scenario, args.seed + k, args.size, inflow, picture))
+            rows.append((model, scenario.name, cases))
+            print(table(rows[-1:])[-1], flush=True)
+    print("\n".join(table(rows)))
+    return 0
+
+
+def _read_as_job(data: bytes) -> TriangleMesh:
+    from ..io.mesh_io import read_mesh
+
+    return read_mesh(data, "model.obj")
