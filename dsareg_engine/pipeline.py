@@ -244,6 +244,9 @@ def frame_text(reading: dict | None) -> str | None:
     if reading.get("combined") == "minip":
         used = reading.get("frame_indices") or []
         text = f"MinIP of frames {used[0]}-{used[-1]}" if used else "MinIP"
+    elif reading.get("combined") == "arterial":
+        used = reading.get("frame_indices") or []
+        text = f"arterial phase, frames {used[0]}-{used[-1]}" if used else "arterial phase"
     else:
         text = f"frame {reading.get('frame_index')}"
     text += f" of {reading['frames']}"

@@ -95,11 +95,11 @@ def run_one(case: ClinicalCase, options: dict) -> dict:
     """Load and register one case as ``dsareg register`` does; ADD, verdict, wall and CPU seconds."""
     from ..io.case import load_case_files
     from ..registration import register
-    from ..registration.options import parse_options
+    from ..registration.options import image_reading, parse_options
 
     parsed = parse_options({**options, "ground_truth_mesh_to_world": case.mesh_to_world.tolist()})
     wall, cpu = time.perf_counter(), _cpu_seconds()
-    loaded = load_case_files(case.files, parsed.segmentation)
+    loaded = load_case_files(case.files, parsed.segmentation, reading=image_reading(parsed))
     result = register(loaded.mesh, loaded.fitted, loaded.rig, parsed)
     metrics = result.metrics
     return {"add_mm": float(metrics["ground_truth"]["add_mm"]),

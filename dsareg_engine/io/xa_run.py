@@ -18,11 +18,11 @@ mask (moved by its Mask Sub-pixel Shift) or, without a recipe, the mean of the f
 contrast arrives. The mask is then moved onto the contrast frame by the patient motion found on
 the background (:mod:`dsareg_engine.vision.xa_motion`: a rotation and a shift); the move is recorded.
 
-**Which frame.** ``None``: the contrast frame of maximum opacification (the largest integrated
-darkening ``Σ max(0, −D − 3σ)``); ``"minip"``: the per-pixel minimum of ``D`` over the arterial
-phase (from the first contrast frame reaching 30 % of the peak's opacification up to the peak);
-an integer: that frame (0-based). The geometry is read from the frame used (the peak frame for a
-MinIP) — enhanced XA stores positioner angles per frame.
+**Which frames** (:mod:`.xa_frames`). ``None``: the per-pixel maximum opacity over the arterial
+phase (contrast washes out of the near vessels before the far ones peak); ``"minip"``: the
+per-pixel minimum of ``D`` from the phase's start up to the peak; an integer: that frame (0-based).
+The geometry is read from the peak frame (or the frame given) — enhanced XA stores positioner
+angles per frame.
 """
 
 from __future__ import annotations
@@ -35,10 +35,10 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..vision.xa_motion import Motion, MotionSettings, estimate_motion, move_image, shift_image
 from .input_decisions import InputDecision
+from .xa_frames import SCORE_SIGMAS, choose_frames, combine
 from .xa_recipe import SubtractionItem, parse_recipe
 from .xa_run_kind import decide_run_kind, grid_factor, on_grid
 
-ARTERIAL_FRACTION = 0.3
 ARRIVAL_FRACTION = 0.01
 ARRIVAL_NOISE = 4.0
 ARRIVAL_SIGMAS = 5.0
@@ -52,7 +52,8 @@ class RunReading:
     """How a multi-frame run is read.
 
     Attributes:
-        frame: ``None`` (maximum opacification), ``"minip"``, or a 0-based frame index.
+        frame: ``None`` (native runs: the arterial phase; subtracted runs: maximum opacification), ``"minip"``,
+            or a 0-based frame index.
         subtraction: ``"auto"``: native runs are subtracted (recipe, or masks found); ``"off"``: frames as stored.
         motion_correction: estimate and correct the mask ↔ contrast shift on native runs.
     """
@@ -232,47 +233,48 @@ def _difference(logs: np.ndarray, pair: Pair, step: int = 1) -> np.ndarray:
 # ---- one image from the run ---------------------------------------------------------------------------
 
 
-def _frame_scores(logs: np.ndarray, pairs: dict[int, Pair]) -> dict[int, float]:
-    step = 2 if max(logs.shape[1:]) > 256 else 1
-    return {n: opacification(_difference(logs, pair, step)) for n, pair in pairs.items()}
+def net_opacification(difference: np.ndarray, sigmas: float) -> float:
+    """Darkening beyond ``sigmas`` σ minus brightening beyond it (≥ 0): contrast only darkens, while an
+    uncorrected move darkens one side of an edge and brightens the other, and cancels."""
+    sigma = _robust_std(difference)
+    dark = np.maximum(0.0, -difference - sigmas * sigma).sum()
+    bright = np.maximum(0.0, difference - sigmas * sigma).sum()
+    return float(max(0.0, dark - bright))
 
 
-def _corrected(logs: np.ndarray, pair: Pair, reading: RunReading, warnings: list[str], field_name: str
-               ) -> tuple[np.ndarray, dict]:
-    """``D`` of one pair with the mask moved by the recipe's shift and the rigid motion found; the move."""
+def _frame_scores(logs: np.ndarray, pairs: dict[int, Pair], factor: int, motion_correction: bool = True
+                  ) -> dict[int, float]:
+    """Each contrast frame's net opacification on the ~1 mm grid (:mod:`.xa_frames`), the mask moved by
+    the recipe's shift and the motion found there (a move left in would count as contrast)."""
+    small = np.array([on_grid(frame, factor) for frame in logs])
+    settings = MotionSettings(iterations=6, coarse_side_px=512, fine_side_px=512)
+    scores = {}
+    for n, pair in pairs.items():
+        contrast = small[list(pair.contrast)].mean(axis=0)
+        mask = shift_image(small[list(pair.masks)].mean(axis=0), (pair.shift_px[0] / factor, pair.shift_px[1] / factor))
+        if motion_correction:
+            motion = estimate_motion(mask, contrast, settings)
+            mask = move_image(mask, motion.shift_px, motion.rotation_deg)
+        scores[n] = net_opacification(contrast - mask, SCORE_SIGMAS)
+    return scores
+
+
+def _corrected(logs: np.ndarray, pair: Pair, reading: RunReading, warnings: list[str], field_name: str,
+               start: Motion | None = None) -> tuple[np.ndarray, dict, Motion]:
+    """``D`` of one pair with the mask moved by the recipe's shift and the rigid motion found (refined from
+    ``start`` at the finest level when given); the move, as recorded and as found."""
     contrast = logs[list(pair.contrast)].mean(axis=0)
     mask = shift_image(logs[list(pair.masks)].mean(axis=0), pair.shift_px)
     found = Motion()
     if reading.motion_correction:
-        found = estimate_motion(mask, contrast, MotionSettings())
+        found = estimate_motion(mask, contrast, MotionSettings(), start)
         if found.none:
             warnings.append(f"{field_name}: no patient motion could be estimated for frame {pair.frame}")
         mask = move_image(mask, found.shift_px, found.rotation_deg)
     total = (pair.shift_px[0] + found.shift_px[0], pair.shift_px[1] + found.shift_px[1])
     move = {"recipe_px": [round(v, 4) for v in pair.shift_px], "found_px": [round(v, 4) for v in found.shift_px],
             "total_px": [round(v, 4) for v in total], "rotation_deg": round(found.rotation_deg, 4)}
-    return (contrast - mask).astype(np.float32), move
-
-
-def _choose(scores: dict[int, float], reading: RunReading, pairs: dict[int, Pair], n_frames: int,
-            field_name: str) -> tuple[int, list[int]]:
-    """``(frame whose geometry applies, frames combined)``."""
-    if isinstance(reading.frame, (int, np.integer)) and not isinstance(reading.frame, bool):
-        frame = int(reading.frame)
-        if not 0 <= frame < n_frames:
-            raise DsaregInputError(f"frame {frame} does not exist ({n_frames} frames)", field=field_name,
-                                   accepted=f"0..{n_frames - 1}, 'minip', or nothing (maximum opacification)")
-        if frame not in pairs:
-            raise DsaregInputError(
-                f"frame {frame} is not a contrast frame of the subtraction (contrast frames "
-                f"{min(pairs)}..{max(pairs)}, 0-based)", field=field_name, accepted="a contrast frame")
-        return frame, [frame]
-    peak = max(scores, key=scores.get)
-    if reading.frame == "minip":
-        phase = [n for n in sorted(scores) if n <= peak and scores[n] >= ARTERIAL_FRACTION * scores[peak]]
-        first = phase[0]
-        return peak, [n for n in sorted(scores) if first <= n <= peak]
-    return peak, [peak]
+    return (contrast - mask).astype(np.float32), move, found
 
 
 def _check_contrast(image: np.ndarray, field_name: str, frames: list[int]) -> None:
@@ -291,28 +293,30 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
     items = parse_recipe(dataset, len(stack), field_name=field_name)
     record: dict = {"frames": len(stack), "run": "native", "why": why, **intensity}
     decisions: list[InputDecision] = []
+    factor, grid_mm = grid_factor(dataset, stack.shape[1:])
     if items:
         pairs = recipe_pairs(items, len(stack))
         record["recipe"] = [item.describe() for item in items]
         if not pairs:
             raise DsaregInputError("the Mask Subtraction Sequence subtracts no frame", field=f"{field_name}.MaskSubtractionSequence")
     else:
-        factor, grid_mm = grid_factor(dataset, stack.shape[1:])
         pairs, arrival, found = found_pairs(logs, field_name, factor, MOVE_MM / grid_mm)
         decisions.append(found)
         record["recipe"] = f"none in the file: mask = the frames before contrast arrives (frame index {arrival})"
-    scores = _frame_scores(logs, pairs)
-    geometry_frame, used = _choose(scores, reading, pairs, len(stack), field_name)
+    choice = choose_frames(_frame_scores(logs, pairs, factor, reading.motion_correction), reading.frame, len(stack), field_name)
+    decisions.append(choice.decision)
+    geometry_frame, used = choice.geometry_frame, choice.frames
     images, moves = [], {}
-    for frame in used:
-        image, moves[frame] = _corrected(logs, pairs[frame], reading, warnings, field_name)
-        images.append(image)
-    pixels = np.min(images, axis=0) if len(images) > 1 else images[0]
+    start = None
+    for frame in [geometry_frame] + [f for f in used if f != geometry_frame]:
+        image, moves[frame], start = _corrected(logs, pairs[frame], reading, warnings, field_name, start)
+        images.append((frame, image))
+    pixels = combine([image for _, image in sorted(images, key=lambda item: item[0])], choice.combined)
     _check_contrast(pixels, field_name, used)
     pair = pairs[geometry_frame]
     record.update({
         "frame_index": geometry_frame, "frame_number": geometry_frame + 1,
-        "combined": "minip" if reading.frame == "minip" else "single",
+        "combined": choice.combined, "phase": choice.phase,
         "frame_indices": used, "mask_frame_indices": list(pair.masks),
         "mask_frame_numbers": [m + 1 for m in pair.masks], "contrast_frame_indices": list(pair.contrast),
         "mask_shift_px": moves[geometry_frame], "motion_correction": reading.motion_correction,
@@ -321,7 +325,7 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
     })
     if len(used) > 1:
         record["mask_shift_px_per_frame"] = {str(f): moves[f]["total_px"] for f in used}
-    text = "MinIP of frames " + ", ".join(str(f) for f in used) if len(used) > 1 else f"frame {geometry_frame}"
+    text = choice.phase if len(used) > 1 else f"frame {geometry_frame}"
     move = moves[geometry_frame]["total_px"]
     turn = moves[geometry_frame]["rotation_deg"]
     warnings.append(f"{field_name}: native run of {len(stack)} frames ({why}): {text} minus mask frame(s) "

@@ -20,7 +20,8 @@ class FrameChoice(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     ap: FrameIndex = Field(None, description="AP: a 0-based frame index, 'minip' (native runs: the MinIP of the "
-                           "subtracted arterial phase; subtracted runs: of all frames), or null for the frame of "
+                           "subtracted arterial phase; subtracted runs: of all frames), or null: native runs the "
+                           "per-pixel maximum opacity over the arterial phase, subtracted runs the frame of "
                            "maximum vessel opacification.")
     lat: FrameIndex = Field(None, description="LAT: as ap.")
 

@@ -79,10 +79,16 @@ def tree_root(mesh: TriangleMesh, n_sides: int = 12) -> np.ndarray:
     return mesh.vertices[:n_sides].mean(axis=0)
 
 
-def arrival_map(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray, thickness: np.ndarray) -> np.ndarray:
+def lowest_point(mesh: TriangleMesh, up_axis: int = 1) -> np.ndarray:
+    """The inlet of a model whose ``up_axis`` points to the head: its lowest vertex (the carotid enters from below)."""
+    return mesh.vertices[int(np.argmin(mesh.vertices[:, up_axis]))]
+
+
+def arrival_map(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray, thickness: np.ndarray,
+                root: np.ndarray | None = None) -> np.ndarray:
     """``(H, W)`` when contrast reaches each vessel pixel, 0 (the root) .. 1 (the farthest vertex):
-    the nearest projected vertex's distance from the root."""
-    distance = np.linalg.norm(mesh.vertices - tree_root(mesh), axis=1)
+    the nearest projected vertex's distance from the root (model mm; default :func:`tree_root`)."""
+    distance = np.linalg.norm(mesh.vertices - (tree_root(mesh) if root is None else root), axis=1)
     distance = distance / distance.max()
     world = mesh.vertices @ mesh_to_world[:3, :3].T + mesh_to_world[:3, 3]
     tree = cKDTree(view.project(world))
@@ -95,10 +101,10 @@ def arrival_map(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarra
 
 
 def vessel_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray, fill: list[float],
-                  strength: list[float]) -> tuple[np.ndarray, np.ndarray]:
+                  strength: list[float], root: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``((N, H, W) iodine attenuation per frame, (H, W) path length at the peak, mm)``."""
     thickness = vessel_thickness_mm(mesh, view, mesh_to_world, supersample=3)
-    arrival = arrival_map(mesh, view, mesh_to_world, thickness)
+    arrival = arrival_map(mesh, view, mesh_to_world, thickness, root)
     frames = [IODINE_PER_MM * s * thickness * np.clip((f - arrival) / FRONT_RAMP, 0.0, 1.0)
               for f, s in zip(fill, strength)]
     return np.array(frames, np.float32), thickness

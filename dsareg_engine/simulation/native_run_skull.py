@@ -14,16 +14,28 @@ applied to the frames after them). The patient moves between the mask and the co
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from ..geometry.rig import Rig, ViewGeometry
+from ..mesh import TriangleMesh
+from .native_run import (
+    IODINE_PER_MM,
+    REFERENCE_PX,
+    XA_SOP,
+    NativeRunCase,
+    Plane,
+    base_dataset,
+    classic_geometry,
+    pose_in_view,
+    subtracted_xa,
+    to_bytes,
+)
+from .native_run_bolus import Bolus, run_iodine, run_peak
 from .phantom import make_vessel_phantom
 from .synthetic_dsa import _smooth_field
-from .native_run import (IODINE_PER_MM, REFERENCE_PX, XA_SOP, NativeRunCase, Plane, base_dataset, classic_geometry, peak_of,
-                         pose_in_view, subtracted_xa, to_bytes, vessel_frames)
 
 PLANES = {"ap": Plane(4.0, 3.0, 1100.0, 760.0, 1.1), "lat": Plane(88.0, -2.0, 1150.0, 780.0, 1.1)}
 
@@ -42,6 +54,8 @@ class SkullRunSettings:
         rotation_deg: in-plane patient rotation of the contrast frames (counter-clockwise as displayed).
         catheter_mm: diameter of a contrast-filled catheter in every frame (0: none).
         bits, relationship, photometric: the pixel encoding (:func:`encode`).
+        bolus: a bolus passing along the tree (:mod:`.native_run_bolus`) instead of ``fill`` / ``strength``;
+            its frames before contrast are the mask frames.
     """
 
     size_px: int = 160
@@ -61,6 +75,7 @@ class SkullRunSettings:
     bits: int = 12
     relationship: str = "LIN"
     photometric: str = "MONOCHROME2"
+    bolus: Bolus | None = None
 
 
 def pixel_rays(view: ViewGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -160,15 +175,20 @@ def _dataset(stack: np.ndarray, plane: Plane, name: str, settings: SkullRunSetti
     return ds
 
 
-def make_skull_run(seed: int = 0, settings: SkullRunSettings = SkullRunSettings()) -> NativeRunCase:
-    """Generator A: a native biplane run pair (see the module docstring)."""
+def make_skull_run(seed: int = 0, settings: SkullRunSettings = SkullRunSettings(), mesh: TriangleMesh | None = None,
+                   root_mm: np.ndarray | None = None) -> NativeRunCase:
+    """Generator A: a native biplane run pair (see the module docstring); ``mesh`` (default: the phantom of
+    ``seed``) with its inlet ``root_mm`` (default: the phantom's)."""
     rng = np.random.default_rng(seed)
-    mesh = make_vessel_phantom(seed=seed, depth=3)
+    mesh = make_vessel_phantom(seed=seed, depth=3) if mesh is None else mesh
     rig = Rig(views={name: plane.view(settings.size_px) for name, plane in PLANES.items()})
     pose = pose_in_view(mesh, rig, seed)
-    files, subtracted, vessels = {}, {}, {}
+    if settings.bolus is not None:
+        settings = replace(settings, mask_frames=tuple(range(1, settings.bolus.mask_frames + 1)))
+    files, subtracted, vessels, peak = {}, {}, {}, None
     for name, view in rig.views.items():
-        iodine, vessels[name] = vessel_frames(mesh, view, pose, list(settings.fill), list(settings.strength))
+        iodine, vessels[name] = run_iodine(mesh, view, pose, settings.fill, settings.strength, settings.bolus, root_mm)
+        peak = run_peak(iodine, settings.fill, settings.strength, settings.bolus) if peak is None else peak
         still = skull_attenuation(view, settings, rng)
         if settings.catheter_mm > 0:
             from .synthetic_dsa import _catheter_mm
@@ -181,11 +201,9 @@ def make_skull_run(seed: int = 0, settings: SkullRunSettings = SkullRunSettings(
         stack = np.array([encode(frame, settings.bits, settings.relationship, settings.photometric)
                           for frame in intensity])
         files[name] = to_bytes(_dataset(stack, PLANES[name], name, settings))
-        peak = peak_of(list(settings.fill), list(settings.strength))
         contrast = np.log(np.maximum(intensity[peak], 1.0 / _photons(settings)))
         clean = np.log(cv2.GaussianBlur(np.exp(-moved), (0, 0), 0.5))  # the noise-free mask, aligned
         subtracted[name] = subtracted_xa((contrast - clean).astype(np.float32), PLANES[name], name)
     return NativeRunCase(files=files, subtracted=subtracted, mesh=mesh, mesh_to_world=pose, rig=rig,
-                         motion_px={name: settings.motion_px for name in rig.views},
-                         peak_frame=peak_of(list(settings.fill), list(settings.strength)),
+                         motion_px={name: settings.motion_px for name in rig.views}, peak_frame=peak,
                          mask_frames=tuple(n - 1 for n in settings.mask_frames), vessels=vessels)

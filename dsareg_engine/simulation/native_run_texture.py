@@ -16,15 +16,16 @@ Made to differ from generator A (:mod:`.native_run_skull`) in every part a reade
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from ..geometry.rig import Rig
+from ..mesh import TriangleMesh
+from .native_run import ENHANCED_XA_SOP, NativeRunCase, Plane, base_dataset, pose_in_view, subtracted_xa, to_bytes
+from .native_run_bolus import Bolus, run_iodine, run_peak
 from .phantom import make_vessel_phantom
-from .native_run import (ENHANCED_XA_SOP, NativeRunCase, Plane, base_dataset, peak_of, pose_in_view,
-                         subtracted_xa, to_bytes, vessel_frames)
 
 PLANES = {"ap": Plane(-6.0, 8.0, 1200.0, 800.0, 1.2), "lat": Plane(94.0, 1.0, 1180.0, 790.0, 1.2)}
 LOG_OFFSET, LOG_SCALE = 300.0, 800.0
@@ -41,6 +42,9 @@ class TextureRunSettings:
         beta: spectral exponent of the texture; texture_amplitude its peak-to-peak attenuation.
         bands: bone-like bands; band_attenuation each one's attenuation.
         settle_deg: primary-angle offset recorded for the mask frames.
+        bolus: a bolus passing along the tree (:mod:`.native_run_bolus`; this generator's default shape
+            is the raised cosine) instead of ``fill`` / ``strength``; its frames before contrast are the masks.
+        rotation_deg: in-plane patient rotation of the contrast frames (counter-clockwise as displayed).
     """
 
     size_px: int = 160
@@ -54,6 +58,8 @@ class TextureRunSettings:
     bands: int = 3
     band_attenuation: float = 0.7
     settle_deg: float = 0.6
+    bolus: Bolus | None = None
+    rotation_deg: float = 0.0
 
 
 def fractal_texture(shape: tuple[int, int], beta: float, rng: np.random.Generator) -> np.ndarray:
@@ -121,18 +127,24 @@ def _dataset(stack: np.ndarray, plane: Plane, name: str, settings: TextureRunSet
     return ds
 
 
-def make_texture_run(seed: int = 0, settings: TextureRunSettings = TextureRunSettings()) -> NativeRunCase:
-    """Generator B: a native biplane run pair (see the module docstring)."""
+def make_texture_run(seed: int = 0, settings: TextureRunSettings = TextureRunSettings(),
+                     mesh: TriangleMesh | None = None, root_mm: np.ndarray | None = None) -> NativeRunCase:
+    """Generator B: a native biplane run pair (see the module docstring); ``mesh`` (default: the phantom of
+    ``seed + 7``) with its inlet ``root_mm`` (default: the phantom's)."""
     rng = np.random.default_rng(1000 + seed)
-    mesh = make_vessel_phantom(seed=seed + 7, depth=3)
+    mesh = make_vessel_phantom(seed=seed + 7, depth=3) if mesh is None else mesh
     rig = Rig(views={name: plane.view(settings.size_px) for name, plane in PLANES.items()})
     pose = pose_in_view(mesh, rig, seed + 7)
-    files, subtracted, vessels = {}, {}, {}
-    peak = peak_of(list(settings.fill), list(settings.strength))
+    if settings.bolus is not None:
+        settings = replace(settings, n_mask_frames=settings.bolus.mask_frames)
+    files, subtracted, vessels, peak = {}, {}, {}, None
     for name, view in rig.views.items():
-        iodine, vessels[name] = vessel_frames(mesh, view, pose, list(settings.fill), list(settings.strength))
+        iodine, vessels[name] = run_iodine(mesh, view, pose, settings.fill, settings.strength, settings.bolus, root_mm)
+        peak = run_peak(iodine, settings.fill, settings.strength, settings.bolus) if peak is None else peak
         still = texture_attenuation(view.image_size[::-1], settings, rng)
-        matrix = np.array([[1.0, 0.0, settings.motion_px[1]], [0.0, 1.0, settings.motion_px[0]]])
+        centre = ((still.shape[1] - 1) / 2.0, (still.shape[0] - 1) / 2.0)
+        matrix = cv2.getRotationMatrix2D(centre, settings.rotation_deg, 1.0)
+        matrix[:, 2] += (settings.motion_px[1], settings.motion_px[0])
         moved = cv2.warpAffine(still, matrix, still.shape[::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         frames = []
         for k in range(len(iodine)):

@@ -154,11 +154,16 @@ def _reduced(image: np.ndarray, factor: int, smooth_px: float) -> np.ndarray:
     return cv2.GaussianBlur(image, (0, 0), smooth_px)
 
 
-def estimate_motion(mask: np.ndarray, contrast: np.ndarray, settings: MotionSettings = MotionSettings()) -> Motion:
+def estimate_motion(mask: np.ndarray, contrast: np.ndarray, settings: MotionSettings = MotionSettings(),
+                    start: Motion | None = None) -> Motion:
     """The rigid move of ``mask`` that best matches ``contrast`` on the background (``(H, W)`` log-domain
-    images of the same size); no move when the estimate is out of bounds or not finite."""
+    images of the same size); no move when the estimate is out of bounds or not finite. ``start`` (e.g.
+    another frame's move): refined at the finest level only."""
     factors = _levels(mask.shape, settings)
     shift, theta, sigma = None, 0.0, 0.0
+    if start is not None and not start.none:
+        factors, previous = factors[-1:], factors[-1]
+        shift, theta = np.array(start.shift_px) / factors[-1], np.radians(start.rotation_deg)
     for factor in factors:
         small_mask, small_contrast = _reduced(mask, factor, settings.smooth_px), _reduced(contrast, factor, settings.smooth_px)
         if shift is None:

@@ -299,7 +299,10 @@ class ImageReadingRecord(BaseModel):
     why: str = Field(description="What told native from subtracted (tags, or the content).")
     frame_index: int | None = Field(None, description="The frame used (a MinIP: the peak frame, whose geometry applies).")
     frame_number: int | None = Field(None, description="The same, 1-based.")
-    combined: Literal["single", "minip"] | None = Field(None, description="One frame, or a MinIP of frame_indices.")
+    combined: Literal["single", "minip", "arterial"] | None = Field(
+        None, description="One frame, a MinIP of frame_indices, or (native runs' default) the per-pixel maximum "
+                          "opacity over the arterial phase frame_indices.")
+    phase: str | None = Field(None, description="Native runs: which frames were combined and why, in words.")
     frame_indices: list[int] | None = Field(None, description="The frames combined.")
     mask_frame_indices: list[int] | None = Field(None, description="Native runs: the mask frames subtracted.")
     mask_frame_numbers: list[int] | None = Field(None, description="The same, 1-based.")

@@ -19,7 +19,7 @@ SIZE = 96
 
 @pytest.fixture(scope="module")
 def run():
-    return make_skull_run(3, SkullRunSettings(size_px=SIZE))
+    return make_skull_run(0, SkullRunSettings(size_px=SIZE))
 
 
 @pytest.fixture(scope="module")
