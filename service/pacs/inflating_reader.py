@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
+from typing import Any
 
-CHUNK_BYTES = 1 << 20
+CHUNK_BYTES = 1 << 20  # inflated per step
+INPUT_BYTES = 64 << 10  # deflated fed per step (zlib copies what a step leaves unconsumed)
 
 
 class InflateError(ValueError):
@@ -33,24 +35,26 @@ class Inflated:
     size_bytes: int  # the whole inflated size
 
 
-def inflate_bounded(deflated: bytes | memoryview, limit_bytes: int, keep_bytes: int) -> Inflated:
-    """Inflate ``deflated`` (raw deflate) counting its size; stop past ``limit_bytes``."""
+def inflate_bounded(deflated: Any, limit_bytes: int, keep_bytes: int) -> Inflated:
+    """Inflate ``deflated`` (raw deflate; bytes, a memory view or a map) counting its size; stop past ``limit_bytes``."""
     inflater = zlib.decompressobj(-zlib.MAX_WBITS)
     kept: list[bytes] = []
     kept_bytes = size = 0
-    pending = bytes(deflated)
     try:
-        while pending:
-            chunk = inflater.decompress(pending, CHUNK_BYTES)
-            pending = inflater.unconsumed_tail
-            size += len(chunk)
-            if size > limit_bytes:
-                raise InflateBoundExceeded(limit_bytes)
-            if kept_bytes < keep_bytes:
-                kept.append(chunk[:keep_bytes - kept_bytes])
-                kept_bytes += len(kept[-1])
-            if not chunk and not pending:
-                break
+        with memoryview(deflated) as view:
+            for start in range(0, len(view), INPUT_BYTES):
+                pending = bytes(view[start:start + INPUT_BYTES])
+                while pending and not inflater.eof:
+                    chunk = inflater.decompress(pending, CHUNK_BYTES)
+                    pending = inflater.unconsumed_tail
+                    size += len(chunk)
+                    if size > limit_bytes:
+                        raise InflateBoundExceeded(limit_bytes)
+                    if kept_bytes < keep_bytes:
+                        kept.append(chunk[:keep_bytes - kept_bytes])
+                        kept_bytes += len(kept[-1])
+                if inflater.eof:
+                    break
         size += len(inflater.flush())
     except zlib.error as exc:
         raise InflateError(f"not valid deflate data ({exc})") from None

@@ -23,6 +23,7 @@ association ends: the job that asked reads them; they make no job of their own.
 
 from __future__ import annotations
 
+import io
 import itertools
 import logging
 import shutil
@@ -35,7 +36,7 @@ from typing import Any
 
 from ..instance_check import InstanceLimits, InstanceRefused, check_instance
 from .inbox import Inbox, StoredInstance, fsync_file
-from .receive_bound import bound_association
+from .receive_bound import BoundedBuffer, bound_association
 
 log = logging.getLogger("dsareg.dimse")
 
@@ -156,7 +157,7 @@ class StoreScp:
             event.assoc.acse.send_reject(*reason)
             event.assoc.kill()
             return
-        bound_association(event.assoc, self.limits.max_instance_bytes)
+        bound_association(event.assoc, self.limits.max_instance_bytes, self.settings.storage.data_dir / "tmp")
 
     def association_id(self, assoc: Any) -> str:
         with self._lock:
@@ -170,6 +171,13 @@ class StoreScp:
     def on_store(self, event: Any) -> int:
         """Check, store, fsync, index, then answer (0000; A700 too large, out of space or storage failed;
         A900 / C000 an instance that does not check, :mod:`service.pacs.instance_check`)."""
+        try:
+            return self._store(event)
+        finally:
+            if isinstance(event.request.DataSet, BoundedBuffer):
+                event.request.DataSet.release()  # the spilled file, if any, goes now
+
+    def _store(self, event: Any) -> int:
         if self._disk_low():
             self.stats["refused"] += 1
             return OUT_OF_RESOURCES
@@ -185,8 +193,7 @@ class StoreScp:
         moved_for = str(getattr(event.request, "MoveOriginatorApplicationEntityTitle", None) or "").strip()
         ours = moved_for == self.settings.dimse.dicom_ae_title
         try:
-            data = bytes(event.encoded_dataset(include_meta=True))
-            digest, size = self.blobs.put_bytes(data)
+            digest, size = self.blobs.put_stream(self._part10(event))
             local = self.blobs.local_path(digest)
             if local is not None:
                 fsync_file(local)
@@ -207,10 +214,24 @@ class StoreScp:
         buffer = event.request.DataSet
         if getattr(buffer, "exceeded", False):
             raise InstanceRefused(OUT_OF_RESOURCES, f"more than {self.limits.max_instance_bytes} bytes received")
+        if getattr(buffer, "failed", False):
+            raise InstanceRefused(OUT_OF_RESOURCES, "the data set could not be held while it arrived (disk full?)")
         request = event.request
-        return check_instance(buffer.getbuffer(), str(event.context.transfer_syntax),
+        view = buffer.view() if isinstance(buffer, BoundedBuffer) else buffer.getbuffer()
+        return check_instance(view, str(event.context.transfer_syntax),
                               str(request.AffectedSOPClassUID), str(request.AffectedSOPInstanceUID),
                               STORAGE_CLASSES, self.limits)
+
+    @staticmethod
+    def _part10(event: Any) -> Any:
+        """The instance as a DICOM file (our file meta, then the data set as received), as a stream."""
+        from pynetdicom.dsutils import encode_file_meta
+
+        buffer = event.request.DataSet
+        prefix = b"\x00" * 128 + b"DICM" + encode_file_meta(event.file_meta)
+        if isinstance(buffer, BoundedBuffer):
+            return buffer.reader(prefix)
+        return io.BytesIO(prefix + buffer.getvalue())
 
     # ---- end of an association ---------------------------------------------------------------------
     # The association's thread reports a release (EVT_RELEASED) or an abort (EVT_ABORTED, also for a

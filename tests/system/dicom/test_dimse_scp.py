@@ -146,22 +146,27 @@ def test_bombs_and_malformed_instances_get_failure_statuses_and_nothing_is_kept(
     def file(name, ds, data, syntax=EXPLICIT):
         return part10(data, XA, str(ds.SOPInstanceUID), syntax, files / name)
 
-    bomb, big, liar, cut, bad_uid, good = (xa_header(rows=512, columns=512), xa_header(rows=1024, columns=1024),
-                                           xa_header(65535, 65535, 2000), xa_header(64, 64), xa_header(),
-                                           xa_header(32, 32))
+    bomb, big, liar, cut, bad_uid, good, spilled = (
+        xa_header(rows=512, columns=512), xa_header(rows=1024, columns=1024), xa_header(65535, 65535, 2000),
+        xa_header(64, 64), xa_header(), xa_header(32, 32), xa_header(1024, 1024, frames=1))
     bad_uid.StudyInstanceUID = "../../x"
     sent = [file("bomb.dcm", bomb, deflate_bomb(bomb, 64 << 20), DEFLATED),  # 64 kB deflated, 64 MiB inflated
             file("big.dcm", big, encoded(big, pixel_bytes=6 << 20)),  # 6 MiB received: past the bound as it arrives
             file("liar.dcm", liar, encoded(liar, pixel_bytes=128)),
             file("cut.dcm", cut, encoded(cut)[:-500]),
             file("uid.dcm", bad_uid, encoded(bad_uid)),
-            file("good.dcm", good, deflated(encoded(good)), DEFLATED)]
-    assert _send_files(port, sent) == [0xA700, 0xA700, 0xA700, 0xC000, 0xA900, 0x0000]
-    # the association went on after each failure; only the good one is indexed and on disk
+            file("good.dcm", good, deflated(encoded(good)), DEFLATED),
+            file("spilled.dcm", spilled, encoded(spilled))]
+    assert _send_files(port, sent) == [0xA700, 0xA700, 0xA700, 0xC000, 0xA900, 0x0000, 0x0000]
+    # the association went on after each failure; only the good ones are indexed and on disk
     (item,) = scp.inbox.study(good.StudyInstanceUID)
     assert item.sop_instance_uid == good.SOPInstanceUID and scp.stats["invalid"] == 5
-    stored = [p for p in (tmp_path / "blobs").rglob("*") if p.is_file()]
-    assert len(stored) == 1 and stored[0].stat().st_size < 10_000
+    stored = sorted((p for p in (tmp_path / "blobs").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    assert len(stored) == 2 and stored[0].stat().st_size < 10_000
+    # 2 MiB: past what an association holds in memory (a quarter of the 4 MiB bound), spilled, kept intact
+    (big_item,) = scp.inbox.study(spilled.StudyInstanceUID)
+    sent_set = sent[-1].read_bytes()
+    assert scp.blobs.read(big_item.sha256).endswith(sent_set[-(2 << 20) - 100:])
 
 
 def test_a_full_disk_mid_association_keeps_what_was_answered_success(node, study, tmp_path):
