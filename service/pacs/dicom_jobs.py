@@ -24,6 +24,7 @@ from .dicomweb import (
     resolve_server,
 )
 from ..engine_adapter import engine, fetched_case_files
+from .instance_check import InstanceLimits, InstanceRefused, check_file
 from .dimse.pull import pull_job
 from ..settings import ServiceSettings
 from ..storage.store import JobRecord
@@ -63,9 +64,20 @@ class PacsJob:
         source = self.reference.source.dicomweb
         with self._client() as client:
             fetched = fetch_inputs(client, source)
+        self._check(client.server.url, {"ap": [fetched.ap], "lat": [fetched.lat], "volume": fetched.volume})
         self.source_info = {"server": client.server.url, "study_uid": source.study_uid,
                             "fetch_seconds": round(fetched.seconds, 3), "requests": fetched.calls}
         return fetched_case_files(fetched.ap, fetched.lat, fetched.volume, source.frames, fetched.warnings)
+
+    def _check(self, server: str, instances: dict[str, list[bytes]]) -> None:
+        """Each fetched instance's sizes as the DICOM node checks a received one (inflated, pixels, truncation)."""
+        limits = InstanceLimits.of(self.settings)
+        for name, items in instances.items():
+            for data in items:
+                try:
+                    check_file(data, limits)
+                except InstanceRefused as exc:
+                    raise PacsError(server, f"check {name} instance", f"refused: {exc.reason}") from None
 
     def store_back(self, result: dict, out_dir: Path) -> dict:
         """Add where the inputs came from to ``result['dicom']`` and, when asked, STOW the REG and overlays."""

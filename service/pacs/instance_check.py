@@ -77,6 +77,29 @@ def check_instance(data_set: bytes | memoryview, transfer_syntax: str, sop_class
     return checked
 
 
+def check_file(data: Any, limits: InstanceLimits) -> Any:
+    """The sizes of a DICOM file uploaded or fetched (Part 10: preamble, file meta, data set) checked as a received
+    instance's are — bytes as received and inflated, pixel dimensions, truncation — without its identity (an
+    upload's UIDs are not ours to judge); its header, or :class:`InstanceRefused`. Not DICOM: ``None``."""
+    from pydicom.filereader import read_dataset
+
+    if len(data) < 132 or bytes(data[128:132]) != b"DICM":
+        return None
+    if len(data) > limits.max_instance_bytes:
+        raise InstanceRefused(OUT_OF_RESOURCES, f"larger than {limits.max_instance_bytes} bytes")
+    stream = io.BytesIO(bytes(data[132:HEADER_KEEP_BYTES]))
+    try:  # the file meta: group 0002, explicit VR little endian
+        meta = read_dataset(stream, False, True, stop_when=lambda tag, vr, length: tag.group != 2)
+        syntax = str(meta.TransferSyntaxUID)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file meta
+        raise InstanceRefused(CANNOT_UNDERSTAND, f"the file meta does not parse ({type(exc).__name__})") from None
+    plain, size = _plain(memoryview(data)[132 + stream.tell():], syntax, limits)
+    header, pixels_at = _header(plain, syntax)
+    if "Rows" in header:  # an image: its pixels within the bound, and all there
+        _pixel_element(plain, pixels_at, size, _pixel_bytes(header, limits), syntax)
+    return header
+
+
 def _plain(data_set: bytes | memoryview, transfer_syntax: str, limits: InstanceLimits) -> tuple[bytes | memoryview, int]:
     """The data set as encoded without deflate (its first HEADER_KEEP_BYTES when deflated) and its full size."""
     if transfer_syntax != DEFLATED:
@@ -164,3 +187,23 @@ def _pixel_element(plain: bytes | memoryview, at: int, size: int, expected: int,
         raise InstanceRefused(CANNOT_UNDERSTAND, f"Pixel Data says {length} bytes, {size - start} follow (truncated)")
     if length < expected:
         raise InstanceRefused(DOES_NOT_MATCH, f"Pixel Data holds {length} bytes, its header says {expected}")
+
+
+def refusal_of_file(path: Any, limits: InstanceLimits) -> str | None:
+    """Why the DICOM file at ``path`` is refused (:func:`check_file`, read through a map), or None."""
+    import contextlib
+    import mmap
+    import os
+
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size < 132:
+            return None
+        mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        try:
+            check_file(mapped, limits)
+            return None
+        except InstanceRefused as exc:
+            return exc.reason
+        finally:
+            with contextlib.suppress(BufferError):  # a view still held: closed when it goes
+                mapped.close()

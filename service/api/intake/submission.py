@@ -20,6 +20,7 @@ from starlette.datastructures import UploadFile
 from ...budgets import check_job_cost, parse_json_part
 from ...engine_adapter import check_options, engine, image_reading_json, job_case, submitted_geometry, volume_reading
 from ...jobs.callbacks import url_problem
+from ...pacs.instance_check import InstanceLimits, refusal_of_file
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
 from ...storage.diskspace import ensure_room
@@ -114,6 +115,18 @@ def form_geometry_and_options(form: Any) -> tuple[str | None, Any]:
     return geometry, parse_options_json(options_data)
 
 
+async def refuse_hostile_dicom(ctx: ServiceContext, role: str, digest: str) -> None:
+    """A DICOM upload's sizes as the DICOM node checks them (inflated, pixels, truncation): 422 naming the field."""
+    path = ctx.blobs.local_path(digest)
+    if path is None:
+        return
+    reason = await asyncio.to_thread(refusal_of_file, path, InstanceLimits.of(ctx.settings))
+    if reason is not None:
+        raise Problem(422, f"DICOM file refused: {reason}", field=role,
+                      accepted="DICOM within DSAREG_MAX_DICOM_INSTANCE_BYTES (as stored and inflated) and "
+                               "DSAREG_MAX_DICOM_PIXEL_BYTES, complete")
+
+
 async def store_uploads(ctx: ServiceContext, files: dict[str, list[UploadFile]]
                         ) -> tuple[list[InputFile], list[UploadFile]]:
     """Store the uploads (content-addressed); the input records and their sources, in role order."""
@@ -125,6 +138,7 @@ async def store_uploads(ctx: ServiceContext, files: dict[str, list[UploadFile]]
             digest, size = await asyncio.to_thread(ctx.blobs.put_stream, upload.file)
             if size == 0:
                 raise Problem(422, "the file is empty", field=role)
+            await refuse_hostile_dicom(ctx, role, digest)
             inputs.append(InputFile(role=role, sha256=digest, size=size, suffix=safe_suffix(upload.filename)))
             sources.append(upload)
     return inputs, sources

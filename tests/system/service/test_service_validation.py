@@ -70,3 +70,24 @@ def test_validator_parses_without_loading_torch(tmp_path):
         assert "libopenblas" in mapped or "numpy" in mapped  # the process is the parser, alive and loaded
     finally:
         pool.stop()
+
+
+def test_a_dicom_upload_is_bounded_as_a_received_instance(tmp_path, example_case):
+    """A deflated DICOM upload of 65 kB that inflates to 64 MiB, on a server bounding instances at 16 MiB: 422 naming
+    the field, before any parse (the DICOM node's own check, service/pacs/instance_check.py)."""
+    from tests.support.dicom_bombs import DEFLATED, XA, deflate_bomb, part10, xa_header
+    from tests.support.service_testkit import Server, submit
+
+    bomb = xa_header(rows=512, columns=512, frames=2)
+    data = part10(deflate_bomb(bomb, 64 << 20), XA, bomb.SOPInstanceUID, DEFLATED, tmp_path / "bomb.dcm").read_bytes()
+    srv = Server(tmp_path / "data", workers=0,
+                 env={"DSAREG_MAX_DICOM_INSTANCE_BYTES": str(16 << 20)}).start(wait_ready=False)
+    try:
+        with srv.client() as client:
+            refused = submit(client, example_case, names=("phantom.obj", "ap.dcm", "lat.png"),
+                             files_override={"ap": data})
+    finally:
+        srv.stop()
+    problem = refused.json()
+    assert refused.status_code == 422 and problem["field"] == "ap", refused.text
+    assert "DICOM file refused" in problem["detail"] and "inflates to more than" in problem["detail"], problem

@@ -94,3 +94,22 @@ def test_an_image_without_dimensions_does_not_match():
     ds = xa_header()
     del ds.Rows
     assert _status(encoded(ds, pixel_bytes=128), ds) == 0xA900
+
+
+def test_a_dicom_file_is_checked_for_size_without_its_identity(tmp_path):
+    from service.pacs.instance_check import check_file
+    from tests.support.dicom_bombs import part10
+
+    ds = xa_header(rows=16, columns=16)
+    ds.StudyInstanceUID = "not-ours-to-judge"  # an upload's UIDs are left alone
+    plain = part10(encoded(ds), XA, ds.SOPInstanceUID, EXPLICIT, tmp_path / "plain.dcm").read_bytes()
+    assert check_file(plain, LIMITS).Rows == 16
+    assert check_file(b"\x89PNG\r\n\x1a\n" + bytes(200), LIMITS) is None  # not DICOM: not this check's business
+    bomb = xa_header(rows=512, columns=512, frames=2)
+    data = part10(deflate_bomb(bomb, 64 << 20), XA, bomb.SOPInstanceUID, DEFLATED, tmp_path / "bomb.dcm").read_bytes()
+    with pytest.raises(InstanceRefused) as refused:
+        check_file(data, InstanceLimits(1 << 20, 1 << 30))
+    assert refused.value.status == 0xA700
+    with pytest.raises(InstanceRefused) as refused:
+        check_file(plain[:-50], LIMITS)
+    assert refused.value.status == 0xC000
