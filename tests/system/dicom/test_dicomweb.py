@@ -7,6 +7,7 @@ orthanc-dicomweb these tests skip.
 
 from __future__ import annotations
 
+import datetime
 import io
 import json
 import threading
@@ -111,16 +112,29 @@ def stub(orthanc):
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory, orthanc, stub):
+def trickler():
+    from tests.support.faults_kit import TricklingHttpServer
+
+    server = TricklingHttpServer(interval_s=0.5)  # every read within the 1 s timeout, no answer ever ends
+    yield server
+    server.close()
+
+
+PACS_DEADLINE_S = 8.0
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory, orthanc, stub, trickler):
     closed = f"http://127.0.0.1:{free_port()}/dicom-web"  # nothing listens there
     triggering = OrthancServer(password="trigger-test")  # started by the trigger test, with the example's Lua
     servers = [{"url": orthanc.dicomweb_url, "username": orthanc.user, "password": orthanc.password},
                {"url": triggering.dicomweb_url, "username": triggering.user, "password": triggering.password},
                {"url": orthanc.dicomweb_url.replace("/dicom-web", "/bad-credentials"), "username": "x", "password": "y"},
                {"url": closed}, {"url": stub.url + "/slow"}, {"url": stub.url + "/busy"},
-               {"url": stub.url + "/nostore"}]
+               {"url": stub.url + "/nostore"}, {"url": trickler.url}]
     env = {"DSAREG_DICOMWEB_SERVERS": json.dumps(servers), "DSAREG_DICOMWEB_TIMEOUT_SECONDS": "1",
-           "DSAREG_DICOMWEB_RETRIES": "2", "DSAREG_DICOMWEB_RETRY_BACKOFF_SECONDS": "0.1"}
+           "DSAREG_DICOMWEB_RETRIES": "2", "DSAREG_DICOMWEB_RETRY_BACKOFF_SECONDS": "0.1",
+           "DSAREG_PACS_DEADLINE_SECONDS": str(PACS_DEADLINE_S)}
     srv = Server(tmp_path_factory.mktemp("dicomweb") / "data", workers=1, env=env).start()
     srv.closed_url = closed
     srv.triggering = triggering
@@ -240,6 +254,23 @@ def test_pacs_errors_fail_the_job_with_a_clear_reason(service, orthanc, stub, up
     else:
         assert (error.get("http_status"), error["attempts"]) == expected, error
     assert error["step"].startswith(("search", "retrieve"))
+
+
+def test_a_trickling_pacs_frees_the_worker_after_the_jobs_pacs_deadline(service, trickler, uploaded):
+    """One byte every 0.5 s: no read ever times out (1 s) and, before the job's PACS budget, each attempt lasted
+    10 timeouts, retried twice, for each request of the fetch. Now the job fails once its 8 s are spent."""
+    with service.client() as client:
+        response = client.post("/v1/registrations", json=reference(uploaded, trickler.url))
+        assert response.status_code == 202, response.text
+        job = wait_for(client, response.json()["id"], timeout=120)
+        events = client.get(f"/v1/registrations/{job['id']}/audit").json()["items"]
+    at = {item["event"]: datetime.datetime.fromisoformat(item["at"].replace("Z", "+00:00")).timestamp()
+          for item in events}
+    held_s = at["failed"] - at["claimed"]
+    print(f"\ntrickling PACS: the worker held {held_s:.2f} s (DSAREG_PACS_DEADLINE_SECONDS {PACS_DEADLINE_S:g})")
+    assert job["status"] == "failed" and job["error"]["type"].endswith("/pacs-error"), job
+    assert "DSAREG_PACS_DEADLINE_SECONDS" in job["error"]["detail"] and trickler.requests >= 1
+    assert held_s <= PACS_DEADLINE_S + 3.0, held_s  # the budget, one read timeout, the job's own bookkeeping
 
 
 def example_lua(dsareg_url: str, dicomweb_url: str, options: str = "{ starts = 1 }") -> str:
