@@ -32,6 +32,10 @@ from .artifacts import (
     ANIMATION_GIF,
     ARTIFACTS,
     DICOM_FILES,
+    HEMODYNAMICS_FILES,
+    HEMODYNAMICS_JSON,
+    HEMODYNAMICS_PLY,
+    HEMODYNAMICS_VTK,
     LOSS_DCM,
     LOSS_PNG,
     REG_DCM,
@@ -40,6 +44,8 @@ from .artifacts import (
     mask_png,
     overlay_dcm,
     overlay_png,
+    parametric_dcm,
+    parametric_png,
 )
 from .errors import DsaregInputError
 
@@ -64,6 +70,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .registration.options import RegistrationOptions, image_reading, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
     from .warmup import compile_later_groups, warm_up_job, warm_up_kernels, warm_up_renderer
+    from .hemodynamics.run import check_timed_runs
 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
@@ -112,6 +119,7 @@ _LAZY = {
     "warm_up_renderer": "dsareg_engine.warmup",
     "warm_up_kernels": "dsareg_engine.warmup",
     "compile_later_groups": "dsareg_engine.warmup",
+    "check_timed_runs": "dsareg_engine.hemodynamics.run",
 }
 
 __all__ = [
@@ -176,6 +184,13 @@ __all__ = [
     "warm_up_kernels",
     "compile_later_groups",
     "write_dicom_outputs",
+    "HEMODYNAMICS_FILES",
+    "HEMODYNAMICS_JSON",
+    "HEMODYNAMICS_PLY",
+    "HEMODYNAMICS_VTK",
+    "check_timed_runs",
+    "parametric_dcm",
+    "parametric_png",
 ]
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 
 from . import __version__
-from .api.routes import artifacts, events, operations, registrations, review, tracking, ui
+from .api.routes import artifacts, events, hemodynamics, operations, registrations, review, tracking, ui
 from .api.deps import ServiceContext
 from .api.handlers import install_handlers
 from .api.httpdeadlines import BodyDeadlineMiddleware, HttpDeadlines, with_header_deadline
@@ -55,7 +55,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(BodyDeadlineMiddleware, idle_seconds=settings.server.http_body_idle_timeout_seconds)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     install_handlers(app)
-    mount(app, registrations.router, events.router, tracking.router, review.router, artifacts.router, operations.router, ui.router)
+    mount(app, registrations.router, events.router, tracking.router, review.router, artifacts.router, hemodynamics.router, operations.router, ui.router)
     install_docs(app)
     install_openapi(app, settings)
     return app

@@ -147,14 +147,18 @@ def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
 
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
                   limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None,
-                  volume: dict[str, Any] | None = None, mesh_units: str | None = None) -> Any:
+                  volume: dict[str, Any] | None = None, mesh_units: str | None = None, *,
+                  hemodynamics: bool = False) -> Any:
     """Read a job's stored inputs as the worker will (the API's validator calls this); ``reading``:
     :func:`image_reading_json` of the job's options; ``volume``: :func:`volume_reading` of them; ``mesh_units``:
-    the options' ``mesh_units``."""
+    the options' ``mesh_units``; ``hemodynamics``: the views must also be timed runs (``engine.check_timed_runs``)."""
     files = stored_case_files(inputs, geometry, read, limits)
-    return engine.load_case_files(files, segmentation, input_limits(limits),
+    case = engine.load_case_files(files, segmentation, input_limits(limits),
                                   reading=engine.ImageReading(**reading) if reading else None,
                                   volume_reading=engine.VolumeReading(**(volume or {})), mesh_units=mesh_units)
+    if hemodynamics:
+        engine.check_timed_runs(files)
+    return case
 
 
 def case_summary(case: Any) -> dict[str, Any]:

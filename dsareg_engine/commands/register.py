@@ -61,6 +61,9 @@ def add_parser(subparsers) -> None:
     region.add_argument("--region-branch", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="register only the branch nearest this point (model frame, mm) and what lies downstream of it")
     parser.add_argument("--animation", action="store_true", help="also write animation.gif of the optimization")
+    parser.add_argument("--hemodynamics", action="store_true",
+                        help="also map contrast arrival and time to peak from both runs onto the model (timed "
+                             "multi-frame DICOM XA runs): hemodynamics.json/.ply/.vtk, parametric_{ap,lat}.png")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory (created if missing)")
     parser.add_argument("--dicom-out", metavar="DIR",
                         help="also write reg.dcm (Spatial Registration) and overlay_{ap,lat}.dcm (Secondary Capture) here")
@@ -68,6 +71,25 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--require", choices=REQUIRE_CHOICES,
                         help=f"exit {VERDICT_NOT_MET_EXIT} unless the verdict is at least this (ok, or check = ok or check)")
     parser.set_defaults(func=run)
+
+
+def _flag_options(args: argparse.Namespace) -> dict:
+    """The options the plain flags set (--animation, --hemodynamics, --mesh-units)."""
+    flags = {"animation": args.animation or None, "hemodynamics": args.hemodynamics or None,
+             "mesh_units": args.mesh_units}
+    return {key: value for key, value in flags.items() if value is not None}
+
+
+def _timed_runs(options, model: dict, ap: bytes, lat: bytes):
+    """With ``options.hemodynamics``: the files the step reads, after checking both views are timed runs."""
+    if not options.hemodynamics:
+        return None
+    from ..hemodynamics.run import check_timed_runs
+    from ..io.case import CaseFiles
+
+    files = CaseFiles(ap=ap, lat=lat, mesh=model.get("mesh"), mesh_name=model.get("mesh_name"))
+    check_timed_runs(files)
+    return files
 
 
 def _model_inputs(args: argparse.Namespace) -> dict:
@@ -97,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
     from ..geometry.pose_file import load_pose
     from ..registration import register
     from ..registration.options import image_reading, parse_options
+    from ..hemodynamics.dicom import write_parametric_dicom
+    from ..hemodynamics.run import attach
 
     options = json_argument(args.options, "--options") or {}
     if not isinstance(options, dict):
@@ -106,10 +130,7 @@ def run(args: argparse.Namespace) -> int:
         options["initial_mesh_to_world"] = load_pose(args.initial).tolist()
     if args.ground_truth:
         options["ground_truth_mesh_to_world"] = load_pose(args.ground_truth).tolist()
-    if args.animation:
-        options["animation"] = True
-    if args.mesh_units:
-        options["mesh_units"] = args.mesh_units
+    options.update(_flag_options(args))
     if args.region_box:
         options["region"] = {"box_mm": [args.region_box[:3], args.region_box[3:]]}
     elif args.region_sphere:
@@ -136,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
         geometry=geometry, segmentation=parsed.segmentation, reading=image_reading(parsed),
         volume_reading=VolumeReading.from_options(parsed), mesh_units=parsed.mesh_units,
     )
+    timed = _timed_runs(parsed, model, ap_bytes, lat_bytes)  # hemodynamics: refused before registering
     printer = ProgressPrinter()
     for warning in case.warnings:
         printer.message(f"warning: {warning}")
@@ -147,12 +169,16 @@ def run(args: argparse.Namespace) -> int:
         data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation,
                              images=case.images, progress=printer.update, warnings=case.warnings,
                              readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
+        if timed is not None:
+            attach(timed, case, data, out)
     finally:
         printer.close()
     if args.dicom_out:
         from ..io.dicom_out import write_dicom_outputs
 
         written = write_dicom_outputs(out, result.mesh_to_world, case.sources, Path(args.dicom_out))
+        if timed is not None:
+            written.update(write_parametric_dicom(out, case.sources, Path(args.dicom_out)))
         print(f"DICOM: {', '.join(sorted(written))} -> {args.dicom_out}", file=sys.stderr)
     if args.json:
         print(json.dumps(data, indent=2))

@@ -19,9 +19,12 @@ def derivation(view: str) -> str:
             "(half-peak rise), colour bar in seconds")
 
 
-def write_parametric_dicom(out_dir: Path, sources: DicomSources) -> dict[str, dict[str, str]]:
-    """``parametric_{ap,lat}.dcm`` from the PNGs in ``out_dir`` (one new series); their identities by file name."""
+def write_parametric_dicom(out_dir: Path, sources: DicomSources, dicom_dir: Path | None = None
+                           ) -> dict[str, dict[str, str]]:
+    """``parametric_{ap,lat}.dcm`` from the PNGs in ``out_dir`` (one new series, written to ``dicom_dir``, default
+    ``out_dir``); their identities by file name."""
     out_dir = Path(out_dir)
+    dicom_dir = Path(dicom_dir) if dicom_dir is not None else out_dir
     study_uid = study_uid_for(sources)
     series_uid = new_uid()
     written: dict[str, dict[str, str]] = {}
@@ -33,7 +36,7 @@ def write_parametric_dicom(out_dir: Path, sources: DicomSources) -> dict[str, di
         ds = build_secondary_capture(rgb, sources, study_uid=study_uid, series_uid=series_uid, instance_number=number,
                                      derivation=derivation(view))
         ds.SeriesNumber, ds.SeriesDescription = SERIES_NUMBER, "dsareg hemodynamics parametric maps"
-        (out_dir / parametric_dcm(view)).write_bytes(to_bytes(ds))
+        (dicom_dir / parametric_dcm(view)).write_bytes(to_bytes(ds))
         written[parametric_dcm(view)] = {"sop_class_uid": str(ds.SOPClassUID), "sop_instance_uid": str(ds.SOPInstanceUID),
                                          "series_instance_uid": str(ds.SeriesInstanceUID), "study_instance_uid": study_uid}
     return written

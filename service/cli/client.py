@@ -20,7 +20,10 @@ FINISHED = ("succeeded", "failed", "canceled")
 LINKED_FILES = {"overlay_ap": "overlay_ap.png", "overlay_lat": "overlay_lat.png", "mask_ap": "mask_ap.png",
                 "mask_lat": "mask_lat.png", "loss_plot": "loss.png", "animation": "animation.gif",
                 "dicom_reg": "reg.dcm", "dicom_overlay_ap": "overlay_ap.dcm", "dicom_overlay_lat": "overlay_lat.dcm",
-                "dicom_loss": "loss.dcm"}
+                "dicom_loss": "loss.dcm", "hemodynamics": "hemodynamics.json", "hemodynamics_ply": "hemodynamics.ply",
+                "hemodynamics_vtk": "hemodynamics.vtk", "parametric_ap": "parametric_ap.png",
+                "parametric_lat": "parametric_lat.png", "dicom_parametric_ap": "parametric_ap.dcm",
+                "dicom_parametric_lat": "parametric_lat.dcm"}
 """The job's links that lead to files, and the file names they are saved as."""
 DICOM_NAMES = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm", "loss.dcm")
 

@@ -113,6 +113,10 @@ def _add_submit(subparsers: Any) -> None:
     submit.add_argument("--mesh-units", choices=("mm", "cm", "m"),
                         help="the --mesh file's unit, sent as options.mesh_units (default: the format's own, metres "
                              "for GLB, else mm)")
+    submit.add_argument("--hemodynamics", action="store_true",
+                        help="also map contrast arrival and time to peak onto the model (options.hemodynamics; needs "
+                             "timed multi-frame DICOM XA runs); --out downloads hemodynamics.json/.ply/.vtk and the "
+                             "parametric maps")
     submit.add_argument("--ground-truth", type=input_file, metavar="POSE.json",
                         help='pose file {"mesh_to_world": 4x4} of the true pose; adds error metrics to the result')
     submit.add_argument("--api-key", help="API key (default: the DSAREG_API_KEY environment variable)")
@@ -221,6 +225,8 @@ def run_submit(args: argparse.Namespace) -> int:
         options = {**(options or {}), "ground_truth_mesh_to_world": load_pose(args.ground_truth).tolist()}
     if args.mesh_units:
         options = {**(options or {}), "mesh_units": args.mesh_units}
+    if args.hemodynamics:
+        options = {**(options or {}), "hemodynamics": True}
     wait = args.wait or args.out is not None or args.require is not None
     client = RegistrationClient(args.server, api_key=args.api_key or os.environ.get("DSAREG_API_KEY"))
     try:

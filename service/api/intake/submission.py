@@ -200,6 +200,7 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         "reading": image_reading_json(options),
         "volume_reading": volume_reading(options),
         "mesh_units": options.mesh_units,
+        "hemodynamics": options.hemodynamics,
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.limits.input_limits,
         "require_cuda": options.device == "cuda" and ctx.settings.jobs.executor == "embedded",
     })

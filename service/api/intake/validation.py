@@ -107,7 +107,8 @@ def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: 
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
             case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
-                                 request.get("reading"), request.get("volume_reading"), request.get("mesh_units"))
+                                 request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
+                                 hemodynamics=bool(request.get("hemodynamics")))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
@@ -315,7 +316,7 @@ class ValidatorPool:
     @staticmethod
     def _cache_key(request: dict) -> str:
         fields = {k: request.get(k) for k in ("inputs", "geometry", "segmentation", "limits", "require_cuda", "reading",
-                                              "volume_reading", "mesh_units")}
+                                              "volume_reading", "mesh_units", "hemodynamics")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def start(self) -> None:

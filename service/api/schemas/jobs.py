@@ -64,6 +64,14 @@ class JobLinks(BaseModel):
     dicom_overlay_ap: str | None = _link("DICOM Secondary Capture of the AP overlay; present when succeeded and written.")
     dicom_overlay_lat: str | None = _link("DICOM Secondary Capture of the LAT overlay; present when succeeded and written.")
     dicom_loss: str | None = _link("DICOM Secondary Capture of the loss plot; present when succeeded and written.")
+    hemodynamics: str | None = _link("Arrival and peak times per vertex (hemodynamics.json); present when the job "
+                                     "asked for options.hemodynamics and succeeded.")
+    hemodynamics_ply: str | None = _link("The model coloured by arrival time (PLY); with options.hemodynamics.")
+    hemodynamics_vtk: str | None = _link("The model with arrival / peak point-data arrays (VTK); with options.hemodynamics.")
+    parametric_ap: str | None = _link("The AP run colour-coded by arrival time (PNG); with options.hemodynamics.")
+    parametric_lat: str | None = _link("The LAT run colour-coded by arrival time (PNG); with options.hemodynamics.")
+    dicom_parametric_ap: str | None = _link("DICOM Secondary Capture of parametric_ap.png; when written.")
+    dicom_parametric_lat: str | None = _link("DICOM Secondary Capture of parametric_lat.png; when written.")
     track: str | None = _link("POST new AP/LAT images here to re-register from this pose; present when succeeded.")
     previous: str | None = _link("The job this tracking job started from; present for tracking jobs.")
 
@@ -179,6 +187,9 @@ def job_links(job_id: str, job: JobRecord | None = None) -> JobLinks:
         overlay_ap=f"{base}/overlays/ap.png", overlay_lat=f"{base}/overlays/lat.png",
         mask_ap=f"{base}/masks/ap.png", mask_lat=f"{base}/masks/lat.png", loss_plot=f"{base}/loss.png",
         animation=f"{base}/animation.gif", track=f"{base}/track",
+        hemodynamics=f"{base}/hemodynamics.json", hemodynamics_ply=f"{base}/hemodynamics.ply",
+        hemodynamics_vtk=f"{base}/hemodynamics.vtk", parametric_ap=f"{base}/parametric/ap.png",
+        parametric_lat=f"{base}/parametric/lat.png",
         **{key: f"{base}/dicom/{name}" for key, name in LINKED_DICOM.items()},
     )
     if job is None:
@@ -202,9 +213,12 @@ def job_links(job_id: str, job: JobRecord | None = None) -> JobLinks:
 
 LINKED_ARTIFACTS = {"overlay_ap": engine.overlay_png("ap"), "overlay_lat": engine.overlay_png("lat"),
                     "mask_ap": engine.mask_png("ap"), "mask_lat": engine.mask_png("lat"), "loss_plot": engine.LOSS_PNG,
-                    "animation": engine.ANIMATION_GIF}
+                    "animation": engine.ANIMATION_GIF, "hemodynamics": engine.HEMODYNAMICS_JSON,
+                    "hemodynamics_ply": engine.HEMODYNAMICS_PLY, "hemodynamics_vtk": engine.HEMODYNAMICS_VTK,
+                    "parametric_ap": engine.parametric_png("ap"), "parametric_lat": engine.parametric_png("lat")}
 LINKED_DICOM = {"dicom_reg": engine.REG_DCM, "dicom_overlay_ap": engine.overlay_dcm("ap"),
-                "dicom_overlay_lat": engine.overlay_dcm("lat"), "dicom_loss": engine.LOSS_DCM}
+                "dicom_overlay_lat": engine.overlay_dcm("lat"), "dicom_loss": engine.LOSS_DCM,
+                "dicom_parametric_ap": engine.parametric_dcm("ap"), "dicom_parametric_lat": engine.parametric_dcm("lat")}
 
 
 def previous_link_header(job: JobRecord) -> dict[str, str]:

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine
 from .closed import CLOSED
+from .hemodynamics import HemodynamicsSummary
 
 Matrix4 = list[list[float]]
 Matrix34 = list[list[float]]
@@ -265,7 +266,8 @@ class DicomResult(BaseModel):
     model_config = CLOSED
 
     instances: dict[str, DicomInstance] = Field(
-        default_factory=dict, description="By file name (`reg.dcm`, `overlay_ap.dcm`, `overlay_lat.dcm`, `loss.dcm`).")
+        default_factory=dict, description="By file name (`reg.dcm`, `overlay_ap.dcm`, `overlay_lat.dcm`, `loss.dcm`; "
+                                          "with options.hemodynamics `parametric_ap.dcm`, `parametric_lat.dcm`).")
     source: DicomSource | None = None
     stored: DicomStored | None = None
 
@@ -384,6 +386,9 @@ class RegistrationResult(BaseModel):
     input_decisions: list[InputDecisionRecord] | None = Field(
         None, description="The decisions taken about the inputs (run kind, mask frames, frames combined, volume kind "
                           "and window, units, handedness), each with its measure and margin.")
+    hemodynamics: HemodynamicsSummary | None = Field(
+        None, description="With options.hemodynamics: contrast arrival and time to peak on the model from both runs "
+                          "(per-vertex values: links.hemodynamics).")
 
 
 # ---- putting them into the OpenAPI document -----------------------------------------------

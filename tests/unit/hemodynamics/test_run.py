@@ -88,3 +88,11 @@ def test_a_still_image_or_an_untimed_run_is_refused_naming_the_view(job, tmp_pat
     with pytest.raises(DsaregInputError, match="not DICOM") as caught:
         check_timed_runs(CaseFiles(ap=b"\x89PNG\r\n\x1a\n" + bytes(200), lat=data))
     assert caught.value.field == "ap"
+
+
+def test_the_summary_and_the_document_hold_the_service_contract(job):
+    from service.api.schemas.hemodynamics import HemodynamicsDocument, HemodynamicsSummary
+
+    mesh, run, case, summary, out = job
+    HemodynamicsSummary.model_validate(summary)
+    HemodynamicsDocument.model_validate(json.loads((out / "hemodynamics.json").read_text()))
