@@ -9,6 +9,7 @@ import httpx
 import numpy as np
 import pytest
 from tests.support.service_testkit import CASE_SIZE, FAST_OPTIONS, dice, needs_engine, render_mask, small_views, submit, wait_for
+from tests.system.service.conftest import UPLOAD_LIMIT_BYTES
 
 PROBLEM = "application/problem+json"
 
@@ -141,7 +142,7 @@ def test_idempotency_delete_and_listing(server, example_case):
 
 
 def test_oversized_upload_rejected_while_streaming(server):
-    limit = 4 * 1024 * 1024
+    limit = UPLOAD_LIMIT_BYTES
 
     def body():
         boundary = b"--xyz\r\nContent-Disposition: form-data; name=\"mesh\"; filename=\"m.obj\"\r\n\r\n"

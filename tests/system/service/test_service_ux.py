@@ -16,18 +16,16 @@ from pathlib import Path
 
 import httpx
 import pytest
-from tests.support.service_testkit import Server, make_example_case, needs_engine, submit, wait_for
+from tests.support.service_testkit import make_example_case, needs_engine, submit, wait_for
 
 PROGRESS_OPTIONS = {"starts": 2, "max_iterations": 300, "animation": True, "seed": 3}
 QUICK = {"starts": 1, "max_iterations": 20, "seed": 4}
 
 
 @pytest.fixture(scope="module")
-def ux_server(tmp_path_factory):
-    srv = Server(tmp_path_factory.mktemp("ux") / "data", workers=1,
-                 env={"DSAREG_PROGRESS_INTERVAL_SECONDS": "0"}).start()
-    yield srv
-    srv.stop()
+def ux_server(server):
+    """The shared API server (tests/system/service/conftest.py: progress written at every iteration)."""
+    return server
 
 
 @pytest.fixture(scope="module")

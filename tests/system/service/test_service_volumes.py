@@ -1,6 +1,6 @@
 """CTA / TOF-MRA volumes through the HTTP service: read by kind at submission, recorded in the result.
 
-A real server (uvicorn on a loopback port, SQLite, one local worker). A CTA series with the XA pair
+A real server (uvicorn on a loopback port, SQLite, one local worker: the shared API server of conftest.py). A CTA series with the XA pair
 (geometry from their tags) registers and the result records how the volume was read; a volume with no
 vessels in the window, or an unknown volume kind, is refused at submission with a 422 naming the field.
 """
@@ -13,21 +13,13 @@ import numpy as np
 import pytest
 
 from dsareg_engine.simulation.synthetic_volumes import make_volume_case
-from tests.support.service_testkit import Server, wait_for
+from tests.support.service_testkit import wait_for
 
 
 @pytest.fixture(scope="module")
 def cta():
     return make_volume_case("cta", "a", voxel_mm=1.2, depth=2, image_px=160, pixel_spacing_mm=0.9,
                             min_head_mm=(30.0, 30.0, 40.0))
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    srv = Server(tmp_path_factory.mktemp("vol") / "data", workers=1,
-                 env={"DSAREG_MAX_UPLOAD_BYTES": str(16 * 1024 * 1024)}).start()
-    yield srv
-    srv.stop()
 
 
 def _post(client, case, options: dict):
