@@ -19,6 +19,7 @@ TIMED = (
     "service/test_service_contract.py::test_callback_delivered_signed_within_2_s_of_the_job_end",
     "service/test_service_events.py",  # the first event within 5 s
     "service/test_service_resilience.py",  # SIGKILLs and restarts servers; a start within 90 s
+    "service/test_service_httpdeadlines.py",  # a late head or a stalled body answered within its deadline + 1 s
     "service/test_service_review_workspace.py",  # the job page loads in ≤ 2 s
     "dicom/test_dimse.py",  # the REG in Orthanc ≤ 2 s after the job
     "dicom/test_export_after_review.py",  # the review answers in < 2 s
