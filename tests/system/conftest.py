@@ -22,6 +22,7 @@ TIMED = (
     "service/test_service_httpdeadlines.py",  # a late head or a stalled body answered within its deadline + 1 s
     "service/test_service_review_workspace.py",  # the job page loads in ≤ 2 s
     "dicom/test_dimse.py",  # the REG in Orthanc ≤ 2 s after the job
+    "dicom/test_dicomweb_client.py::test_a_trickling_pacs_holds_the_client_no_longer_than_the_jobs_budget",  # ≤ 3.5 s
     "dicom/test_export_after_review.py",  # the review answers in < 2 s
     "scaleout/test_scaleout_celery.py",  # a cancel stops the Celery worker's job in < 10 s
 )
