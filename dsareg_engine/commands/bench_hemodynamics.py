@@ -44,6 +44,8 @@ SCENARIOS = (
     Scenario("4 fps, ramp, Gaussian, no recipe, LAT 0.3 s later",
              BolusSettings(fps=4.0, shape="ramp", noise="gaussian", lat_delay_s=0.3), "no-recipe"),
     Scenario("2 fps, ramp, Gaussian, subtracted", BolusSettings(fps=2.0, shape="ramp", noise="gaussian"), "subtracted"),
+    Scenario("7.5 fps, gamma, Gaussian, enhanced XA, per-frame times ±20 ms",
+             BolusSettings(fps=7.5, noise="gaussian", jitter_s=0.02), "enhanced"),
     Scenario("4 fps, gamma, partial filling", BolusSettings(fps=4.0, partial=True)),
     Scenario("4 fps, ramp, partial filling, no recipe", BolusSettings(fps=4.0, shape="ramp", partial=True), "no-recipe"),
     Scenario("4 fps, gamma, heavy-overlap view", BolusSettings(fps=4.0), pose="overlap"),
@@ -83,7 +85,8 @@ def case_files(mesh: TriangleMesh, mesh_bytes: bytes, scenario: Scenario, seed: 
     settings = replace(scenario.settings, n_frames=max(32, math.ceil(RUN_SECONDS * scenario.settings.fps)))
     run = make_bolus_run(mesh, rig, pose, settings, seed=seed, inflow_mm=inflow_mm)
     files = {name: bolus_xa(run.frames[name], planes[name], name, scenario.layout, settings.fps,
-                            photons=settings.photons, lat_delay_s=settings.lat_delay_s) for name in planes}
+                            photons=settings.photons, lat_delay_s=settings.lat_delay_s, times_s=run.times_s[name])
+             for name in planes}
     return CaseFiles(ap=files["ap"], lat=files["lat"], mesh=mesh_bytes, mesh_name="model.obj"), pose, run.truth
 
 

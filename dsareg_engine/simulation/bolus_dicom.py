@@ -4,7 +4,9 @@
   frames before contrast), timing in Frame Time (0018,1063);
 * ``no-recipe``: native, LOG pixels (``4000 − 800 · attenuation``: higher = brighter, sign +1), no recipe and no viewing mode (the reader finds the masks), timing in
   Frame Time Vector (0018,1065);
-* ``subtracted``: the frames already subtracted (Image Type SUBTRACTION, vessels dark), timing in Cine Rate.
+* ``subtracted``: the frames already subtracted (Image Type SUBTRACTION, vessels dark), timing in Cine Rate;
+* ``enhanced``: native, Enhanced XA (per-frame functional groups), LOG pixels with sign −1 in MONOCHROME1, no
+  recipe, timing in each frame's Frame Acquisition DateTime (the frames' own, possibly irregular, times).
 
 Each carries its plane's C-arm geometry (classic XA tags) and Acquisition Date/Time (the LAT plane
 ``lat_delay_s`` later). No patient data: a fixed phantom name.
@@ -16,10 +18,11 @@ from datetime import datetime, timedelta
 
 import numpy as np
 
-from .native_run import XA_SOP, Plane, base_dataset, classic_geometry, to_bytes
+from .native_run import ENHANCED_XA_SOP, XA_SOP, Plane, base_dataset, classic_geometry, to_bytes
+from .native_run_texture import _frame_groups
 
-LAYOUTS = ("recipe", "no-recipe", "subtracted")
-LOG_TOP, LOG_SCALE = 4000.0, 800.0
+LAYOUTS = ("recipe", "no-recipe", "subtracted", "enhanced")
+LOG_TOP, LOG_SCALE, LOG_BASE = 4000.0, 800.0, 100.0
 SUB_OFFSET, SUB_SCALE = 2048.0, 2500.0
 START = datetime(2024, 1, 2, 10, 15, 0)
 
@@ -56,10 +59,28 @@ def _pixels(log_frames: np.ndarray, layout: str, photons: float) -> np.ndarray:
     return np.clip(np.round(SUB_OFFSET + SUB_SCALE * subtracted), 0, 4095).astype(np.uint16)
 
 
-def bolus_xa(log_frames: np.ndarray, plane: Plane, name: str, layout: str, fps: float, *, mask_frames: int = 3,
-             photons: float = 2.0e4, lat_delay_s: float = 0.0) -> bytes:
-    """One view's run as a DICOM XA multi-frame file (see the module docstring)."""
+def enhanced_xa(log_frames: np.ndarray, plane: Plane, name: str, times_s: np.ndarray, start: datetime) -> bytes:
+    """The ``enhanced`` layout: per-frame Frame Acquisition DateTimes at ``start + times_s``."""
     n_frames, rows, cols = log_frames.shape
+    ds = base_dataset(ENHANCED_XA_SOP, rows, cols, n_frames, "A" if name == "ap" else "B")
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE", "NONE"]
+    ds.PhotometricInterpretation = "MONOCHROME1"
+    ds.PerFrameFunctionalGroupsSequence, ds.SharedFunctionalGroupsSequence = _frame_groups(plane, n_frames, 0, 0.0, rows)
+    for group, seconds in zip(ds.PerFrameFunctionalGroupsSequence, times_s):
+        group.FrameContentSequence[0].FrameAcquisitionDateTime = (start + timedelta(seconds=float(seconds))).strftime(
+            "%Y%m%d%H%M%S.%f")
+    ds.PixelData = np.clip(np.round(LOG_BASE + LOG_SCALE * log_frames), 0, 4095).astype(np.uint16).tobytes()
+    return to_bytes(ds)
+
+
+def bolus_xa(log_frames: np.ndarray, plane: Plane, name: str, layout: str, fps: float, *, mask_frames: int = 3,
+             photons: float = 2.0e4, lat_delay_s: float = 0.0, times_s: np.ndarray | None = None) -> bytes:
+    """One view's run as a DICOM XA multi-frame file (see the module docstring); ``times_s``: the frames' times
+    from the run's first frame (the ``enhanced`` layout writes them; the others are regular at ``fps``)."""
+    n_frames, rows, cols = log_frames.shape
+    if layout == "enhanced":
+        times = times_s if times_s is not None else np.arange(n_frames) / fps
+        return enhanced_xa(log_frames, plane, name, times, START + timedelta(seconds=lat_delay_s if name == "lat" else 0.0))
     ds = base_dataset(XA_SOP, rows, cols, n_frames, "A" if name == "ap" else "B")
     ds.PhotometricInterpretation = "MONOCHROME2"
     if layout == "subtracted":

@@ -53,6 +53,8 @@ class BolusSettings:
         photons: counts per pixel behind the background (``poisson``); noise_sigma: log-domain σ (``gaussian``).
         supersample: rendering factor per side; blur_px: detector blur σ.
         lat_delay_s: the LAT run starts this much later than the AP run (its frames are that much later).
+        jitter_s: each frame after the first is acquired up to this much (uniform ±) off its regular time (real
+            per-frame times are not exactly regular; only per-frame DateTimes can say so).
     """
 
     shape: str = "gamma"
@@ -71,6 +73,7 @@ class BolusSettings:
     supersample: int = 2
     blur_px: float = 0.6
     lat_delay_s: float = 0.0
+    jitter_s: float = 0.0
 
 
 def half_rise_fraction(alpha: float = GAMMA_ALPHA) -> float:
@@ -132,9 +135,17 @@ def truth_of(settings: BolusSettings, onset_s: np.ndarray) -> BolusTruth:
     return BolusTruth(onset_s, onset_s + half, onset_s + peak)
 
 
+def frame_times_s(settings: BolusSettings, rng: np.random.Generator) -> np.ndarray:
+    """``(T,)`` acquisition times from the run's first frame: regular, each off by up to ``jitter_s``."""
+    regular = np.arange(settings.n_frames) / settings.fps
+    jitter = rng.uniform(-settings.jitter_s, settings.jitter_s, settings.n_frames) if settings.jitter_s > 0 else 0.0
+    times = regular + jitter
+    return times - times[0]
+
+
 def iodine_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray, onset_s: np.ndarray,
-                  settings: BolusSettings, delay_s: float = 0.0) -> np.ndarray:
-    """``(T, H, W)`` iodine attenuation (log domain, ≥ 0) of each frame; the run starts ``delay_s`` after t = 0."""
+                  settings: BolusSettings, times_s: np.ndarray) -> np.ndarray:
+    """``(T, H, W)`` iodine attenuation (log domain, ≥ 0) at ``times_s`` (on the contrast's clock)."""
     fine = view.resized(view.width * settings.supersample, view.height * settings.supersample)
     mesh_to_view = fine.world_to_view @ mesh_to_world
     vertices = mesh.vertices @ mesh_to_view[:3, :3].T + mesh_to_view[:3, 3]
@@ -142,7 +153,7 @@ def iodine_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndar
     length, onset = ray_layers(vertices, mesh.faces, face_onset, fine.focal_px, fine.principal_point_px, fine.image_size)
     rise = rise_time_s(settings, onset)
     frames = []
-    for t in delay_s + np.arange(settings.n_frames) / settings.fps:
+    for t in times_s:
         fine_frame = IODINE_PER_MM * (length * concentration(settings, t - onset, rise)).sum(axis=2)
         small = cv2.resize(fine_frame.astype(np.float32), view.image_size, interpolation=cv2.INTER_AREA)
         frames.append(cv2.GaussianBlur(small, (0, 0), settings.blur_px) if settings.blur_px > 0 else small)
@@ -169,8 +180,9 @@ def noisy_log_frames(iodine: np.ndarray, settings: BolusSettings, rng: np.random
 
 @dataclass
 class BolusRun:
-    """A simulated biplane pair: per view the log-domain frames ``(T, H, W)`` and the clean iodine, the truth,
-    the mesh, pose and rig, the AP run's frame times (the LAT run's are ``lat_delay_s`` later)."""
+    """A simulated biplane pair: per view the log-domain frames ``(T, H, W)``, the clean iodine and the frame
+    times ``(T,)`` from that run's first frame (the LAT run starts ``lat_delay_s`` after the AP run), the truth
+    (on the AP clock), the mesh, pose and rig."""
 
     frames: dict[str, np.ndarray]
     iodine: dict[str, np.ndarray]
@@ -178,7 +190,7 @@ class BolusRun:
     mesh: TriangleMesh
     mesh_to_world: np.ndarray
     rig: Rig
-    times_s: np.ndarray
+    times_s: dict[str, np.ndarray]
     settings: BolusSettings
 
 
@@ -187,11 +199,11 @@ def make_bolus_run(mesh: TriangleMesh, rig: Rig, mesh_to_world: np.ndarray, sett
     """Simulate both views' runs of one bolus (see the module docstring)."""
     rng = np.random.default_rng(seed)
     onset = vertex_onsets(mesh, settings, rng, inflow_mm)
-    frames, iodine = {}, {}
+    frames, iodine, times = {}, {}, {}
     for name, view in rig.views.items():
+        times[name] = frame_times_s(settings, rng)
         delay = settings.lat_delay_s if name == "lat" else 0.0
-        iodine[name] = iodine_frames(mesh, view, mesh_to_world, onset, settings, delay)
+        iodine[name] = iodine_frames(mesh, view, mesh_to_world, onset, settings, delay + times[name])
         frames[name] = noisy_log_frames(iodine[name], settings, rng).astype(np.float32)
-    times = np.arange(settings.n_frames) / settings.fps
     return BolusRun(frames, iodine, truth_of(settings, onset), mesh, np.asarray(mesh_to_world, float), rig, times,
                     settings)

@@ -17,8 +17,8 @@ SQUARE = {"ap": Plane(0.0, 0.0, 1200.0, 800.0, 1.2), "lat": Plane(90.0, 0.0, 120
 
 def _runs(run) -> dict[str, RunFrames]:
     """Opacity stacks as the subtraction gives them: each frame minus the first (log domain)."""
-    timing = RunTiming(run.times_s, "FrameTime")
-    return {name: RunFrames((frames - frames[0]).astype(np.float32), timing) for name, frames in run.frames.items()}
+    return {name: RunFrames((frames - frames[0]).astype(np.float32), RunTiming(run.times_s[name], "FrameTime"))
+            for name, frames in run.frames.items()}
 
 
 def _crossing_tubes() -> TriangleMesh:
