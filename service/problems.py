@@ -22,6 +22,7 @@ TITLES = {
     404: "Not found",
     405: "Method not allowed",
     406: "Not acceptable",
+    408: "Request timeout",
     409: "Conflict",
     413: "Request body too large",
     415: "Unsupported media type",
@@ -97,7 +98,7 @@ class Problem(Exception):
 def _default_kind(status: int) -> str:
     return {
         400: "bad-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed",
-        409: "conflict", 413: "payload-too-large", 415: "unsupported-media-type", 422: "invalid-input",
+        408: "request-timeout", 409: "conflict", 413: "payload-too-large", 415: "unsupported-media-type", 422: "invalid-input",
         429: "too-many-requests", 500: "internal-error", 503: "unavailable", 507: "insufficient-storage",
     }.get(status, "error")
 
@@ -126,8 +127,9 @@ def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     examples = {
         400: "The request is malformed: 'geometry' is not valid JSON (Expecting value at line 1).",
         401: "Send 'Authorization: Bearer <API key>'.",
-        403: "This job belongs to another API key.",
+        403: "Metrics are not public on this server and no API keys are configured.",
         404: "No registration job with id '0b5a…'.",
+        408: "No request body bytes arrived for 30 s (DSAREG_HTTP_BODY_IDLE_TIMEOUT_SECONDS).",
         409: "Idempotency-Key 'k1' was already used with a different request body.",
         413: "The request body exceeds the upload limit of 536870912 bytes.",
         415: "Send multipart/form-data with the files mesh (or volume), ap and lat.",

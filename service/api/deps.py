@@ -2,7 +2,7 @@
 
 ``Ctx`` is the running service (store, blobs, executor...), ``Principal`` the caller
 (``'anonymous'`` or ``'key:<hash prefix>'``) and ``OwnedJob`` the path's ``job_id`` looked up
-and checked to belong to the caller (404 / 403 otherwise).
+and checked to belong to the caller (404 otherwise, for another key's job too: its existence is not told).
 """
 
 from __future__ import annotations
@@ -79,10 +79,8 @@ def owned_job(ctx: ServiceContext, job_id: str, who: str) -> JobRecord:
         raise Problem(404, "no registration job with this id", kind="job-not-found", field="job_id",
                       accepted="a job id as returned by POST /v1/registrations (1 to 64 of A-Z a-z 0-9 _ -)")
     job = ctx.store.get(job_id)
-    if job is None:
+    if job is None or job.owner != who:  # another key's job answers as if it did not exist (no existence leak)
         raise Problem(404, f"no registration job with id '{job_id}'", kind="job-not-found")
-    if job.owner != who:
-        raise Problem(403, "this job belongs to another API key")
     return job
 
 

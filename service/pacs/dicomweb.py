@@ -30,7 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 if TYPE_CHECKING:
     from ..settings import ServiceSettings
 
-UID_PATTERN = re.compile(r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$")
+UID_REGEX = r"^(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*$"
+UID_PATTERN = re.compile(UID_REGEX)
 RETRIABLE_STATUS = {408, 429, 502, 503, 504}
 TOTAL_TIME_FACTOR = 10  # one answer may take at most this many request timeouts in all
 DICOM_JSON = "application/dicom+json"
@@ -52,8 +53,10 @@ def normalize_url(url: str) -> str:
 
 class ImageRef(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    series_uid: str = Field(description="Series Instance UID of the XA (or other image) series.")
-    sop_instance_uid: str | None = Field(None, description="The instance; default the series' first (by Instance Number).")
+    series_uid: str = Field(description="Series Instance UID of the XA (or other image) series.",
+                            min_length=1, max_length=64, pattern=UID_REGEX)
+    sop_instance_uid: str | None = Field(None, description="The instance; default the series' first (by Instance Number).",
+                                         min_length=1, max_length=64, pattern=UID_REGEX)
     frame: int | Literal["minip"] | None = Field(
         None, description="Multi-frame XA: 0-based frame, 'minip', or null for maximum opacification (per view: "
         "the two references may name different frames; options.frames, if it names one too, must agree).")
@@ -73,8 +76,10 @@ class ImageRef(BaseModel):
 
 class VolumeRef(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    series_uid: str = Field(description="Series Instance UID of the 3D volume (3D-RA / CTA) series.")
-    study_uid: str | None = Field(None, description="Its study, when it is not the XA study.")
+    series_uid: str = Field(description="Series Instance UID of the 3D volume (3D-RA / CTA) series.",
+                            min_length=1, max_length=64, pattern=UID_REGEX)
+    study_uid: str | None = Field(None, description="Its study, when it is not the XA study.",
+                                  min_length=1, max_length=64, pattern=UID_REGEX)
 
     @field_validator("series_uid", "study_uid")
     @classmethod
@@ -87,7 +92,8 @@ class StudyReference(BaseModel):
     XA images and the volume series (subclasses add where the PACS is: a DICOMweb URL or a DIMSE peer)."""
 
     model_config = ConfigDict(extra="forbid")
-    study_uid: str = Field(description="Study Instance UID of the biplane XA study (results are stored into it).")
+    study_uid: str = Field(description="Study Instance UID of the biplane XA study (results are stored into it).",
+                           min_length=1, max_length=64, pattern=UID_REGEX)
     ap: ImageRef
     lat: ImageRef
     volume: VolumeRef

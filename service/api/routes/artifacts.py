@@ -45,7 +45,7 @@ def artifact_file(ctx: ServiceContext, job: JobRecord, name: str, media: str, fi
                              "content": {"application/json": {"example": {
                                  "mesh_to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
                                  "views": {"ap": {}, "lat": {}}, "metrics": {"dice": {"ap": 0.91, "lat": 0.9}}}}}},
-                       **problem_responses(401, 403, 404)})
+                       **problem_responses(401, 404)})
 def get_result(job: OwnedJob) -> Response:
     if job.status != "succeeded" or job.result is None:
         raise Problem(404, f"no result: the job is {job.status}", kind="result-not-available",
@@ -58,13 +58,13 @@ def get_result(job: OwnedJob) -> Response:
 
 
 @router.get("/v1/registrations/{job_id}/overlays/{view}.png", summary="Overlay of the registered mesh",
-            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
+            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 404, 422)})
 def get_overlay(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
     return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("overlays", view)])
 
 
 @router.get("/v1/registrations/{job_id}/masks/{view}.png", summary="Vessel mask used for a view",
-            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
+            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 404, 422)})
 def get_mask(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
     return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("masks", view)])
 
@@ -73,13 +73,13 @@ def get_mask(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) 
             response_class=Response,
             responses={200: {"content": {"image/gif": {"schema": {"type": "string", "format": "binary"}}},
                              "description": "Animated GIF (only with options.animation)."},
-                       **problem_responses(401, 403, 404)})
+                       **problem_responses(401, 404)})
 def get_animation(ctx: Ctx, job: OwnedJob) -> Response:
     return artifact_file(ctx, job, engine.ANIMATION_GIF, engine.ARTIFACTS[engine.ANIMATION_GIF])
 
 
 @router.get("/v1/registrations/{job_id}/loss.png", summary="Plot of the loss per iteration",
-            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404)})
+            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 404)})
 def get_loss_plot(ctx: Ctx, job: OwnedJob) -> Response:
     return artifact_file(ctx, job, engine.LOSS_PNG, engine.ARTIFACTS[engine.LOSS_PNG])
 
@@ -89,6 +89,6 @@ def get_loss_plot(ctx: Ctx, job: OwnedJob) -> Response:
             response_class=Response,
             responses={200: {"content": {"application/dicom": {"schema": {"type": "string", "format": "binary"}}},
                              "description": "A DICOM Part 10 file."},
-                       **problem_responses(401, 403, 404, 422)})
+                       **problem_responses(401, 404, 422)})
 def get_dicom(ctx: Ctx, job_id: str, name: DicomName, who: Principal) -> Response:
     return artifact_file(ctx, owned_job(ctx, job_id, who), name, engine.DICOM_FILES[name], filename=name)

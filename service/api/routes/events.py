@@ -50,7 +50,7 @@ EVENTS_DOC: dict[str, Any] = {
             "example": 'retry: 2000\n\nid: 1\nevent: progress\ndata: {"id": "…", "status": "running", '
                        '"progress": {"stage": "ap+lat:1/4", "iteration": 3, "loss": 0.08, "fraction": 0.05}}\n\n'
                        'id: 7\nevent: end\ndata: {"id": "…", "status": "succeeded", "verdict": "ok", …}\n\n'}}},
-        **problem_responses(401, 403, 404),
+        **problem_responses(401, 404),
     },
 }
 

@@ -47,7 +47,7 @@ SUBMIT_DOC = {
         202: {"description": "Accepted; poll the Location.", "headers": {
             "Location": {"description": "The job's URL.", "schema": {"type": "string"}},
             "Retry-After": {"description": "Seconds before the first poll.", "schema": {"type": "integer"}}}},
-        **problem_responses(400, 401, 409, 413, 415, 422, 429, 503, 507),
+        **problem_responses(400, 401, 408, 409, 413, 415, 422, 429, 503, 507),
     },
 }
 
@@ -115,7 +115,7 @@ def list_jobs(
 
 
 @router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",
-            responses=problem_responses(401, 403, 404))
+            responses=problem_responses(401, 404))
 def get_job(ctx: Ctx, job: OwnedJob) -> Response:
     headers = {"Retry-After": RETRY_AFTER_QUEUED} if job.status in ("queued", "running") else {}
     body = status_body(job)
@@ -128,7 +128,7 @@ def get_job(ctx: Ctx, job: OwnedJob) -> Response:
              description="A queued job is canceled at once (200); a running job stops at its next progress check "
                          "(202, poll until status is canceled). A finished job gives 409.",
              responses={202: {"description": "Cancellation requested; the worker stops shortly.", "model": JobStatus},
-                        **problem_responses(401, 403, 404, 409)})
+                        **problem_responses(401, 404, 409)})
 def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
     if job.status in ("succeeded", "failed"):
         raise Problem(409, f"the job already finished ({job.status}); nothing to cancel", kind="job-finished",
@@ -140,7 +140,7 @@ def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
 
 
 @router.delete("/v1/registrations/{job_id}", status_code=204, summary="Delete a job and its files",
-               response_class=Response, responses={204: {"description": "Deleted."}, **problem_responses(401, 403, 404)})
+               response_class=Response, responses={204: {"description": "Deleted."}, **problem_responses(401, 404)})
 def delete_job(ctx: Ctx, job: OwnedJob) -> Response:
     if job.status == "running":
         ctx.store.request_cancel(job.id)

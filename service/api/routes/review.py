@@ -27,7 +27,7 @@ router = resource_router("registrations")
     description="Records a person's decision (`approved` / `rejected`) and comment on a finished job "
                 "(succeeded, failed or canceled) and answers the job with its `review`. A later review replaces "
                 "the earlier one on the job; each stays in the job's audit log. A queued or running job gives 409.",
-    responses=problem_responses(401, 403, 404, 409, 422),
+    responses=problem_responses(400, 401, 404, 408, 409, 422),
 )
 def review_job(body: ReviewRequest, ctx: Ctx, job: OwnedJob, who: Principal) -> Response:
     if job.status in ("queued", "running"):
@@ -44,7 +44,7 @@ def review_job(body: ReviewRequest, ctx: Ctx, job: OwnedJob, who: Principal) -> 
     "/v1/registrations/{job_id}/audit", response_model=AuditLog, summary="The job's audit log",
     description="Every recorded event of the job, oldest first: submission, claims, the end state, reviews and the "
                 "PACS export held for review, each with who did it (an API key's label, never the key) and details.",
-    responses=problem_responses(401, 403, 404),
+    responses=problem_responses(401, 404),
 )
 def get_audit(ctx: Ctx, job: OwnedJob) -> Response:
     items = [audit_event(row, job.owner) for row in ctx.store.events(job.id)]

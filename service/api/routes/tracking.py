@@ -69,7 +69,7 @@ TRACK_DOC = {
                                    "schema": {"type": "string", "maxLength": 255}}]},
     "responses": {202: {"description": "Accepted; poll the Location.", "headers": {
         "Location": {"description": "The new job's URL.", "schema": {"type": "string"}}}},
-        **problem_responses(400, 401, 403, 404, 409, 413, 415, 422, 429, 503, 507)},
+        **problem_responses(400, 401, 404, 408, 409, 413, 415, 422, 429, 503, 507)},
 }
 
 

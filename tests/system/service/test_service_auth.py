@@ -31,9 +31,9 @@ def test_api_keys_required_and_scoped(tmp_path, example_case):
                 assert job.status_code == 202, job.text
                 job_id = job.json()["id"]
                 assert a.get(f"/v1/registrations/{job_id}").status_code == 200
-                assert b.get(f"/v1/registrations/{job_id}").status_code == 403
-                assert b.post(f"/v1/registrations/{job_id}/cancel").status_code == 403
-                assert b.delete(f"/v1/registrations/{job_id}").status_code == 403
+                assert b.get(f"/v1/registrations/{job_id}").status_code == 404  # no existence leak
+                assert b.post(f"/v1/registrations/{job_id}/cancel").status_code == 404
+                assert b.delete(f"/v1/registrations/{job_id}").status_code == 404
                 assert job_id not in [j["id"] for j in b.get("/v1/registrations").json()["items"]]
                 # back-pressure: 1 queued job per key, 2 in all (no workers here, so they stay queued)
                 too_many = submit(a, example_case, options={"starts": 1, "max_iterations": 31})
