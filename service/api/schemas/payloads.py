@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine
 from .closed import CLOSED
+from .dimse_result import DimseExport, DimseSourceInfo
 from .hemodynamics import HemodynamicsSummary
 
 Matrix4 = list[list[float]]
@@ -246,6 +247,7 @@ class DicomSource(BaseModel):
     study_uid: str | None = None
     fetch_seconds: float | None = Field(None, description="Time to fetch the inputs, seconds.")
     requests: int | None = Field(None, description="HTTP requests made to fetch them.")
+    dimse: DimseSourceInfo | None = Field(None, description="Inputs that came over DIMSE: a received study, or a pull.")
 
 
 class DicomStored(BaseModel):
@@ -270,6 +272,8 @@ class DicomResult(BaseModel):
                                           "with options.hemodynamics `parametric_ap.dcm`, `parametric_lat.dcm`).")
     source: DicomSource | None = None
     stored: DicomStored | None = None
+    exported: list[DimseExport] | None = Field(None, description="A study received over DIMSE: its results' C-STORE to "
+                                                                 "each destination.")
 
 
 class MaskShift(BaseModel):
