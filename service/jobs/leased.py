@@ -6,7 +6,9 @@ same attempt) and runs it on a small thread pool (:meth:`deliver`). An API that 
 leaves the row with a lease; once it has passed, a deliverer (after a restart, or another
 replica) takes it again: at least once, never lost. A deliverer with ``renewed_lease_seconds``
 claims a short lease and renews it every third of it while the attempt runs (:meth:`renew`), so a
-dead API's item is taken again after that short lease, whatever an attempt may take.
+dead API's item is taken again after that short lease, whatever an attempt may take. A process
+never claims an item its own pool is still delivering: an API frozen (SIGSTOP) past the lease
+finishes its attempt when it resumes instead of starting a second one beside it.
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ class LeasedDeliverer(abc.ABC):
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix=self.name)
+        self._inflight: set[str] = set()
+        self._inflight_lock = threading.Lock()
 
     @abc.abstractmethod
     def due(self, now: float) -> list[str]:
@@ -74,9 +78,14 @@ class LeasedDeliverer(abc.ABC):
         """Claim every due item and hand it to the pool; how many were claimed."""
         claimed = 0
         for job_id in self.due(time.time()):
+            with self._inflight_lock:
+                if job_id in self._inflight:  # ours, still running (its lease lapsed while we were frozen)
+                    continue
             row = self.claim(job_id, time.time())
             if row is not None:
                 claimed += 1
+                with self._inflight_lock:
+                    self._inflight.add(job_id)
                 self._pool.submit(self._deliver_logged, row)
         return claimed
 
@@ -90,6 +99,8 @@ class LeasedDeliverer(abc.ABC):
             log.exception("job %s: %s attempt raised", row["job_id"], self.name)
         finally:
             done.set()
+            with self._inflight_lock:
+                self._inflight.discard(row["job_id"])
 
     def _keep_lease(self, row: dict[str, Any], done: threading.Event) -> None:
         lease = float(self.renewed_lease_seconds or 0.0)

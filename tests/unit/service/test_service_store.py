@@ -270,3 +270,37 @@ def test_an_export_lease_is_short_and_renewed_while_the_attempt_runs(store, tmp_
     deliverer._pool.shutdown(wait=True)
     assert store.get(job.id).export["state"] == "done" and len(seen) == 8
     assert max(seen) > started + 2.0  # renewed past the first 0.6 s lease, again and again
+
+
+def test_a_deliverer_never_claims_what_its_own_pool_still_delivers(store, tmp_path):
+    """Its lease lapsed (the API was frozen past it): the attempt that resumes finishes it, no second attempt."""
+    import threading
+
+    from service.jobs.exports import ExportDeliverer
+    from service.settings import ServiceSettings
+    from service.storage.blobs import BlobStore
+
+    job = _succeeded(store, TARGET)
+    store.review(job.id, "approved", "", "key:1")
+    release = threading.Event()
+
+    class Frozen(ExportDeliverer):
+        renewed_lease_seconds = 0.3
+
+        def renew(self, row, until):  # frozen: no renewal either
+            return True
+
+        def deliver(self, row):
+            release.wait(10)
+            store.finish_export(row["job_id"], row["attempts"], state="done", outcome={}, error=None,
+                                next_attempt_at=None)
+            return "done"
+
+    deliverer = Frozen(store, BlobStore(tmp_path), ServiceSettings(data_dir=tmp_path))
+    assert deliverer.deliver_due() == 1
+    time.sleep(0.5)  # past the lease: the row looks abandoned
+    assert store.due_exports(time.time()) == [job.id] and deliverer.deliver_due() == 0
+    release.set()
+    deliverer._pool.shutdown(wait=True)
+    done = store.get(job.id).export
+    assert done["state"] == "done" and done["attempts"] == 1
