@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine, fetched_case_files
 from ..dicomweb import ReferenceRequestFields, StudyReference
-from .query import DimsePacsError, retrieve, scu_ae
+from .query import DimsePacsError, bounded, deadline_of, retrieve, scu_ae
 from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
 
 ROLE = "dimse-reference"
@@ -61,9 +61,14 @@ def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str
     if peer is None:
         raise DimsePacsError(title, "configuration", "no longer one of this server's DSAREG_DICOM_PEERS")
     received: list[bytes] = []
+    room = [settings.limits.max_upload_bytes]  # all of one C-GET at most, as an upload
 
     def on_store(event: Any) -> int:
-        received.append(bytes(event.encoded_dataset(include_meta=True)))
+        data = bytes(event.encoded_dataset(include_meta=True))
+        room[0] -= len(data)
+        if room[0] < 0:
+            return 0xA700  # out of resources: the peer is told, the C-GET ends with failures
+        received.append(data)
         return SUCCESS
 
     ae = scu_ae(settings)
@@ -83,7 +88,8 @@ def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str
         setattr(query, keyword, value)
     final = None
     try:
-        for status, _identifier in assoc.send_c_get(query, GET_MODEL):
+        for status, _identifier in bounded(assoc, assoc.send_c_get(query, GET_MODEL), deadline_of(settings), title,
+                                           step):
             code = int(getattr(status, "Status", -1)) if status else None
             if code not in PENDING:
                 final = code

@@ -8,7 +8,9 @@
 * :func:`latest_volume` — the newest study of a patient holding a CT / MR / 3D-RA series (by
   Study Date, Study Time), and its largest such series.
 
-Every failure raises :class:`DimsePacsError` naming the peer, the step and the DIMSE status.
+Every failure raises :class:`DimsePacsError` naming the peer, the step and the DIMSE status. Each
+DIMSE wait is bounded by ``dicom_timeout_seconds``; a peer that keeps answering "pending" is bounded
+by ``pacs_deadline_seconds`` in all (:func:`bounded`: the association is aborted past it).
 """
 
 from __future__ import annotations
@@ -70,6 +72,21 @@ def associate(settings: Any, title: str, contexts: tuple[str, ...], step: str, *
     return assoc
 
 
+def deadline_of(settings: Any) -> float:
+    """The monotonic time by which a job's (or a study's) PACS queries and retrievals must be over."""
+    return time.monotonic() + settings.dicomweb.pacs_deadline_seconds
+
+
+def bounded(assoc: Any, answers: Any, deadline_at: float, title: str, step: str) -> Any:
+    """``answers`` (a pynetdicom response generator) until ``deadline_at``; then abort and :class:`DimsePacsError`."""
+    for answer in answers:
+        yield answer
+        if time.monotonic() > deadline_at:
+            assoc.abort()
+            raise DimsePacsError(title, step, "the peer was still answering 'pending' at the job's PACS deadline "
+                                              "(DSAREG_PACS_DEADLINE_SECONDS); association aborted")
+
+
 def _accepted(assoc: Any, *models: str) -> str | None:
     uids = {str(cx.abstract_syntax) for cx in assoc.accepted_contexts}
     return next((uid for uid in models if uid in uids), None)
@@ -85,13 +102,15 @@ def _identifier(level: str, keys: dict[str, Any]):
     return query
 
 
-def c_find(assoc: Any, title: str, level: str, keys: dict[str, Any], step: str) -> list[Any]:
+def c_find(assoc: Any, title: str, level: str, keys: dict[str, Any], step: str,
+           deadline_at: float = float("inf")) -> list[Any]:
     """The identifiers one C-FIND matches (``keys``: matching values, ``""`` for return keys)."""
     model = _accepted(assoc, STUDY_FIND, PATIENT_FIND)
     if model is None:
         raise DimsePacsError(title, step, "the peer accepted neither Study Root nor Patient Root C-FIND")
     found, final = [], None
-    for status, identifier in assoc.send_c_find(_identifier(level, keys), model):
+    for status, identifier in bounded(assoc, assoc.send_c_find(_identifier(level, keys), model), deadline_at,
+                                      title, step):
         code = int(getattr(status, "Status", -1)) if status else None
         if code in PENDING and identifier is not None:
             found.append(identifier)
@@ -112,16 +131,16 @@ class VolumeSeries:
     study_date: str
 
 
-def _volume_series(assoc: Any, title: str, study_uid: str) -> VolumeSeries | None:
+def _volume_series(assoc: Any, title: str, study_uid: str, until: float) -> VolumeSeries | None:
     series = c_find(assoc, title, "SERIES", {"StudyInstanceUID": study_uid, "SeriesInstanceUID": "", "Modality": "",
-                                             "NumberOfSeriesRelatedInstances": ""}, "C-FIND series (volume)")
+                                             "NumberOfSeriesRelatedInstances": ""}, "C-FIND series (volume)", until)
     candidates = []
     for item in series:
         modality = str(getattr(item, "Modality", "") or "")
         if modality == "XA":
             images = c_find(assoc, title, "IMAGE", {"StudyInstanceUID": study_uid,
                                                     "SeriesInstanceUID": item.SeriesInstanceUID, "SOPClassUID": "",
-                                                    "SOPInstanceUID": ""}, "C-FIND images (3D-RA)")
+                                                    "SOPInstanceUID": ""}, "C-FIND images (3D-RA)", until)
             if not any(str(getattr(i, "SOPClassUID", "")) in XA_3D_CLASSES for i in images):
                 continue
         elif modality not in VOLUME_MODALITIES:
@@ -136,11 +155,12 @@ def _volume_series(assoc: Any, title: str, study_uid: str) -> VolumeSeries | Non
 
 def latest_volume(settings: Any, title: str, patient_id: str, exclude_study: str) -> VolumeSeries | None:
     """The patient's newest study (Study Date + Time) with a CT / MR / 3D-RA series, and that series."""
+    until = deadline_of(settings)
     assoc = associate(settings, title, (STUDY_FIND, PATIENT_FIND), "C-FIND studies (patient's volume)")
     try:
         studies = c_find(assoc, title, "STUDY", {"PatientID": patient_id, "StudyInstanceUID": "", "StudyDate": "",
                                                  "StudyTime": "", "ModalitiesInStudy": ""},
-                         "C-FIND studies (patient's volume)")
+                         "C-FIND studies (patient's volume)", until)
         ranked = sorted(studies, key=lambda s: (str(getattr(s, "StudyDate", "") or ""),
                                                 str(getattr(s, "StudyTime", "") or "")), reverse=True)
         for study in ranked:
@@ -149,7 +169,7 @@ def latest_volume(settings: Any, title: str, patient_id: str, exclude_study: str
             modalities = {str(value)} if isinstance(value, str) else {str(item) for item in value}
             if uid == exclude_study or (modalities and not modalities & {*VOLUME_MODALITIES, "XA"}):
                 continue
-            found = _volume_series(assoc, title, uid)
+            found = _volume_series(assoc, title, uid, until)
             if found is not None:
                 return VolumeSeries(found.study_uid, found.series_uid, found.modality, found.instances,
                                     str(getattr(study, "StudyDate", "") or ""))
@@ -159,15 +179,18 @@ def latest_volume(settings: Any, title: str, patient_id: str, exclude_study: str
             assoc.release()
 
 
-def c_move(settings: Any, title: str, level: str, keys: dict[str, Any], step: str) -> int:
+def c_move(settings: Any, title: str, level: str, keys: dict[str, Any], step: str,
+           deadline_at: float | None = None) -> int:
     """C-MOVE the matches of ``keys`` to our own AE; the number of sub-operations the peer completed."""
+    deadline_at = deadline_of(settings) if deadline_at is None else deadline_at
     assoc = associate(settings, title, (STUDY_MOVE, PATIENT_MOVE), step)
     final, completed = None, 0
     try:
         model = _accepted(assoc, STUDY_MOVE, PATIENT_MOVE)
         if model is None:
             raise DimsePacsError(title, step, "the peer accepted neither Study Root nor Patient Root C-MOVE")
-        for status, _answer in assoc.send_c_move(_identifier(level, keys), settings.dimse.dicom_ae_title, model):
+        answers = assoc.send_c_move(_identifier(level, keys), settings.dimse.dicom_ae_title, model)
+        for status, _answer in bounded(assoc, answers, deadline_at, title, step):
             code = int(getattr(status, "Status", -1)) if status else None
             completed = int(getattr(status, "NumberOfCompletedSuboperations", completed) or completed) if status \
                 else completed
