@@ -50,12 +50,28 @@ HEMODYNAMICS_FILES: dict[str, str] = {
 """What the hemodynamics step (``options.hemodynamics``, :mod:`dsareg_engine.hemodynamics.run`) may write."""
 
 
+def image_png(view: str) -> str:
+    """The image registered (frame or frames combined, subtracted), 8-bit grey (:mod:`.io.review_files`)."""
+    return f"image_{view}.png"
+
+
+def layers_png(view: str) -> str:
+    """Outlines (initial, registered), mask and unfilled pixels as RGB layers (:mod:`.io.review_files`)."""
+    return f"layers_{view}.png"
+
+
+MODEL_JSON = "model.json"
+
+
 REGISTRATION_FILES: dict[str, str] = {
     RESULT_JSON: "application/json",
     **{overlay_png(view): "image/png" for view in VIEWS},
     **{mask_png(view): "image/png" for view in VIEWS},
     ANIMATION_GIF: "image/gif",
     LOSS_PNG: "image/png",
+    **{image_png(view): "image/png" for view in VIEWS},
+    **{layers_png(view): "image/png" for view in VIEWS},
+    MODEL_JSON: "application/json",
 }
 """What :func:`~dsareg_engine.pipeline.write_outputs` may write: ``{file name: media type}``."""
 

@@ -29,6 +29,7 @@ from .io.case import Case, CaseFiles, load_case_files
 from .io.dicom_identity import DicomSources
 from .io.limits import DEFAULT_LIMITS, InputLimits
 from .io.input_decisions import InputDecision, with_close_calls
+from .io.review_files import write_model_json, write_view_files
 from .io.volume_kind import VolumeReading
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
@@ -81,6 +82,7 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     if progress is not None:
         progress({"stage": "start", "iteration": 0, "loss": None, "fraction": 0.0})
     data = run_registration_case(case, options, out_dir, progress=progress, should_stop=should_stop, label=label)
+    write_model_json(Path(out_dir), files.mesh, files.mesh_name, case.mesh, data)  # the review page's 3D scene
     if options.hemodynamics:
         _hemodynamics(files, case, data, Path(out_dir), progress)
     if dicom != "off":
@@ -196,6 +198,8 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
     data = with_close_calls(data, list(decisions or []))
     report = _outputs_progress(progress, len(result.views) + 2)
     report()
+    if rig is not None:  # the image registered, outline layers, detector geometry (review page)
+        write_view_files(out_dir, result, masks, images, rig, mesh, data)
     (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
     verdict, ok = verdict_of(data)
     for name, view in result.views.items():

@@ -6,10 +6,13 @@ import sys
 import textwrap
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 from dsareg_engine.artifacts import REGISTRATION_FILES
-from dsareg_engine.warmup import warm_up_job
+from dsareg_engine.io.review_files import MASK_BIT, obj_as_given
+from dsareg_engine.warmup import phantom_case_files, warm_up_job
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -20,6 +23,19 @@ def test_warm_up_job_writes_what_a_job_writes(tmp_path):
     written = {p.name for p in tmp_path.iterdir()}
     assert set(REGISTRATION_FILES) - {"animation.gif"} <= written, written
     assert any(name.endswith(".dcm") for name in written), written
+    # the review files: the model as given (the OBJ's own vertex order) and each view's C-arm and layers
+    model = json.loads((tmp_path / "model.json").read_text())
+    (tmp_path / "again").mkdir()
+    given, faces = obj_as_given(phantom_case_files(tmp_path / "again")["mesh"])
+    assert model["vertex_order"] == "file" and model["vertex_count"] == len(given)
+    assert np.allclose(np.reshape(model["vertices"], (-1, 3)), given, atol=1e-4)
+    assert model["faces"] == faces.ravel().tolist() and model["poses"]["registered"] == result["mesh_to_world"]
+    for view in ("ap", "lat"):
+        assert model["views"][view] == result["views"][view]["detector"]
+        layers = cv2.imread(str(tmp_path / f"layers_{view}.png"))[..., ::-1]
+        image = cv2.imread(str(tmp_path / f"image_{view}.png"), cv2.IMREAD_UNCHANGED)
+        assert layers.shape[:2] == image.shape == tuple(model["views"][view]["image_size_px"][::-1])
+        assert (layers[..., 1] == 255).any() and ((layers[..., 2] & MASK_BIT) > 0).any()
 
 
 def test_service_warm_up_loads_what_the_first_job_would_load(tmp_path):

@@ -19,6 +19,8 @@ router = resource_router("results")
 ARTIFACTS = {
     **{("overlays", view): (engine.overlay_png(view), engine.ARTIFACTS[engine.overlay_png(view)]) for view in ("ap", "lat")},
     **{("masks", view): (engine.mask_png(view), engine.ARTIFACTS[engine.mask_png(view)]) for view in ("ap", "lat")},
+    **{("images", view): (engine.image_png(view), "image/png") for view in ("ap", "lat")},
+    **{("layers", view): (engine.layers_png(view), "image/png") for view in ("ap", "lat")},
 }
 DicomName = Literal[tuple(engine.DICOM_FILES)]  # reg.dcm, overlay_ap.dcm, overlay_lat.dcm, loss.dcm
 
@@ -67,6 +69,34 @@ def get_overlay(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principa
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 404, 422)})
 def get_mask(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
     return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("masks", view)])
+
+
+@router.get("/v1/registrations/{job_id}/images/{view}.png", summary="The image registered (8-bit grey)",
+            description="The image the registration fitted: the frame, or the frames combined, subtracted; "
+                        "at its own pixel grid, contrast stretched (0.5–99.5 percentiles).",
+            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
+def get_registered_image(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
+    return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("images", view)])
+
+
+@router.get("/v1/registrations/{job_id}/layers/{view}.png", summary="Outlines and mask as RGB layers",
+            description="Same grid as the image: R 255 = outline of the initial pose, G 255 = outline of the "
+                        "registered pose, B bit 7 (128) = vessel mask, B bit 6 (64) = model pixels with no vessel "
+                        "under them (unfilled). A page draws each as a toggle.",
+            response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
+def get_layers(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
+    return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("layers", view)])
+
+
+@router.get("/v1/registrations/{job_id}/model.json", summary="The model, both poses and the C-arm (3D scene)",
+            description="vertices (flat x, y, z mm, the model file's vertex order as given: OBJ `v` lines in order, "
+                        "duplicates kept), faces (flat, 0-based), poses.registered / poses.initial (4x4 mesh → "
+                        "world) and per view the detector (source, image corners in world mm).",
+            response_class=Response,
+            responses={200: {"content": {"application/json": {}}, "description": "The model document."},
+                       **problem_responses(401, 403, 404)})
+def get_model(ctx: Ctx, job: OwnedJob) -> Response:
+    return artifact_file(ctx, job, engine.MODEL_JSON, "application/json")
 
 
 @router.get("/v1/registrations/{job_id}/animation.gif", summary="Animation of the optimization",

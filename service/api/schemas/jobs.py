@@ -59,6 +59,11 @@ class JobLinks(BaseModel):
     mask_ap: str | None = _link("AP vessel mask PNG used for the registration; present when succeeded.")
     mask_lat: str | None = _link("LAT vessel mask PNG; present when succeeded.")
     loss_plot: str | None = _link("Loss-per-iteration plot PNG; present when succeeded.")
+    image_ap: str | None = _link("The AP image registered (frame or frames combined, subtracted), PNG.")
+    image_lat: str | None = _link("The LAT image registered, PNG.")
+    layers_ap: str | None = _link("AP outlines (initial, registered), mask and unfilled pixels as RGB layers, PNG.")
+    layers_lat: str | None = _link("LAT layers, PNG.")
+    model: str | None = _link("model.json: the model as given, both poses and the C-arm (the 3D scene).")
     animation: str | None = _link("Animated GIF; present only when the job asked for options.animation and succeeded.")
     dicom_reg: str | None = _link("DICOM Spatial Registration (reg.dcm); present when succeeded and written.")
     dicom_overlay_ap: str | None = _link("DICOM Secondary Capture of the AP overlay; present when succeeded and written.")
@@ -186,6 +191,8 @@ def job_links(job_id: str, job: JobRecord | None = None) -> JobLinks:
         cancel=f"{base}/cancel", result=f"{base}/result",
         overlay_ap=f"{base}/overlays/ap.png", overlay_lat=f"{base}/overlays/lat.png",
         mask_ap=f"{base}/masks/ap.png", mask_lat=f"{base}/masks/lat.png", loss_plot=f"{base}/loss.png",
+        image_ap=f"{base}/images/ap.png", image_lat=f"{base}/images/lat.png", layers_ap=f"{base}/layers/ap.png",
+        layers_lat=f"{base}/layers/lat.png", model=f"{base}/model.json",
         animation=f"{base}/animation.gif", track=f"{base}/track",
         hemodynamics=f"{base}/hemodynamics.json", hemodynamics_ply=f"{base}/hemodynamics.ply",
         hemodynamics_vtk=f"{base}/hemodynamics.vtk", parametric_ap=f"{base}/parametric/ap.png",
@@ -215,7 +222,10 @@ LINKED_ARTIFACTS = {"overlay_ap": engine.overlay_png("ap"), "overlay_lat": engin
                     "mask_ap": engine.mask_png("ap"), "mask_lat": engine.mask_png("lat"), "loss_plot": engine.LOSS_PNG,
                     "animation": engine.ANIMATION_GIF, "hemodynamics": engine.HEMODYNAMICS_JSON,
                     "hemodynamics_ply": engine.HEMODYNAMICS_PLY, "hemodynamics_vtk": engine.HEMODYNAMICS_VTK,
-                    "parametric_ap": engine.parametric_png("ap"), "parametric_lat": engine.parametric_png("lat")}
+                    "parametric_ap": engine.parametric_png("ap"), "parametric_lat": engine.parametric_png("lat"),
+                    "image_ap": engine.image_png("ap"),
+                    "image_lat": engine.image_png("lat"), "layers_ap": engine.layers_png("ap"),
+                    "layers_lat": engine.layers_png("lat"), "model": engine.MODEL_JSON}
 LINKED_DICOM = {"dicom_reg": engine.REG_DCM, "dicom_overlay_ap": engine.overlay_dcm("ap"),
                 "dicom_overlay_lat": engine.overlay_dcm("lat"), "dicom_loss": engine.LOSS_DCM,
                 "dicom_parametric_ap": engine.parametric_dcm("ap"), "dicom_parametric_lat": engine.parametric_dcm("lat")}

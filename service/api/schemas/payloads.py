@@ -215,6 +215,23 @@ class ResultMetrics(BaseModel):
     motion: Motion | None = None
 
 
+class DetectorGeometry(BaseModel):
+    """The C-arm of one view as it stood, world mm (the rig's convention: source at the view frame's origin, the
+    image plane at z = sid_mm)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    source_mm: list[float] = Field(min_length=3, max_length=3, description="X-ray source position, world mm.")
+    corners_mm: list[list[float]] = Field(min_length=4, max_length=4, description=(
+        "World mm of the image's outer corners on the detector: top-left, top-right, bottom-right, bottom-left of "
+        "the stored image (pixel edges, (u, v) = (-0.5, -0.5) … (W-0.5, H-0.5))."))
+    image_size_px: list[int] = Field(min_length=2, max_length=2, description="(W, H) of the image registered.")
+    sid_mm: float = Field(description="Source-to-detector distance, mm.")
+    pixel_spacing_mm: list[float] = Field(min_length=2, max_length=2, description="(du, dv) at the detector, mm.")
+    mm_per_px_at_model: float | None = Field(None, description="A pixel's size at the depth of the model's centre "
+                                                               "(registered pose), mm: one mm scale for both views.")
+
+
 class ViewResult(BaseModel):
     """Per-view outcome."""
 
@@ -225,6 +242,8 @@ class ViewResult(BaseModel):
     projection_matrix: Matrix34 = Field(description="3x4 homogeneous mesh-frame mm → homogeneous pixels.")
     dice: float = Field(ge=0, le=1, description="Dice of the registered hard silhouette with the vessel mask.")
     iou: float = Field(ge=0, le=1, description="Intersection over union of the same.")
+    detector: DetectorGeometry | None = Field(None, description="Where the source and the detector stood "
+                                                                "(the review page's 3D scene; model.json repeats it).")
 
 
 class DicomInstance(BaseModel):

@@ -166,6 +166,7 @@ def test_register_by_reference_stores_reg_and_overlays_in_the_pacs(service, orth
         job = wait_for(client, job_id, timeout=300)
         assert job["status"] == "succeeded", job
         assert set(job["links"]) == {"self", "result", "overlay_ap", "overlay_lat", "mask_ap", "mask_lat", "loss_plot",
+                                     "image_ap", "image_lat", "layers_ap", "layers_lat", "model",
                                      "dicom_reg", "dicom_overlay_ap", "dicom_overlay_lat", "dicom_loss", "track"}
         for name, link in job["links"].items():
             if name != "track":  # a POST
