@@ -15,8 +15,11 @@ from ...problems import Problem
 
 router = APIRouter(include_in_schema=False)
 
-FILES = {"index.html": "text/html; charset=utf-8", "app.js": "text/javascript; charset=utf-8",
+JS = "text/javascript; charset=utf-8"
+FILES = {"index.html": "text/html; charset=utf-8", "app.js": JS, "views2d.js": JS, "scene3d.js": JS,
          "app.css": "text/css; charset=utf-8"}
+VENDOR = {"three.module.min.js": JS, "OrbitControls.js": JS}
+"""three.js, vendored at a pinned version (static/vendor/three/README.md): only what the 3D scene imports."""
 HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; object-src 'none'; "
                                "base-uri 'none'; frame-ancestors 'none'; form-action 'none'",
@@ -26,8 +29,8 @@ HEADERS = {
 }
 
 
-def _read(name: str) -> bytes:
-    return resources.files("service.api.ui").joinpath("static", name).read_bytes()
+def _read(name: str, *folder: str) -> bytes:
+    return resources.files("service.api.ui").joinpath("static", *folder, name).read_bytes()
 
 
 @router.get("/ui")
@@ -45,3 +48,11 @@ def ui_file(name: str) -> Response:
     if name not in FILES:
         raise Problem(404, f"no file '{name[:40]}' in the review page", accepted=", ".join(sorted(FILES)))
     return Response(_read(name), media_type=FILES[name], headers=HEADERS)
+
+
+@router.get("/ui/vendor/three/{name}")
+def ui_vendor_file(name: str) -> Response:
+    if name not in VENDOR:
+        raise Problem(404, f"no file '{name[:40]}' in the review page", accepted=", ".join(sorted(VENDOR)))
+    return Response(_read(name, "vendor", "three"), media_type=VENDOR[name],
+                    headers={**HEADERS, "Cache-Control": "public, max-age=86400"})

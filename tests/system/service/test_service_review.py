@@ -200,12 +200,12 @@ def test_review_page_in_chromium(keyed_server, example_case, tmp_path):
         browser.run("document.activeElement.blur()")
         browser.screenshot(tmp_path / "list.png")
         browser.click(link)  # click 1: open the job
-        browser.wait("const i = document.querySelectorAll('.views img[data-view]'); "
-                     "return i.length === 2 && [...i].every(x => x.complete && x.naturalWidth > 0)", what="overlays")
+        browser.wait("const s = document.getElementById('views'); return s && s.dataset.ready === '1' && "
+                     "document.querySelectorAll('.views canvas[data-drawn]').length === 2", what="views")
         browser.wait("const p = document.querySelector('.plot img'); return p && p.complete && p.naturalWidth > 0",
                      what="loss plot")
         # the loss plot at a readable scale, scaled smoothly (a chart, not pixels), and whole in the screenshot
-        browser.resize(1280, 1500)
+        browser.resize(1280, 2200)  # the views, the 3D scene, then the plot
         browser.run("window.scrollTo(0, 0)")
         width, bottom, viewport, rendering = browser.run(
             "const p = document.querySelector('.plot img'); const r = p.getBoundingClientRect(); "
@@ -216,10 +216,10 @@ def test_review_page_in_chromium(keyed_server, example_case, tmp_path):
                                "return items.length >= 3 && items", what="history")
         assert any("queued" in item and "key:" in item for item in history), history
         assert any("succeeded" in item and "worker:" in item for item in history), history
-        assert browser.run("return document.querySelector('.views img').src").startswith("blob:")
-        browser.click("#toggle-masks")
-        browser.wait("return document.querySelector('.views figcaption').textContent.includes('mask')", what="masks")
-        browser.click("#toggle-masks")
+        assert browser.run("return document.querySelector('.plot img').src").startswith("blob:")
+        browser.click("#toggle-mask")
+        browser.wait("return document.getElementById('toggle-mask').getAttribute('aria-pressed') === 'true'", what="mask")
+        browser.click("#toggle-mask")
         text = browser.run("return document.body.innerText")
         assert "Dice ap" in text and "Pose rotation" in text and "Verdict" in text, text
         browser.type("#comment", "Contours follow the vessels in both views.")

@@ -80,15 +80,95 @@ def test_workspace_in_chromium(keyed_server, dicom_job, tmp_path):
         browser.open("about:blank")
         started = time.monotonic()  # a full load of the job page (a deep link), not a hash change
         browser.open(keyed_server.url + f"/ui/#/job/{dicom_job['id']}")
-        browser.wait("const i = document.querySelectorAll('.views img[data-view]'); return i.length === 2 && "
-                     "[...i].every(x => x.complete && x.naturalWidth > 0) && document.getElementById('case')",
-                     what="job page")
+        browser.wait("const s = document.getElementById('views'); return s && s.dataset.ready === '1'", what="views")
         load_s = time.monotonic() - started
         facts = browser.run("return document.getElementById('case').innerText")
         assert PATIENT_ID in facts and "Roe, Ada" in facts and PAYLOAD in facts, facts
         assert browser.run("return document.querySelectorAll('#case img, #jobs img').length") == 0
         assert browser.run("return window.__xss === undefined")
-        print(f"job page loaded in {load_s:.2f} s")
+        print(f"\njob page (case, both views drawn) loaded in {load_s:.2f} s")
         assert load_s <= 2.0, load_s
+        _toggles_and_zoom_change_the_views(browser)
+        _scene_draws(browser, tmp_path)
+        _approve_by_keyboard(browser, keyed_server, dicom_job["id"])
     finally:
         browser.close()
+
+
+PIXELS = ("const c = document.querySelector('canvas.view2d[data-view=\"ap\"]'); "
+          "const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let h = 0; "
+          "for (let i = 0; i < d.length; i += 4) h = (h * 31 + d[i] + 7 * d[i + 1] + 13 * d[i + 2]) % 1000000007; return h")
+
+
+def _toggles_and_zoom_change_the_views(browser) -> None:
+    first = browser.run(PIXELS)
+    browser.click("#toggle-registered")
+    assert browser.run(PIXELS) != first  # the registered outline is gone
+    browser.click("#toggle-registered")
+    assert browser.run(PIXELS) == first
+    browser.click("#toggle-initial")
+    browser.click("#toggle-unfilled")
+    plain = browser.run(PIXELS)
+    browser.click("#toggle-initial")
+    browser.click("#toggle-unfilled")
+    assert plain != first
+    scale = float(browser.run("return document.getElementById('views').dataset.pxPerMm"))
+    browser.click("#zoom-in")
+    zoomed = float(browser.run("return document.getElementById('views').dataset.pxPerMm"))
+    assert abs(zoomed / scale - 1.25) < 1e-3 and browser.run(PIXELS) != first
+    # one mm scale: each view's screen px per image px is px/mm times its own mm per px at the model
+    browser.click("#zoom-fit")
+    assert browser.run(PIXELS) == first
+
+
+def _scene_draws(browser, tmp_path) -> None:
+    from PIL import Image
+
+    browser.wait("const s = document.getElementById('scene'); return s && s.dataset.ready === '1'", what="3D scene")
+    browser.run("document.getElementById('scene3d').scrollIntoView()")
+    shot = browser.element_screenshot("#scene3d", tmp_path / "scene.png")
+    image = Image.open(shot).convert("RGB")
+    colours = image.getcolors(maxcolors=1 << 20) or []
+    assert len(colours) > 50, "the 3D canvas is (nearly) blank"
+    orange = sum(n for n, (r, g, b) in colours if r > 100 and r > 1.4 * g and b < 0.5 * r)
+    assert orange > 30, orange  # the registered model is drawn (shaded orange; thin vessels, a whole C-arm in view)
+    frames = int(browser.run("return document.getElementById('scene3d').dataset.frames"))
+    browser.click("#toggle-ghost")
+    assert int(browser.run("return document.getElementById('scene3d').dataset.frames")) > frames
+
+
+def _approve_by_keyboard(browser, server, job_id: str) -> None:
+    browser.run("document.activeElement.blur()")
+    browser.keys("a")
+    assert "Press Y" in browser.run("return document.getElementById('review-prompt').innerText")
+    browser.keys("n")  # anything but Y cancels
+    browser.keys("ay")
+    browser.wait("return document.getElementById('review-state').innerText.includes('approved')", what="approved")
+    with server.client(headers={"Authorization": f"Bearer {ALPHA}"}) as alpha:
+        assert alpha.get(f"/v1/registrations/{job_id}").json()["review"]["decision"] == "approved"
+
+
+VENDORED = {"three.module.min.js": "08fd7545d13d2c7fb65ab691530a802dafefd638596501854f267d0fb13c39e7",
+            "OrbitControls.js": "e9c4f26866d39a36c8c9e8215e7d2a90a8a0b50ea6d44a005906e3d1fc726b8f"}
+
+
+def test_three_is_vendored_pinned_and_served(keyed_server):
+    """three.js 0.170.0 as static/vendor/three/README.md records it, served by the service (no CDN)."""
+    import hashlib
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    readme = (root / "service/api/ui/static/vendor/three/README.md").read_text()
+    with keyed_server.client() as c:
+        for name, digest in VENDORED.items():
+            served = c.get(f"/ui/vendor/three/{name}")
+            assert served.status_code == 200 and "javascript" in served.headers["content-type"], name
+            assert hashlib.sha256(served.content).hexdigest() == digest and digest in readme, name
+        assert c.get("/ui/vendor/three/LICENSE").status_code == 404  # only what the page imports
+        for name in ("views2d.js", "scene3d.js"):
+            page = c.get(f"/ui/{name}")
+            assert page.status_code == 200 and "https://" not in page.text and "http://" not in page.text
+    assert (root / "service/api/ui/static/vendor/three/LICENSE").read_text().startswith("The MIT License")
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    assert "static/vendor/three/*" in data["service.api.ui"]  # shipped in the wheel

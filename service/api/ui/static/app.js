@@ -1,7 +1,7 @@
 // dsareg review page: list of jobs -> one job -> approve / reject. Plain JavaScript, no build step,
 // nothing loaded from outside this service. The API key stays in sessionStorage (this tab only) and
 // goes out as "Authorization: Bearer"; images are fetched with it and shown through object URLs.
-"use strict";
+import { LAYERS, addView, draw, nativeComposite, resetView, viewsState, zoomBy } from "./views2d.js";
 
 const KEY = "dsareg.apiKey";
 const VERDICT_WORDS = {
@@ -11,6 +11,7 @@ const VERDICT_WORDS = {
 };
 let objectUrls = [];
 let blinkTimer = null;
+let keyHandler = null;
 
 function el(tag, attrs, ...children) {
   const node = document.createElement(tag);
@@ -69,6 +70,8 @@ function clearView() {
   objectUrls = [];
   if (blinkTimer) clearInterval(blinkTimer);
   blinkTimer = null;
+  if (keyHandler) document.removeEventListener("keydown", keyHandler);
+  keyHandler = null;
   const view = document.getElementById("view");
   view.replaceChildren();
   return view;
@@ -203,7 +206,8 @@ function verdictSection(job) {
       el("ul", { class: "warnings" }, job.warnings.map((w) => el("li", {}, w)))] : null);
 }
 
-function viewsSection(job) {
+function overlayViews(job) {
+  // jobs of earlier versions (no image / layers files): the overlays as exported
   const links = job.links;
   const views = ["ap", "lat"].filter((v) => links["overlay_" + v]);
   if (!views.length) return null;
@@ -238,6 +242,107 @@ function viewsSection(job) {
     el("div", { class: "toolbar" }, toggle, blink), el("div", { class: "views" }, figures.map((f) => f.figure)));
 }
 
+// ---- the workspace: image registered + layers, zoom / pan at one mm scale, 3D scene ---------------
+
+function viewsSection(job) {
+  const links = job.links;
+  const views = ["ap", "lat"].filter((v) => links["image_" + v] && links["layers_" + v]);
+  if (!views.length || !links.model) return overlayViews(job);
+  const state = viewsState();
+  const model = api(links.model);
+  const figures = views.map((v) => {
+    const canvas = el("canvas", { width: 400, height: 400, tabindex: 0, class: "view2d", "data-view": v,
+      "aria-label": `${v.toUpperCase()} view: the image registered under the outlines; drag to pan, wheel or + and - to zoom` });
+    return { v, canvas, figure: el("figure", {}, canvas, el("figcaption", {}, `${v.toUpperCase()}: the image registered`)) };
+  });
+  const scale = el("span", { class: "scalebar", id: "scalebar" });
+  const scaleText = el("span", { id: "scale-text" });
+  state.onDraw = (pxPerMm) => {
+    drawScaleBar(scale, scaleText, pxPerMm);
+    section.dataset.pxPerMm = pxPerMm.toFixed(4); // screen px per mm at the model, the same in both views
+  };
+  const toggles = LAYERS.map((layer) => {
+    const swatch = el("span", { class: "swatch", "aria-hidden": "true" });
+    swatch.style.backgroundColor = `rgba(${layer.rgba.slice(0, 3).join(",")},${layer.rgba[3] / 255})`;
+    const button = el("button", { type: "button", id: "toggle-" + layer.key, "aria-pressed": String(layer.on), onclick: () => {
+      state.shown[layer.key] = !state.shown[layer.key];
+      button.setAttribute("aria-pressed", String(state.shown[layer.key]));
+      draw(state);
+      if (state.onLayers) state.onLayers();
+    } }, swatch, layer.label);
+    return button;
+  });
+  const section = el("section", { "aria-labelledby": "views-h", id: "views" }, el("h3", { id: "views-h" }, "Views"),
+    el("div", { class: "toolbar", role: "group", "aria-label": "Layers (the legend)" }, toggles),
+    el("div", { class: "toolbar", role: "group", "aria-label": "Zoom" },
+      el("button", { type: "button", id: "zoom-in", onclick: () => zoomBy(state, 1.25) }, "Zoom in"),
+      el("button", { type: "button", id: "zoom-out", onclick: () => zoomBy(state, 0.8) }, "Zoom out"),
+      el("button", { type: "button", id: "zoom-fit", onclick: () => resetView(state) }, "Fit"),
+      el("span", { class: "scale" }, scale, scaleText)),
+    el("div", { class: "views" }, figures.map((f) => f.figure)),
+    el("p", { class: "muted small" }, "Both views at one scale: a millimetre at the model's depth is as long in each. " +
+      "Drag to pan a view; the wheel or + and − (on a focused view) zoom both."));
+  state.ready = model.then(async (doc) => {
+    await Promise.all(figures.map(async (f) => {
+      const [imageUrl, layersUrl] = await Promise.all([image(links["image_" + f.v]), image(links["layers_" + f.v])]);
+      const detector = (doc.views || {})[f.v] || {};
+      await addView(state, f.v, f.canvas, imageUrl, layersUrl, detector.mm_per_px_at_model || (detector.pixel_spacing_mm || [1])[0]);
+    }));
+    state.views.sort((a, b) => a.name.localeCompare(b.name));
+    for (const f of figures) { f.canvas.width = f.canvas.clientWidth || 400; f.canvas.height = f.canvas.width; }
+    draw(state);
+    section.dataset.ready = "1";
+    return doc;
+  }).catch((e) => { say("The views could not be shown: " + e.message, true); throw e; });
+  section.append(scene3dSection(job, state));
+  return section;
+}
+
+function drawScaleBar(bar, text, pxPerMm) {
+  const mm = [1, 2, 5, 10, 20, 50, 100].find((m) => m * pxPerMm >= 60) || 100;
+  bar.style.width = `${Math.round(mm * pxPerMm)}px`;
+  text.textContent = ` ${mm} mm at the model`;
+}
+
+function scene3dSection(job, state) {
+  const canvas = el("canvas", { id: "scene3d", class: "scene3d", tabindex: 0,
+    "aria-label": "3D scene: the model in the registered pose, both X-ray sources and detectors; drag to orbit, wheel to zoom" });
+  const ghost = el("button", { type: "button", id: "toggle-ghost", "aria-pressed": "true" }, "Initial pose (ghost)");
+  const note = el("p", { class: "muted small", id: "scene-note" }, "Orange: the model in the registered pose; grey: the initial pose; " +
+    "blue: the AP source and its beam, green: the LAT; each detector shows its view with the layers on.");
+  const section = el("section", { "aria-labelledby": "scene-h", id: "scene" }, el("h3", { id: "scene-h" }, "3D scene"),
+    el("div", { class: "toolbar" }, ghost), canvas, note);
+  state.ready.then(async (model) => {
+    const arrival = await arrivalOf(job, model, note);
+    const { showScene } = await import("./scene3d.js");
+    const textures = Object.fromEntries(state.views.map((v) => [v.name, nativeComposite(state, v)]));
+    const scene = await showScene(canvas, model, textures, arrival);
+    ghost.addEventListener("click", () => {
+      scene.ghost.visible = !scene.ghost.visible;
+      ghost.setAttribute("aria-pressed", String(scene.ghost.visible));
+      scene.render();
+    });
+    state.onLayers = () => state.views.forEach((v) => scene.setTexture(v.name, nativeComposite(state, v)));
+    section.dataset.ready = "1";
+  }).catch((e) => note.replaceChildren(el("span", { class: "error" }, "The 3D scene could not be shown: " + e.message)));
+  return section;
+}
+
+async function arrivalOf(job, model, note) {
+  // hemodynamics.json: arrival_s per vertex of the model file as given, the same order as model.json
+  if (!job.links.hemodynamics) return null;
+  const doc = await api(job.links.hemodynamics);
+  const arrival = doc && doc.arrival_s;
+  if (!arrival || arrival.length !== model.vertex_count) {
+    note.append(el("br"), "Arrival times not shown: they do not match the model's vertices.");
+    return null;
+  }
+  const known = arrival.filter((t) => t !== null);
+  note.replaceChildren(`Coloured by contrast arrival: blue ${Math.min(...known).toFixed(2)} s → yellow → red ` +
+    `${Math.max(...known).toFixed(2)} s after the first AP frame; grey: never filled. Grey ghost: the initial pose.`);
+  return arrival;
+}
+
 function plotFigure(link, alt, caption) {
   if (!link) return null;
   const img = el("img", { alt });
@@ -264,12 +369,40 @@ function reviewSection(job) {
       if (updated.export && ["pending", "exporting"].includes(updated.export.state)) watchExport(job.id, 30);
     } catch (error) { say("The review was not saved: " + error.message, true); }
   };
-  return el("section", { "aria-labelledby": "review-h", class: "review-form" }, el("h3", { id: "review-h" }, "Review"), current,
+  const section = el("section", { "aria-labelledby": "review-h", class: "review-form" }, el("h3", { id: "review-h" }, "Review"), current,
     finished ? null : el("p", { class: "muted" }, "The job has not finished; it can be reviewed once it has."),
+    finished ? el("p", { class: "muted small", id: "review-keys" }, "Keyboard: A approve, R reject, then Y to confirm.") : null,
+    el("p", { id: "review-prompt", role: "alert" }),
     el("label", { for: "comment" }, "Comment (optional, at most 2000 characters)"), comment,
     el("div", { class: "actions" },
       el("button", { type: "button", class: "approve", id: "approve", disabled: !finished, onclick: () => send("approved") }, "Approve"),
       el("button", { type: "button", class: "reject", id: "reject", disabled: !finished, onclick: () => send("rejected") }, "Reject")));
+  section.send = finished ? send : null;
+  return section;
+}
+
+function reviewKeys(send) {
+  // A or R asks, Y confirms (any other key cancels); never while typing in a field
+  let pending = null;
+  return (event) => {
+    const target = event.target;
+    if (event.altKey || event.ctrlKey || event.metaKey || ["INPUT", "TEXTAREA", "SELECT"].includes(target.tagName)) return;
+    const prompt = document.getElementById("review-prompt");
+    const key = event.key.toLowerCase();
+    if (pending && key === "y") {
+      const decision = pending;
+      pending = null;
+      prompt.textContent = "";
+      send(decision);
+    } else if (key === "a" || key === "r") {
+      pending = key === "a" ? "approved" : "rejected";
+      prompt.textContent = `${key === "a" ? "Approve" : "Reject"} this job? Press Y to confirm, any other key to cancel.`;
+    } else if (pending) {
+      pending = null;
+      prompt.textContent = "Not saved.";
+    } else return;
+    event.preventDefault();
+  };
 }
 
 const EXPORT_WORDS = {
@@ -280,6 +413,23 @@ const EXPORT_WORDS = {
   failed: "failed",
   skipped: "not sent (rejected)",
 };
+
+function exportLine(job) {
+  // the export state and destination, always: held for review, stored at once, or nothing to store
+  if (job.export) return exportState(job.export);
+  const dicom = (job.result || {}).dicom || {};
+  if (dicom.stored) {
+    return el("p", { id: "export-state" }, "PACS export: ", badge(dicom.stored.confirmed ? "stored" : "sent", "ok"),
+      ` (STOW-RS to ${dicom.stored.server}, ${dicom.stored.sop_instance_uids.length} objects, when the job ended)`);
+  }
+  if (dicom.exported) {
+    const done = dicom.exported.filter((e) => e.status === "stored").length;
+    return el("p", { id: "export-state" }, "PACS export: ", badge(done === dicom.exported.length ? "stored" : "failed", done === dicom.exported.length ? "ok" : "failed"),
+      ` (C-STORE to ${dicom.exported.map((e) => e.peer || e.ae_title || "?").join(", ")}, when the job ended)`);
+  }
+  return el("p", { id: "export-state" }, "PACS export: ", badge("none", "none"),
+    " (this job stores nothing into a PACS: its results are here and in the API only)");
+}
 
 function exportState(exp) {
   if (!exp) return null;
@@ -326,13 +476,18 @@ async function showJob(id) {
   }
   say("");
   document.title = `Job ${id.slice(0, 8)} · dsareg review`;
+  const review = reviewSection(job);
+  if (review.send) {
+    keyHandler = reviewKeys(review.send);
+    document.addEventListener("keydown", keyHandler);
+  }
   view.append(el("p", {}, el("a", { href: "#/" }, "← All jobs")),
     el("h2", {}, "Job ", el("code", {}, id), " ", badge(job.status)), caseSection(job),
     el("div", { class: "job" },
       el("div", {}, viewsSection(job), el("div", { class: "plots" },
         plotFigure(job.links.loss_plot, "Loss per iteration of the registration", "Loss per iteration"),
         plotFigure(job.links.animation, "Animation of the registration converging", "Animation"))),
-      el("div", {}, reviewSection(job), exportState(job.export), verdictSection(job), el("h3", {}, "Metrics"),
+      el("div", {}, review, exportLine(job), verdictSection(job), el("h3", {}, "Metrics"),
         metricsList(job), historySection(job))));
 }
 
