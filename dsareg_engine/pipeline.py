@@ -199,7 +199,8 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
     report = _outputs_progress(progress, len(result.views) + 2)
     report()
     if rig is not None:  # the image registered, outline layers, detector geometry (review page)
-        write_view_files(out_dir, result, masks, images, rig, mesh, data)
+        write_view_files(out_dir, result, masks, images, rig, {name: mm_per_pixel_at_mesh(rig.views[name], v.mesh_to_view, mesh)
+                                                               for name, v in result.views.items()}, data)
     (out_dir / artifacts.RESULT_JSON).write_text(json.dumps(data, indent=2))
     verdict, ok = verdict_of(data)
     for name, view in result.views.items():

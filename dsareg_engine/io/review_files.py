@@ -132,16 +132,14 @@ def write_model_json(out_dir: Path, mesh_bytes: bytes | None, mesh_name: str | N
 
 
 def write_view_files(out_dir: Path, result, masks: dict[str, np.ndarray], images: dict[str, np.ndarray] | None,
-                     rig, mesh, data: dict) -> None:
+                     rig, scales: dict[str, float | None], data: dict) -> None:
     """Per view: ``image_<view>.png`` (when the image is known), ``layers_<view>.png`` and
-    ``data["views"][view]["detector"]`` (before ``result.json`` is written)."""
+    ``data["views"][view]["detector"]`` (before ``result.json`` is written); ``scales``: mm per pixel at the model."""
     from ..overlay import write_png
-    from ..pipeline import mm_per_pixel_at_mesh
     from ..registration.partial import unmatched_pixels
 
     for name, view in result.views.items():
-        scale = mm_per_pixel_at_mesh(rig.views[name], view.mesh_to_view, mesh)
-        data["views"][name]["detector"] = detector_geometry(rig.views[name], scale)
+        data["views"][name]["detector"] = detector_geometry(rig.views[name], scales.get(name))
         image = (images or {}).get(name)
         if image is not None and image.shape == masks[name].shape:
             write_png(Path(out_dir) / image_png(name), registered_image(image))
