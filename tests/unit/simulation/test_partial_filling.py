@@ -2,9 +2,10 @@
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
-from dsareg_engine.simulation.partial_filling import early_filling, extra_territory, selective_injection
+from dsareg_engine.simulation.partial_filling import bolus_front, early_filling, extra_territory, selective_injection
 from dsareg_engine.simulation.phantom import make_vessel_phantom
 
 
@@ -26,6 +27,23 @@ def test_early_filling_keeps_the_faces_nearest_the_inflow(phantom_tree, fraction
     distance = tree.distances_from(tree.inflow)
     visible = np.isin(np.round(mesh.vertices, 9).view("f8,f8,f8"), np.round(case.visible.vertices, 9).view("f8,f8,f8")).ravel()
     assert distance[visible].max() <= distance[~visible].min() + 3.0
+
+
+def test_a_bolus_front_is_not_the_geodesic_front(phantom_tree):
+    mesh, tree = phantom_tree
+    assert bolus_front(mesh, 0.5, tree, speed_exponent=0.0).visible.n_faces == early_filling(mesh, 0.5, tree).visible.n_faces
+    front, geodesic = bolus_front(mesh, 0.5, tree), early_filling(mesh, 0.5, tree)
+    assert front.visible_fraction == pytest.approx(0.5, abs=0.02)
+    assert np.min(np.linalg.norm(front.visible.vertices - mesh.vertices[tree.inflow], axis=1)) < 1e-9
+    # the same share of faces, but another set of them: not the geodesic front the proximal parts are cut by
+    shown = {name: set(_face_keys(mesh, case.visible)) for name, case in (("front", front), ("geodesic", geodesic))}
+    assert len(shown["front"] & shown["geodesic"]) < 0.9 * len(shown["front"] | shown["geodesic"])
+
+
+def _face_keys(mesh, part) -> list:
+    """Each face of ``part`` as the sorted indices of its vertices in ``mesh``."""
+    index = cKDTree(mesh.vertices).query(part.vertices)[1]
+    return [tuple(face) for face in np.sort(index[part.faces], axis=1)]
 
 
 def test_selective_injection_is_one_branch_away_from_the_inflow(phantom_tree):
