@@ -25,6 +25,9 @@ Signals, all measured by the solver (``metrics.confidence.signals``):
   views, is a model holding vessels the run did not fill (partial visibility: ``check``, the pose
   is usable); vessels left uncovered while the model is all matched is the run showing vessels the
   model lacks; both at once is a wrong pose. ``partial_loss``: the fit used the trimmed loss.
+* ``part_runner_up``: when one part of the model led the fit alone (:mod:`.branch_search`), another part
+  that scored almost as well at a distinct pose (``{"score", "distance_mm"}``), or None; the partial
+  reason then says the pose is uncertain instead of "the pose fits the filled vessels".
 
 Thresholds (:class:`ConfidenceThresholds`) were calibrated on the robustness studies; see the
 README's calibration table.
@@ -148,9 +151,13 @@ def _partial_visibility(signals: dict, thresholds: ConfidenceThresholds) -> str 
             and max(unmatched.values()) - min(unmatched.values()) <= thresholds.partial_consistency):
         return None
     shares = " / ".join(f"{name} {value:.0%}" for name, value in unmatched.items())
+    other = signals.get("part_runner_up")
+    pose = ("the pose fits the filled vessels" if other is None else
+            f"the pose is uncertain: another part of the model, placed {other['distance_mm']:.0f} mm away, matches the "
+            f"filled vessels almost as well (score {other['score']:.2f}), and the unfilled vessels cannot tell them apart")
     return (f"the model has vessels the images do not show ({shares} of its silhouette outside the vessels, "
             "consistently across views) while every vessel shown is matched: partial filling or a model larger "
-            "than the run; the pose fits the filled vessels")
+            f"than the run; {pose}")
 
 
 def _why_low(signals: dict, name: str, thresholds: ConfidenceThresholds) -> str:

@@ -633,7 +633,7 @@ def _summary(setup: _Setup, run: _Run, options: RegistrationOptions, total_secon
         metrics["motion"] = motion_between(initial, estimate, points)
     if options.border_correction:
         metrics["border_shift_px"] = {name: round(problem.border_shift_px[name], 4) for name in used_views}
-    metrics["confidence"] = _confidence(problem, estimate, view_results, run.other, run.outcome, used_views)
+    metrics["confidence"] = _confidence(problem, estimate, view_results, run.other, run.outcome, used_views, setup.searched)
     if len(used_views) == 1:
         metrics["warnings"] = [
             (f"single-view registration ({used_views[0]}): translation along that view's central ray and "
@@ -752,7 +752,7 @@ def _runner_up(problem: _Problem, stage: Stage, poses: np.ndarray) -> dict | Non
     return {"distance_mm": round(distance, 2), "best_fit": round(fits[0], 4), "fit": round(fits[1], 4)}
 
 
-def _confidence(problem, estimate, views, other, outcome, used_views) -> dict:
+def _confidence(problem, estimate, views, other, outcome, used_views, searched: Initialization | None) -> dict:
     world = problem.mesh.vertices @ estimate[:3, :3].T + estimate[:3, 3]
     fitted = {  # Dice against the target actually fitted: the mask with its border moved by the correction
         name: dice(views[name].silhouette, shifted_mask(problem.targets[name], problem.border_shift_px[name],
@@ -767,6 +767,7 @@ def _confidence(problem, estimate, views, other, outcome, used_views) -> dict:
         "stopped_on_tolerance": outcome is not None and outcome.stopped_by == "tolerance",
         **_match_signals({name: match_fractions(views[name].silhouette, problem.masks[name]) for name in used_views}),
         "partial_loss": problem.partial,
+        "part_runner_up": (searched.branch or {}).get("runner_up") if searched is not None else None,
     })
 
 

@@ -85,6 +85,15 @@ class RunnerUp(BaseModel):
     fit: float = Field(description="Fit of the distinct pose (same measure); close to best_fit = ambiguous.")
 
 
+class PartRunnerUp(BaseModel):
+    """Another part of the model that matched the filled vessels almost as well as the one the fit started from."""
+
+    model_config = ConfigDict(extra="allow")
+
+    score: float = Field(description="Its coverage score, 1 − F1 (0 best, 1 worst).")
+    distance_mm: float = Field(description="Mean vertex distance of the whole model at its pose from the leading part's, mm.")
+
+
 class ConfidenceSignals(BaseModel):
     """The measurements the verdict is made of (see docs/api/results.md)."""
 
@@ -109,6 +118,10 @@ class ConfidenceSignals(BaseModel):
     partial_loss: bool | None = Field(
         None, description="True when the fit used the loss for partial visibility (background farther than 2 px "
                           "from the vessels weighed 0.05), because the images show only part of the model.")
+    part_runner_up: PartRunnerUp | None = Field(
+        None, description="When one part of the model led the fit alone (the branch search): another part scoring "
+                          "almost as well (within 0.02) at a distinct pose, or null; the partial reason then says the "
+                          "pose is uncertain.")
 
 
 class Confidence(BaseModel):
@@ -152,6 +165,8 @@ class BranchSearch(BaseModel):
     faces_fraction: float | None = Field(None, description="The best part's share (0–1) of the model's faces.")
     proximal: bool | None = Field(None, description="True when the best part is a proximal one (the faces nearest the "
                                   "inflow, as an early arterial frame fills them): the whole model is then fitted from its pose.")
+    runner_up: PartRunnerUp | None = Field(None, description="When one part led alone: another part scoring almost as "
+                                                             "well at a distinct pose, or null.")
 
 
 class Initialization(BaseModel):

@@ -3,7 +3,8 @@
 import numpy as np
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
-from dsareg_engine.registration.branch_search import BranchSettings, candidate_parts, search_parts, with_branch_starts
+from dsareg_engine.registration.branch_search import (BranchCandidates, BranchSettings, candidate_parts, part_runner_up,
+                                                      search_parts, with_branch_starts)
 from dsareg_engine.registration.initialization import Initialization
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 from dsareg_engine.simulation.partial_filling import early_filling, extra_territory
@@ -60,3 +61,16 @@ def test_the_filled_territory_is_found_among_the_parts(phantom):
     assert abs(found.fractions[0] - 0.5) < 0.1  # the original half (and a few faces past the inflow)
     assert _mean_distance_mm(phantom, found.poses[0], truth) < 5.0
     assert found.scores[0] < 0.3 < found.scores[-1]
+
+
+def test_a_part_scoring_as_well_elsewhere_is_the_runner_up(phantom):
+    def parts(scores, shifts_mm):
+        poses = np.repeat(np.eye(4)[None], len(scores), axis=0)
+        poses[:, 0, 3] = shifts_mm
+        return BranchCandidates(poses, np.array(scores), np.ones((len(scores), 1), bool), np.full(len(scores), 0.4),
+                                np.zeros(len(scores), bool), 0.3, 0.0)
+
+    # the next part at the same place (the branch cut a little differently) is no alternative; one 12 mm away is
+    assert part_runner_up(phantom, parts([0.10, 0.105, 0.11], [0.0, 0.3, 12.0])) == {"score": 0.11, "distance_mm": 12.0}
+    assert part_runner_up(phantom, parts([0.10, 0.105, 0.16], [0.0, 0.3, 12.0])) is None  # too far behind
+    assert part_runner_up(phantom, parts([0.10], [0.0])) is None

@@ -76,3 +76,14 @@ def test_assess_rules_and_tolerant_fit():
     mask[10:30, 18:22] = True
     assert tolerant_f_score(np.roll(mask, 2, axis=1), mask, 3.0) == 1.0
     assert tolerant_f_score(np.roll(mask, 10, axis=1), mask, 3.0) < 0.1
+
+
+def test_partial_reason_says_when_another_part_fits_as_well():
+    partial = {"dice": {"ap": 0.6, "lat": 0.6}, "runner_up": None, "outside_fraction": {"ap": 0.0, "lat": 0.0},
+               "unmatched_fraction": {"ap": 0.4, "lat": 0.45}, "uncovered_fraction": {"ap": 0.01, "lat": 0.02}}
+    plain = assess(partial)
+    assert plain["verdict"] == "check" and "the pose fits the filled vessels" in plain["reasons"][0]
+    other = assess({**partial, "part_runner_up": {"score": 0.135, "distance_mm": 6.3}})
+    assert other["verdict"] == "check" and len(other["reasons"]) == 1
+    assert "do not show" in other["reasons"][0] and "the pose is uncertain" in other["reasons"][0]
+    assert "6 mm away" in other["reasons"][0] and "fits the filled vessels" not in other["reasons"][0]
