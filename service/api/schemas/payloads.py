@@ -88,7 +88,7 @@ class RunnerUp(BaseModel):
 class PartRunnerUp(BaseModel):
     """Another part of the model that matched the filled vessels almost as well as the one the fit started from."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = CLOSED
 
     score: float = Field(description="Its coverage score, 1 − F1 (0 best, 1 worst).")
     distance_mm: float = Field(description="Mean vertex distance of the whole model at its pose from the leading part's, mm.")
