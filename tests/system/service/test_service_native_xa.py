@@ -49,7 +49,8 @@ def test_native_runs_register_with_per_view_frames(server, run):
     result = final["result"]
     reading = result["image_reading"]
     assert reading["ap"]["run"] == reading["lat"]["run"] == "native"
-    assert reading["ap"]["combined"] == "single" and reading["lat"]["combined"] == "minip"
+    assert reading["ap"]["combined"] == "arterial" and reading["lat"]["combined"] == "minip"  # the default: arterial phase
+    assert len(reading["ap"]["frame_indices"]) > 1 and reading["ap"]["phase"].startswith("arterial phase")
     add = mean_distance_mm(np.asarray(result["mesh_to_world"]), case.mesh_to_world, case.mesh.vertices)
     assert add < 0.3, add
 
