@@ -146,7 +146,7 @@ class EmbeddedProcessExecutor(Executor):
             if not self.store.expire_claims(worker_id_prefix(pid, index)):
                 return
             requeued, failed = self.store.recover_expired()
-        except Exception:  # noqa: BLE001 - the store out: the sweeper recovers the lease later
+        except Exception:  # the store out: the sweeper recovers the lease later
             log.exception("worker %d (pid %s) died; its job is requeued when its lease ends", index, pid)
             return
         for job_id in requeued:

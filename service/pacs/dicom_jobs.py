@@ -14,6 +14,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..engine_adapter import engine, fetched_case_files
+from ..settings import ServiceSettings
+from ..storage.store import JobRecord
 from .dicomweb import (
     DicomwebClient,
     DicomwebRegistrationRequest,
@@ -23,11 +26,8 @@ from .dicomweb import (
     parse_reference,
     resolve_server,
 )
-from ..engine_adapter import engine, fetched_case_files
-from .instance_check import InstanceLimits, InstanceRefused, check_file
 from .dimse.pull import pull_job
-from ..settings import ServiceSettings
-from ..storage.store import JobRecord
+from .instance_check import InstanceLimits, InstanceRefused, check_file
 
 REFERENCE_ROLE = "dicomweb"
 STORED_FILES = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import io
+import os
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -108,3 +110,26 @@ def jobs_of_study(client, study_uid: str) -> list[dict]:
         cursor = page.get("next_cursor")
         if not cursor:
             return found
+
+
+class Listener(LoggedProcess):
+    """``dsareg dicom-listener`` as its own process (``env``: its DSAREG_* settings), on ``port``."""
+
+    def __init__(self, data_dir: Path, port: int, env: dict[str, str]):
+        self.data_dir, self.port, self.env = data_dir, port, env
+        self.log_path = data_dir.parent / f"listener-{port}.log"
+
+    def start(self, timeout: float = 120.0) -> Listener:
+        self.log = open(self.log_path, "ab")  # noqa: SIM115 - closed with the process
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **self.env}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "service", "dicom-listener", "--port", str(self.port), "--data-dir", str(self.data_dir)],
+            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"listener exited: {self.logs()[-2000:]}")
+            if echoscu(self.port).returncode == 0:
+                return self
+            time.sleep(0.3)
+        raise RuntimeError(f"listener not up after {timeout} s: {self.logs()[-2000:]}")

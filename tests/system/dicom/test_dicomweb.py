@@ -20,11 +20,10 @@ import numpy as np
 import pydicom
 import pytest
 
-from tests.support.service_testkit import Server, forget_generated_client, generated_client, wait_for
-
 from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registration_matrix
-from tests.support.servers import OrthancServer, free_port
 from service.pacs.dicomweb import DicomwebClient, PacsServer
+from tests.support.servers import OrthancServer, free_port
+from tests.support.service_testkit import Server, forget_generated_client, generated_client, wait_for
 
 OPTIONS = {"starts": 1}
 
@@ -265,7 +264,7 @@ def test_a_trickling_pacs_frees_the_worker_after_the_jobs_pacs_deadline(service,
         assert response.status_code == 202, response.text
         job = wait_for(client, response.json()["id"], timeout=120)
         events = client.get(f"/v1/registrations/{job['id']}/audit").json()["items"]
-    at = {item["event"]: datetime.datetime.fromisoformat(item["at"].replace("Z", "+00:00")).timestamp()
+    at = {item["event"]: datetime.datetime.fromisoformat(item["at"]).timestamp()
           for item in events}
     held_s = at["failed"] - at["claimed"]
     print(f"\ntrickling PACS: the worker held {held_s:.2f} s (DSAREG_PACS_DEADLINE_SECONDS {PACS_DEADLINE_S:g})")

@@ -8,40 +8,16 @@ data folder and SQLite job database. Studies are the phantom with fresh UIDs, se
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
-from tests.support.dimse_kit import echoscu, jobs_of_study, need_dcmtk, renamed_study, scu_send, storescu
+from tests.support.dimse_kit import Listener, jobs_of_study, need_dcmtk, renamed_study, scu_send, storescu
 from tests.support.servers import free_port
-from tests.support.service_testkit import REPO, LoggedProcess, Server
+from tests.support.service_testkit import Server
 
 STABLE_S = 1.0
-
-
-class Listener(LoggedProcess):
-    def __init__(self, data_dir: Path, port: int, env: dict[str, str]):
-        self.data_dir, self.port, self.env = data_dir, port, env
-        self.log_path = data_dir.parent / f"listener-{port}.log"
-
-    def start(self, timeout: float = 120.0) -> Listener:
-        self.log = open(self.log_path, "ab")  # noqa: SIM115 - closed with the process
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", **self.env}
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "service", "dicom-listener", "--port", str(self.port), "--data-dir", str(self.data_dir)],
-            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"listener exited: {self.logs()[-2000:]}")
-            if echoscu(self.port).returncode == 0:
-                return self
-            time.sleep(0.3)
-        raise RuntimeError(f"listener not up after {timeout} s: {self.logs()[-2000:]}")
 
 
 @pytest.fixture(scope="module")

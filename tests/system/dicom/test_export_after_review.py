@@ -2,8 +2,8 @@
 
 One server for the module: the results of a finished job stay out of the PACS until a person
 approves it; a rejected job is never exported; a PACS that does not answer gives a ``pacs-error``
-after bounded attempts without holding up the review; an API killed (SIGKILL) during the export
-exports after its restart. Every registration is the small phantom study with one start.
+after bounded attempts without holding up the review; an API frozen (SIGSTOP) past its export lease
+finishes that attempt and starts no other; an API killed (SIGKILL) during the export exports after its restart. Every registration is the small phantom study with one start.
 """
 
 from __future__ import annotations
@@ -166,6 +166,38 @@ def test_a_pacs_that_does_not_answer_gives_a_pacs_error_without_holding_the_revi
         review(client, job["id"], "approved")
         assert export_state(client, job["id"], ("done", "failed"), timeout=30)["state"] == "done"
     assert result_uids(job) <= in_pacs(orthanc, study.study_uid)
+
+
+def test_an_api_frozen_past_its_export_lease_finishes_that_attempt_and_no_other(node, study, tmp_path):
+    """SIGSTOP of the API (17 s, past the 15 s export lease) while its C-STORE waits on a frozen destination: once
+    both resume, the same attempt stores the results; no second attempt starts beside it; exported once."""
+    study_uid, paths = renamed_study(study, tmp_path / "study")
+    assert storescu(node.dicom_port, paths).returncode == 0
+    with node.client() as client:
+        deadline = time.monotonic() + 60
+        while not (found := jobs_of_study(client, study_uid)) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        job = wait_for(client, found[0]["id"], timeout=400)
+        assert job["status"] == "succeeded" and job["export"]["state"] == "awaiting_review", job
+        destination = node.destination.process.pid
+        os.kill(destination, signal.SIGSTOP)  # the association request waits for an answer
+        try:
+            review(client, job["id"], "approved")
+            export_state(client, job["id"], ("exporting",), timeout=10)
+            os.kill(node.process.pid, signal.SIGSTOP)
+            time.sleep(17.0)
+        finally:
+            os.kill(destination, signal.SIGCONT)
+            time.sleep(0.5)
+            os.kill(node.process.pid, signal.SIGCONT)
+        done = export_state(client, job["id"], ("done", "failed"), timeout=60)
+        events = [item["event"] for item in client.get(f"/v1/registrations/{job['id']}/audit").json()["items"]]
+    assert done["state"] == "done" and done["attempts"] == 1, done
+    assert events.count("exported") == 1 and "export_retry" not in events, events
+    import pydicom
+
+    received = {str(pydicom.dcmread(path).SOPInstanceUID) for path in node.destination.files()}
+    assert result_uids(job) <= received
 
 
 def test_an_api_killed_during_the_export_exports_after_its_restart(node, orthanc, study, finished):
