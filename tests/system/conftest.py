@@ -24,6 +24,8 @@ TIMED = (
     "dicom/test_dimse.py",  # the REG in Orthanc ≤ 2 s after the job
     "dicom/test_dicomweb_client.py::test_a_trickling_pacs_holds_the_client_no_longer_than_the_jobs_budget",  # ≤ 3.5 s
     "dicom/test_export_after_review.py",  # the review answers in < 2 s
+    "dicom/test_dimse_query.py",  # a peer answering 'pending' for ever is cut within its deadline + 3.8 s
+    "dicom/test_dicomweb.py::test_a_trickling_pacs_frees_the_worker_after_the_jobs_pacs_deadline",  # ≤ 11 s
     "scaleout/test_scaleout_celery.py",  # a cancel stops the Celery worker's job in < 10 s
 )
 
