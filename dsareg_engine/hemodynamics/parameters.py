@@ -5,7 +5,8 @@ For a curve ``c(t)`` (background-corrected opacity, :mod:`.sampling`) sampled at
 * **baseline**: the median of ``c`` over the run's frames before contrast arrives anywhere (the frames before
   the mean curve of all points first reaches ``RUN_ARRIVAL_FRACTION`` of its maximum); 0 when there are none;
 * **peak** (``peak_s``, ``peak_opacity``): the highest sample above the baseline, refined between frames by the
-  parabola through it and its two neighbours (its vertex, kept within them);
+  least-squares parabola through the samples within ``PEAK_WINDOW_S`` of it (at least its two neighbours; its
+  vertex, kept within them);
 * **arrival** (``arrival_s``): when the curve rises through half its own peak: the last upward crossing of
   ``baseline + ½ peak`` before the peak frame, interpolated linearly between the two frames around it; not
   measurable (NaN) when the first frame is already above it;
@@ -27,6 +28,7 @@ SIGNIFICANCE_SIGMAS = 5.0
 MIN_FILL_FRACTION = 0.4
 NOISE_RADII_PX = (1.0, 2.0, 4.0, 8.0, 16.0)
 NOISE_SAMPLE_STEP = 3
+PEAK_WINDOW_S = 0.35
 
 
 @dataclass(frozen=True)
@@ -74,20 +76,24 @@ def baseline_frames(curves: np.ndarray) -> int:
 
 
 def _parabola_peak(times: np.ndarray, curves: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-frame peak (time, value) through frames ``k − 1, k, k + 1`` (the frame itself at the ends)."""
-    rows = np.arange(len(k))
+    """Sub-frame peak (time, value): the vertex of the least-squares parabola through the frames within
+    ``PEAK_WINDOW_S`` of frame ``k`` (at least its two neighbours), kept within them; the frame itself at the ends
+    or when the parabola does not open downward."""
+    half = max(1, int(round(PEAK_WINDOW_S / max(float(np.median(np.diff(times))), 1e-9)))) if len(times) > 1 else 1
+    rows = np.arange(len(k))[:, None]
+    window = np.clip(k[:, None] + np.arange(-half, half + 1)[None], 0, len(times) - 1)
+    x = times[window] - times[k][:, None]  # (N, M) s from the frame of the highest sample
+    y = curves[rows, window]
+    powers = np.stack([x ** 2, x, np.ones_like(x)], axis=2)  # (N, M, 3)
+    normal = powers.transpose(0, 2, 1) @ powers
     inner = (k > 0) & (k < len(times) - 1)
-    lo, hi = np.clip(k - 1, 0, len(times) - 1), np.clip(k + 1, 0, len(times) - 1)
-    x0, x2 = times[lo] - times[k], times[hi] - times[k]
-    y0, y1, y2 = curves[rows, lo], curves[rows, k], curves[rows, hi]
+    normal[~inner] = np.eye(3)
+    a, b, c = np.linalg.solve(normal, (powers.transpose(0, 2, 1) @ y[..., None]))[..., 0].T
     with np.errstate(divide="ignore", invalid="ignore"):
-        # y = a x² + b x + y1 through (x0, y0), (0, y1), (x2, y2)
-        a = ((y2 - y1) / x2 - (y0 - y1) / x0) / (x2 - x0)
-        b = (y0 - y1) / x0 - a * x0
-        vertex = np.clip(-b / (2 * a), x0, x2)
+        vertex = np.clip(-b / (2 * a), x.min(axis=1), x.max(axis=1))
     ok = inner & (a < 0) & np.isfinite(vertex)
     shift = np.where(ok, vertex, 0.0)
-    value = np.where(ok, a * shift ** 2 + b * shift + y1, y1)
+    value = np.where(ok, a * shift ** 2 + b * shift + c, curves[rows[:, 0], k])
     return times[k] + shift, value
 
 

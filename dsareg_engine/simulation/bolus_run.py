@@ -151,11 +151,14 @@ def iodine_frames(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndar
     vertices = mesh.vertices @ mesh_to_view[:3, :3].T + mesh_to_view[:3, 3]
     face_onset = onset_s[mesh.faces].mean(axis=1)
     length, onset = ray_layers(vertices, mesh.faces, face_onset, fine.focal_px, fine.principal_point_px, fine.image_size)
+    crossed = length.sum(axis=2) > 0  # only rays through the model change from frame to frame
+    length, onset = length[crossed], onset[crossed]
     rise = rise_time_s(settings, onset)
     frames = []
     for t in times_s:
-        fine_frame = IODINE_PER_MM * (length * concentration(settings, t - onset, rise)).sum(axis=2)
-        small = cv2.resize(fine_frame.astype(np.float32), view.image_size, interpolation=cv2.INTER_AREA)
+        fine_frame = np.zeros(crossed.shape, np.float32)
+        fine_frame[crossed] = IODINE_PER_MM * (length * concentration(settings, t - onset, rise)).sum(axis=1)
+        small = cv2.resize(fine_frame, view.image_size, interpolation=cv2.INTER_AREA)
         frames.append(cv2.GaussianBlur(small, (0, 0), settings.blur_px) if settings.blur_px > 0 else small)
     return np.array(frames, np.float32)
 

@@ -40,3 +40,27 @@ def test_vessel_points_lie_on_the_phantom_axis():
     centre = mesh.vertices[ring].mean(axis=0)
     assert np.linalg.norm(points.centres_mm[ring] - centre, axis=1).max() < 0.35
     assert 1.7 < np.median(points.radii_mm) < 2.4
+
+
+def test_file_vertices_follow_the_unit_read_and_a_volume_uses_the_written_mesh():
+    from types import SimpleNamespace
+
+    from dsareg_engine.hemodynamics.run import file_vertices
+    from dsareg_engine.io.input_decisions import InputDecision
+
+    mesh = make_vessel_phantom(seed=2, depth=1)
+    data, corners = _obj_with_duplicates(_in_cm(mesh))
+    case = SimpleNamespace(kinds={"mesh": "obj"}, mesh=mesh,
+                           decisions=[InputDecision("mesh", "units", "cm", "the model's largest extent in mm")])
+    given, order = file_vertices(SimpleNamespace(mesh=data), case)
+    np.testing.assert_allclose(given, corners * 10.0, atol=1e-4)  # the file in cm, the values in mm
+    assert "OBJ vertex order" in order
+    from_volume, order = file_vertices(SimpleNamespace(mesh=None), SimpleNamespace(kinds={"volume": "nifti"}, mesh=mesh))
+    assert from_volume is mesh.vertices and "hemodynamics.ply" in order
+
+
+def _in_cm(mesh):
+    """The same mesh with its coordinates in centimetres."""
+    from dsareg_engine.mesh import TriangleMesh
+
+    return TriangleMesh(mesh.vertices / 10.0, mesh.faces)
