@@ -33,6 +33,7 @@ from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_u
 from .gauss_newton import levenberg_marquardt
 from .branch_search import with_branch_starts
 from .initialization import COVERAGE_GATE, GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
+from .mirror import with_mirror_check
 from .options import RegistrationOptions
 from .partial import looks_partial, match_fractions, trimmed_weight
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
@@ -415,7 +416,9 @@ def register(
     if options.region is not None:
         mesh = select_region(mesh, options.region)
     with _torch_threads(1 if device.type == "cpu" else torch.get_num_threads()):
-        return _register(mesh, masks, rig, options, device, progress, should_stop, target_points)
+        result = _register(mesh, masks, rig, options, device, progress, should_stop, target_points)
+        return with_mirror_check(result, mesh, masks, rig, options, lambda mirror, masks_, rig_, options_: _register(
+            mirror, masks_, rig_, options_, device, None, should_stop, None))
 
 
 @dataclass

@@ -94,6 +94,18 @@ class PartRunnerUp(BaseModel):
     distance_mm: float = Field(description="Mean vertex distance of the whole model at its pose from the leading part's, mm.")
 
 
+class MirrorCheck(BaseModel):
+    """The mirror check (`dsareg_engine.registration.mirror`): run only when some view's Dice was below 0.7."""
+
+    dice: dict[str, float] = Field(description="Per view: Dice (0–1) of the model's mirror image, registered from a "
+                                               "search of rotations.")
+    mirrored: bool = Field(description="True when the mirror fits clearly better (lowest Dice ≥ 0.7 and ≥ 0.2 above "
+                                       "the model's): the verdict is then `failed`, the model seems mirrored.")
+    axis: Literal["x", "y", "z"] | None = Field(
+        None, description="The model axis that seems flipped, judged against the initial pose given; null without "
+                          "one (a mirror along any axis is the same up to a rotation).")
+
+
 class ConfidenceSignals(BaseModel):
     """The measurements the verdict is made of (see docs/api/results.md)."""
 
@@ -122,6 +134,8 @@ class ConfidenceSignals(BaseModel):
         None, description="When one part of the model led the fit alone (the branch search): another part scoring "
                           "almost as well (within 0.02) at a distinct pose, or null; the partial reason then says the "
                           "pose is uncertain.")
+    mirror: MirrorCheck | None = Field(None, description="The model's mirror image fitted too, because the fit was "
+                                                          "poor; absent when it was not needed.")
 
 
 class Confidence(BaseModel):
