@@ -97,6 +97,7 @@ class PartRunnerUp(BaseModel):
 class MirrorCheck(BaseModel):
     """The mirror check (`dsareg_engine.registration.mirror`): run only when some view's Dice was below 0.7."""
 
+    model_config = CLOSED
     dice: dict[str, float] = Field(description="Per view: Dice (0–1) of the model's mirror image, registered from a "
                                                "search of rotations.")
     mirrored: bool = Field(description="True when the mirror fits clearly better (lowest Dice ≥ 0.7 and ≥ 0.2 above "
