@@ -171,6 +171,9 @@ def _add_clinical(which) -> None:
     sub.add_argument("--kinds", nargs="*", default=[], help="only the kinds whose name contains one of these words")
     sub.add_argument("--options", default="{}", help="extra registration options as JSON")
     sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
+    sub.add_argument("--sweep", choices=["runs"], help="runs: the native-run sweep (size, bits, encoding, recipe, "
+                                                        "bolus, generator; each cell at its own size)")
+    sub.add_argument("--mesh", metavar="FILE", help="--sweep runs: add the cells drawn with this mesh's vessel tree")
     sub.set_defaults(func=deferred("dsareg_engine.commands.bench_clinical:bench_clinical"))
 
 

@@ -306,10 +306,11 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
     choice = choose_frames(_frame_scores(logs, pairs, factor, reading.motion_correction), reading.frame, len(stack), field_name)
     decisions.append(choice.decision)
     geometry_frame, used = choice.geometry_frame, choice.frames
-    images, moves = [], {}
-    start = None
-    for frame in [geometry_frame] + [f for f in used if f != geometry_frame]:
-        image, moves[frame], start = _corrected(logs, pairs[frame], reading, warnings, field_name, start)
+    moves: dict[int, dict] = {}
+    image, moves[geometry_frame], peak_motion = _corrected(logs, pairs[geometry_frame], reading, warnings, field_name)
+    images = [(geometry_frame, image)]
+    for frame in [f for f in used if f != geometry_frame]:  # each from the peak's move, refined coarsely
+        image, moves[frame], _ = _corrected(logs, pairs[frame], reading, warnings, field_name, peak_motion)
         images.append((frame, image))
     pixels = combine([image for _, image in sorted(images, key=lambda item: item[0])], choice.combined)
     _check_contrast(pixels, field_name, used)

@@ -35,6 +35,7 @@ class MotionSettings:
         max_shift_px, max_rotation_deg: larger estimates are refused (left uncorrected, with a warning).
         rotation: fit the rotation too (else a translation only).
         coarse_side_px, fine_side_px: the coarsest and finest levels' largest side.
+        tolerance_px: a level ends when a step moves less than this (px, the rotation at the image edge).
     """
 
     iterations: int = 12
@@ -45,6 +46,7 @@ class MotionSettings:
     rotation: bool = True
     coarse_side_px: int = 256
     fine_side_px: int = 1024
+    tolerance_px: float = 2e-3
 
 
 @dataclass(frozen=True)
@@ -85,6 +87,8 @@ def shift_image(image: np.ndarray, shift_px: tuple[float, float]) -> np.ndarray:
 
 
 def _robust_sigma(values: np.ndarray) -> float:
+    """1.4826 × the median absolute deviation, of at most ~65 k samples (every k-th value)."""
+    values = values.ravel()[::max(1, values.size // 65536)]
     return float(1.4826 * np.median(np.abs(values - np.median(values)))) + 1e-12
 
 
@@ -132,7 +136,7 @@ def _refine(mask: np.ndarray, contrast: np.ndarray, shift: np.ndarray, theta: fl
         d_theta = step[2] / half if settings.rotation else 0.0
         shift = shift + step[:2] + d_theta * np.array([-shift[1], shift[0]])  # δθ J s in (down, right)
         theta += d_theta
-        if np.abs(step).max() < 1e-3:
+        if np.abs(step).max() < settings.tolerance_px:
             break
     return shift, theta, sigma
 
@@ -158,12 +162,12 @@ def estimate_motion(mask: np.ndarray, contrast: np.ndarray, settings: MotionSett
                     start: Motion | None = None) -> Motion:
     """The rigid move of ``mask`` that best matches ``contrast`` on the background (``(H, W)`` log-domain
     images of the same size); no move when the estimate is out of bounds or not finite. ``start`` (e.g.
-    another frame's move): refined at the finest level only."""
+    another frame's move): refined at the coarsest level only (the other frames of a combined image)."""
     factors = _levels(mask.shape, settings)
     shift, theta, sigma = None, 0.0, 0.0
     if start is not None and not start.none:
-        factors, previous = factors[-1:], factors[-1]
-        shift, theta = np.array(start.shift_px) / factors[-1], np.radians(start.rotation_deg)
+        factors, previous = factors[:1], factors[0]
+        shift, theta = np.array(start.shift_px) / factors[0], np.radians(start.rotation_deg)
     for factor in factors:
         small_mask, small_contrast = _reduced(mask, factor, settings.smooth_px), _reduced(contrast, factor, settings.smooth_px)
         if shift is None:
