@@ -52,8 +52,6 @@ def _mesh_bytes(mesh) -> bytes:
 
 def _native(generator: str, subtracted: bool) -> Callable[[int, int], ClinicalCase]:
     def build(seed: int, size_px: int) -> ClinicalCase:
-        from ..io.case import CaseFiles
-
         if generator == "skull":
             from ..simulation.native_run_skull import SkullRunSettings, make_skull_run
 
@@ -62,11 +60,19 @@ def _native(generator: str, subtracted: bool) -> Callable[[int, int], ClinicalCa
             from ..simulation.native_run_texture import TextureRunSettings, make_texture_run
 
             run = make_texture_run(seed, TextureRunSettings(size_px=size_px))
-        images = run.subtracted if subtracted else run.files
-        files = CaseFiles(ap=images["ap"], ap_name="ap.dcm", lat=images["lat"], lat_name="lat.dcm",
-                          mesh=_mesh_bytes(run.mesh), mesh_name="mesh.obj")
-        return ClinicalCase(files, run.mesh_to_world)
+        return case_of(run, subtracted)
     return build
+
+
+def case_of(run, subtracted: bool = False) -> ClinicalCase:
+    """The case of a :class:`~dsareg_engine.simulation.native_run.NativeRunCase`: its native runs (or their
+    pre-subtracted peak frames) and its mesh."""
+    from ..io.case import CaseFiles
+
+    images = run.subtracted if subtracted else run.files
+    files = CaseFiles(ap=images["ap"], ap_name="ap.dcm", lat=images["lat"], lat_name="lat.dcm",
+                      mesh=_mesh_bytes(run.mesh), mesh_name="mesh.obj")
+    return ClinicalCase(files, run.mesh_to_world)
 
 
 CASE_KINDS: list[CaseKind] = [
@@ -121,7 +127,7 @@ def bench_clinical(args: argparse.Namespace) -> int:
     if getattr(args, "sweep", None) == "runs":
         from .bench_clinical_runs import bench_runs
 
-        return bench_runs(args, options, run_one)
+        return bench_runs(args, options, run_one, case_of)
     kinds = [k for k in CASE_KINDS if not args.kinds or any(word.lower() in k.name.lower() for word in args.kinds)]
     print(f"{args.cases} case(s) per kind, {args.size} px, seed {args.seed}; no geometry file, no initial pose")
     print("| input kind | cases | success (ok, ADD < 1 mm) | ADD mm median / max | verdicts | wall s median | CPU s median |")

@@ -42,9 +42,7 @@ def _texture(size: int, **changes) -> TextureRunSettings:
 
 def _build(generator: str, settings, mesh_path: str | None) -> Callable[[int], object]:
     def build(seed: int):
-        from ..io.case import CaseFiles
-        from .bench_clinical import ClinicalCase, _mesh_bytes
-
+        """The :class:`~dsareg_engine.simulation.native_run.NativeRunCase` of ``seed``."""
         mesh, root = None, None
         if mesh_path is not None:
             from pathlib import Path
@@ -62,9 +60,7 @@ def _build(generator: str, settings, mesh_path: str | None) -> Callable[[int], o
             from ..simulation.native_run_texture import make_texture_run
 
             run = make_texture_run(seed, settings, mesh, root)
-        files = CaseFiles(ap=run.files["ap"], ap_name="ap.dcm", lat=run.files["lat"], lat_name="lat.dcm",
-                          mesh=_mesh_bytes(run.mesh), mesh_name="mesh.obj")
-        return ClinicalCase(files, run.mesh_to_world)
+        return run
     return build
 
 
@@ -97,15 +93,16 @@ def run_rows(mesh_path: str | None) -> list[tuple[str, int, str, Callable[[int],
             for name, size, text, generator, settings in rows]
 
 
-def bench_runs(args, options: dict, run_one) -> int:
-    """Print the sweep's table (``run_one(case, options) → {add_mm, verdict, cpu_s, wall_s}``)."""
+def bench_runs(args, options: dict, run_one, case_of) -> int:
+    """Print the sweep's table (``case_of(run)``: the clinical case of a native run; ``run_one(case, options)
+    → {add_mm, verdict, cpu_s, wall_s}``)."""
     rows = [row for row in run_rows(getattr(args, "mesh", None))
             if not args.kinds or any(word.lower() in row[0].lower() for word in args.kinds)]
     print(f"{args.cases} case(s) per cell, seed {args.seed}; no geometry file, no initial pose, default options")
     print("| run | px | cases | ok, ADD <= 0.1 mm | ADD mm median / max | verdicts | wrong poses read ok | CPU s median |")
     print("|---|---|---|---|---|---|---|---|")
     for name, size, _, build in rows:
-        results = [run_one(build(args.seed + i), options) for i in range(args.cases)]
+        results = [run_one(case_of(build(args.seed + i)), options) for i in range(args.cases)]
         adds = [r["add_mm"] for r in results]
         good = sum(r["verdict"] == "ok" and r["add_mm"] <= 0.1 for r in results)
         wrong = sum(r["verdict"] == "ok" and r["add_mm"] > 1.0 for r in results)
