@@ -339,6 +339,35 @@ def test_an_xa_only_study_without_a_volume_anywhere_is_reported_not_waited_on(no
         assert jobs_of_study(client, study_uid) == []
 
 
+def test_a_frozen_query_peer_is_a_bounded_clear_error_and_holds_nothing(node, orthanc, study, tmp_path):
+    """Orthanc SIGSTOPped (its port still accepts connections, nothing answers) when an XA-only study asks it for the
+    patient's volume: the C-FIND fails within the 5 s DIMSE timeout, logged naming the peer and the step (never the
+    patient); a whole study sent next still becomes its job; no job of the XA-only study."""
+    import os
+    import signal
+
+    study_uid, paths = renamed_study(study, tmp_path / "xa-only")
+    patient = "TEST-" + new_uid()[-12:]
+    xa = _rewritten(paths[:2], tmp_path / "xa", PatientID=patient)
+    whole_uid, whole = renamed_study(study, tmp_path / "whole")
+    failures = node.logs().count("PACS ORTHANC: C-FIND studies (patient's volume) failed")
+    os.kill(orthanc.process.pid, signal.SIGSTOP)
+    try:
+        assert set(scu_send(node.dicom_port, xa, "STORESCU")) == {0}
+        seconds = wait_log(node, "PACS ORTHANC: C-FIND studies (patient's volume) failed", timeout=STABLE_S + 30,
+                           count=failures + 1)
+        assert set(scu_send(node.dicom_port, whole, "STORESCU")) == {0}
+        with node.client() as client:
+            assert len(wait_jobs(client, whole_uid, timeout=STABLE_S + 30)) == 1  # the dispatcher goes on
+            assert jobs_of_study(client, study_uid) == []
+    finally:
+        os.kill(orthanc.process.pid, signal.SIGCONT)
+    print(f"\nfrozen query peer: the C-FIND failure logged {seconds:.2f} s after the XA were sent")
+    assert seconds <= STABLE_S + 5.0 + 10.0, seconds  # the stable time, one DIMSE timeout, a loaded machine
+    assert patient not in node.logs()
+    assert httpx.get(f"{orthanc.url}/system", auth=(orthanc.user, orthanc.password), timeout=30).status_code == 200
+
+
 def test_generated_client_pulls_by_dimse_reference_with_c_move(node, orthanc, study, tmp_path):
     """``/openapi.json`` documents the DIMSE body: a generated client submits it; C-MOVE (the default) brings the
     inputs to dsareg's node, the results go back to Orthanc by C-STORE."""
