@@ -227,6 +227,7 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
     warnings.extend(loaded.warnings)
     extraction = extract_vessels(loaded, volume_reading, field_name="volume")
     surface = extraction.mesh
+    decisions.extend(extraction.readout.decisions)  # kind, vessel window, bone threshold, vessel shape
     unit_decision(surface, MeshUnit("mm", "tag"), "volume")  # a size no head has: a wrong voxel spacing
     kinds["volume"] = loaded.kind
     if surface.n_faces > limits.working_faces:

@@ -27,7 +27,7 @@ import numpy as np
 WORK_MM = 0.5
 BALL_PER_RADIUS = 4.0
 MIN_BALL_MM = 3.0
-PLATE_RATIO = 1.5
+PLATE_RATIO = 1.7
 MEDIAL_SLOPE = 0.8  # |∇ depth| (mm per mm) below which a voxel is on the ridge of the depth
 MAX_SAMPLES = 4000  # medial points whose fill ratio is measured (the others take their nearest one's)
 
@@ -37,7 +37,8 @@ class MedialShape:
     """The medial measure of a mask.
 
     Attributes:
-        plate_share: plate medial points ÷ medial points (0 = all tube, 1 = all sheet).
+        plate_share: plate medial points ÷ medial points, each weighted by its radius² (the volume it stands
+            for: a thin vessel is all medial points), 0 = all tube, 1 = all sheet.
         medial_points: medial points on the working grid.
         plate: bool, the mask's shape: voxels of plate parts (None unless asked for).
     """
@@ -58,8 +59,9 @@ def to_working_grid(mask: np.ndarray, spacing_mm) -> tuple[np.ndarray, np.ndarra
     return work >= 0.5, zoom
 
 
-def medial_ratio(work: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Medial points ``(N, 3)`` (working-grid indices) of the mask ``work`` and their fill ratio ``(N,)``."""
+def medial_ratio(work: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Medial points ``(N, 3)`` (working-grid indices) of the mask ``work``, their volume scaling exponent
+    ``(N,)`` and their radius ``(N,)`` in working voxels."""
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
@@ -70,7 +72,7 @@ def medial_ratio(work: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     medial = work & ((slope < MEDIAL_SLOPE) | thin) & (depth >= top - 0.75 * WORK_MM)
     points = np.argwhere(medial)
     if len(points) == 0:
-        return points, np.zeros(0)
+        return points, np.zeros(0), np.zeros(0)
     radius_vox = top[medial] / WORK_MM - 0.25
     sample = np.arange(len(points))
     if len(points) > MAX_SAMPLES:
@@ -82,7 +84,7 @@ def medial_ratio(work: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ratio = np.log2(inside / np.maximum(half, 1))
     if len(sample) < len(points):  # the others take their nearest measured neighbour's
         ratio = ratio[cKDTree(points[sample]).query(points)[1]]
-    return points, ratio
+    return points, ratio, radius_vox
 
 
 def medial_shape(mask: np.ndarray, spacing_mm, *, with_parts: bool = False) -> MedialShape:
@@ -93,11 +95,12 @@ def medial_shape(mask: np.ndarray, spacing_mm, *, with_parts: bool = False) -> M
         return MedialShape(0.0, 0, np.zeros(mask.shape, bool) if with_parts else None)
     low, high = _box(mask, margin=1)
     work, zoom = to_working_grid(mask[low[0]:high[0], low[1]:high[1], low[2]:high[2]], spacing_mm)
-    points, ratio = medial_ratio(work)
+    points, ratio, radius_vox = medial_ratio(work)
     if len(points) == 0:
         return MedialShape(0.0, 0, np.zeros(mask.shape, bool) if with_parts else None)
     is_plate = ratio > PLATE_RATIO
-    share = float(is_plate.mean())
+    weight = np.maximum(radius_vox, 1.0) ** 2  # a medial point stands for its cross-section's volume
+    share = float((weight * is_plate).sum() / weight.sum())
     if not with_parts:
         return MedialShape(share, len(points))
     plate = np.zeros(mask.shape, bool)

@@ -5,10 +5,11 @@ are plates (thin in one direction: the skull, a skull-base slab) or a closed she
 :func:`shape_measures` measures, on the kept voxels:
 
 * ``enclosed_ratio``: volume with enclosed cavities filled ÷ kept volume (a shell encloses many times itself);
-* ``plate_fraction``: of the ridge voxels (local maxima of the mask smoothed over ``HESSIAN_SIGMA_MM``, on
-  a grid no finer than ``SHAPE_GRID_MM``), the share whose Hessian has one strong curvature and two weak
-  ones (a plate) rather than two strong (a tube);
-* ``solid_fraction``: the share of ridge voxels with no strong curvature at all (inside a mass far wider
+* ``plate_fraction``: the plate share of the kept voxels' medial axis, measured in mm on a working grid
+  (:mod:`.medial_shape`: the same at every voxel size; refused above ``MAX_PLATE_FRACTION``, a close call
+  within ``PLATE_BAND`` of it);
+* ``solid_fraction``: of the ridge voxels (local maxima of the mask smoothed over ``HESSIAN_SIGMA_MM``, on
+  a grid no finer than ``SHAPE_GRID_MM``), the share with no strong curvature at all (inside a mass far wider
   than the scale: a head's tissue read as "vessel");
 * ``kept_fraction``: kept voxels ÷ all voxels.
 
@@ -20,11 +21,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import DsaregInputError
+from .medial_shape import medial_shape
 
 SHAPE_GRID_MM = 1.0
 HESSIAN_SIGMA_MM = 1.5
 MAX_ENCLOSED_RATIO = 1.5
 MAX_PLATE_FRACTION = 0.5
+PLATE_BAND = 0.15
 MAX_SOLID_FRACTION = 0.5
 MAX_KEPT_FRACTION = {"cta": 0.03, "mra": 0.03, "3d-dsa": 0.2}
 RIDGE_TOLERANCE = 0.97
@@ -53,7 +56,9 @@ def crop_to(mask: np.ndarray, margin: int = 1) -> np.ndarray:
 
 
 def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, float]:
-    """(plate share, solid share) of the structure's ridge voxels (see the module text); (0, 0) if empty."""
+    """(plate share, solid share) of the structure's ridge voxels by their Hessian at ``HESSIAN_SIGMA_MM``; (0, 0)
+    if empty. Only the solid share is used: the Hessian's plate share depends on the voxel size and on the
+    vessels' calibre (the medial measure replaces it)."""
     from scipy import ndimage
 
     box = np.argwhere(mask)
@@ -86,7 +91,8 @@ def shape_measures(mask: np.ndarray, spacing) -> dict[str, float]:
 
     kept = int(mask.sum())
     filled = int(ndimage.binary_fill_holes(crop_to(mask)).sum()) if kept else 0
-    plate, solid = curvature_shares(mask, np.asarray(spacing, float))
+    solid = curvature_shares(mask, np.asarray(spacing, float))[1]
+    plate = medial_shape(mask, spacing).plate_share
     return {"kept_fraction": kept / mask.size, "enclosed_ratio": filled / max(kept, 1), "plate_fraction": plate,
             "solid_fraction": solid}
 

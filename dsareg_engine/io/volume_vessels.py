@@ -21,15 +21,16 @@ vessel voxels → a shape check (:mod:`.vessel_shape`) → marching cubes (:func
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
-from .vessel_shape import check_vessel_shape, crop_to
+from .input_decisions import InputDecision
+from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, largest_components, surface_from_mask
-from .volume_kind import VolumeReading, detect_volume_kind
+from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -39,6 +40,9 @@ MRA_SHELL_MM = 7.0
 MRA_EXTENT = 0.4  # MRA: vessel voxels reach down to tissue + this × (vessel − tissue)
 LOCAL_PEAK_MM = 5.0
 SMOOTHING_SIGMA_VOX = 0.5
+VESSEL_CONTRAST_MIN = {"cta": 100.0, "mra": 6.0}  # vessel over tissue: HU (CTA), noise spreads (MRA)
+VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast than this: a close call
+BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
 
 
 @dataclass
@@ -54,6 +58,9 @@ class VolumeReadout:
         tissue_level, vessel_level: the estimated background tissue and vessel levels.
         voxels_kept, voxels_total: vessel voxels kept, voxels in the volume; components kept.
         faces: faces of the extracted surface (before any decimation).
+        plate_share: the plate share of the kept voxels' medial axis (:mod:`.medial_shape`; vessels ~0-0.2).
+        decisions: the decisions taken (kind, vessel window, bone threshold, shape), for ``Case.decisions``;
+            not part of :meth:`to_dict`.
     """
 
     kind: str
@@ -68,9 +75,14 @@ class VolumeReadout:
     components: int
     surface: str = "level"
     faces: int = 0
+    plate_share: float | None = None
+    decisions: list[InputDecision] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
         out = asdict(self)
+        out.pop("decisions")
+        if out["plate_share"] is not None:
+            out["plate_share"] = round(float(out["plate_share"]), 3)
         for key in ("vessel_min", "vessel_max", "tissue_level", "vessel_level"):
             if out[key] is not None:
                 out[key] = round(float(out[key]), 1)
@@ -118,10 +130,49 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
                             levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(mask.size), labels_count,
                             "local half maximum" if "low" in levels else "level")
-    check_vessel_shape(mask, spacing, readout, field_name=field_name)
+    measures = check_vessel_shape(mask, spacing, readout, field_name=field_name)
+    readout.plate_share = measures["plate_fraction"]
+    readout.decisions = _decisions(readout, reading, voxels, levels)
     mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
     readout.faces = mesh.n_faces
     return VesselExtraction(mesh, readout, mask, excluded)
+
+
+def _decisions(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray, levels: dict) -> list[InputDecision]:
+    """What was decided about the volume, each with its measure and close-call band (:mod:`.input_decisions`)."""
+    decisions = [_kind_decision(readout, reading, voxels)]
+    if readout.kind != "3d-dsa":
+        given = reading.vessel_min is not None
+        contrast = (levels["vessel"] - levels["tissue"]) if levels.get("vessel") is not None else None
+        basis = "vessel over tissue contrast (HU); the window starts halfway"
+        if readout.kind == "mra" and contrast is not None:
+            contrast, basis = contrast / max(levels["spread"], 1e-6), ("vessel over tissue contrast in the "
+                                                                          "tissue's noise spreads; the window starts halfway")
+        window = f"{readout.vessel_min:.0f}" + (f" to {readout.vessel_max:.0f}" if readout.vessel_max is not None
+                                                  else " and up") + f" {readout.unit}"
+        least, band = VESSEL_CONTRAST_MIN[readout.kind], VESSEL_CONTRAST_BAND[readout.kind]
+        decisions.append(InputDecision("volume", "vessel window", window, basis, contrast, least, band,
+                                       "option" if given else "measured"))
+    if readout.kind == "cta":
+        decisions.append(InputDecision(
+            "volume", "bone threshold", f"{readout.vessel_max:.0f} HU",
+            "the vessels' level (HU) against the bone threshold", levels.get("vessel"), readout.vessel_max,
+            BONE_MARGIN_HU, "option" if reading.vessel_max is not None else "measured"))
+    decisions.append(InputDecision(
+        "volume", "vessel shape", "tubes", "plate share of the kept voxels' medial axis", readout.plate_share,
+        MAX_PLATE_FRACTION, PLATE_BAND))
+    return decisions
+
+
+def _kind_decision(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray) -> InputDecision:
+    if reading.kind != "auto":
+        return InputDecision("volume", "volume kind", readout.kind, readout.kind_source, source="option")
+    if readout.kind_source.startswith(("Modality MR", "Image Type", "Modality XA", "Modality ")) and \
+            "air" not in readout.kind_source:
+        return InputDecision("volume", "volume kind", readout.kind, readout.kind_source, source="tag")
+    air = float(np.mean(voxels[::2, ::2, ::2] < AIR_HU))
+    return InputDecision("volume", "volume kind", readout.kind, f"{readout.kind_source}; share of voxels below "
+                         f"{AIR_HU:.0f} (air around a head in HU)", air, MIN_AIR_FRACTION, MIN_AIR_FRACTION / 2.0)
 
 
 def _finite(data: np.ndarray, field_name: str) -> np.ndarray:
@@ -263,13 +314,13 @@ def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: V
     seeded = np.isin(labels, np.unique(labels[seeds & (labels > 0)]))
     mask = largest_components(seeded, field_name=field_name)
     if reading.vessel_min is not None:
-        return smooth, mask, {"min": level, "tissue": tissue, "vessel": peak}, ~interior
+        return smooth, mask, {"min": level, "tissue": tissue, "vessel": peak, "spread": spread}, ~interior
     field = _local_half_maximum(smooth, mask, tissue, spacing, level)
     # what crosses its own half maximum, connected to the bright vessels: drops texture blobs that reached
     # the vessels through voxels below half the vessels' own contrast
     labels, _ = ndimage.label(mask & (field > level))
     mask = largest_components(np.isin(labels, np.unique(labels[seeds & (labels > 0)])), field_name=field_name)
-    return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak}, ~interior
+    return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak, "spread": spread}, ~interior
 
 
 def _mode_and_upper_spread(values: np.ndarray) -> tuple[float, float]:

@@ -391,6 +391,8 @@ class VolumeRead(BaseModel):
     components: int = Field(description="Connected vessel components kept.")
     surface: str = Field("level", description="`level` (at vessel_min) or `local half maximum` (MRA).")
     faces: int = Field(description="Faces of the extracted surface, before decimation to the working budget.")
+    plate_share: float | None = Field(None, description="Plate share of the kept voxels' medial axis, measured in mm "
+                                      "(vessels about 0-0.25, bone plates 0.6-1; refused above 0.5, a close call from 0.35).")
 
 
 class InputDecisionRecord(BaseModel):

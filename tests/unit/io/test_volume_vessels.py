@@ -108,3 +108,26 @@ def test_a_cta_without_contrast_in_the_window_is_refused():
     with pytest.raises(DsaregInputError, match="no vessels"):
         load_case(volume=_case("cta", "a").volume.parts, ap=_case("cta", "a").ap, lat=_case("cta", "a").lat,
                   volume_reading=VolumeReading("cta", vessel_min=2000.0, vessel_max=3000.0))
+
+
+def test_the_reading_is_recorded_as_decisions_with_their_margins():
+    readout = _read("cta", "a")[1].readout
+    decisions = {decision.what: decision for decision in readout.decisions}
+    assert set(decisions) == {"volume kind", "vessel window", "bone threshold", "vessel shape"}
+    assert decisions["volume kind"].chosen == "cta" and decisions["volume kind"].source == "measured"
+    assert decisions["bone threshold"].threshold == 700.0 and decisions["bone threshold"].margin < -200.0
+    assert decisions["vessel window"].measure > 200.0 and not any(d.close for d in readout.decisions)
+    assert decisions["vessel shape"].measure == readout.plate_share < 0.3
+    assert "decisions" not in readout.to_dict() and "plate_share" in readout.to_dict()
+
+
+def test_vessels_close_to_the_bone_threshold_are_a_close_call():
+    volume = _read("cta", "a")[0]
+    data = volume.data.copy()
+    data[(data > 150) & (data < 600)] += 330.0  # vessels at ~680 HU: just under the 700 HU bone threshold
+    readout = extract_vessels(Volume(data, volume.affine, volume.kind, tags=volume.tags)).readout
+    bone = next(decision for decision in readout.decisions if decision.what == "bone threshold")
+    assert bone.close and "bone threshold" in bone.reason()
+    given = extract_vessels(Volume(data, volume.affine, volume.kind, tags=volume.tags),
+                            VolumeReading("cta", vessel_max=850.0)).readout
+    assert not any(decision.close for decision in given.decisions if decision.what == "bone threshold")
