@@ -308,15 +308,19 @@ function scene3dSection(job, state) {
   const canvas = el("canvas", { id: "scene3d", class: "scene3d", tabindex: 0,
     "aria-label": "3D scene: the model in the registered pose, both X-ray sources and detectors; drag to orbit, wheel to zoom" });
   const ghost = el("button", { type: "button", id: "toggle-ghost", "aria-pressed": "true" }, "Initial pose (ghost)");
+  const frameModel = el("button", { type: "button", id: "frame-model" }, "Frame the model");
+  const frameRig = el("button", { type: "button", id: "frame-rig" }, "Frame the C-arm");
   const note = el("p", { class: "muted small", id: "scene-note" }, "Orange: the model in the registered pose; grey: the initial pose; " +
     "blue: the AP source and its beam, green: the LAT; each detector shows its view with the layers on.");
   const section = el("section", { "aria-labelledby": "scene-h", id: "scene" }, el("h3", { id: "scene-h" }, "3D scene"),
-    el("div", { class: "toolbar" }, ghost), canvas, note);
+    el("div", { class: "toolbar" }, ghost, frameModel, frameRig), canvas, note);
   state.ready.then(async (model) => {
     const arrival = await arrivalOf(job, model, note);
     const { showScene } = await import("./scene3d.js");
     const textures = Object.fromEntries(state.views.map((v) => [v.name, nativeComposite(state, v)]));
     const scene = await showScene(canvas, model, textures, arrival);
+    frameModel.addEventListener("click", () => scene.frame(false));
+    frameRig.addEventListener("click", () => scene.frame(true));
     ghost.addEventListener("click", () => {
       scene.ghost.visible = !scene.ghost.visible;
       ghost.setAttribute("aria-pressed", String(scene.ghost.visible));

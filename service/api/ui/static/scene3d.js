@@ -69,12 +69,13 @@ function sourceMarker(THREE, detector, colour) {
   return marker;
 }
 
-function frameCamera(THREE, camera, controls, model, registered) {
+function frameCamera(THREE, camera, controls, model, registered, whole) {
   // from between the two sources, looking at the model with both detectors behind it (the corner of two
-  // "walls" carrying the views); framed on the model and the detectors (the sources are farther, off-frame)
+  // "walls" carrying the views); framed on the model and the detectors (`whole`; the sources are farther,
+  // off-frame) or on the model alone
   const centre = new THREE.Box3().setFromObject(registered).getCenter(new THREE.Vector3());
   const box = new THREE.Box3().setFromObject(registered);
-  for (const d of Object.values(model.views)) d.corners_mm.forEach((c) => box.expandByPoint(new THREE.Vector3(...c)));
+  if (whole) for (const d of Object.values(model.views)) d.corners_mm.forEach((c) => box.expandByPoint(new THREE.Vector3(...c)));
   const sphere = box.getBoundingSphere(new THREE.Sphere());
   const sources = Object.values(model.views).map((d) => new THREE.Vector3(...d.source_mm).sub(centre).normalize());
   const direction = sources.reduce((a, b) => a.add(b), new THREE.Vector3());
@@ -126,13 +127,13 @@ export async function showScene(canvas, model, textures, arrival) {
   const controls = new OrbitControls(camera, canvas);
   const render = () => { renderer.render(scene, camera); canvas.dataset.frames = String(Number(canvas.dataset.frames || 0) + 1); };
   controls.addEventListener("change", render);
-  frameCamera(THREE, camera, controls, model, registered);
-  render();
+  const frame = (whole) => { frameCamera(THREE, camera, controls, model, registered, whole); render(); };
+  frame(true);
   const setTexture = (name, image) => {
     if (!maps[name]) return;
     maps[name].image = image;
     maps[name].needsUpdate = true;
     render();
   };
-  return { render, ghost, registered, setTexture };
+  return { render, ghost, registered, setTexture, frame };
 }
