@@ -169,7 +169,7 @@ def test_review_page_is_small_and_offline(keyed_server):
         assert c.get("/ui", follow_redirects=False).headers["location"] == "/ui/"
         index = c.get("/ui/")
         assert index.status_code == 200 and "default-src 'self'" in index.headers["content-security-policy"]
-        parts = [index] + [c.get(f"/ui/{name}") for name in ("app.js", "app.css")]
+        parts = [index] + [c.get(f"/ui/{name}") for name in ("app.js", "views2d.js", "scene3d.js", "app.css")]
         assert all(p.status_code == 200 for p in parts)
         assert c.get("/ui/..%2Fjobs.sqlite3").status_code == 404 and c.get("/ui/secret.txt").status_code == 404
     weight = sum(len(p.content) for p in parts)
