@@ -57,7 +57,7 @@ def test_case_identity_is_the_owners_only(keyed_server, dicom_job):
         found = lambda c, q: [j["id"] for j in c.get("/v1/registrations", params={"q": q}).json()["items"]]  # noqa: E731
         assert dicom_job["id"] in found(alpha, "rv-004") and dicom_job["id"] in found(alpha, "2026-11-30")
         assert dicom_job["id"] not in found(alpha, "RV-0043")
-        assert found(beta, PATIENT_ID) == [] and beta.get(f"/v1/registrations/{dicom_job['id']}").status_code == 403
+        assert found(beta, PATIENT_ID) == [] and beta.get(f"/v1/registrations/{dicom_job['id']}").status_code == 404
         summary = next(j for j in alpha.get("/v1/registrations").json()["items"] if j["id"] == dicom_job["id"])
         assert summary["case"] == case
         assert alpha.get("/v1/registrations", params={"q": "x" * 65}).status_code == 422
