@@ -37,6 +37,7 @@ def add_parser(subparsers) -> None:
     _add_partial(which)
     _add_clinical(which)
     _add_hemodynamics(which)
+    _add_models(which)
 
 
 def _add_render(which) -> None:
@@ -175,6 +176,20 @@ def _add_clinical(which) -> None:
                                                         "bolus, generator; each cell at its own size)")
     sub.add_argument("--mesh", metavar="FILE", help="--sweep runs: add the cells drawn with this mesh's vessel tree")
     sub.set_defaults(func=deferred("dsareg_engine.commands.bench_clinical:bench_clinical"))
+
+
+def _add_models(which) -> None:
+    """``dsareg bench models``: mesh units (GLB in metres) and handedness (mirrored models)."""
+    sub = which.add_parser("models", help="a GLB in metres and mirrored models (x, y, z) on a clinical rig, "
+                                          "no initial pose: ADD, verdicts, the mirror named, CPU s")
+    sub.add_argument("--mesh", nargs="*", default=[], help="meshes in mm to add to the built-in phantom")
+    sub.add_argument("--cases", type=int, default=2, help="cases (seeds) per row")
+    sub.add_argument("--seed", type=int, default=0, help="first seed")
+    sub.add_argument("--size", type=int, default=256, help="image side in px")
+    sub.add_argument("--rows", nargs="*", default=[], help="only the rows whose name contains one of these words")
+    sub.add_argument("--options", default="{}", help="extra registration options as JSON")
+    sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
+    sub.set_defaults(func=deferred("dsareg_engine.commands.bench_models:bench_models"))
 
 
 def _add_hemodynamics(which) -> None:
