@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import sqlite3
 
 import httpx
 import numpy as np
@@ -83,11 +84,21 @@ def test_end_to_end_phantom(server, example_case):
         assert 'dsareg_jobs{state="succeeded"}' in metrics and "dsareg_queue_depth" in metrics
         assert "dsareg_job_duration_seconds_bucket" in metrics
         assert 'route="/v1/registrations/{job_id}"' in metrics
+    # client file names may carry patient identifiers: they are kept only in the job's case identity (shown to the
+    # job's owner, like a DICOM input's patient), never in logs, paths or any other column
+    case = final.get("case") or {}
+    assert "DOE_JANE_19700101_ap.png" in json.dumps(case), case
     assert "DOE_JANE" not in server.logs()
     for path in server.data_dir.rglob("*"):
         assert "DOE_JANE" not in path.name
-        if path.is_file() and path.name.startswith("jobs.sqlite3"):
-            assert b"DOE_JANE" not in path.read_bytes()
+    database = server.data_dir / "jobs.sqlite3"
+    with sqlite3.connect(database) as db:
+        for (table,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall():
+            columns = [row[1] for row in db.execute(f"PRAGMA table_info({table})")]
+            for row in db.execute(f"SELECT * FROM {table}"):
+                for column, value in zip(columns, row):
+                    if (table, column) not in {("jobs", "case_identity"), ("jobs", "case_search")}:
+                        assert "doe_jane" not in str(value).lower(), (table, column)
 
 
 @needs_engine
