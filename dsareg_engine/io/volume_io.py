@@ -32,6 +32,7 @@ from . import rad as rad_format
 from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
 from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
+from .volume_series import pick_volume_series
 
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 _ACCEPTED = (
@@ -337,6 +338,11 @@ def read_dicom_series(
             raise DsaregInputError(f"file {index} of the series is empty", field=field_name)
         parsed.append(parse_dicom(part, field_name))
     headers = [dataset for dataset, _ in parsed]
+    series_warnings: list[str] = []
+    if len(parts) > 1:  # a folder may hold other series (the XA runs, a scout): take the volume series
+        chosen, series_warnings = pick_volume_series(headers, field_name=field_name)
+        parts, parsed = [parts[i] for i in chosen], [parsed[i] for i in chosen]
+        headers = [dataset for dataset, _ in parsed]
     first = headers[0]
     rows, cols = int(getattr(first, "Rows", 0) or 0), int(getattr(first, "Columns", 0) or 0)
     bits = int(getattr(first, "BitsAllocated", 16) or 16)
@@ -381,7 +387,7 @@ def read_dicom_series(
     voxels = np.stack([slices[i].T for i in order], axis=2).astype(np.float32)  # [i=col, j=row, k]
     affine = _series_affine(positions, row_dir, col_dir, spacing, field_name)
     identities = [identity_or_none(header) for header in headers]
-    return Volume(voxels, affine, kind, tags=_identity_tags(first),
+    return Volume(voxels, affine, kind, warnings=series_warnings, tags=_identity_tags(first),
                   dicom=tuple(identity for identity, _ in identities if identity is not None),
                   dicom_unreadable=any(unreadable for _, unreadable in identities))
 
