@@ -157,3 +157,15 @@ def test_no_recipe_run_with_rotation_masks_and_rotation_found():
     assert kinds["run kind"].chosen == "native" and not kinds["run kind"].close
     assert kinds["mask frames"].chosen == "0,1,2" and not kinds["mask frames"].close
     assert _vessel_correlation(image.pixels, run.vessels["lat"]) > 0.8  # 512 px: lower dose per pixel
+
+
+@pytest.mark.parametrize("bits, relationship, photometric", [(8, "DISP", "MONOCHROME2"), (10, "LOG", "MONOCHROME1"),
+                                                             (16, "LIN", "MONOCHROME1")])
+def test_encodings_without_recipe_read_native(bits, relationship, photometric):
+    """Bits, intensity relationship and photometric interpretation as stored: native, vessels dark, masks found."""
+    settings = SkullRunSettings(size_px=SIZE, recipe=False, bits=bits, relationship=relationship, photometric=photometric)
+    run = make_skull_run(4, settings)
+    image = read_image(run.files["ap"], "ap.dcm", field_name="ap")
+    assert image.reading["run"] == "native" and image.reading["pixel_intensity_relationship"] == relationship
+    assert image.reading["mask_frame_indices"] == list(run.mask_frames)
+    assert _vessel_correlation(image.pixels, run.vessels["ap"]) > 0.9
