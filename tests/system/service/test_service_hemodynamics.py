@@ -63,6 +63,7 @@ def test_a_job_maps_arrival_onto_the_model_and_serves_every_file(server, runs, t
         plain = _job(client, runs, OPTIONS)
         links = final["links"]
         document = client.get(links["hemodynamics"]).json()
+        model = client.get(links["model"]).json()  # the review page's 3D scene colours these vertices by arrival
         for key, media in (("hemodynamics_ply", "application/octet-stream"), ("hemodynamics_vtk", "application/octet-stream"),
                            ("parametric_ap", "image/png"), ("parametric_lat", "image/png")):
             response = client.get(links[key])
@@ -73,6 +74,8 @@ def test_a_job_maps_arrival_onto_the_model_and_serves_every_file(server, runs, t
     assert "hemodynamics" not in plain["links"]
     summary = final["result"]["hemodynamics"]
     assert document["vertices"] == summary["vertices"] == len(run.mesh.vertices)  # the OBJ's v lines
+    assert model["vertex_count"] == document["vertices"] and model["vertex_order"] == "file"
+    assert np.allclose(np.reshape(model["vertices"], (-1, 3)), run.mesh.vertices, atol=1e-4)  # same order
     arrival = np.array([np.nan if v is None else v for v in document["arrival_s"]])
     mapped = np.isfinite(arrival)
     assert mapped.mean() > 0.6, summary
