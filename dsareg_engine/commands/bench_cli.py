@@ -182,7 +182,7 @@ def _add_models(which) -> None:
     """``dsareg bench models``: mesh units (GLB in metres) and handedness (mirrored models)."""
     sub = which.add_parser("models", help="a GLB in metres and mirrored models (x, y, z) on a clinical rig, "
                                           "no initial pose: ADD, verdicts, the mirror named, CPU s")
-    sub.add_argument("--mesh", nargs="*", default=[], help="meshes in mm to add to the built-in phantom")
+    sub.add_argument("--mesh", nargs="*", default=[], help="meshes in mm (default: the built-in phantom)")
     sub.add_argument("--cases", type=int, default=2, help="cases (seeds) per row")
     sub.add_argument("--seed", type=int, default=0, help="first seed")
     sub.add_argument("--size", type=int, default=256, help="image side in px")

@@ -61,7 +61,7 @@ def bench_models(args: argparse.Namespace) -> int:
     from .render import load_mesh_argument
 
     options = {"device": args.device if args.device != "auto" else "cpu", **json.loads(args.options)}
-    meshes = [("phantom", load_mesh_argument(None))] + [(path, load_mesh_argument(path)) for path in args.mesh]
+    meshes = [(path, load_mesh_argument(path)) for path in args.mesh] or [("phantom", load_mesh_argument(None))]
     print(f"{args.cases} case(s) per row, {args.size} px clinical rig (107°, mirrored LAT), seed {args.seed}; "
           "no initial pose")
     print("| model | row | ADD mm median / max | verdicts | mirror named | mirror fits run | CPU s median |")
