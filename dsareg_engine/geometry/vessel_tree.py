@@ -76,9 +76,10 @@ def guess_inflow(mesh: TriangleMesh, thickness_mm: np.ndarray) -> int:
     return int(candidates[np.argmax(far)])
 
 
-def vessel_thickness_mm(mesh: TriangleMesh, neighbours: int = 96) -> np.ndarray:
+def vessel_thickness_mm(mesh: TriangleMesh, neighbours: int = 96, *, unfound: str = "median") -> np.ndarray:
     """Local vessel diameter at each vertex ``(V,)``: distance to the nearest vertex straight across,
-    along the inward normal (within 25°; the vertex's ``neighbours`` nearest are searched)."""
+    along the inward normal (within 25°; the vertex's ``neighbours`` nearest are searched). Where none is found:
+    the median of the others (``unfound="median"``) or NaN (``"nan"``)."""
     normals = vertex_normals(mesh)
     count = min(neighbours, len(mesh.vertices))
     distance, index = cKDTree(mesh.vertices).query(mesh.vertices, k=count)
@@ -87,6 +88,8 @@ def vessel_thickness_mm(mesh: TriangleMesh, neighbours: int = 96) -> np.ndarray:
     across = along > np.cos(np.radians(25.0)) * np.maximum(distance, 1e-9)
     diameter = np.where(across, distance, np.inf).min(axis=1)
     finite = np.isfinite(diameter)
+    if unfound == "nan":
+        return np.where(finite, diameter, np.nan)
     fallback = float(np.median(diameter[finite])) if finite.any() else 1.0
     return np.where(finite, diameter, fallback)
 

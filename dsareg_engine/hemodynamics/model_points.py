@@ -2,8 +2,9 @@
 
 **Vessel points.** Each vertex of the working mesh lies on a vessel wall; the vessel it belongs to has its
 axis half a local diameter inward along the vertex normal. ``centres_mm`` ``(N, 3)`` are those axis
-points and ``radii_mm`` ``(N,)`` the local radius (:func:`dsareg_engine.geometry.vessel_tree.vessel_thickness_mm`
-/ 2): a time–density curve is taken over the vessel's projected cross-section around the centre.
+points and ``radii_mm`` ``(N,)`` the local radius (:func:`local_radii_mm`: half the diameter straight across,
+:func:`dsareg_engine.geometry.vessel_tree.vessel_thickness_mm`, as a median over the nearest vertices): a
+time–density curve is taken over the vessel's projected cross-section around the centre.
 
 **The file's vertex order.** Outputs are per vertex of the model file *as given*: OBJ ``v`` lines in order,
 duplicates included; PLY / OFF vertices in order; STL three vertices per triangle. The working mesh merged
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import io
 import re
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +26,7 @@ from ..geometry.vessel_tree import vertex_normals, vessel_thickness_mm
 from ..mesh import TriangleMesh
 
 MIN_RADIUS_MM = 0.3
+RADIUS_NEIGHBOURS = 12
 
 
 @dataclass(frozen=True)
@@ -38,9 +41,24 @@ class VesselPoints:
         return len(self.radii_mm)
 
 
+def local_radii_mm(mesh: TriangleMesh) -> np.ndarray:
+    """``(V,)`` the local vessel radius: half the diameter straight across each vertex, then the median over the
+    ``RADIUS_NEIGHBOURS`` nearest vertices where one was found (a coarse ring, a bifurcation or a cap can leave a
+    vertex without a vertex straight across, or with one on another vessel)."""
+    diameter = vessel_thickness_mm(mesh, unfound="nan")
+    if not np.isfinite(diameter).any():
+        return np.full(len(mesh.vertices), 1.0)
+    _, near = cKDTree(mesh.vertices).query(mesh.vertices, k=min(RADIUS_NEIGHBOURS, len(mesh.vertices)))
+    with warnings.catch_warnings():  # a vertex none of whose neighbours found a diameter: the overall median
+        warnings.simplefilter("ignore", RuntimeWarning)
+        local = np.nanmedian(diameter[near], axis=1)
+    local = np.where(np.isfinite(local), local, np.nanmedian(diameter))
+    return np.maximum(local / 2.0, MIN_RADIUS_MM)
+
+
 def vessel_points(mesh: TriangleMesh) -> VesselPoints:
-    """One vessel point per vertex of ``mesh``: the vertex moved half the local diameter along its inward normal."""
-    radii = np.maximum(vessel_thickness_mm(mesh) / 2.0, MIN_RADIUS_MM)
+    """One vessel point per vertex of ``mesh``: the vertex moved the local radius along its inward normal."""
+    radii = local_radii_mm(mesh)
     centres = mesh.vertices - vertex_normals(mesh) * radii[:, None]
     return VesselPoints(centres, radii)
 

@@ -12,8 +12,9 @@ For a curve ``c(t)`` (background-corrected opacity, :mod:`.sampling`) sampled at
   measurable (NaN) when the first frame is already above it;
 * **filled**: the peak stands ``SIGNIFICANCE_SIGMAS`` times above the noise of the curve (the spread a footprint
   of that size shows on background pixels between frames, :func:`footprint_noise`) and reaches
-  ``MIN_FILL_FRACTION`` of what a vessel of that radius shows in this run (the median opacity per mm of
-  diameter over the filled points). A curve that is not filled never saw contrast: every value is NaN.
+  ``MIN_FILL_FRACTION`` of what a vessel of that size shows in this run (the median opacity per mm of mean path
+  through the vessel over its footprint, over the significant points: a thin vessel whose footprint reaches past
+  its walls is expected to show less). A curve that is not filled never saw contrast: every value is NaN.
 """
 
 from __future__ import annotations
@@ -111,10 +112,11 @@ def _half_rise(times: np.ndarray, curves: np.ndarray, k: np.ndarray, half: np.nd
     return np.where(last_below >= 0, arrival, np.nan)
 
 
-def curve_parameters(curves: np.ndarray, times_s: np.ndarray, noise: np.ndarray, radii_mm: np.ndarray,
+def curve_parameters(curves: np.ndarray, times_s: np.ndarray, noise: np.ndarray, chord_mm: np.ndarray,
                      measurable: np.ndarray) -> CurveParameters:
     """Parameters of ``curves`` ``(N, T)`` at ``times_s`` ``(T,)``; ``noise`` ``(N,)`` the curves' noise,
-    ``radii_mm`` ``(N,)`` the vessel radii, ``measurable`` ``(N,)`` bool (the rest: NaN, not filled)."""
+    ``chord_mm`` ``(N,)`` the mean path through each vessel over its footprint (:func:`.sampling.mean_chord_mm`: what a
+    filled vessel there shows, relative), ``measurable`` ``(N,)`` bool (the rest: NaN, not filled)."""
     times = np.asarray(times_s, float)
     count = len(curves)
     start = baseline_frames(curves[measurable]) if measurable.any() else 0
@@ -123,7 +125,7 @@ def curve_parameters(curves: np.ndarray, times_s: np.ndarray, noise: np.ndarray,
     k = np.argmax(lifted, axis=1)
     peak_s, peak = _parabola_peak(times, lifted, k)
     significant = measurable & (peak > SIGNIFICANCE_SIGMAS * np.maximum(noise, 1e-12))
-    per_mm = peak / (2.0 * np.maximum(radii_mm, 1e-6))
+    per_mm = peak / np.maximum(chord_mm, 1e-6)
     typical = float(np.median(per_mm[significant])) if significant.any() else 0.0
     filled = significant & (per_mm >= MIN_FILL_FRACTION * typical)
     arrival = _half_rise(times, lifted, k, 0.5 * peak)

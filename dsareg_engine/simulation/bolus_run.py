@@ -14,7 +14,7 @@ Per vertex the truth is its own curve's half-peak rise (``arrival_s``) and peak 
 vertex contrast never reaches (``partial`` filling: a branch of the tree, about a third of it, gets none).
 
 Each frame is an instantaneous snapshot: iodine ``IODINE_PER_MM`` × the length of each stretch of vessel a ray
-crosses × that stretch's concentration (:mod:`.bolus_layers`: overlapping vessels at different depths keep
+crosses × that stretch's concentration (:mod:`dsareg_engine.render.ray_layers`: overlapping vessels at different depths keep
 their own times), rendered at ``supersample``× and area-averaged, blurred. Noise: ``poisson`` (photon counts
 of a native run over a smooth anatomical background, LIN pixels) or ``gaussian`` (additive in the log domain).
 The DICOM files (:mod:`.bolus_dicom`) carry the frame times.
@@ -30,7 +30,7 @@ import numpy as np
 from ..geometry.rig import Rig, ViewGeometry
 from ..geometry.vessel_tree import vessel_tree
 from ..mesh import TriangleMesh
-from .bolus_layers import ray_layers
+from ..render.ray_layers import ray_layers
 from .native_run_texture import fractal_texture
 
 IODINE_PER_MM = 0.12

@@ -1,9 +1,12 @@
-"""Where each X-ray ray runs inside a vessel model, and when contrast reaches each stretch (bolus simulations).
+"""Where each ray of a view runs inside a closed model: the separate stretches (layers) it crosses, per pixel.
 
-:func:`ray_layers` rasterizes a closed mesh in a view and pairs, per pixel, where the ray enters and leaves
-the model: up to ``MAX_LAYERS`` intervals, each with its length (mm) and the contrast onset (s) of the two
-faces bounding it (their vertices' mean; ``inf`` = contrast never comes). Overlapping vessels at different
-depths stay separate layers with their own onsets: the image of a frame sums each layer's own curve.
+:func:`ray_layers` rasterizes a closed mesh in a view and pairs, per pixel, where the ray enters and leaves the
+model (sorted by depth, a winding count: a layer runs from where it becomes non-zero to where it is zero again):
+up to ``MAX_LAYERS`` intervals, each with its length (mm) and a per-face value of the two faces bounding it (their
+mean). Two layers on one ray are two parts of the model at different depths, with a gap between them.
+
+Used by the hemodynamics' overlap test (:func:`layer_counts`: how many parts of the model a pixel sees) and by the
+bolus simulations (a value per face = when contrast arrives there: each stretch keeps its own time).
 """
 
 from __future__ import annotations
@@ -69,18 +72,32 @@ def _pair(depth, sign, when, count, length, layer_onset):
                     layer += 1
 
 
-def ray_layers(vertices_view: np.ndarray, faces: np.ndarray, face_onset_s: np.ndarray, focal_px: tuple[float, float],
-               principal_px: tuple[float, float], size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """``(length_mm (H, W, L), onset_s (H, W, L))`` of a closed mesh in view coordinates ``(V, 3)`` mm; unused
-    layers have length 0. ``size`` is ``(W, H)``."""
+def _traced(vertices_view, faces, face_value, focal_px, principal_px, size):
     width, height = size
     depth = np.zeros((height, width, MAX_HITS))
     sign = np.zeros((height, width, MAX_HITS), np.int64)
     when = np.zeros((height, width, MAX_HITS))
     count = np.zeros((height, width), np.int64)
-    _hits(vertices_view, faces, face_onset_s, focal_px[0], focal_px[1], principal_px[0], principal_px[1],
+    _hits(np.ascontiguousarray(vertices_view, np.float64), np.ascontiguousarray(faces, np.int64),
+          np.ascontiguousarray(face_value, np.float64), focal_px[0], focal_px[1], principal_px[0], principal_px[1],
           height, width, depth, sign, when, count)
     length = np.zeros((height, width, MAX_LAYERS))
-    onset = np.full((height, width, MAX_LAYERS), np.inf)
-    _pair(depth, sign, when, count, length, onset)
-    return length, onset
+    value = np.full((height, width, MAX_LAYERS), np.inf)
+    _pair(depth, sign, when, count, length, value)
+    return length, value, count
+
+
+def ray_layers(vertices_view: np.ndarray, faces: np.ndarray, face_onset_s: np.ndarray, focal_px: tuple[float, float],
+               principal_px: tuple[float, float], size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(length_mm (H, W, L), value (H, W, L))`` of a closed mesh in view coordinates ``(V, 3)`` mm with a value
+    per face ``(F,)``; unused layers have length 0 and value ``inf``. ``size`` is ``(W, H)``."""
+    length, value, _ = _traced(vertices_view, faces, face_onset_s, focal_px, principal_px, size)
+    return length, value
+
+
+def layer_counts(vertices_view: np.ndarray, faces: np.ndarray, focal_px: tuple[float, float],
+                 principal_px: tuple[float, float], size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(layers (H, W) int, covered (H, W) bool)``: how many separate parts of the model each pixel's ray crosses,
+    and whether it meets the model at all (the hard silhouette, pixel centres)."""
+    length, _, count = _traced(vertices_view, faces, np.zeros(len(faces)), focal_px, principal_px, size)
+    return (length > 0).sum(axis=2), count > 0
