@@ -17,6 +17,11 @@ vessel voxels → a shape check (:mod:`.vessel_shape`) → marching cubes (:func
   ``MRA_SHELL_MM`` deep under the head's outer surface (skin, scalp fat, skull) is excluded; vessels =
   the bright voxels above the level halfway between brain and vessels, seeded by the brightest, with
   connected components from the largest.
+
+CTA and MRA: when the kept voxels are largely plate-shaped (:mod:`.medial_shape`, in mm: a diploë or a
+cancellous skull base inside the HU window, skull-base marrow fat in a TOF-MRA), the plate parts and what
+touches them are set aside before the shape check; the shape check refuses only when nothing tube-like remains.
+The decisions (kind, vessel window, bone threshold, vessel shape) go to ``VolumeReadout.decisions``.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from .input_decisions import InputDecision
+from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, largest_components, surface_from_mask
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
@@ -42,6 +48,8 @@ LOCAL_PEAK_MM = 5.0
 SMOOTHING_SIGMA_VOX = 0.5
 VESSEL_CONTRAST_MIN = {"cta": 100.0, "mra": 6.0}  # vessel over tissue: HU (CTA), noise spreads (MRA)
 VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast than this: a close call
+PLATE_PART_MM3 = 200.0  # a plate part this large is set aside (a vessel's false plate spots are far smaller)
+PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
 
 
@@ -125,6 +133,9 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
         field, mask, levels, excluded = _mra(smooth, volume.affine, spacing, reading, field_name)
     else:
         (field, mask, levels), excluded = _dsa3d(smooth, reading, field_name), None
+    if kind != "3d-dsa":  # bone in the window (a diploë, a cancellous skull base, marrow fat) is a plate: set aside
+        mask, plates = _without_plates(mask, spacing, field_name)
+        excluded = plates if excluded is None else (excluded | plates)
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
@@ -136,6 +147,34 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
     readout.faces = mesh.n_faces
     return VesselExtraction(mesh, readout, mask, excluded)
+
+
+def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``mask`` without its plate parts (:mod:`.medial_shape`, in mm) of at least ``PLATE_PART_MM3``, its
+    largest tube components kept; and what was set aside. Unchanged when the plate share is below the close-call
+    band (vessels alone) or no plate part is that large."""
+    from scipy import ndimage
+
+    shape = medial_shape(mask, spacing, with_parts=True)
+    plate = shape.plate
+    if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not plate.any():  # vessels: left as read
+        return mask, np.zeros(mask.shape, bool)
+    labels, count = ndimage.label(plate)
+    sizes_mm3 = np.bincount(labels.ravel(), minlength=count + 1)[1:] * float(np.prod(spacing))
+    large = np.isin(labels, 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3))
+    if not large.any():
+        return mask, large
+    rest = mask & ~ndimage.binary_dilation(large, iterations=1)
+    if rest.sum() < 8:
+        return mask, np.zeros(mask.shape, bool)  # nothing tube-like remains: the shape check refuses it
+    # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
+    labels, count = ndimage.label(rest)
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    sizes[0] = 0
+    near = ndimage.binary_dilation(large, iterations=max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
+    touching = np.unique(labels[near & (labels > 0)])
+    keep = np.setdiff1d(np.arange(1, count + 1), touching[touching != int(np.argmax(sizes))])
+    return largest_components(np.isin(labels, keep), field_name=field_name), large
 
 
 def _decisions(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray, levels: dict) -> list[InputDecision]:

@@ -1,0 +1,150 @@
+"""A second generator of CTA / TOF-MRA heads, built to differ from :mod:`.synthetic_volumes` where readers go wrong.
+
+* **CTA** (:func:`make_layered_cta_head`): a skull of two cortical tables (1.5 mm, 1600 HU) around a diploë of
+  cancellous bone (3 mm, 450 ± 80 HU: inside the vessels' HU window), a skull base of a cancellous core
+  (550 HU, 8 mm) between cortical plates, which the trunk crosses; noise correlated along the slice axis
+  (streaks), its σ rising toward the skull base.
+* **TOF-MRA** (:func:`make_layered_mra_head`): a smooth multiplicative coil inhomogeneity (±25 %), a slab of
+  bright marrow fat in the skull base deeper than the scalp (as the clivus is), Rician noise.
+
+Any tree can be placed (``tree``: the phantom's, or the paper's mesh turned trunk-up); voxels may be
+anisotropic (``voxel_mm`` per axis). The series are written by :mod:`.synthetic_volume_dicom` (layout "a").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..mesh import TriangleMesh
+from .synthetic_volumes import SyntheticVolume, _smooth_field, vessel_tree
+
+CTA_LEVELS = {"air": -1000.0, "scalp": 30.0, "table": 1600.0, "diploe": 450.0, "brain": 38.0, "vessel": 380.0,
+              "base_core": 550.0, "base_cortex": 1400.0}
+MRA_LEVELS = {"air": 0.0, "scalp": 200.0, "fat": 480.0, "bone": 50.0, "brain": 230.0, "vessel": 600.0,
+              "vessel_distal": 470.0, "marrow": 520.0}
+TABLE_MM, DIPLOE_MM, SCALP_MM = 1.5, 3.0, 5.0
+BASE_MM, BASE_CORTEX_MM = 8.0, 1.5
+
+
+def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.0)):
+    """The head's grid around the tree: points (X, Y, Z, 3) LPS mm, depth under the skull's inner surface (mm,
+    outward positive), the affine, and the tree's occupancy on the grid."""
+    low, high = tree.vertices.min(0), tree.vertices.max(0)
+    inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
+    centre = (low + high) / 2.0 + np.array([0.0, 0.0, 8.0])
+    outer = inner + 2 * TABLE_MM + DIPLOE_MM + SCALP_MM + 6.0
+    origin = np.array([centre[0] - outer[0], centre[1] - outer[1], low[2] - 8.0])
+    shape = np.ceil((np.array([2 * outer[0], 2 * outer[1], centre[2] + outer[2] - origin[2]])) / voxel_mm).astype(int)
+    affine = np.diag([*voxel_mm, 1.0])
+    affine[:3, 3] = origin
+    axes = [origin[a] + np.arange(shape[a], dtype=np.float32) * np.float32(voxel_mm[a]) for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    depth = (np.sqrt((((points - centre) / inner) ** 2).sum(-1)) - 1.0) * float(np.mean(inner))
+    return points, depth.astype(np.float32), affine, _occupancy(tree, affine, shape), (low, high)
+
+
+def _occupancy(tree: TriangleMesh, affine: np.ndarray, shape) -> np.ndarray:
+    """Partial-volume occupancy [0, 1] of the tree on the grid (4 samples per axis per voxel, inside test)."""
+    import trimesh
+
+    solid = trimesh.Trimesh(tree.vertices, tree.faces, process=False)
+    spacing = np.diag(affine)[:3]
+    fine = float(spacing.min()) / 4.0
+    voxels = solid.voxelized(fine).fill()
+    grid = voxels.matrix.astype(np.float32)
+    origin = voxels.transform[:3, 3]  # centre of fine voxel 0
+    from scipy import ndimage
+
+    # the fine occupancy sampled at each coarse voxel, averaged over the voxel (box filter, then trilinear)
+    box = np.maximum(1, np.round(spacing / fine).astype(int))
+    smooth = ndimage.uniform_filter(grid, size=tuple(box))
+    first = np.maximum(np.floor((tree.vertices.min(0) - affine[:3, 3]) / spacing).astype(int) - 2, 0)
+    last = np.minimum(np.ceil((tree.vertices.max(0) - affine[:3, 3]) / spacing).astype(int) + 3, shape)
+    ijk = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(first, last)], indexing="ij"), -1)
+    where = (ijk.reshape(-1, 3) * spacing + affine[:3, 3] - origin) / fine
+    out = np.zeros(tuple(shape), np.float32)
+    box_values = ndimage.map_coordinates(smooth, where.T, order=1, mode="constant").reshape(ijk.shape[:3])
+    out[first[0]:last[0], first[1]:last[1], first[2]:last[2]] = box_values
+    return out
+
+
+def _finish(volume, noise_sigma, rng, *, streak_axis: int | None, rician: bool, blur_vox: float = 0.6):
+    from scipy import ndimage
+
+    blurred = ndimage.gaussian_filter(volume, blur_vox)
+
+    def noise():
+        white = rng.standard_normal(volume.shape).astype(np.float32)
+        if streak_axis is not None:  # correlated along one axis (streaks), then back to unit variance
+            sigma = [0.3, 0.3, 0.3]
+            sigma[streak_axis] = 1.5
+            white = ndimage.gaussian_filter(white, sigma)
+            white /= white.std() + 1e-12
+        return white * noise_sigma
+
+    if rician:
+        return np.sqrt((blurred + noise()) ** 2 + noise() ** 2).astype(np.float32)
+    return (blurred + noise()).astype(np.float32)
+
+
+def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, seed: int = 3,
+                          min_head_mm=(45.0, 55.0, 45.0)) -> SyntheticVolume:
+    """A CTA series of ``tree`` (default: the phantom's) in a skull with diploë and a cancellous skull base."""
+    from .synthetic_volume_dicom import cta_series
+
+    rng = np.random.default_rng(seed + 303)
+    tree = tree if tree is not None else vessel_tree(3, seed)
+    spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
+    points, depth, affine, occupancy, (low, _) = _grid(tree, spacing, min_head_mm)
+    level = CTA_LEVELS
+    volume = np.full(depth.shape, level["air"], np.float32)
+    volume[depth < 2 * TABLE_MM + DIPLOE_MM + SCALP_MM] = level["scalp"]
+    volume[(depth >= 0) & (depth < 2 * TABLE_MM + DIPLOE_MM)] = level["table"]
+    diploe = (depth >= TABLE_MM) & (depth < TABLE_MM + DIPLOE_MM)
+    texture = _smooth_field(rng, depth.shape, 1.0 / float(spacing.mean()))
+    volume[diploe] = level["diploe"] + 80.0 * texture[diploe]
+    brain = depth < 0
+    volume[brain] = level["brain"] + 6.0 * _smooth_field(rng, depth.shape, 3.0 / float(spacing.mean()))[brain]
+    z = points[..., 2]
+    base = brain & (z >= low[2] + 4.0) & (z < low[2] + 4.0 + BASE_MM)
+    volume[base] = level["base_cortex"]
+    core = brain & (z >= low[2] + 4.0 + BASE_CORTEX_MM) & (z < low[2] + 4.0 + BASE_MM - BASE_CORTEX_MM)
+    volume[core] = level["base_core"] + 80.0 * texture[core]
+    volume = volume * (1.0 - occupancy) + level["vessel"] * occupancy
+    sigma = 9.0 + 10.0 * np.clip(1.0 - (z - low[2]) / 40.0, 0.0, 1.0)  # noisier toward the skull base
+    data = _finish(volume, sigma.astype(np.float32), rng, streak_axis=2, rician=False)
+    parts, data, affine, study_uid = cta_series(data, affine, "a")
+    return SyntheticVolume(parts, tree, data, affine, "cta", study_uid)
+
+
+def make_layered_mra_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, seed: int = 3,
+                          min_head_mm=(45.0, 55.0, 45.0)) -> SyntheticVolume:
+    """A TOF-MRA series of ``tree`` with a coil inhomogeneity and bright marrow fat in the skull base."""
+    from .synthetic_volume_dicom import mra_series
+
+    rng = np.random.default_rng(seed + 404)
+    tree = tree if tree is not None else vessel_tree(3, seed)
+    spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
+    points, depth, affine, occupancy, (low, high) = _grid(tree, spacing, min_head_mm)
+    level = MRA_LEVELS
+    skull = 2 * TABLE_MM + DIPLOE_MM
+    volume = np.full(depth.shape, level["air"], np.float32)
+    volume[depth < skull + SCALP_MM] = level["scalp"]
+    volume[(depth >= skull + 1.0) & (depth < skull + SCALP_MM - 1.5)] = level["fat"]
+    volume[(depth >= 0) & (depth < skull)] = level["bone"]
+    brain = depth < 0
+    volume[brain] = level["brain"] + 20.0 * _smooth_field(rng, depth.shape, 3.0 / float(spacing.mean()))[brain]
+    z = points[..., 2]
+    marrow = brain & (z >= low[2] + 4.0) & (z < low[2] + 4.0 + BASE_MM) & (depth < -10.0)
+    volume[marrow] = level["marrow"]
+    fraction = np.clip((z - low[2]) / max(high[2] - low[2], 1e-6), 0.0, 1.0)
+    vessel = level["vessel"] + (level["vessel_distal"] - level["vessel"]) * fraction
+    volume = volume * (1.0 - occupancy) + vessel * occupancy
+    centre = points.reshape(-1, 3).mean(0)
+    gain = 1.0 + 0.25 * np.tanh(((points - centre) @ np.array([0.6, -0.3, 0.74])) / 60.0)  # coil inhomogeneity
+    data = _finish(volume * gain.astype(np.float32), 12.0, rng, streak_axis=None, rician=True)
+    parts, data, affine, study_uid = mra_series(data, affine, "a")
+    return SyntheticVolume(parts, tree, data, affine, "mra", study_uid)
+
+
+__all__ = ["make_layered_cta_head", "make_layered_mra_head"]
