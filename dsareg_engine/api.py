@@ -73,7 +73,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .registration.options import RegistrationOptions, image_reading, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
     from .warmup import compile_later_groups, warm_up_job, warm_up_kernels, warm_up_renderer
-    from .hemodynamics.run import check_timed_runs
+    from .hemodynamics.intake import check_timed_runs
 
 _LAZY = {
     "RegistrationOptions": "dsareg_engine.registration.options",
@@ -122,7 +122,7 @@ _LAZY = {
     "warm_up_renderer": "dsareg_engine.warmup",
     "warm_up_kernels": "dsareg_engine.warmup",
     "compile_later_groups": "dsareg_engine.warmup",
-    "check_timed_runs": "dsareg_engine.hemodynamics.run",
+    "check_timed_runs": "dsareg_engine.hemodynamics.intake",
 }
 
 __all__ = [

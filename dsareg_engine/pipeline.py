@@ -74,7 +74,7 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     case = load_case_files(files, options.segmentation, limits, reading=image_reading(options),
                            volume_reading=VolumeReading.from_options(options), mesh_units=options.mesh_units)
     if options.hemodynamics:
-        from .hemodynamics.run import check_timed_runs
+        from .hemodynamics.intake import check_timed_runs
 
         check_timed_runs(files)
     if should_stop is not None and should_stop():

@@ -84,7 +84,7 @@ def _timed_runs(options, model: dict, ap: bytes, lat: bytes):
     """With ``options.hemodynamics``: the files the step reads, after checking both views are timed runs."""
     if not options.hemodynamics:
         return None
-    from ..hemodynamics.run import check_timed_runs
+    from ..hemodynamics.intake import check_timed_runs
     from ..io.case import CaseFiles
 
     files = CaseFiles(ap=ap, lat=lat, mesh=model.get("mesh"), mesh_name=model.get("mesh_name"))

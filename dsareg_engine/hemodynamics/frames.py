@@ -32,15 +32,6 @@ def _dataset(data: bytes):
     return pydicom.dcmread(io.BytesIO(data), force=True)
 
 
-def dicom_timing(data: bytes, field_name: str):
-    """``(timing, frames)`` of a DICOM run from its header alone (what the service checks at submission)."""
-    import pydicom
-
-    header = pydicom.dcmread(io.BytesIO(data), force=True, stop_before_pixels=True)
-    count = dicom_number(header, "NumberOfFrames", 1, field_name)
-    return require_timing(read_timing(header, count, field_name), count, field_name), count
-
-
 def _stack(dataset, field_name: str) -> np.ndarray:
     stack = np.asarray(dataset.pixel_array, dtype=np.float32)
     stack = stack[None] if stack.ndim == 2 else stack

@@ -20,7 +20,7 @@ from ..errors import DsaregInputError
 from ..io.mesh_units import MM_PER_UNIT
 from ..overlay import write_png
 from .colours import TimeScale
-from .frames import dicom_timing, run_frames
+from .frames import run_frames
 from .measure import VIEWS, RunFrames, measure
 from .model_points import transfer, vertices_as_given
 from .outputs import (HEMODYNAMICS_JSON, HEMODYNAMICS_PLY, HEMODYNAMICS_VTK, MESH_ARRAYS, hemodynamics_document,
@@ -40,16 +40,6 @@ def load_runs(files, readings: dict[str, dict]) -> dict[str, RunFrames]:
                                    accepted=TIMING_ACCEPTED)
         runs[name] = run_frames(bytes(data), name, readings.get(name))
     return runs
-
-
-def check_timed_runs(files) -> None:
-    """Refuse, before any work, views that are not timed DICOM runs (a still image, one frame, no frame timing)."""
-    for name in VIEWS:
-        data = getattr(files, name)
-        if not isinstance(data, (bytes, bytearray)) or data[128:132] != b"DICM":
-            raise DsaregInputError(f"hemodynamics needs a DICOM XA run, but the {name} view is not DICOM", field=name,
-                                   accepted=TIMING_ACCEPTED)
-        dicom_timing(bytes(data), name)
 
 
 def file_vertices(files, case) -> tuple[np.ndarray, str]:

@@ -9,7 +9,8 @@ import pytest
 
 from dsareg_engine.errors import DsaregInputError
 from dsareg_engine.geometry.rig import Rig
-from dsareg_engine.hemodynamics.run import check_timed_runs, hemodynamics_step
+from dsareg_engine.hemodynamics.intake import check_timed_runs
+from dsareg_engine.hemodynamics.run import hemodynamics_step
 from dsareg_engine.io.case import CaseFiles, load_case_files
 from dsareg_engine.simulation.bolus_dicom import bolus_xa
 from dsareg_engine.simulation.bolus_run import BolusSettings, make_bolus_run
