@@ -52,6 +52,6 @@ def test_no_vessels_in_the_window_is_refused_at_submission(server, cta):
         assert problem["field"] == "volume" and "no vessels" in problem["detail"], problem
         response = _post(client, cta, {"volume_kind": "3d-dsa"})  # read as already subtracted: the head itself
         assert response.status_code == 422, response.text
-        assert response.json()["field"] == "volume" and "far more than vessels" in response.json()["detail"]
+        assert response.json()["field"] == "volume" and "far more than vessels" in response.json()["detail"], response.text
         response = _post(client, cta, {"volume_kind": "pet"})
         assert response.status_code == 422 and response.json()["field"] == "options.volume_kind", response.text
