@@ -103,14 +103,14 @@ def test_sigkill_idle_worker_then_busy_worker(tmp_path, case, slow_case):
             response, took = timed_post(client, case, {**FAST, "seed": 1})
             assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
             ids.append(response.json()["id"])
+            deadline = time.monotonic() + 120
+            while len(_worker_pids(srv)) < 2 and time.monotonic() < deadline:  # the replaced idle one warmed up
+                time.sleep(0.2)  # (before the slow job starts: waiting while it ran let it finish before the kill)
             busy = submit(client, slow_case, {**SLOW, "seed": 2}).json()["id"]
             ids.append(busy)
             body = wait_for(client, busy, statuses=("running",), timeout=60,
                             predicate=lambda b: (b.get("progress") or {}).get("iteration", 0) > 0)
             (worker_id,) = _rows(srv.data_dir, "SELECT worker_id FROM jobs WHERE id=?", (busy,))[0]
-            deadline = time.monotonic() + 120
-            while len(_worker_pids(srv)) < 2 and time.monotonic() < deadline:  # the replaced idle one warmed up
-                time.sleep(0.2)
             os.kill(int(worker_id.split("-")[-3]), signal.SIGKILL)
             killed_at = time.time()
             response, took = timed_post(client, case, {**FAST, "seed": 3})

@@ -37,7 +37,8 @@ def _wait_open_streams(client: httpx.Client, expected: float, timeout: float = 5
 @needs_engine
 def test_progress_then_one_end_event_with_the_verdict(server, example_case):
     with server.client() as client:
-        job = submit(client, example_case, options={"starts": 1, "max_iterations": 40})
+        # long enough (seconds) that a 0.5 s poll sees it running on a quiet machine too
+        job = submit(client, example_case, options={"starts": 8, "max_iterations": 2000, "seed": 11})
         assert job.status_code == 202, job.text
         job_id = job.json()["id"]
         frames, _ = _frames(client, job_id)
