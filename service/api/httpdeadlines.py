@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..problems import PROBLEM_MEDIA_TYPE, problem_body
+from .middleware import ResponseTracker, caused_by
 
 TIMEOUT_408 = b"HTTP/1.1 408 Request Timeout\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
 
@@ -102,7 +103,7 @@ class BodyDeadlineMiddleware:
             await self.app(scope, receive, send)
             return
         body_done = False
-        response_started = False
+        tracked = ResponseTracker(send)
 
         async def deadline_receive() -> dict:
             nonlocal body_done
@@ -116,18 +117,12 @@ class BodyDeadlineMiddleware:
                 body_done = True
             return message
 
-        async def tracking_send(message: dict) -> None:
-            nonlocal response_started
-            if message["type"] == "http.response.start":
-                response_started = True
-            await send(message)
-
         try:
-            await self.app(scope, deadline_receive, tracking_send)
+            await self.app(scope, deadline_receive, tracked)
         except Exception as exc:
-            if not _caused_by_timeout(exc):
+            if not caused_by(exc, BodyTimeout):
                 raise
-            if not response_started:
+            if not tracked.started:
                 await self._send_408(send, scope)
 
     async def _send_408(self, send: Any, scope: dict) -> None:
@@ -139,14 +134,3 @@ class BodyDeadlineMiddleware:
                                 (b"content-length", str(len(body)).encode()), (b"connection", b"close")]})
         await send({"type": "http.response.body", "body": body})
 
-
-def _caused_by_timeout(exc: BaseException) -> bool:
-    seen, current = 0, exc
-    while current is not None and seen < 10:
-        if isinstance(current, BodyTimeout):
-            return True
-        if isinstance(current, BaseExceptionGroup) and any(_caused_by_timeout(e) for e in current.exceptions):
-            return True
-        current = current.__cause__ or current.__context__
-        seen += 1
-    return False

@@ -49,7 +49,7 @@ class BodyLimitMiddleware:
                     await _send_problem(send, 413, detail, scope.get("path", ""))
                     return
         received = 0
-        response_started = False
+        tracked = ResponseTracker(send)
 
         async def limited_receive() -> dict:
             nonlocal received
@@ -60,31 +60,39 @@ class BodyLimitMiddleware:
                     raise BodyTooLarge()
             return message
 
-        async def tracking_send(message: dict) -> None:
-            nonlocal response_started
-            if message["type"] == "http.response.start":
-                response_started = True
-            await send(message)
-
         try:
-            await self.app(scope, limited_receive, tracking_send)
+            await self.app(scope, limited_receive, tracked)
         except BodyTooLarge:
-            if not response_started:
+            if not tracked.started:
                 await _send_problem(send, 413, detail, scope.get("path", ""))
         except Exception as exc:  # the limit may surface wrapped by a form parser
-            if _caused_by(exc, BodyTooLarge) and not response_started:
+            if caused_by(exc, BodyTooLarge) and not tracked.started:
                 await _send_problem(send, 413, detail, scope.get("path", ""))
             else:
                 raise
 
 
-def _caused_by(exc: BaseException, kind: type) -> bool:
+class ResponseTracker:
+    """An ASGI ``send`` that remembers whether the response head went out (after it no error answer can be sent)."""
+
+    def __init__(self, send: Any) -> None:
+        self._send = send
+        self.started = False
+
+    async def __call__(self, message: dict) -> None:
+        if message["type"] == "http.response.start":
+            self.started = True
+        await self._send(message)
+
+
+def caused_by(exc: BaseException, kind: type) -> bool:
+    """Whether ``exc`` is ``kind`` or was raised by one (causes, contexts, exception groups; 10 links at most)."""
     seen = 0
     current: BaseException | None = exc
     while current is not None and seen < 10:
         if isinstance(current, kind):
             return True
-        if isinstance(current, BaseExceptionGroup) and any(_caused_by(e, kind) for e in current.exceptions):
+        if isinstance(current, BaseExceptionGroup) and any(caused_by(e, kind) for e in current.exceptions):
             return True
         current = current.__cause__ or current.__context__
         seen += 1
