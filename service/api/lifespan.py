@@ -79,6 +79,11 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
         if not settings.auth.auth_enabled:
             log.warning("no API keys configured: authentication is off and the service listens on 127.0.0.1 only")
         if start_background:
+            # the DICOM packages are imported whole here, before the background threads: a thread importing
+            # pydicom while another imports it (or pynetdicom) can be handed a half-initialised module
+            import pydicom  # noqa: F401
+            import pynetdicom  # noqa: F401
+
             ctx.executor.start()
             ctx.sweeper = Sweeper(ctx)
             ctx.sweeper.sweep_once()

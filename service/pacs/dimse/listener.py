@@ -37,6 +37,14 @@ class DicomListener:
         self.server = None
 
     def start(self) -> None:
+        # pydicom and pynetdicom are imported here, in the starting thread, before the dispatcher thread runs:
+        # the dispatcher reading a stable study's headers (pydicom) while this thread imports pynetdicom (which
+        # imports pydicom) is a cross-thread import deadlock that Python breaks by handing one of them a half-
+        # initialised pydicom ("cannot import name 'UID' from partially initialized module"): a restarted
+        # listener with studies waiting died at start.
+        import pydicom  # noqa: F401
+        import pynetdicom  # noqa: F401
+
         kept = self.inbox.interrupt_stale(live=set())
         if kept:
             log.warning("kept %d instance(s) answered Success in associations an earlier listener left open "
