@@ -236,6 +236,14 @@ def search_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Ri
                               len(grid) + extra)
 
 
+def coverage_on(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
+                rotations: np.ndarray, settings: CoverageSettings = CoverageSettings()) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations ``(B, 3, 3)`` each placed by coverage: scores ``(B,)`` and per-view (precision, recall) ``(B, V, 2)``
+    (arguments as :func:`search_by_coverage`; no search)."""
+    scores, _, detail = coverage_scores(_canvases(mesh, masks, rig, centre, settings), rotations, centre, points, settings)
+    return scores, detail
+
+
 def refine_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
                        poses: np.ndarray, settings: CoverageSettings) -> tuple[np.ndarray, np.ndarray]:
     """Poses ``(K, 4, 4)`` hill-climbed on ``settings``' canvases (e.g. finer ones) from ``poses``' rotations;

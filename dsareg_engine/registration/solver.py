@@ -32,7 +32,7 @@ from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
 from .branch_search import with_branch_starts
-from .initialization import COVERAGE_GATE, GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
+from .initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .mirror import with_mirror_check
 from .options import RegistrationOptions
 from .partial import looks_partial, match_fractions, trimmed_weight
@@ -689,7 +689,7 @@ def _initialize(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, opti
     visible = {name: mask for name, mask in masks.items()
                if name in rig.views and mask.shape == rig.views[name].image_size[::-1] and mask.any()}
     found = search_initial_poses(mesh, visible, rig, max(options.starts, SEARCH_MIN_STARTS))
-    if found.centroid_score < COVERAGE_GATE:
+    if not found.partial_search_needed:
         return found
     return with_branch_starts(found, mesh, visible, rig)
 

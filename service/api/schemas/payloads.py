@@ -169,6 +169,19 @@ class CoverageSearch(BaseModel):
     recall: list[float] = Field(description="Per view: share (0–1) of the vessel pixels the model reaches.")
 
 
+class WholeModelCoverage(BaseModel):
+    """The whole-model search's starts placed by coverage: does one lie on the vessels (else the partial searches run)?"""
+
+    model_config = CLOSED
+
+    model_explained: bool = Field(description="True when, in every view, ≥ 90 % of the start's model pixels lie on or "
+                                              "next to vessels: the images show the whole model, and the coverage and "
+                                              "branch searches are skipped.")
+    best_score: float = Field(description="That start's 1 − F₂ of precision and recall, mean over the views (0 best, 1 worst).")
+    precision: list[float] = Field(description="Per view (AP, LAT order): share (0–1) of the start's model points on or next to vessels.")
+    recall: list[float] = Field(description="Per view: share (0–1) of the vessel pixels the start reaches.")
+
+
 class BranchSearch(BaseModel):
     """Best part of the branch search (partial visibility): the model cut to one branch and what lies downstream."""
 
@@ -198,7 +211,9 @@ class Initialization(BaseModel):
     best_score: float | None = Field(None, description="Search score of the best start (0 best, 1 worst).")
     runner_up_score: float | None = Field(None, description="Score of the second-best start.")
     coverage: CoverageSearch | None = Field(None, description="The coverage search's best candidate (null when it did "
-                                                              "not run: the whole model's search scored < 0.3).")
+                                                              "not run: a whole-model start lay on the vessels).")
+    explained: WholeModelCoverage | None = Field(None, description="Whether a whole-model start lies on the vessels, "
+                                                                   "all of it (null when the pose was given).")
     branch: BranchSearch | None = Field(None, description="The branch search's best part (null when it did not run).")
 
 
