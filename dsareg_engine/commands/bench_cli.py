@@ -172,9 +172,18 @@ def _add_clinical(which) -> None:
     sub.add_argument("--kinds", nargs="*", default=[], help="only the kinds whose name contains one of these words")
     sub.add_argument("--options", default="{}", help="extra registration options as JSON")
     sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
-    sub.add_argument("--sweep", choices=["runs"], help="runs: the native-run sweep (size, bits, encoding, recipe, "
-                                                        "bolus, generator; each cell at its own size)")
-    sub.add_argument("--mesh", metavar="FILE", help="--sweep runs: add the cells drawn with this mesh's vessel tree")
+    sub.add_argument("--sweep", choices=["runs", "volumes"], help="runs: the native-run sweep (size, bits, encoding, "
+                     "recipe, bolus, generator; each cell at its own size); volumes: CTA / TOF-MRA heads x generator "
+                     "x tree x voxel size (0.3-1.0 mm, anisotropic)")
+    sub.add_argument("--mesh", metavar="FILE", help="--sweep runs / volumes: add the cells drawn with this mesh's "
+                                                    "vessel tree")
+    sub.add_argument("--voxels", nargs="*", default=[], help="--sweep volumes: only these voxel sizes in mm "
+                                                            "(0.5, 0.4x0.4x0.8)")
+    sub.add_argument("--generators", nargs="*", default=[], choices=["A", "B"], help="--sweep volumes: only these "
+                                                                                     "head generators")
+    sub.add_argument("--trees", nargs="*", default=[], choices=["phantom", "mesh"],
+                     help="--sweep volumes: only these vessel trees")
+    sub.add_argument("--cells-out", metavar="FILE.jsonl", help="--sweep volumes: also append one JSON line per cell")
     sub.set_defaults(func=deferred("dsareg_engine.commands.bench_clinical:bench_clinical"))
 
 

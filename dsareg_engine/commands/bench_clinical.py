@@ -128,6 +128,10 @@ def bench_clinical(args: argparse.Namespace) -> int:
         from .bench_clinical_runs import bench_runs
 
         return bench_runs(args, options, run_one, case_of)
+    if getattr(args, "sweep", None) == "volumes":
+        from .bench_clinical_volume_sweep import bench_volumes
+
+        return bench_volumes(args)
     kinds = [k for k in CASE_KINDS if not args.kinds or any(word.lower() in k.name.lower() for word in args.kinds)]
     print(f"{args.cases} case(s) per kind, {args.size} px, seed {args.seed}; no geometry file, no initial pose")
     print("| input kind | cases | success (ok, ADD < 1 mm) | ADD mm median / max | verdicts | wall s median | CPU s median |")

@@ -75,8 +75,10 @@ def _cpu_seconds() -> float:
 
 
 def run_row(build: Callable[[int, int], VolumeCaseFiles], seed: int = 0, size_px: int = 256) -> dict:
-    """Load and register one case as ``dsareg register --volume`` does: ADD, verdict, faces, CPU and wall seconds."""
+    """Load and register one case as ``dsareg register --volume`` does: ADD, verdict (a close call about an input
+    lowers ``ok`` to ``check``, as the result's), its reasons, faces, voxels kept, plate share, CPU and wall s."""
     from ..io.case import load_case_files
+    from ..io.input_decisions import with_close_calls
     from ..registration import register
     from ..registration.options import parse_options
 
@@ -87,10 +89,15 @@ def run_row(build: Callable[[int, int], VolumeCaseFiles], seed: int = 0, size_px
     read_cpu = _cpu_seconds() - cpu
     result = register(loaded.mesh, loaded.fitted, loaded.rig, options)
     errors = result.metrics["ground_truth"]
+    confidence = with_close_calls({"metrics": {"confidence": dict(result.metrics.get("confidence") or {})}},
+                                  list(loaded.decisions))["metrics"]["confidence"]
+    readout = loaded.volume
     return {"add_mm": errors["add_mm"], "rotation_deg": errors["rotation_error_deg"],
-            "verdict": (result.metrics.get("confidence") or {}).get("verdict", "?"), "faces": loaded.mesh.n_faces,
+            "verdict": confidence.get("verdict", "?"), "reasons": list(confidence.get("reasons") or []),
+            "faces": loaded.mesh.n_faces, "voxels_kept": readout.voxels_kept if readout is not None else None,
+            "plate_share": readout.plate_share if readout is not None else None,
             "read_cpu_s": read_cpu, "cpu_s": _cpu_seconds() - cpu, "wall_s": time.perf_counter() - wall,
-            "volume": loaded.volume.text() if loaded.volume is not None else ""}
+            "volume": readout.text() if readout is not None else ""}
 
 
 def main(words: list[str]) -> int:

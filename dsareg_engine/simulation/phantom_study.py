@@ -63,19 +63,28 @@ def _dataset(sop_class: str, study_uid: str, series_uid: str, modality: str, ser
     return ds
 
 
-def voxelize_mesh(mesh, pitch: float, margin: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Partial-volume voxels (0..800) of a closed (possibly self-overlapping) mesh, and the voxel→LPS affine."""
+def voxelize_mesh(mesh, pitch, margin: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Partial-volume voxels (0..800) of a closed (possibly self-overlapping) mesh, and the voxel→LPS affine.
+
+    ``pitch``: mm, one value or one per axis (anisotropic voxels: each a whole multiple of half the smallest).
+    The mesh is filled on a grid of half the smallest pitch and averaged over each voxel's block of it.
+    """
     import trimesh
 
-    fine = pitch / 2.0
+    pitch = np.broadcast_to(np.asarray(pitch, float), (3,))
+    fine = float(pitch.min()) / 2.0
+    block = np.round(pitch / fine).astype(int)
+    if not np.allclose(block * fine, pitch, rtol=1e-6, atol=1e-9):
+        raise ValueError(f"voxel sizes {pitch.tolist()} mm: each must be a whole multiple of {fine:g} mm")
     solid = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).voxelized(fine).fill()
-    occupancy = np.pad(solid.matrix.astype(np.float32), 2 * margin)
-    shape = (np.array(occupancy.shape) + 1) // 2 * 2
+    occupancy = np.pad(solid.matrix.astype(np.float32), [(b * margin, b * margin) for b in block])
+    shape = (np.array(occupancy.shape) + block - 1) // block * block
     occupancy = np.pad(occupancy, [(0, s - o) for s, o in zip(shape, occupancy.shape)])
-    coarse = occupancy.reshape(shape[0] // 2, 2, shape[1] // 2, 2, shape[2] // 2, 2).mean(axis=(1, 3, 5))
-    origin_fine = solid.transform[:3, 3] - 2 * margin * fine  # centre of fine voxel 0
-    affine = np.diag([pitch, pitch, pitch, 1.0])
-    affine[:3, 3] = origin_fine + fine / 2.0  # centre of the 2x2x2 block
+    coarse = occupancy.reshape(shape[0] // block[0], block[0], shape[1] // block[1], block[1],
+                               shape[2] // block[2], block[2]).mean(axis=(1, 3, 5))
+    origin_fine = solid.transform[:3, 3] - block * margin * fine  # centre of fine voxel 0
+    affine = np.diag([*pitch, 1.0])
+    affine[:3, 3] = origin_fine + (block - 1) * fine / 2.0  # centre of the first block
     return (800.0 * coarse).astype(np.float32), affine
 
 

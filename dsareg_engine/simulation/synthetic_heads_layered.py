@@ -24,6 +24,7 @@ MRA_LEVELS = {"air": 0.0, "scalp": 200.0, "fat": 480.0, "bone": 50.0, "brain": 2
               "vessel_distal": 470.0, "marrow": 520.0}
 TABLE_MM, DIPLOE_MM, SCALP_MM = 1.5, 3.0, 5.0
 BASE_MM, BASE_CORTEX_MM = 8.0, 1.5
+FINE_MM = 0.15  # the finest grid the tree is filled on
 
 
 def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.0)):
@@ -44,12 +45,13 @@ def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.
 
 
 def _occupancy(tree: TriangleMesh, affine: np.ndarray, shape) -> np.ndarray:
-    """Partial-volume occupancy [0, 1] of the tree on the grid (4 samples per axis per voxel, inside test)."""
+    """Partial-volume occupancy [0, 1] of the tree on the grid (2–4 samples per axis per voxel, inside test; the
+    fine grid no finer than ``FINE_MM``, which bounds its memory at small voxels and a large tree)."""
     import trimesh
 
     solid = trimesh.Trimesh(tree.vertices, tree.faces, process=False)
     spacing = np.diag(affine)[:3]
-    fine = float(spacing.min()) / 4.0
+    fine = float(spacing.min()) / float(np.clip(np.floor(float(spacing.min()) / FINE_MM + 1e-6), 2, 4))
     voxels = solid.voxelized(fine).fill()
     grid = voxels.matrix.astype(np.float32)
     origin = voxels.transform[:3, 3]  # centre of fine voxel 0

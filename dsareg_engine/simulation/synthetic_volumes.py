@@ -97,11 +97,12 @@ def vessel_tree(depth: int = 3, seed: int = 3) -> TriangleMesh:
     return TriangleMesh(np.ascontiguousarray(phantom.vertices @ TRUNK_UP.T), phantom.faces)
 
 
-def _tree_occupancy(tree: TriangleMesh, voxel_mm: float, margin_mm: float):
-    """Partial-volume occupancy [0, 1] of the tree on a grid ``voxel_mm`` wide around it plus ``margin_mm``."""
+def _tree_occupancy(tree: TriangleMesh, voxel_mm, margin_mm: float):
+    """Partial-volume occupancy [0, 1] of the tree on a grid of ``voxel_mm`` (one or per axis) around it plus
+    ``margin_mm``."""
     from .phantom_study import voxelize_mesh
 
-    margin = int(np.ceil(margin_mm / voxel_mm / 2.0))  # voxelize_mesh pads 2 × margin coarse voxels
+    margin = int(np.ceil(margin_mm / float(np.min(voxel_mm)) / 2.0))  # voxelize_mesh pads 2 × margin fine voxels
     occupancy, affine = voxelize_mesh(tree, voxel_mm, margin=margin)
     return occupancy / 800.0, affine
 
@@ -114,47 +115,45 @@ def _smooth_field(rng, shape, sigma_vox: float) -> np.ndarray:
     return field / (field.std() + 1e-12)
 
 
-def _compose(tree: TriangleMesh, voxel_mm: float, levels: HeadLevels, kind: str, rng, texture: float,
+def _compose(tree: TriangleMesh, voxel_mm, levels: HeadLevels, kind: str, rng, texture: float,
              min_head_mm=MIN_HEAD_MM):
-    """Noise-free voxels before blur, and the affine."""
+    """Noise-free voxels before blur, and the affine (``voxel_mm``: one size or one per axis)."""
     skull_mm, scalp_mm = 4.0, 5.0 if kind == "cta" else 6.0
-    occupancy, affine = _tree_occupancy(tree, voxel_mm, margin_mm=0.0)
+    spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
+    occupancy, affine = _tree_occupancy(tree, spacing, margin_mm=0.0)
     low, high = tree.vertices.min(0), tree.vertices.max(0)
     inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
     centre = (low + high) / 2.0 + np.array([0.0, 0.0, 8.0])
     outer = inner + skull_mm + scalp_mm + 6.0  # air around the head
     bottom = low[2] - 8.0  # the volume's lowest slice: through the neck, below the trunk's start
     origin = np.array([centre[0] - outer[0], centre[1] - outer[1], bottom])
-    shape = np.ceil((np.array([2 * outer[0], 2 * outer[1], centre[2] + outer[2] - bottom])) / voxel_mm).astype(int)
-    head_affine = np.diag([voxel_mm, voxel_mm, voxel_mm, 1.0])
-    shift = np.round((origin - affine[:3, 3]) / voxel_mm).astype(int)  # align the grids
-    head_affine[:3, 3] = affine[:3, 3] + shift * voxel_mm
-    ijk = np.stack(np.meshgrid(*[np.arange(n, dtype=np.float32) for n in shape], indexing="ij"), -1)
-    points = ijk * np.float32(voxel_mm) + head_affine[:3, 3].astype(np.float32)
-    del ijk
-    radius = np.sqrt((((points - centre) / inner) ** 2).sum(-1))
-    mean_inner = float(np.mean(inner))
-    depth_mm = (radius - 1.0) * mean_inner  # ~ mm outward from the skull's inner surface
+    shape = np.ceil((np.array([2 * outer[0], 2 * outer[1], centre[2] + outer[2] - bottom])) / spacing).astype(int)
+    head_affine = np.diag([*spacing, 1.0])
+    shift = np.round((origin - affine[:3, 3]) / spacing).astype(int)  # align the grids
+    head_affine[:3, 3] = affine[:3, 3] + shift * spacing
+    # per-axis coordinates broadcast over the grid (an (X, Y, Z, 3) array of points is GBs at 0.3 mm)
+    axes = [(np.arange(n, dtype=np.float32) * np.float32(spacing[a]) + np.float32(head_affine[a, 3])).reshape(
+        [-1 if b == a else 1 for b in range(3)]) for a, n in enumerate(shape)]
+    radius = np.sqrt(sum(((axes[a] - centre[a]) / inner[a]) ** 2 for a in range(3)))
+    depth_mm = (radius - 1.0) * float(np.mean(inner))  # ~ mm outward from the skull's inner surface
+    del radius
     volume = np.full(shape, levels.air, np.float32)
-    head = depth_mm < skull_mm + scalp_mm
-    volume[head] = levels.scalp
+    volume[depth_mm < skull_mm + scalp_mm] = levels.scalp
     if kind == "mra":
-        fat = (depth_mm >= skull_mm + 1.0) & (depth_mm < skull_mm + scalp_mm - 1.5)
-        volume[fat] = levels.fat
+        volume[(depth_mm >= skull_mm + 1.0) & (depth_mm < skull_mm + scalp_mm - 1.5)] = levels.fat
     volume[(depth_mm >= 0) & (depth_mm < skull_mm)] = levels.bone
     brain = depth_mm < 0
-    volume[brain] = levels.brain + texture * _smooth_field(rng, shape, 3.0 / voxel_mm)[brain]
+    volume[brain] = levels.brain + texture * _smooth_field(rng, shape, tuple(3.0 / spacing))[brain]
     if kind == "mra":
         volume[(depth_mm < 0) & (depth_mm >= -2.0)] = levels.csf
+    z = np.broadcast_to(axes[2], volume.shape)
     if kind == "cta":  # the skull base: a slab the trunk crosses (the carotid canal)
-        z = points[..., 2]
-        slab = brain & (z >= low[2] + 5.0) & (z < low[2] + 13.0)
-        volume[slab] = levels.skull_base
-    vessel = np.full(shape, levels.vessel, np.float32)
+        volume[brain & (z >= low[2] + 5.0) & (z < low[2] + 13.0)] = levels.skull_base
+    del brain, depth_mm
+    vessel = np.float32(levels.vessel)
     if levels.vessel_distal is not None:  # in-flow saturation: dimmer toward the top of the tree
-        fraction = np.clip((points[..., 2] - low[2]) / max(high[2] - low[2], 1e-6), 0.0, 1.0)
+        fraction = np.clip((axes[2] - low[2]) / max(high[2] - low[2], 1e-6), 0.0, 1.0)
         vessel = levels.vessel + (levels.vessel_distal - levels.vessel) * fraction
-    del points
     occ = np.zeros(shape, np.float32)
     start = -shift
     region = tuple(slice(max(0, s), min(n, s + m)) for s, n, m in zip(start, shape, occupancy.shape))
@@ -179,28 +178,30 @@ def _finish(volume: np.ndarray, variant: HeadVariant, rng, rician: bool) -> np.n
     return (blurred + noise()).astype(np.float32)
 
 
-def make_cta_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
-                  min_head_mm=MIN_HEAD_MM) -> SyntheticVolume:
-    """A CTA-like DICOM series (CT, HU) of the tree in a head with skull and skull base."""
+def make_cta_head(variant: str = "a", *, voxel_mm=0.8, depth: int = 3, seed: int = 3,
+                  min_head_mm=MIN_HEAD_MM, tree: TriangleMesh | None = None) -> SyntheticVolume:
+    """A CTA-like DICOM series (CT, HU) of ``tree`` (default: the phantom's of ``depth``, ``seed``) in a head with
+    skull and skull base; ``voxel_mm`` one size or one per axis (the slices along the third)."""
     from .synthetic_volume_dicom import cta_series
 
     spec = CTA_VARIANTS[variant]
     rng = np.random.default_rng(seed + 101)
-    tree = vessel_tree(depth, seed)
+    tree = tree if tree is not None else vessel_tree(depth, seed)
     volume, affine = _compose(tree, voxel_mm, spec.levels, "cta", rng, spec.texture, min_head_mm)
     data = _finish(volume, spec, rng, rician=False)
     parts, data, affine, study_uid = cta_series(data, affine, variant)
     return SyntheticVolume(parts, tree, data, affine, "cta", study_uid)
 
 
-def make_tof_mra_head(variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
-                      min_head_mm=MIN_HEAD_MM) -> SyntheticVolume:
-    """A TOF-MRA-like DICOM series (MR) of the tree in a head with bright scalp fat and dark bone."""
+def make_tof_mra_head(variant: str = "a", *, voxel_mm=0.8, depth: int = 3, seed: int = 3,
+                      min_head_mm=MIN_HEAD_MM, tree: TriangleMesh | None = None) -> SyntheticVolume:
+    """A TOF-MRA-like DICOM series (MR) of ``tree`` (default: the phantom's) in a head with bright scalp fat and
+    dark bone; ``voxel_mm`` one size or one per axis."""
     from .synthetic_volume_dicom import mra_series
 
     spec = MRA_VARIANTS[variant]
     rng = np.random.default_rng(seed + 202)
-    tree = vessel_tree(depth, seed)
+    tree = tree if tree is not None else vessel_tree(depth, seed)
     volume, affine = _compose(tree, voxel_mm, spec.levels, "mra", rng, spec.texture, min_head_mm)
     data = _finish(volume, spec, rng, rician=True)
     parts, data, affine, study_uid = mra_series(data, affine, variant)
@@ -227,19 +228,26 @@ def default_pose() -> np.ndarray:
     return make_transform(np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k, np.array([3.0, -2.0, 3.5]))
 
 
-def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float = 0.8, depth: int = 3, seed: int = 3,
+def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm=0.8, depth: int = 3, seed: int = 3,
                      image_px: int = 256, pixel_spacing_mm: float = 0.6, min_head_mm=MIN_HEAD_MM,
                      mesh_to_world: np.ndarray | None = None) -> VolumeCase:
     """A CTA (``kind="cta"``) or TOF-MRA (``"mra"``) head and the XA pair of its tree (the true surface, not
     what a reader extracts), seen by the DICOM phantom study's biplane (:mod:`dsareg_engine.simulation.phantom_study`)."""
+    maker = {"cta": make_cta_head, "mra": make_tof_mra_head}[kind]
+    volume = maker(variant, voxel_mm=voxel_mm, depth=depth, seed=seed, min_head_mm=min_head_mm)
+    return volume_case_of(volume, image_px=image_px, pixel_spacing_mm=pixel_spacing_mm, mesh_to_world=mesh_to_world)
+
+
+def volume_case_of(volume: SyntheticVolume, *, image_px: int = 256, pixel_spacing_mm: float = 0.6,
+                   mesh_to_world: np.ndarray | None = None) -> VolumeCase:
+    """The case of any synthetic head (either generator): the XA pair of its true tree at ``mesh_to_world``
+    (default :func:`default_pose`), seen by the DICOM phantom study's biplane."""
     import torch
 
     from ..io.dicom_xa import view_from_angles
     from ..render import Camera, render_hard_silhouette
     from .phantom_study import AP_ANGLES, LAT_ANGLES, SID_MM, SOD_MM, _xa
 
-    maker = {"cta": make_cta_head, "mra": make_tof_mra_head}[kind]
-    volume = maker(variant, voxel_mm=voxel_mm, depth=depth, seed=seed, min_head_mm=min_head_mm)
     pose = default_pose() if mesh_to_world is None else np.asarray(mesh_to_world, float)
     vertices, faces = volume.tree.torch(torch.float64)
     images = {}
@@ -253,4 +261,22 @@ def make_volume_case(kind: str = "cta", variant: str = "a", *, voxel_mm: float =
     return VolumeCase(volume, images["ap"], images["lat"], pose)
 
 
-__all__ = ["CTA_VARIANTS", "MRA_VARIANTS", "SyntheticVolume", "VolumeCase", "default_pose", "make_cta_head", "make_tof_mra_head", "make_volume_case", "vessel_tree"]
+def fitting_pixel_spacing_mm(tree: TriangleMesh, image_px: int, least_mm: float = 0.6 * 256) -> float:
+    """The detector pixel (mm) at which ``tree`` (centred near the isocentre) fills at most 80 % of an image of
+    ``image_px`` in both views of the phantom study's biplane; never below ``least_mm / image_px``."""
+    from .phantom_study import SID_MM, SOD_MM
+
+    reach_mm = float(np.linalg.norm(tree.vertices - tree.vertices.mean(0), axis=1).max()) + 5.0
+    magnification = max(sid / sod for sid, sod in zip(SID_MM, SOD_MM))
+    return max(2.0 * reach_mm * magnification / 0.8, least_mm) / image_px
+
+
+def tree_of_mesh(mesh: TriangleMesh) -> TriangleMesh:
+    """A vessel mesh whose trunk runs along +y (the phantom's and the paper's convention) turned trunk-up in LPS
+    (+y → superior, as :func:`vessel_tree`) and centred on its vertex mean."""
+    vertices = mesh.vertices @ TRUNK_UP.T
+    return TriangleMesh(np.ascontiguousarray(vertices - vertices.mean(0)), mesh.faces)
+
+
+__all__ = ["CTA_VARIANTS", "MRA_VARIANTS", "SyntheticVolume", "VolumeCase", "default_pose", "fitting_pixel_spacing_mm", "make_cta_head", "make_tof_mra_head", "make_volume_case", "tree_of_mesh", "vessel_tree",
+           "volume_case_of"]
