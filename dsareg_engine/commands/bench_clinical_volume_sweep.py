@@ -54,9 +54,9 @@ def parse_voxel(text: str) -> tuple[float, float, float]:
 
 def cells(*, mesh: bool, kinds=KINDS, generators=GENERATORS, trees=("phantom", "mesh"),
           voxels=VOXELS_MM) -> list[VolumeCell]:
-    """The sweep's cells in order (the mesh tree's only when ``mesh``)."""
+    """The sweep's cells, per tree by voxel size in the order given (the mesh tree's only when ``mesh``)."""
     trees = [t for t in trees if t == "phantom" or mesh]
-    return [VolumeCell(k, g, t, tuple(v)) for t in trees for k in kinds for g in generators for v in voxels]
+    return [VolumeCell(k, g, t, tuple(v)) for t in trees for v in voxels for k in kinds for g in generators]
 
 
 def build_cell(cell: VolumeCell, tree_mesh=None, seed: int = 0):
