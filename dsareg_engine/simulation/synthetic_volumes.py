@@ -262,13 +262,14 @@ def volume_case_of(volume: SyntheticVolume, *, image_px: int = 256, pixel_spacin
 
 
 def fitting_pixel_spacing_mm(tree: TriangleMesh, image_px: int, least_mm: float = 0.6 * 256) -> float:
-    """The detector pixel (mm) at which ``tree`` (centred near the isocentre) fills at most 80 % of an image of
-    ``image_px`` in both views of the phantom study's biplane; never below ``least_mm / image_px``."""
+    """The detector pixel (mm) at which ``tree``, its vertex mean near the isocentre (within 5 mm), fills at most
+    90 % of an image of ``image_px`` in any view of the phantom study's biplane; never below
+    ``least_mm / image_px``."""
     from .phantom_study import SID_MM, SOD_MM
 
-    reach_mm = float(np.linalg.norm(tree.vertices - tree.vertices.mean(0), axis=1).max()) + 5.0
+    reach_mm = float(np.abs(tree.vertices - tree.vertices.mean(0)).max()) + 5.0  # any axis may lie in the image
     magnification = max(sid / sod for sid, sod in zip(SID_MM, SOD_MM))
-    return max(2.0 * reach_mm * magnification / 0.8, least_mm) / image_px
+    return max(2.0 * reach_mm * magnification / 0.9, least_mm) / image_px
 
 
 def tree_of_mesh(mesh: TriangleMesh) -> TriangleMesh:
