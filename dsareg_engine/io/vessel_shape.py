@@ -86,26 +86,29 @@ def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, floa
     return float(plate.mean()), float((~strong).mean())
 
 
-def shape_measures(mask: np.ndarray, spacing) -> dict[str, float]:
+def shape_measures(mask: np.ndarray, spacing, plate_share: float | None = None) -> dict[str, float]:
+    """The measures above (``plate_share``: the medial plate share of this same mask, if already measured)."""
     from scipy import ndimage
 
     kept = int(mask.sum())
     filled = int(ndimage.binary_fill_holes(crop_to(mask)).sum()) if kept else 0
     solid = curvature_shares(mask, np.asarray(spacing, float))[1]
-    plate = medial_shape(mask, spacing).plate_share
+    plate = medial_shape(mask, spacing).plate_share if plate_share is None else float(plate_share)
     return {"kept_fraction": kept / mask.size, "enclosed_ratio": filled / max(kept, 1), "plate_fraction": plate,
             "solid_fraction": solid}
 
 
-def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = "volume") -> dict[str, float]:
-    """Raise :class:`DsaregInputError` when the kept voxels cannot be vessels; else the measures."""
+def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = "volume",
+                       plate_share: float | None = None) -> dict[str, float]:
+    """Raise :class:`DsaregInputError` when the kept voxels cannot be vessels; else the measures
+    (``plate_share``: :func:`shape_measures`')."""
     what = readout.text() if readout is not None else "the kept voxels"
     kind = getattr(readout, "kind", "3d-dsa")
     accepted = ("a vessel model: set options.volume_kind (cta, mra, 3d-dsa) or the vessel window "
                 "(options.volume_vessel_min / volume_vessel_max) to what the volume is")
     if int(mask.sum()) < MIN_KEPT_VOXELS:
         raise DsaregInputError(f"no vessels in the window: {what}", field=field_name, accepted=accepted)
-    measures = shape_measures(mask, spacing)
+    measures = shape_measures(mask, spacing, plate_share)
     limit = MAX_KEPT_FRACTION.get(kind, 0.5)
     if measures["kept_fraction"] > limit:
         raise DsaregInputError(

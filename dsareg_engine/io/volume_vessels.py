@@ -133,15 +133,16 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
         field, mask, levels, excluded = _mra(smooth, volume.affine, spacing, reading, field_name)
     else:
         (field, mask, levels), excluded = _dsa3d(smooth, reading, field_name), None
+    plate_share = None  # the medial plate share of the final mask, when already measured
     if kind != "3d-dsa":  # bone in the window (a diploë, a cancellous skull base, marrow fat) is a plate: set aside
-        mask, plates = _without_plates(mask, spacing, field_name)
+        mask, plates, plate_share = _without_plates(mask, spacing, field_name)
         excluded = plates if excluded is None else (excluded | plates)
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
                             levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(mask.size), labels_count,
                             "local half maximum" if "low" in levels else "level")
-    measures = check_vessel_shape(mask, spacing, readout, field_name=field_name)
+    measures = check_vessel_shape(mask, spacing, readout, field_name=field_name, plate_share=plate_share)
     readout.plate_share = measures["plate_fraction"]
     readout.decisions = _decisions(readout, reading, voxels, levels)
     mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
@@ -149,24 +150,25 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     return VesselExtraction(mesh, readout, mask, excluded)
 
 
-def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str) -> tuple[np.ndarray, np.ndarray]:
+def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str):
     """``mask`` without its plate parts (:mod:`.medial_shape`, in mm) of at least ``PLATE_PART_MM3``, its
-    largest tube components kept; and what was set aside. Unchanged when the plate share is below the close-call
-    band (vessels alone) or no plate part is that large."""
+    largest tube components kept; what was set aside; and the plate share of the mask returned when it is
+    ``mask`` itself (else None: measure it again). Unchanged when the plate share is below the close-call band
+    (vessels alone) or no plate part is that large."""
     from scipy import ndimage
 
     shape = medial_shape(mask, spacing, with_parts=True)
     plate = shape.plate
     if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not plate.any():  # vessels: left as read
-        return mask, np.zeros(mask.shape, bool)
+        return mask, np.zeros(mask.shape, bool), shape.plate_share
     labels, count = ndimage.label(plate)
     sizes_mm3 = np.bincount(labels.ravel(), minlength=count + 1)[1:] * float(np.prod(spacing))
     large = np.isin(labels, 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3))
     if not large.any():
-        return mask, large
+        return mask, large, shape.plate_share
     rest = mask & ~ndimage.binary_dilation(large, iterations=1)
     if rest.sum() < 8:
-        return mask, np.zeros(mask.shape, bool)  # nothing tube-like remains: the shape check refuses it
+        return mask, np.zeros(mask.shape, bool), shape.plate_share  # nothing tube-like remains: refused
     # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
     labels, count = ndimage.label(rest)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
@@ -174,7 +176,7 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str) -> t
     near = ndimage.binary_dilation(large, iterations=max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
     touching = np.unique(labels[near & (labels > 0)])
     keep = np.setdiff1d(np.arange(1, count + 1), touching[touching != int(np.argmax(sizes))])
-    return largest_components(np.isin(labels, keep), field_name=field_name), large
+    return largest_components(np.isin(labels, keep), field_name=field_name), large, None
 
 
 def _decisions(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray, levels: dict) -> list[InputDecision]:
