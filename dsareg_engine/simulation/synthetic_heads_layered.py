@@ -28,8 +28,9 @@ FINE_MM = 0.15  # the finest grid the tree is filled on
 
 
 def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.0)):
-    """The head's grid around the tree: points (X, Y, Z, 3) LPS mm, depth under the skull's inner surface (mm,
-    outward positive), the affine, and the tree's occupancy on the grid."""
+    """The head's grid around the tree: its LPS mm coordinates per axis (three arrays shaped to broadcast over the
+    grid: (X, 1, 1), (1, Y, 1), (1, 1, Z); a full (X, Y, Z, 3) array is GBs at 0.3 mm), the depth under the
+    skull's inner surface (mm, outward positive), the affine, and the tree's occupancy on the grid."""
     low, high = tree.vertices.min(0), tree.vertices.max(0)
     inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
     centre = (low + high) / 2.0 + np.array([0.0, 0.0, 8.0])
@@ -39,9 +40,9 @@ def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.
     affine = np.diag([*voxel_mm, 1.0])
     affine[:3, 3] = origin
     axes = [origin[a] + np.arange(shape[a], dtype=np.float32) * np.float32(voxel_mm[a]) for a in range(3)]
-    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
-    depth = (np.sqrt((((points - centre) / inner) ** 2).sum(-1)) - 1.0) * float(np.mean(inner))
-    return points, depth.astype(np.float32), affine, _occupancy(tree, affine, shape), (low, high)
+    axes = [axis.reshape([-1 if b == a else 1 for b in range(3)]) for a, axis in enumerate(axes)]
+    depth = (np.sqrt(sum(((axes[a] - centre[a]) / inner[a]) ** 2 for a in range(3))) - 1.0) * float(np.mean(inner))
+    return axes, depth.astype(np.float32), affine, _occupancy(tree, affine, shape), (low, high)
 
 
 def _occupancy(tree: TriangleMesh, affine: np.ndarray, shape) -> np.ndarray:
@@ -97,7 +98,7 @@ def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     rng = np.random.default_rng(seed + 303)
     tree = tree if tree is not None else vessel_tree(3, seed)
     spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
-    points, depth, affine, occupancy, (low, _) = _grid(tree, spacing, min_head_mm)
+    axes, depth, affine, occupancy, (low, _) = _grid(tree, spacing, min_head_mm)
     level = CTA_LEVELS
     volume = np.full(depth.shape, level["air"], np.float32)
     volume[depth < 2 * TABLE_MM + DIPLOE_MM + SCALP_MM] = level["scalp"]
@@ -107,7 +108,7 @@ def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     volume[diploe] = level["diploe"] + 80.0 * texture[diploe]
     brain = depth < 0
     volume[brain] = level["brain"] + 6.0 * _smooth_field(rng, depth.shape, 3.0 / float(spacing.mean()))[brain]
-    z = points[..., 2]
+    z = axes[2]
     base = brain & (z >= low[2] + 4.0) & (z < low[2] + 4.0 + BASE_MM)
     volume[base] = level["base_cortex"]
     core = brain & (z >= low[2] + 4.0 + BASE_CORTEX_MM) & (z < low[2] + 4.0 + BASE_MM - BASE_CORTEX_MM)
@@ -127,7 +128,7 @@ def make_layered_mra_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     rng = np.random.default_rng(seed + 404)
     tree = tree if tree is not None else vessel_tree(3, seed)
     spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
-    points, depth, affine, occupancy, (low, high) = _grid(tree, spacing, min_head_mm)
+    axes, depth, affine, occupancy, (low, high) = _grid(tree, spacing, min_head_mm)
     level = MRA_LEVELS
     skull = 2 * TABLE_MM + DIPLOE_MM
     volume = np.full(depth.shape, level["air"], np.float32)
@@ -136,14 +137,14 @@ def make_layered_mra_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     volume[(depth >= 0) & (depth < skull)] = level["bone"]
     brain = depth < 0
     volume[brain] = level["brain"] + 20.0 * _smooth_field(rng, depth.shape, 3.0 / float(spacing.mean()))[brain]
-    z = points[..., 2]
+    z = axes[2]
     marrow = brain & (z >= low[2] + 4.0) & (z < low[2] + 4.0 + BASE_MM) & (depth < -10.0)
     volume[marrow] = level["marrow"]
     fraction = np.clip((z - low[2]) / max(high[2] - low[2], 1e-6), 0.0, 1.0)
     vessel = level["vessel"] + (level["vessel_distal"] - level["vessel"]) * fraction
     volume = volume * (1.0 - occupancy) + vessel * occupancy
-    centre = points.reshape(-1, 3).mean(0)
-    gain = 1.0 + 0.25 * np.tanh(((points - centre) @ np.array([0.6, -0.3, 0.74])) / 60.0)  # coil inhomogeneity
+    along = sum((axis - axis.mean()) * w for axis, w in zip(axes, (0.6, -0.3, 0.74)))  # from the grid's centre
+    gain = 1.0 + 0.25 * np.tanh(along / 60.0)  # coil inhomogeneity
     data = _finish(volume * gain.astype(np.float32), 12.0, rng, streak_axis=None, rician=True)
     parts, data, affine, study_uid = mra_series(data, affine, "a")
     return SyntheticVolume(parts, tree, data, affine, "mra", study_uid)
