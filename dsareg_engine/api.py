@@ -15,7 +15,7 @@ name, so an API process that only validates options never loads the renderer.
   :func:`read_sources` (from bytes, without a case), :func:`write_dicom_outputs`;
   whose case it is: :func:`case_identity` (patient, study, series per input), :func:`with_source`, :func:`case_search_text`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
-  :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_kernels`, :func:`warm_up_job` (a worker's first job's set-up),
+  :func:`skip_exit_collections` (a quick exit), :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_kernels`, :func:`warm_up_job` (a worker's first job's set-up),
   :func:`compile_later_groups` (the kernels no first job needs, in the background)
 * the command line: :func:`run_parsed`, and the helpers sub-commands use (:class:`CommandFailed`,
   :func:`input_file`, :func:`options_help`, :func:`geometry_argument`, :func:`json_argument`, :func:`load_pose`)
@@ -72,6 +72,7 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .geometry.pose_file import load_pose
     from .registration.options import RegistrationOptions, image_reading, parse_options
     from .threads import default_cpu_threads, set_cpu_threads
+    from .commands.process_exit import skip_exit_collections
     from .warmup import compile_later_groups, warm_up_job, warm_up_kernels, warm_up_renderer
     from .hemodynamics.intake import check_timed_runs
 
@@ -107,6 +108,7 @@ _LAZY = {
     "write_dicom_outputs": "dsareg_engine.io.dicom_out",
     "set_cpu_threads": "dsareg_engine.threads",
     "default_cpu_threads": "dsareg_engine.threads",
+    "skip_exit_collections": "dsareg_engine.commands.process_exit",
     "run_parsed": "dsareg_engine.cli",
     "CommandFailed": "dsareg_engine.commands.failures",
     "input_file": "dsareg_engine.commands.arguments",
@@ -180,6 +182,7 @@ __all__ = [
     "run_parsed",
     "run_registration_case",
     "set_cpu_threads",
+    "skip_exit_collections",
     "ViewSpec",
     "validate_rigid",
     "verdict_meets",

@@ -16,6 +16,7 @@ import tomllib
 from pathlib import Path
 
 from .commands.failures import run_guarded
+from .commands.process_exit import skip_exit_collections
 
 COMMAND_MODULES = (
     "dsareg_engine.commands.render",
@@ -110,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run_parsed(args: argparse.Namespace) -> int:
     """Run a parsed sub-command; errors become one line on stderr and exit status 2 (usage) or 1."""
+    skip_exit_collections()  # `dsareg serve`, `worker`, every command: seconds less at exit (process_exit)
     return run_guarded(args.func, args)
 
 

@@ -287,6 +287,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--background", action="store_true", help="at the lowest CPU priority")
     args = parser.parse_args(argv)
     _die_with_parent()
+    from .commands.process_exit import skip_exit_collections
+
+    skip_exit_collections()
     if args.background:
         os.nice(19)
     from .threads import set_cpu_threads

@@ -348,6 +348,7 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
     from .procwatch import WorkerControl, die_with_parent, set_process_name
 
     set_process_name(f"dsareg-worker{index}")
+    engine.skip_exit_collections()  # its stop is a server's stop: no seconds of garbage collection at exit
     control = WorkerControl()
     signal.signal(signal.SIGINT, signal.SIG_IGN if link is not None else control.request_stop)
     signal.signal(signal.SIGTERM, control.request_stop)

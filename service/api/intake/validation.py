@@ -53,12 +53,14 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _become_validator(parent_pid: int | None) -> None:
-    """Name the process (``dsareg-validate``), ignore Ctrl-C (the server stops it), die with the server."""
+    """Name the process (``dsareg-validate``), exit quickly, ignore Ctrl-C (the server stops it), die with the server."""
     import signal
 
+    from ...engine_adapter import engine
     from ...jobs.procwatch import die_with_parent, set_process_name
 
     set_process_name("dsareg-validate")
+    engine.skip_exit_collections()  # a server's stop waits for its validators' exit
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
         die_with_parent(parent_pid, signal.SIGKILL)
