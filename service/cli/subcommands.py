@@ -10,6 +10,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .db import add_db_parser
+
 
 def add_parser(subparsers: Any) -> None:
     """The service's sub-commands (contributed to ``dsareg`` through the ``dsareg.commands`` entry point)."""
@@ -17,6 +19,7 @@ def add_parser(subparsers: Any) -> None:
     _add_worker(subparsers)
     _add_dicom_listener(subparsers)
     _add_submit(subparsers)
+    add_db_parser(subparsers)
 
 
 def _add_serve(subparsers: Any) -> None:
@@ -176,7 +179,7 @@ def run_worker(args: argparse.Namespace) -> int:
     from ..storage.store import SqlJobStore
     from ..jobs.worker import worker_main
 
-    SqlJobStore(settings.effective_database_url).dispose()  # create the schema if this is the first process
+    SqlJobStore(settings.effective_database_url).dispose()  # migrate the job database (storage/migrate.py)
     worker_main(settings, 0)
     return 0
 

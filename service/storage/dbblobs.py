@@ -30,16 +30,8 @@ import sqlalchemy as sa
 
 from .blobs import BlobStore
 from .dbtimeouts import bulk_statements
-
-blob_metadata = sa.MetaData()
-
-blob_data = sa.Table(
-    "blob_data", blob_metadata,
-    sa.Column("sha256", sa.String(64), primary_key=True),
-    sa.Column("size", sa.BigInteger, nullable=False),
-    sa.Column("created_at", sa.Float, nullable=False),
-    sa.Column("data", sa.LargeBinary, nullable=False),
-)
+from .migrate import upgrade_database
+from .schema import blob_data
 
 
 class DatabaseBlobStore(BlobStore):
@@ -52,7 +44,7 @@ class DatabaseBlobStore(BlobStore):
         # Workers: no cache (nothing would prune it); inputs are read from the table per job.
         self.cache = cache
         if create_schema:
-            blob_metadata.create_all(engine)
+            upgrade_database(engine)
 
     # ---- database side -------------------------------------------------------------------
     def _db_has(self, digest: str) -> bool:

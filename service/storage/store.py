@@ -37,6 +37,9 @@ import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
 
 from .dbtimeouts import StoreTimeouts, engine_kwargs, install_postgres_deadlines, sqlite_busy_pragma
+from .migrate import upgrade_database
+from .schema import metadata  # noqa: F401 - re-exported (tests make databases of earlier versions from it)
+from .schema import job_blobs, job_callbacks, job_events, job_exports, job_previous, jobs, probe, workers
 
 STATUSES = ("queued", "running", "succeeded", "failed", "canceled")
 FINISHED = ("succeeded", "failed", "canceled")
@@ -247,120 +250,11 @@ class JobStore(abc.ABC):
 
 # ---- SQLAlchemy implementation -----------------------------------------------------------
 
-metadata = sa.MetaData()
-
-jobs = sa.Table(
-    "jobs", metadata,
-    sa.Column("id", sa.String(32), primary_key=True),
-    sa.Column("owner", sa.String(64), nullable=False),
-    sa.Column("status", sa.String(16), nullable=False),
-    sa.Column("created_at", sa.Float, nullable=False),
-    sa.Column("updated_at", sa.Float, nullable=False),
-    sa.Column("started_at", sa.Float),
-    sa.Column("finished_at", sa.Float),
-    sa.Column("attempts", sa.Integer, nullable=False, default=0),
-    sa.Column("max_attempts", sa.Integer, nullable=False, default=3),
-    sa.Column("worker_id", sa.String(96)),
-    sa.Column("lease_expires_at", sa.Float),
-    sa.Column("cancel_requested", sa.Boolean, nullable=False, default=False),
-    sa.Column("options", sa.Text, nullable=False),
-    sa.Column("geometry", sa.Text),
-    sa.Column("inputs", sa.Text, nullable=False),
-    sa.Column("progress", sa.Text),
-    sa.Column("result", sa.Text),
-    sa.Column("error", sa.Text),
-    sa.Column("artifacts", sa.Text),
-    sa.Column("warnings", sa.Text),
-    sa.Column("idempotency_key", sa.String(255)),
-    sa.Column("request_hash", sa.String(64)),
-    sa.Column("input_bytes", sa.BigInteger, nullable=False, default=0),
-    # added later: databases made before gain them on start (upgrade_schema); nullable for that reason
-    sa.Column("review_decision", sa.String(16)),
-    sa.Column("review", sa.Text),
-    sa.Column("case_identity", sa.Text),  # JSON: patient, study, series per input (never logged)
-    sa.Column("case_search", sa.Text),  # lower-case text ?q= searches (patient ID and name, study)
-    sa.UniqueConstraint("owner", "idempotency_key", name="uq_jobs_owner_idempotency"),
-    sa.Index("ix_jobs_status_created", "status", "created_at"),
-    sa.Index("ix_jobs_created", "created_at", "id"),
-)
-
-job_blobs = sa.Table(
-    "job_blobs", metadata,
-    sa.Column("job_id", sa.String(32), nullable=False, index=True),
-    sa.Column("sha256", sa.String(64), nullable=False, index=True),
-    sa.Column("role", sa.String(32), nullable=False),
-)
-
-job_events = sa.Table(
-    "job_events", metadata,
-    sa.Column("seq", sa.Integer, primary_key=True, autoincrement=True),
-    sa.Column("job_id", sa.String(32), nullable=False, index=True),
-    sa.Column("at", sa.Float, nullable=False),
-    sa.Column("event", sa.String(32), nullable=False),
-    sa.Column("worker_id", sa.String(96)),
-    sa.Column("attempt", sa.Integer),
-    sa.Column("detail", sa.Text),  # added later (JSON, e.g. a review's decision and reviewer); nullable
-)
-
-workers = sa.Table(
-    "workers", metadata,
-    sa.Column("id", sa.String(96), primary_key=True),
-    sa.Column("pid", sa.Integer),
-    sa.Column("last_seen", sa.Float, nullable=False),
-)
-
-job_callbacks = sa.Table(
-    "job_callbacks", metadata,
-    sa.Column("job_id", sa.String(32), primary_key=True),
-    sa.Column("url", sa.Text, nullable=False),
-    sa.Column("delivery_id", sa.String(32), nullable=False),
-    sa.Column("state", sa.String(16), nullable=False),  # pending | delivering | delivered | failed
-    sa.Column("attempts", sa.Integer, nullable=False, default=0),
-    sa.Column("next_attempt_at", sa.Float, nullable=False, default=0.0),
-    sa.Column("lease_until", sa.Float),
-    sa.Column("last_attempt_at", sa.Float),
-    sa.Column("delivered_at", sa.Float),
-    sa.Column("last_status", sa.Integer),
-    sa.Column("last_error", sa.Text),
-    sa.Index("ix_job_callbacks_state", "state", "next_attempt_at"),
-)
-"""One row per job with a ``callback_url`` (a table of its own: databases of earlier versions gain it)."""
-
-job_previous = sa.Table(
-    "job_previous", metadata,
-    sa.Column("job_id", sa.String(32), primary_key=True),
-    sa.Column("previous_id", sa.String(32), nullable=False),
-)
-"""The job a tracking job started from (``Link: rel="previous"``)."""
-
-job_exports = sa.Table(
-    "job_exports", metadata,
-    sa.Column("job_id", sa.String(32), primary_key=True),
-    sa.Column("target", sa.Text, nullable=False),  # JSON: {"via": "stow-rs", "server", "study_uid"} | {"via": "c-store", "peers"}
-    sa.Column("state", sa.String(16), nullable=False),  # EXPORT_STATES
-    sa.Column("attempts", sa.Integer, nullable=False, default=0),
-    sa.Column("next_attempt_at", sa.Float, nullable=False, default=0.0),
-    sa.Column("lease_until", sa.Float),
-    sa.Column("last_attempt_at", sa.Float),
-    sa.Column("done_at", sa.Float),
-    sa.Column("outcome", sa.Text),  # JSON: what was stored
-    sa.Column("last_error", sa.Text),  # JSON: the pacs-error problem of the last failed attempt
-    sa.Index("ix_job_exports_state", "state", "next_attempt_at"),
-)
-"""One row per succeeded job whose PACS export waits for a review (``export_after_review``)."""
-
 EXPORT_COLUMNS = ("target", "state", "attempts", "next_attempt_at", "last_attempt_at", "done_at", "outcome",
                   "last_error")
 
 CALLBACK_COLUMNS = ("url", "delivery_id", "state", "attempts", "next_attempt_at", "last_attempt_at", "delivered_at",
                     "last_status", "last_error")
-
-probe = sa.Table(
-    "store_probe", metadata,
-    sa.Column("id", sa.Integer, primary_key=True),
-    sa.Column("at", sa.Float, nullable=False),
-)
-
 
 def _dump(value: Any) -> str | None:
     return None if value is None else json.dumps(value, separators=(",", ":"))
@@ -398,9 +292,8 @@ class SqlJobStore(JobStore):
             sa.event.listen(self.engine, "begin", _sqlite_begin)
         # writes take the database lock up front (BEGIN IMMEDIATE on SQLite), reads do not
         self.writer = self.engine.execution_options(dsareg_write=True)
-        if create_schema:
-            metadata.create_all(self.engine)
-            upgrade_schema(self.engine)
+        if create_schema:  # the schema migrations, under a lock (service/storage/migrate.py)
+            upgrade_database(self.engine)
 
     def dispose(self) -> None:
         self.engine.dispose()
@@ -880,30 +773,6 @@ def _export_row(m: Any) -> dict[str, Any]:
     row = {name: m.get(f"ex_{name}") for name in EXPORT_COLUMNS}
     return {**row, "target": _load(row["target"], {}), "outcome": _load(row["outcome"]),
             "last_error": _load(row["last_error"])}
-
-
-def upgrade_schema(engine: sa.engine.Engine) -> list[str]:
-    """Add the columns this version's tables have and an existing database lacks (``ALTER TABLE … ADD
-    COLUMN``, nullable ones only, portable to SQLite and PostgreSQL); returns ``table.column`` added."""
-    added: list[str] = []
-    existing = sa.inspect(engine)
-    for table in metadata.sorted_tables:
-        have = {c["name"] for c in existing.get_columns(table.name)}
-        for column in table.columns:
-            if column.name in have:
-                continue
-            if not column.nullable:
-                raise RuntimeError(f"the job database lacks {table.name}.{column.name}, which cannot be added")
-            kind = column.type.compile(dialect=engine.dialect)
-            try:
-                with engine.begin() as conn:
-                    conn.exec_driver_sql(f'ALTER TABLE {table.name} ADD COLUMN "{column.name}" {kind}')
-            except sa.exc.DBAPIError:  # another process (API, worker) added it at the same moment
-                if column.name not in {c["name"] for c in sa.inspect(engine).get_columns(table.name)}:
-                    raise
-                continue
-            added.append(f"{table.name}.{column.name}")
-    return added
 
 
 def _sqlite_begin(conn: Any) -> None:

@@ -26,7 +26,7 @@ class _WorkerState:
         from ..worker import DiskFloor, make_worker_id
 
         self.settings = settings
-        self.store = store_for(settings, create_schema=False)
+        self.store = store_for(settings)  # migrates the job database at start-up (under its lock)
         self.blobs = make_blob_store(settings, self.store.engine, cache=False)
         self.worker_id = make_worker_id(0)
         self.room = DiskFloor(settings)

@@ -34,22 +34,7 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
-metadata = sa.MetaData()
-
-instances = sa.Table(
-    "dimse_instances", metadata,
-    sa.Column("sop_instance_uid", sa.String(64), primary_key=True),
-    sa.Column("study_uid", sa.String(64), nullable=False, index=True),
-    sa.Column("series_uid", sa.String(64), nullable=False),
-    sa.Column("sop_class_uid", sa.String(64), nullable=False),
-    sa.Column("sha256", sa.String(64), nullable=False),
-    sa.Column("size", sa.BigInteger, nullable=False),
-    sa.Column("association", sa.String(64), nullable=False, index=True),
-    sa.Column("calling_ae", sa.String(16), nullable=False),
-    sa.Column("state", sa.String(16), nullable=False),  # received | interrupted | committed | dispatched | retrieving | retrieved
-    sa.Column("received_at", sa.Float, nullable=False),
-    sa.Index("ix_dimse_state_study", "state", "study_uid"),
-)
+from ...storage.schema import dimse_instances as instances
 
 
 @dataclass(frozen=True)
@@ -82,8 +67,7 @@ class Inbox:
     """Received instances by study, on the job store's database (SQLite or PostgreSQL)."""
 
     def __init__(self, engine: sa.Engine, writer: sa.Engine | None = None):
-        self.engine, self.writer = engine, writer or engine
-        metadata.create_all(engine)
+        self.engine, self.writer = engine, writer or engine  # its table: the job store's migrations
 
     def add(self, item: StoredInstance, association: str, state: str = "received") -> None:
         """Index one stored instance (a re-sent instance replaces the earlier row); ``retrieving``: one we asked for."""

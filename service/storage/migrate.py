@@ -1,0 +1,147 @@
+"""Bring the job database to this version's schema: the Alembic revisions of :mod:`service.storage.migrations`,
+run at every start-up (API, worker, DICOM listener: :class:`~service.storage.store.SqlJobStore`) and by
+``dsareg db upgrade``.
+
+All of it runs in one transaction that first takes the migration lock, so processes starting together
+migrate once and the others then find the database at head:
+
+* PostgreSQL: a transaction-level advisory lock (``pg_advisory_xact_lock``); DDL is transactional, so a
+  failed revision leaves the database as it was;
+* SQLite: ``BEGIN IMMEDIATE`` (the database's write lock, waited for up to ``LOCK_WAIT_S``).
+
+A database is one of: empty (every table is created from :mod:`service.storage.schema` and stamped at head),
+at a known revision (the revisions after it run), made before Alembic (no ``alembic_version`` table:
+recognised by its columns, :mod:`service.storage.legacy`, then upgraded), or at a revision this version does
+not know (newer software migrated it): :class:`SchemaError`, nothing is touched.
+
+The migration runs on its own engine without the store's short statement deadlines (an ``ALTER`` on a big
+table is not a 1 s statement).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import sqlalchemy as sa
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+
+from .legacy import adopt_legacy, has_any_table
+from .schema import SchemaError, metadata
+
+MIGRATIONS = Path(__file__).with_name("migrations")
+PG_LOCK_KEY = 0x6473_6172_6567  # "dsareg": the advisory lock every dsareg process migrates under
+LOCK_WAIT_S = 120.0
+
+
+@dataclass(frozen=True)
+class UpgradeReport:
+    before: str | None  # the revision found (None: empty, or made before migrations)
+    after: str
+    applied: tuple[str, ...] = ()  # revisions run, oldest first
+    created: bool = False  # an empty database: tables created at head
+    adopted: str | None = None  # made before migrations: the revision it was recognised as
+
+    @property
+    def changed(self) -> bool:
+        return self.created or bool(self.applied) or self.adopted is not None
+
+
+def alembic_config(connection: sa.Connection | None = None, url: str | None = None) -> Config:
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    if url:
+        config.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
+    config.attributes["connection"] = connection
+    return config
+
+
+@functools.cache
+def scripts() -> ScriptDirectory:
+    return ScriptDirectory.from_config(alembic_config())
+
+
+def head() -> str:
+    return scripts().get_current_head()
+
+
+def current_revision(conn: sa.Connection) -> str | None:
+    return MigrationContext.configure(conn).get_current_revision()
+
+
+def database_revision(target: sa.Engine | str) -> str | None:
+    """The revision the database of ``target`` is at (None: empty, or made before migrations)."""
+    engine = migration_engine(target)
+    try:
+        with engine.connect() as conn:
+            return current_revision(conn)
+    finally:
+        if engine is not target:
+            engine.dispose()
+
+
+def upgrade_database(target: sa.Engine | str) -> UpgradeReport:
+    """Migrate the database of ``target`` (an engine, or a URL) to head under the migration lock."""
+    engine = migration_engine(target)
+    try:
+        with locked(engine) as conn:
+            return _upgrade(conn)
+    finally:
+        if engine is not target:
+            engine.dispose()
+
+
+def _upgrade(conn: sa.Connection) -> UpgradeReport:
+    found, newest = current_revision(conn), head()
+    if found == newest:
+        return UpgradeReport(found, newest)
+    if found is None and not has_any_table(conn):
+        metadata.create_all(conn)
+        MigrationContext.configure(conn).stamp(scripts(), newest)
+        return UpgradeReport(None, newest, created=True)
+    if found is not None and found not in {s.revision for s in scripts().walk_revisions()}:
+        raise SchemaError(f"the job database is at revision {found}, which this dsareg does not know (its newest is "
+                          f"{newest}): a newer dsareg migrated it; run that version, or restore the backup taken "
+                          "before its upgrade")
+    adopted = None
+    if found is None:
+        adopted = adopt_legacy(conn, scripts())
+        MigrationContext.configure(conn).stamp(scripts(), adopted)
+    start = found or adopted
+    applied = tuple(reversed([s.revision for s in scripts().iterate_revisions(newest, start)]))
+    command.upgrade(alembic_config(conn), "head")
+    return UpgradeReport(found, newest, applied=applied, adopted=adopted)
+
+
+def migration_engine(target: sa.Engine | str) -> sa.Engine:
+    """An engine for migrating: the URL's own (no pool, no short deadlines); an in-memory SQLite: ``target``."""
+    url = sa.make_url(target) if isinstance(target, str) else target.url
+    if url.get_backend_name() == "sqlite" and url.database in (None, "", ":memory:"):
+        return target if isinstance(target, sa.Engine) else sa.create_engine(url)
+    if url.get_backend_name() != "sqlite":
+        return sa.create_engine(url, poolclass=sa.pool.NullPool)
+    engine = sa.create_engine(url, poolclass=sa.pool.NullPool, connect_args={"timeout": LOCK_WAIT_S})
+    sa.event.listen(engine, "connect", _sqlite_manual_transactions)
+    sa.event.listen(engine, "begin", lambda conn: conn.exec_driver_sql("BEGIN IMMEDIATE"))
+    return engine
+
+
+def _sqlite_manual_transactions(dbapi_conn, _record) -> None:
+    dbapi_conn.isolation_level = None  # the "begin" listener says BEGIN IMMEDIATE; DDL stays in the transaction
+    dbapi_conn.execute("PRAGMA journal_mode=WAL")  # as the store runs it (store.py): a new file starts so
+
+
+@contextmanager
+def locked(engine: sa.Engine) -> Iterator[sa.Connection]:
+    """One transaction on ``engine`` holding the migration lock (committed on success, else rolled back)."""
+    with engine.begin() as conn:
+        if conn.dialect.name == "postgresql":
+            conn.exec_driver_sql(f"SET LOCAL lock_timeout = '{int(LOCK_WAIT_S * 1000)}ms'")
+            conn.execute(sa.text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_LOCK_KEY})
+        yield conn

@@ -1,0 +1,130 @@
+"""Schema migrations (service/storage/migrate.py, legacy.py, migrations/) on SQLite; the same on PostgreSQL:
+tests/system/scaleout/test_scaleout_migrations.py."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import sqlalchemy as sa
+from alembic import command
+
+from service.storage.migrate import alembic_config, head, locked, migration_engine, upgrade_database
+from service.storage.schema import SchemaError, metadata
+from tests.support.migration_kit import assert_upgrade_loses_nothing, make_release_database, schema_diff, snapshot
+from tests.support.release_schema import release_statements
+
+
+def _url(tmp_path, name: str = "jobs.sqlite3") -> str:
+    return f"sqlite:///{tmp_path / name}"
+
+
+def _migrate_to(url: str, revision: str) -> None:
+    engine = migration_engine(url)
+    with locked(engine) as conn:
+        command.upgrade(alembic_config(conn), revision)
+    engine.dispose()
+
+
+def _shape(url: str) -> dict:
+    """Tables, columns (type, nullable), primary keys, unique constraints and indexes, as reflected."""
+    engine = sa.create_engine(url)
+    inspector = sa.inspect(engine)
+    shape = {name: ([(c["name"], str(c["type"]), c["nullable"]) for c in inspector.get_columns(name)],
+                    inspector.get_pk_constraint(name)["constrained_columns"],
+                    sorted((u["name"], tuple(u["column_names"])) for u in inspector.get_unique_constraints(name)),
+                    sorted((i["name"], tuple(i["column_names"]), bool(i["unique"])) for i in inspector.get_indexes(name)))
+             for name in inspector.get_table_names() if name != "alembic_version"}
+    engine.dispose()
+    return shape
+
+
+def test_a_release_database_is_upgraded_and_loses_nothing(tmp_path):
+    assert_upgrade_loses_nothing(_url(tmp_path))
+
+
+def test_the_baseline_revision_is_the_release_schema(tmp_path):
+    release, migrated = _url(tmp_path, "release.sqlite3"), _url(tmp_path, "migrated.sqlite3")
+    engine = sa.create_engine(release)
+    with engine.begin() as conn:
+        for statement in release_statements("sqlite"):
+            conn.exec_driver_sql(statement)
+    engine.dispose()
+    _migrate_to(migrated, "0001")
+    assert _shape(migrated) == _shape(release) and len(_shape(release)) == 10
+
+
+def test_migrations_and_metadata_agree(tmp_path):
+    by_revisions, created = _url(tmp_path, "revisions.sqlite3"), _url(tmp_path, "created.sqlite3")
+    _migrate_to(by_revisions, "head")
+    report = upgrade_database(created)  # empty: created from the metadata, stamped at head
+    assert report.created and report.after == head()
+    for url in (by_revisions, created):
+        assert schema_diff(sa.create_engine(url), metadata) == [], url
+    assert _shape(by_revisions) == _shape(created)
+
+
+def test_processes_starting_together_migrate_once(tmp_path):
+    url, reports, errors = _url(tmp_path), [], []
+
+    def start() -> None:
+        try:
+            reports.append(upgrade_database(url))
+        except Exception as exc:  # noqa: BLE001 - the assertion below shows it
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors and sorted(r.created for r in reports) == [False, False, False, True]
+    assert all(r.after == head() for r in reports)
+
+
+def test_a_database_of_a_newer_version_is_refused_untouched(tmp_path):
+    url = _url(tmp_path)
+    upgrade_database(url)
+    engine = sa.create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("UPDATE alembic_version SET version_num = '9999'")
+    with pytest.raises(SchemaError, match="revision 9999, which this dsareg does not know"):
+        upgrade_database(url)
+    with engine.connect() as conn:
+        assert conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar_one() == "9999"
+
+
+def test_an_unversioned_database_lacking_a_release_column_is_refused_untouched(tmp_path):
+    url = _url(tmp_path)
+    engine = sa.create_engine(url)
+    make_release_database(engine)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("ALTER TABLE workers DROP COLUMN pid")
+    before = snapshot(engine)
+    with pytest.raises(SchemaError, match="workers lacks the column pid"):
+        upgrade_database(url)
+    assert snapshot(engine) == before and "alembic_version" not in sa.inspect(engine).get_table_names()
+
+
+def test_a_database_older_than_the_release_gains_its_nullable_columns(tmp_path):
+    url = _url(tmp_path)
+    engine = sa.create_engine(url)
+    make_release_database(engine)
+    with engine.begin() as conn:  # as releases before reviews made it
+        for table, column in (("jobs", "review_decision"), ("jobs", "review"), ("job_events", "detail")):
+            conn.exec_driver_sql(f"ALTER TABLE {table} DROP COLUMN {column}")
+        conn.exec_driver_sql("DROP TABLE blob_data")  # made only with the database blob backend
+    report = upgrade_database(url)
+    assert report.adopted == "0001" and report.applied == ("0002",) and schema_diff(engine, metadata) == []
+    assert snapshot(engine)["blob_data"] == []
+
+
+def test_an_unversioned_database_made_after_the_release_is_recognised_past_it(tmp_path):
+    url = _url(tmp_path)
+    engine = sa.create_engine(url)
+    make_release_database(engine)
+    with engine.begin() as conn:  # main between the release and the first migration added the case columns
+        conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN case_identity TEXT")
+        conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN case_search TEXT")
+    report = upgrade_database(url)
+    assert (report.adopted, report.applied) == ("0002", ()) and schema_diff(engine, metadata) == []
