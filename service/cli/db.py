@@ -7,6 +7,8 @@ version (after a backup: docs/operations/upgrades.md), or to see what it would d
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,14 +29,29 @@ def add_db_parser(subparsers: Any) -> None:
 
 
 def run_db(args: argparse.Namespace) -> int:
+    url = _database_url(args) if args.action != "history" else ""
+    with _failing_as_command(url):
+        return _run(args.action, url)
+
+
+def migrate_at_start(url: str) -> None:
+    """``dsareg serve``: migrate before the app starts, so a failure is one line, not a lifespan traceback."""
+    from ..storage.migrate import upgrade_database
+
+    with _failing_as_command(url):
+        upgrade_database(url)
+
+
+@contextmanager
+def _failing_as_command(url: str) -> Iterator[None]:
+    """A schema or connection error as the command's one-line failure (exit 1)."""
     import sqlalchemy as sa
 
     from ..engine_adapter import engine
     from ..storage.schema import SchemaError
 
-    url = _database_url(args) if args.action != "history" else ""
     try:
-        return _run(args.action, url)
+        yield
     except SchemaError as exc:
         raise engine.CommandFailed(str(exc)) from None
     except (sa.exc.OperationalError, sa.exc.InterfaceError) as exc:
@@ -43,10 +60,10 @@ def run_db(args: argparse.Namespace) -> int:
 
 
 def _run(action: str, url: str) -> int:
-    from ..storage import migrate
+    from ..storage import migrate, revisions
 
     if action == "history":
-        for script in reversed(list(migrate.scripts().walk_revisions())):
+        for script in reversed(list(revisions.scripts().walk_revisions())):
             print(f"{script.revision}  {(script.doc or '').splitlines()[0] if script.doc else ''}")
         return 0
     if action == "upgrade":
@@ -54,9 +71,9 @@ def _run(action: str, url: str) -> int:
         print(f"{_shown(url)}: {_upgrade_line(report)}")
         return 0
     found = migrate.database_revision(url)
-    state = "up to date" if found == migrate.head() else "run `dsareg db upgrade`"
+    state = "up to date" if found == revisions.head() else "run `dsareg db upgrade`"
     print(f"{_shown(url)}: revision {found or 'none (empty, or made before migrations)'}; "
-          f"this version's: {migrate.head()} ({state})")
+          f"this version's: {revisions.head()} ({state})")
     return 0
 
 

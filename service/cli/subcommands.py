@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .db import add_db_parser
+from .db import add_db_parser, migrate_at_start
 
 
 def add_parser(subparsers: Any) -> None:
@@ -152,6 +152,9 @@ def run_serve(args: argparse.Namespace) -> int:
     )
     logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log = logging.getLogger("dsareg.service")
+    if settings.effective_database_url.startswith("sqlite"):
+        settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
+    migrate_at_start(settings.effective_database_url)  # the job database's schema (docs/operations/upgrades.md)
     host = settings.effective_host
     if host != settings.server.host:
         log.warning("no API keys configured: binding to 127.0.0.1 instead of %s", settings.server.host)

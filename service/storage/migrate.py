@@ -20,22 +20,15 @@ table is not a 1 s statement).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
 
 import sqlalchemy as sa
-from alembic import command
-from alembic.config import Config
-from alembic.runtime.migration import MigrationContext
-from alembic.script import ScriptDirectory
 
-from .legacy import adopt_legacy, has_any_table
-from .schema import SchemaError, metadata
-
-MIGRATIONS = Path(__file__).with_name("migrations")
+HEAD = "0002"
+"""The newest revision (migrations/versions; ``tests/unit/service/test_service_migrations.py`` checks it): a
+database stamped with it needs nothing, and a start-up that finds it does not load Alembic."""
 PG_LOCK_KEY = 0x6473_6172_6567  # "dsareg": the advisory lock every dsareg process migrates under
 LOCK_WAIT_S = 120.0
 
@@ -53,34 +46,12 @@ class UpgradeReport:
         return self.created or bool(self.applied) or self.adopted is not None
 
 
-def alembic_config(connection: sa.Connection | None = None, url: str | None = None) -> Config:
-    config = Config()
-    config.set_main_option("script_location", str(MIGRATIONS))
-    if url:
-        config.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
-    config.attributes["connection"] = connection
-    return config
-
-
-@functools.cache
-def scripts() -> ScriptDirectory:
-    return ScriptDirectory.from_config(alembic_config())
-
-
-def head() -> str:
-    return scripts().get_current_head()
-
-
-def current_revision(conn: sa.Connection) -> str | None:
-    return MigrationContext.configure(conn).get_current_revision()
-
-
 def database_revision(target: sa.Engine | str) -> str | None:
     """The revision the database of ``target`` is at (None: empty, or made before migrations)."""
     engine = migration_engine(target)
     try:
         with engine.connect() as conn:
-            return current_revision(conn)
+            return _stamped_revision(conn)
     finally:
         if engine is not target:
             engine.dispose()
@@ -91,32 +62,22 @@ def upgrade_database(target: sa.Engine | str) -> UpgradeReport:
     engine = migration_engine(target)
     try:
         with locked(engine) as conn:
-            return _upgrade(conn)
+            found = _stamped_revision(conn)
+            if found == HEAD:
+                return UpgradeReport(found, HEAD)
+            from .revisions import bring_to_head  # Alembic only when there is something to do (revisions.py)
+
+            return UpgradeReport(after=HEAD, **bring_to_head(conn))
     finally:
         if engine is not target:
             engine.dispose()
 
 
-def _upgrade(conn: sa.Connection) -> UpgradeReport:
-    found, newest = current_revision(conn), head()
-    if found == newest:
-        return UpgradeReport(found, newest)
-    if found is None and not has_any_table(conn):
-        metadata.create_all(conn)
-        MigrationContext.configure(conn).stamp(scripts(), newest)
-        return UpgradeReport(None, newest, created=True)
-    if found is not None and found not in {s.revision for s in scripts().walk_revisions()}:
-        raise SchemaError(f"the job database is at revision {found}, which this dsareg does not know (its newest is "
-                          f"{newest}): a newer dsareg migrated it; run that version, or restore the backup taken "
-                          "before its upgrade")
-    adopted = None
-    if found is None:
-        adopted = adopt_legacy(conn, scripts())
-        MigrationContext.configure(conn).stamp(scripts(), adopted)
-    start = found or adopted
-    applied = tuple(reversed([s.revision for s in scripts().iterate_revisions(newest, start)]))
-    command.upgrade(alembic_config(conn), "head")
-    return UpgradeReport(found, newest, applied=applied, adopted=adopted)
+def _stamped_revision(conn: sa.Connection) -> str | None:
+    """``alembic_version``'s revision, read without Alembic (None: no such table, or empty)."""
+    if not sa.inspect(conn).has_table("alembic_version"):
+        return None
+    return conn.exec_driver_sql("SELECT version_num FROM alembic_version").scalar()
 
 
 def migration_engine(target: sa.Engine | str) -> sa.Engine:

@@ -143,7 +143,8 @@ NEW_COLUMNS = {"jobs": {"case_identity": None, "case_search": None}}
 def assert_upgrade_loses_nothing(url: str) -> None:
     """Release database at ``url`` → upgraded: every row and value kept, new columns empty, the schema that of
     this version, a second upgrade a no-op, and the store reading the old rows."""
-    from service.storage.migrate import head, upgrade_database
+    from service.storage.migrate import upgrade_database
+    from service.storage.revisions import head
     from service.storage.schema import metadata
 
     engine = sa.create_engine(url, poolclass=sa.pool.NullPool)

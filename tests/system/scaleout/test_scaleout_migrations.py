@@ -11,7 +11,8 @@ import pytest
 import sqlalchemy as sa
 from alembic import command
 
-from service.storage.migrate import alembic_config, head, locked, migration_engine, upgrade_database
+from service.storage.migrate import locked, migration_engine, upgrade_database
+from service.storage.revisions import alembic_config, head
 from service.storage.schema import metadata
 from tests.support.migration_kit import assert_upgrade_loses_nothing, schema_diff
 

@@ -3,13 +3,17 @@ tests/system/scaleout/test_scaleout_migrations.py."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import pytest
 import sqlalchemy as sa
 from alembic import command
 
-from service.storage.migrate import alembic_config, head, locked, migration_engine, upgrade_database
+from service.storage.migrate import HEAD, locked, migration_engine, upgrade_database
+from service.storage.revisions import alembic_config, head
 from service.storage.schema import SchemaError, metadata
 from tests.support.migration_kit import assert_upgrade_loses_nothing, make_release_database, schema_diff, snapshot
 from tests.support.release_schema import release_statements
@@ -52,6 +56,10 @@ def test_the_baseline_revision_is_the_release_schema(tmp_path):
     engine.dispose()
     _migrate_to(migrated, "0001")
     assert _shape(migrated) == _shape(release) and len(_shape(release)) == 10
+
+
+def test_the_head_constant_is_the_newest_revision():
+    assert HEAD == head()
 
 
 def test_migrations_and_metadata_agree(tmp_path):
@@ -128,3 +136,14 @@ def test_an_unversioned_database_made_after_the_release_is_recognised_past_it(tm
         conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN case_search TEXT")
     report = upgrade_database(url)
     assert (report.adopted, report.applied) == ("0002", ()) and schema_diff(engine, metadata) == []
+
+
+def test_a_start_at_head_does_not_load_alembic(tmp_path):
+    """The common start-up (database up to date) reads alembic_version by itself: no Alembic, no Mako."""
+    url = _url(tmp_path)
+    upgrade_database(url)
+    code = ("import sys\nfrom service.storage.store import SqlJobStore\n"
+            f"SqlJobStore({url!r}).dispose()\nprint(sorted(m for m in ('alembic', 'mako') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True,
+                          cwd=Path(__file__).resolve().parents[3])
+    assert done.stdout.strip() == "[]", done.stderr[-2000:]
