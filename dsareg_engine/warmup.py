@@ -10,8 +10,9 @@ The kernels (numba, cached on disk) are compiled in **groups** (:data:`KERNEL_GR
 functions in one process so no two processes write one function's cache index at once:
 ``forward`` and ``backward`` are what a registration job needs (:func:`warm_up_kernels` compiles
 ``backward`` in a helper process while this one compiles ``forward``: two cores, half the wall time);
-``tracking`` (the Gauss-Newton Jacobian, more than half of all the compile) and ``search`` (the
-initial-pose search) are compiled afterwards by a background helper (:func:`compile_later_groups`),
+``tracking`` (the Gauss-Newton Jacobian, more than half of all the compile), ``search`` (the
+initial-pose search) and ``hemodynamics`` (the ray-stretch kernels of ``options.hemodynamics``) are compiled
+afterwards by a background helper (:func:`compile_later_groups`),
 so a worker is ready without them; a job that needs one before the helper is done compiles it itself.
 ``python -m dsareg_engine.warmup --threads N GROUP...`` is the helper.
 """
@@ -81,7 +82,7 @@ __all__ = ["KERNEL_GROUPS", "WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "compile_la
            "warm_up_job", "warm_up_kernels", "warm_up_renderer"]
 
 JOB_GROUPS = ("forward", "backward")
-LATER_GROUPS = ("tracking", "search")
+LATER_GROUPS = ("tracking", "search", "hemodynamics")
 HELPER_WAIT_SECONDS = 600.0
 
 
@@ -185,8 +186,20 @@ def _warm_up_tracking() -> None:
         normal_equations(log_keep[0], log_keep_tangents[0], target, weight, n_threads, np.zeros((6, 6)), np.zeros(6))
 
 
+def _compile_hemodynamics() -> None:
+    """The ray-stretch kernels hemodynamics traces the model with (and the bolus simulation), with a job's argument
+    types: a tetrahedron in front of a tiny view."""
+    import numpy as np
+
+    from .render.ray_layers import ray_stretches
+
+    vertices = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [0.0, 1.0, 10.0], [0.0, 0.0, 11.0]])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    ray_stretches(vertices, faces, (8.0, 8.0), (3.5, 3.5), (8, 8))
+
+
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
-                 "search": _compile_search}
+                 "search": _compile_search, "hemodynamics": _compile_hemodynamics}
 """Kernel groups: name → the function that compiles them (each group's numba functions belong to it alone)."""
 
 
@@ -199,6 +212,10 @@ def _group_dispatchers(name: str) -> list:
         return [_kernel(k)[0] for k in ("gather_faces", "soft_log_keep", "coverage", "scatter_to_vertices")]
     if name == "backward":
         return [_kernel("soft_log_keep_backward")[0]]
+    if name == "hemodynamics":
+        from .render.ray_layers import _hits, _pair
+
+        return [_hits, _pair]
     if name == "tracking":
         from .render import jacobian_numba
 
@@ -260,7 +277,8 @@ def warm_up_kernels() -> None:
 
 
 def compile_later_groups() -> subprocess.Popen | None:
-    """Start the background helper that compiles the kernels no first job needs (tracking, pose search)."""
+    """Start the background helper that compiles the kernels no first job needs (tracking, pose search,
+    hemodynamics)."""
     return start_helper(list(LATER_GROUPS), background=True)
 
 

@@ -12,7 +12,7 @@ import time
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "warmup", help="compile the kernels into the cache ahead of the first job",
-        description="Compile the renderer's, the pose search's and tracking's numba kernels (the parallel ones and "
+        description="Compile the renderer's, the pose search's, tracking's and hemodynamics' numba kernels (the parallel ones and "
                     "their 1-thread serial twins) into numba's on-disk cache, independent groups in parallel "
                     "processes, and run one tiny job end to end. "
                     "A worker started afterwards is ready in seconds instead of minutes.")

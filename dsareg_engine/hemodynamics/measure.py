@@ -10,16 +10,19 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry.rig import Rig, ViewGeometry
 from ..mesh import TriangleMesh
-from ..render.ray_layers import layer_counts
+from ..render.compile_lock import wait_for_group
+from ..render.ray_layers import RayStretches, ray_stretches
 from .combine import ViewMeasure, combine
 from .model_points import VesselPoints, vessel_points
 from .overlap import overlapped
-from .parameters import curve_parameters, footprint_noise
+from .parameters import curve_parameters, footprint_noise, lift
 from .sampling import Projection, curves, footprints, mean_chord_mm, project_points
 from .timing import RunTiming
+from .unmixing import ViewMixing, known_concentration, on_clock, stretch_owners, unique_edges, unmix_view, view_scale
 
 VIEWS = ("ap", "lat")
 
@@ -43,11 +46,12 @@ class Measurement:
     views: dict[str, dict] = field(default_factory=dict)
 
 
-def model_layers(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(layers (H, W), covered (H, W) bool)``: the separate parts of the model each ray crosses, at the pose."""
+def model_stretches(mesh: TriangleMesh, view: ViewGeometry, mesh_to_world: np.ndarray) -> RayStretches:
+    """The separate parts of the model each ray of ``view`` crosses, at the pose."""
+    wait_for_group("hemodynamics")  # a worker's background helper may be compiling the kernels
     mesh_to_view = view.world_to_view @ np.asarray(mesh_to_world, float)
     vertices = mesh.vertices @ mesh_to_view[:3, :3].T + mesh_to_view[:3, 3]
-    return layer_counts(vertices, mesh.faces, view.focal_px, view.principal_point_px, view.image_size)
+    return ray_stretches(vertices, mesh.faces, view.focal_px, view.principal_point_px, view.image_size)
 
 
 def on_model(projection: Projection, covered: np.ndarray) -> np.ndarray:
@@ -60,10 +64,11 @@ def on_model(projection: Projection, covered: np.ndarray) -> np.ndarray:
 
 
 def measure_view(points: VesselPoints, view: ViewGeometry, mesh_to_world: np.ndarray, run: RunFrames,
-                 layers: tuple[np.ndarray, np.ndarray], times_s: np.ndarray) -> tuple[ViewMeasure, dict]:
-    """One view: ``(its measure, its counts)``; ``layers`` from :func:`model_layers`, ``times_s`` on the common
-    clock."""
-    crossings, covered = layers
+                 stretches: RayStretches, centres: cKDTree, times_s: np.ndarray
+                 ) -> tuple[ViewMeasure, dict, ViewMixing]:
+    """One view: ``(its measure, its counts, its mixing)``; ``stretches`` from :func:`model_stretches`,
+    ``centres`` a tree of the points' centres, ``times_s`` on the common clock."""
+    covered = stretches.covered
     projection = project_points(points.centres_mm, points.radii_mm, view, mesh_to_world)
     prints = footprints(projection, covered)
     stack = run.opacity.astype(np.float32, copy=False)
@@ -73,26 +78,57 @@ def measure_view(points: VesselPoints, view: ViewGeometry, mesh_to_world: np.nda
     noise = np.hypot(own[: len(points)], np.where(prints.ring_pixels > 0, own[len(points):], 0.0))
     measurable = projection.inside & (prints.footprint_pixels > 0) & on_model(projection, covered)
     chord = mean_chord_mm(projection, points.radii_mm)
-    parameters = curve_parameters(curves(stack, prints), times_s, noise, chord, measurable)
-    flags = overlapped(prints, crossings) & measurable
+    sampled = curves(stack, prints)
+    parameters = curve_parameters(sampled, times_s, noise, chord, measurable)
+    flags = overlapped(prints, stretches.layers) & measurable
     counts = {"points": len(points), "inside": int(measurable.sum()), "overlapped": int(flags.sum()),
               "filled": int((parameters.filled & measurable).sum()),
               "median_footprint_px": round(float(np.median(projection.footprint_px[measurable])), 3)
               if measurable.any() else None}
-    return ViewMeasure(parameters, measurable, flags), counts
+    mixing = prints.footprint @ stretch_owners(stretches, view, mesh_to_world, centres, len(points))
+    return (ViewMeasure(parameters, measurable, flags), counts,
+            ViewMixing(lift(sampled, measurable), noise, mixing.tocsr(), np.asarray(times_s, float)))
 
 
 def measure(mesh: TriangleMesh, mesh_to_world: np.ndarray, rig: Rig, runs: dict[str, RunFrames],
             offset_s: float = 0.0, points: VesselPoints | None = None) -> Measurement:
     """Both views of ``runs`` measured on ``mesh`` at ``mesh_to_world``; the LAT run started ``offset_s`` after the
-    AP run (its times are moved onto the AP clock)."""
+    AP run (its times are moved onto the AP clock). Points no view sees clean are unmixed (:mod:`.unmixing`)."""
     points = points if points is not None else vessel_points(mesh)
-    measures, notes = {}, {}
+    centres = cKDTree(points.centres_mm)
+    measures, notes, mixes = {}, {}, {}
     for name in VIEWS:
         view, run = rig.views[name], runs[name]
         if run.opacity.shape[1:] != (view.height, view.width):
             raise ValueError(f"{name}: frames {run.opacity.shape[1:]} do not match the view {view.image_size}")
         times = run.timing.times_s + (offset_s if name == "lat" else 0.0)
-        measures[name], notes[name] = measure_view(points, view, mesh_to_world, run,
-                                                   model_layers(mesh, view, mesh_to_world), times)
+        measures[name], notes[name], mixes[name] = measure_view(
+            points, view, mesh_to_world, run, model_stretches(mesh, view, mesh_to_world), centres, times)
+    measures = unmix(measures, mixes, mesh.faces, notes)
     return Measurement(combine(measures["ap"], measures["lat"]), points, notes)
+
+
+def unmix(measures: dict[str, ViewMeasure], mixes: dict[str, ViewMixing], faces: np.ndarray, notes: dict
+          ) -> dict[str, ViewMeasure]:
+    """Each view's measure with the points no view sees clean unmixed (:mod:`.unmixing`); ``notes[view]["unmixed"]``
+    counts them and ``notes[view]["unmixed_filled"]`` those that showed contrast."""
+    clean = {name: m.clean for name, m in measures.items()}
+    carried = clean["ap"] | clean["lat"]
+    scales = {name: view_scale(m.parameters.peak_opacity, mixes[name].path_mm, m.clean & m.parameters.filled)
+              for name, m in measures.items()}
+    own = {name: known_concentration(mixes[name], clean[name], scales[name]) for name in VIEWS}
+    edges = unique_edges(faces)
+    out = {}
+    for name, other in zip(VIEWS, VIEWS[::-1]):
+        measure_, mix = measures[name], mixes[name]
+        rows = np.flatnonzero(measure_.measurable & ~carried)
+        if not len(rows) or scales[name] <= 0:
+            out[name] = measure_
+            notes[name].update(unmixed=0, unmixed_filled=0)
+            continue
+        moved = on_clock(own[other], mixes[other].times_s, mix.times_s)
+        q_known = np.where(clean[name][:, None], own[name], moved)
+        found = unmix_view(mix, rows, carried, q_known, scales[name], edges)
+        out[name] = measure_.with_unmixed(rows, found)
+        notes[name].update(unmixed=len(rows), unmixed_filled=int(found.filled.sum()))
+    return out

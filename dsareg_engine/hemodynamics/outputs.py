@@ -2,7 +2,8 @@
 
 Arrays (one value per vertex, in the order of the file's vertices, :mod:`.model_points`): ``arrival_s``,
 ``peak_s``, ``peak_opacity``, ``arrival_s_ap``, ``arrival_s_lat``, ``agreement_s``; ``overlap_ap`` /
-``overlap_lat`` (bool: that view is not clean there). Times are seconds on the AP run's clock (t = 0 at its
+``overlap_lat`` (bool: that view is not clean there); ``unmixed`` (bool: no view is clean there, the values
+come from unmixing, :mod:`.unmixing`). Times are seconds on the AP run's clock (t = 0 at its
 first frame); ``frame_times_s`` gives each run's frame times on that clock.
 """
 
@@ -27,13 +28,16 @@ def nullable(values: np.ndarray) -> list[float | None]:
 
 def hemodynamics_document(per_vertex: dict[str, np.ndarray], frame_times_s: dict[str, np.ndarray],
                           summary: dict) -> dict:
-    """The JSON document from per-file-vertex arrays (``ARRAYS`` and ``clean_ap`` / ``clean_lat``)."""
+    """The JSON document from per-file-vertex arrays (``ARRAYS``, ``clean_ap`` / ``clean_lat`` and ``unmixed_ap`` /
+    ``unmixed_lat``)."""
     document = {"vertex_order": summary.get("vertex_order"), "vertices": int(len(per_vertex["arrival_s"])),
                 "clock": "seconds from the first AP frame",
                 "frame_times_s": {name: [round(float(t), DIGITS) for t in times] for name, times in frame_times_s.items()}}
     document.update({name: nullable(per_vertex[name]) for name in ARRAYS})
     for view in ("ap", "lat"):
         document[f"overlap_{view}"] = [bool(not v) for v in per_vertex[f"clean_{view}"]]
+    unmixed = np.asarray(per_vertex["unmixed_ap"], bool) | np.asarray(per_vertex["unmixed_lat"], bool)
+    document["unmixed"] = [bool(v) for v in unmixed]
     document["summary"] = summary
     return document
 

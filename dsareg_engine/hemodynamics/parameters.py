@@ -112,21 +112,29 @@ def _half_rise(times: np.ndarray, curves: np.ndarray, k: np.ndarray, half: np.nd
     return np.where(last_below >= 0, arrival, np.nan)
 
 
+def lift(curves: np.ndarray, measurable: np.ndarray) -> np.ndarray:
+    """``curves`` ``(N, T)`` less each one's baseline (the median before the run's contrast arrives, measured on
+    the ``measurable`` ones' mean curve)."""
+    start = baseline_frames(curves[measurable]) if measurable.any() else 0
+    base = np.median(curves[:, :start], axis=1) if start > 0 else np.zeros(len(curves))
+    return curves - base[:, None]
+
+
 def curve_parameters(curves: np.ndarray, times_s: np.ndarray, noise: np.ndarray, chord_mm: np.ndarray,
-                     measurable: np.ndarray) -> CurveParameters:
+                     measurable: np.ndarray, typical_per_mm: float | None = None) -> CurveParameters:
     """Parameters of ``curves`` ``(N, T)`` at ``times_s`` ``(T,)``; ``noise`` ``(N,)`` the curves' noise,
     ``chord_mm`` ``(N,)`` the mean path through each vessel over its footprint (:func:`.sampling.mean_chord_mm`: what a
-    filled vessel there shows, relative), ``measurable`` ``(N,)`` bool (the rest: NaN, not filled)."""
+    filled vessel there shows, relative), ``measurable`` ``(N,)`` bool (the rest: NaN, not filled);
+    ``typical_per_mm``: what a filled vessel shows per mm when known (else the median over these curves)."""
     times = np.asarray(times_s, float)
     count = len(curves)
-    start = baseline_frames(curves[measurable]) if measurable.any() else 0
-    base = np.median(curves[:, :start], axis=1) if start > 0 else np.zeros(count)
-    lifted = curves - base[:, None]
+    lifted = lift(curves, measurable)
     k = np.argmax(lifted, axis=1)
     peak_s, peak = _parabola_peak(times, lifted, k)
     significant = measurable & (peak > SIGNIFICANCE_SIGMAS * np.maximum(noise, 1e-12))
     per_mm = peak / np.maximum(chord_mm, 1e-6)
-    typical = float(np.median(per_mm[significant])) if significant.any() else 0.0
+    typical = typical_per_mm if typical_per_mm is not None else \
+        float(np.median(per_mm[significant])) if significant.any() else 0.0
     filled = significant & (per_mm >= MIN_FILL_FRACTION * typical)
     arrival = _half_rise(times, lifted, k, 0.5 * peak)
     nan = np.full(count, np.nan)

@@ -5,11 +5,14 @@ model (sorted by depth, a winding count: a layer runs from where it becomes non-
 up to ``MAX_LAYERS`` intervals, each with its length (mm) and a per-face value of the two faces bounding it (their
 mean). Two layers on one ray are two parts of the model at different depths, with a gap between them.
 
-Used by the hemodynamics' overlap test (:func:`layer_counts`: how many parts of the model a pixel sees) and by the
+Used by the hemodynamics' overlap test (:func:`layer_counts`: how many parts of the model a pixel sees), its
+unmixing (:func:`ray_stretches`: each stretch's length and middle, to tell whose vessel it is) and by the
 bolus simulations (a value per face = when contrast arrives there: each stretch keeps its own time).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -54,7 +57,7 @@ def _hits(vertices_view, faces, onset, fx, fy, u0, v0, height, width, depth, sig
 
 
 @njit(cache=True)
-def _pair(depth, sign, when, count, length, layer_onset):
+def _pair(depth, sign, when, count, length, layer_onset, middle):
     height, width = count.shape
     for y in range(height):
         for x in range(width):
@@ -69,6 +72,7 @@ def _pair(depth, sign, when, count, length, layer_onset):
                 elif before != 0 and winding == 0 and layer < length.shape[2]:
                     length[y, x, layer] = depth[y, x, i] - start
                     layer_onset[y, x, layer] = 0.5 * (start_when + when[y, x, i])
+                    middle[y, x, layer] = 0.5 * (start + depth[y, x, i])
                     layer += 1
 
 
@@ -83,15 +87,16 @@ def _traced(vertices_view, faces, face_value, focal_px, principal_px, size):
           height, width, depth, sign, when, count)
     length = np.zeros((height, width, MAX_LAYERS))
     value = np.full((height, width, MAX_LAYERS), np.inf)
-    _pair(depth, sign, when, count, length, value)
-    return length, value, count
+    middle = np.zeros((height, width, MAX_LAYERS))
+    _pair(depth, sign, when, count, length, value, middle)
+    return length, value, count, middle
 
 
 def ray_layers(vertices_view: np.ndarray, faces: np.ndarray, face_onset_s: np.ndarray, focal_px: tuple[float, float],
                principal_px: tuple[float, float], size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """``(length_mm (H, W, L), value (H, W, L))`` of a closed mesh in view coordinates ``(V, 3)`` mm with a value
     per face ``(F,)``; unused layers have length 0 and value ``inf``. ``size`` is ``(W, H)``."""
-    length, value, _ = _traced(vertices_view, faces, face_onset_s, focal_px, principal_px, size)
+    length, value, _, _ = _traced(vertices_view, faces, face_onset_s, focal_px, principal_px, size)
     return length, value
 
 
@@ -99,5 +104,40 @@ def layer_counts(vertices_view: np.ndarray, faces: np.ndarray, focal_px: tuple[f
                  principal_px: tuple[float, float], size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """``(layers (H, W) int, covered (H, W) bool)``: how many separate parts of the model each pixel's ray crosses,
     and whether it meets the model at all (the hard silhouette, pixel centres)."""
-    length, _, count = _traced(vertices_view, faces, np.zeros(len(faces)), focal_px, principal_px, size)
-    return (length > 0).sum(axis=2), count > 0
+    stretches = ray_stretches(vertices_view, faces, focal_px, principal_px, size)
+    return stretches.layers, stretches.covered
+
+
+@dataclass(frozen=True)
+class RayStretches:
+    """Per pixel the separate stretches of the model its ray crosses: ``length_mm`` ``(H, W, L)`` (0 = unused),
+    ``middle_mm`` ``(H, W, L)`` (distance from the source to the stretch's middle, along the ray) and ``covered``
+    ``(H, W)`` (the ray meets the model: the hard silhouette, pixel centres)."""
+
+    length_mm: np.ndarray
+    middle_mm: np.ndarray
+    covered: np.ndarray
+
+    @property
+    def layers(self) -> np.ndarray:
+        """``(H, W)`` int: how many separate parts of the model each ray crosses."""
+        return (self.length_mm > 0).sum(axis=2)
+
+    def middles_in_view(self, focal_px: tuple[float, float], principal_px: tuple[float, float]
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(pixel (S,), length_mm (S,), middle (S, 3))`` of every stretch: its pixel (row-major index), its length
+        and its middle point in view coordinates (mm): the pixel centre's ray ``(x − u0) / fx, (y − v0) / fy, 1``,
+        normalised, times the middle's distance."""
+        row, col, layer = np.nonzero(self.length_mm > 0)
+        dx, dy = (col - principal_px[0]) / focal_px[0], (row - principal_px[1]) / focal_px[1]
+        ray = np.stack([dx, dy, np.ones_like(dx)], axis=1)
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        middle = ray * self.middle_mm[row, col, layer][:, None]
+        return row * self.covered.shape[1] + col, self.length_mm[row, col, layer], middle
+
+
+def ray_stretches(vertices_view: np.ndarray, faces: np.ndarray, focal_px: tuple[float, float],
+                  principal_px: tuple[float, float], size: tuple[int, int]) -> RayStretches:
+    """The stretches of a closed mesh in view coordinates ``(V, 3)`` mm each pixel's ray crosses; ``size`` ``(W, H)``."""
+    length, _, count, middle = _traced(vertices_view, faces, np.zeros(len(faces)), focal_px, principal_px, size)
+    return RayStretches(length, middle, count > 0)

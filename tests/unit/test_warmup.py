@@ -142,6 +142,39 @@ def test_the_search_group_holds_the_coverage_searchs_splat(tmp_path):
     assert report == {"cached": True, "hits": 1, "misses": 0}, report
 
 
+def test_the_hemodynamics_group_holds_the_kernels_a_hemodynamics_job_traces_with(tmp_path):
+    """A worker's first hemodynamics job loads the ray-stretch kernels from the cache the background helper filled
+    (another process), at a job's size and types, instead of compiling them."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    compiled = _python("""
+        from dsareg_engine import warmup
+        assert "hemodynamics" in warmup.LATER_GROUPS
+        warmup.compile_group("hemodynamics")
+    """, env)
+    assert compiled.returncode == 0, compiled.stderr[-3000:]
+    done = _python("""
+        import json
+        from dsareg_engine import warmup
+        from dsareg_engine.geometry.rig import Rig
+        from dsareg_engine.hemodynamics.measure import model_stretches
+        from dsareg_engine.simulation.native_run import Plane
+        from dsareg_engine.simulation.phantom import make_vessel_phantom
+        import numpy as np
+        cached = warmup.group_cached("hemodynamics")
+        mesh = make_vessel_phantom(seed=0, depth=2)
+        pose = np.eye(4)
+        pose[:3, 3] = -mesh.centroid
+        stretches = model_stretches(mesh, Plane(0.0, 0.0, 1200.0, 800.0, 1.2).view(64), pose)
+        kernels = warmup._group_dispatchers("hemodynamics")
+        print(json.dumps({"cached": cached, "covered": bool(stretches.covered.any()),
+                          "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
+                          "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels)}))
+    """, env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report == {"cached": True, "covered": True, "hits": 2, "misses": 0}, report
+
+
 def test_a_kernel_helper_dies_with_the_process_that_started_it(tmp_path):
     """A killed worker leaves no compile behind (fault tests count every process of the service)."""
     import os

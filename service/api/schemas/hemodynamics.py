@@ -36,6 +36,9 @@ class HemodynamicsView(BaseModel):
     filled: int = Field(description="Points whose curve in this view shows contrast (peak significant and a filled "
                                     "vessel's share of opacity).")
     median_footprint_px: float | None = Field(None, description="Median radius of the sampled cross-section, px.")
+    unmixed: int = Field(0, description="Points no view sees clean, measured in this view by unmixing (their curve "
+                                        "less the modelled contribution of the vessels crossing them).")
+    unmixed_filled: int = Field(0, description="Of those, the points whose unmixed curve shows contrast.")
     frames: int = Field(description="Frames of the run.")
     timing: RunTimingRecord
     clean_vertices: int = Field(description="Vertices of the model file this view sees clear of other vessels.")
@@ -65,6 +68,8 @@ class HemodynamicsSummary(BaseModel):
     mapped_fraction: float = Field(description="Share of those vertices with an arrival time (0..1).")
     never_arrived: int = Field(description="Vertices a clean view measured and found without contrast (null values).")
     views_disagree: int = Field(description="Vertices one clean view sees filled and the other empty (left null).")
+    unmixed_vertices: int = Field(0, description="Vertices no view sees clean whose values come from unmixing "
+                                                 "(`unmixed` in hemodynamics.json).")
     agreement_points: int = Field(description="Vertices both views measured.")
     agreement_median_s: float | None = Field(None, description="Median |arrival AP − arrival LAT| over those, s.")
     lat_minus_ap_median_s: float | None = Field(None, description="Median arrival LAT − AP, s (a bias: clock offset "
@@ -104,4 +109,6 @@ class HemodynamicsDocument(BaseModel):
     agreement_s: NullableSeries = Field(description="|arrival_s_ap − arrival_s_lat| where both measured.")
     overlap_ap: list[bool] = Field(description="The AP view is not clean there (another vessel overlaps, or outside).")
     overlap_lat: list[bool] = Field(description="The LAT view is not clean there.")
+    unmixed: list[bool] = Field(description="No view is clean there: the values come from unmixing the vessels "
+                                            "crossing the point (docs/concepts/hemodynamics.md).")
     summary: HemodynamicsSummary

@@ -1,0 +1,136 @@
+"""Points overlapped in both views, measured by unmixing: each curve is the sum of the vessels its footprint sees.
+
+A point's curve in a view (:mod:`.sampling`: footprint mean minus background ring, baseline removed) is, by the
+model at the pose, the sum over the vessel points ``j`` whose stretches cross its footprint of
+
+    ``c_i(t) = s · Σ_j M_ij · q_j(t)``
+
+``M_ij`` (mm): the footprint's mean path length through the stretches owned by point ``j`` (each stretch a ray
+crosses, :func:`dsareg_engine.render.ray_layers.ray_stretches`, is owned by the vessel point nearest its middle);
+``q_j(t)``: point ``j``'s contrast concentration, relative (1 = what a typical filled vessel of the run shows at its
+peak); ``s``: the view's opacity per mm of filled vessel at the peak (the median over the points it sees clean and
+filled, :func:`view_scale`).
+
+**Known** points are those some view sees clean (:mod:`.overlap`): ``q_j = c_j / (s · Σ_j' M_jj')`` from that
+view's own curve (a clean footprint sees one vessel), taken onto the other view's clock by linear interpolation
+where only the other view sees it clean. **Unknown** points are measurable in the view but clean in none: per
+view, their ``q`` solves the least-squares system of their own rows (known contributions subtracted) with a
+smoothness prior along the model's edges (``SMOOTHNESS`` per edge, rows normalised by their path length):
+a vessel's concentration changes little from one vertex to the next. The parameters of the unknown points are
+then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relative to 1: a typical filled vessel).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import splu
+from scipy.spatial import cKDTree
+
+from ..geometry.rig import ViewGeometry
+from ..render.ray_layers import RayStretches
+from .parameters import CurveParameters, curve_parameters
+
+SMOOTHNESS = 0.3
+RIDGE = 1e-6
+
+
+@dataclass(frozen=True)
+class ViewMixing:
+    """One view's curves and what they are made of: ``curves`` ``(N, T)`` (baseline removed), ``noise`` ``(N,)``,
+    ``mixing`` ``(N, N)`` csr (``M`` of the module docstring, mm), ``times_s`` ``(T,)`` on the common clock."""
+
+    curves: np.ndarray
+    noise: np.ndarray
+    mixing: sparse.csr_matrix
+    times_s: np.ndarray
+
+    @property
+    def path_mm(self) -> np.ndarray:
+        """``(N,)`` the footprint's mean path length through the model (``Σ_j M_ij``)."""
+        return np.asarray(self.mixing.sum(axis=1)).ravel()
+
+
+def stretch_owners(stretches: RayStretches, view: ViewGeometry, mesh_to_world: np.ndarray, centres: cKDTree,
+                   count: int) -> sparse.csr_matrix:
+    """``(H·W, N)`` csr: per pixel, the length (mm) of the stretches owned by each vessel point (the one whose
+    centre, a ``cKDTree`` of ``(N, 3)`` mesh mm, is nearest the stretch's middle)."""
+    pixel, length, middle = stretches.middles_in_view(view.focal_px, view.principal_point_px)
+    view_to_mesh = np.linalg.inv(view.world_to_view @ np.asarray(mesh_to_world, float))
+    middle_mesh = middle @ view_to_mesh[:3, :3].T + view_to_mesh[:3, 3]
+    owner = centres.query(middle_mesh)[1] if len(pixel) else np.zeros(0, int)
+    return sparse.csr_matrix((length, (pixel, owner)), shape=(stretches.covered.size, count))
+
+
+def view_scale(peak: np.ndarray, path_mm: np.ndarray, reference: np.ndarray) -> float:
+    """Opacity per mm of filled vessel at the peak: the median of ``peak / path_mm`` over ``reference`` (bool)."""
+    ratio = peak[reference] / np.maximum(path_mm[reference], 1e-6)
+    ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
+    return float(np.median(ratio)) if len(ratio) else 0.0
+
+
+def known_concentration(mix: ViewMixing, clean: np.ndarray, scale: float) -> np.ndarray:
+    """``(N, T)`` ``q`` of the points ``clean`` (bool) in this view from their own curves; NaN elsewhere."""
+    path = mix.path_mm
+    usable = clean & (path > 0) & (scale > 0)
+    out = np.full(mix.curves.shape, np.nan)
+    out[usable] = mix.curves[usable] / (scale * path[usable])[:, None]
+    return out
+
+
+def on_clock(q: np.ndarray, from_s: np.ndarray, to_s: np.ndarray) -> np.ndarray:
+    """Rows of ``q`` ``(N, T)`` sampled at ``from_s`` moved to ``to_s`` (linear, the ends held)."""
+    if len(from_s) == len(to_s) and np.allclose(from_s, to_s):
+        return q
+    return np.array([np.interp(to_s, from_s, row) for row in q]) if len(q) else np.zeros((0, len(to_s)))
+
+
+def unique_edges(faces: np.ndarray) -> np.ndarray:
+    """``(E, 2)`` the model's unique edges."""
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return np.unique(np.sort(pairs, axis=1), axis=0)
+
+
+def solve_unknown(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known: np.ndarray, scale: float,
+                  edges: np.ndarray) -> np.ndarray:
+    """``(len(rows), T)`` ``q`` of the points ``rows`` (indices) from their curves, the ``known`` points' ``q_known``
+    ``(N, T)`` subtracted (bool ``known``), with the smoothness prior over ``edges``."""
+    count = len(known)
+    path = mix.path_mm[rows]
+    data = sparse.diags(1.0 / np.maximum(path, 1e-6)) @ mix.mixing[rows]  # rows sum to 1
+    target = mix.curves[rows] / (scale * np.maximum(path, 1e-6))[:, None]
+    known_q = np.where(known[:, None], np.nan_to_num(q_known), 0.0)
+    target = target - data @ known_q
+    unknown = ~known
+    unknown_cols = np.union1d(rows, np.flatnonzero(np.asarray(abs(data).sum(axis=0)).ravel() > 0))
+    unknown_cols = unknown_cols[unknown[unknown_cols]]
+    column = np.full(count, -1)
+    column[unknown_cols] = np.arange(len(unknown_cols))
+    a_data = data[:, unknown_cols]
+    a, b = edges[:, 0], edges[:, 1]
+    tied = ((column[a] >= 0) & ((column[b] >= 0) | known[b])) | ((column[b] >= 0) & known[a])
+    a, b = a[tied], b[tied]
+    swap = column[a] < 0  # the unknown end first
+    a, b = np.where(swap, b, a), np.where(swap, a, b)
+    both = column[b] >= 0
+    n_edges = len(a)
+    smooth_rows = np.concatenate([np.arange(n_edges), np.flatnonzero(both)])
+    smooth_cols = np.concatenate([column[a], column[b[both]]])
+    smooth_vals = np.concatenate([np.full(n_edges, SMOOTHNESS), np.full(int(both.sum()), -SMOOTHNESS)])
+    a_smooth = sparse.csr_matrix((smooth_vals, (smooth_rows, smooth_cols)), shape=(n_edges, len(unknown_cols)))
+    smooth_target = np.where(both[:, None], 0.0, SMOOTHNESS * known_q[b])
+    system = sparse.vstack([a_data, a_smooth]).tocsc()
+    rhs = np.vstack([target, smooth_target])
+    normal = (system.T @ system + RIDGE * sparse.identity(len(unknown_cols))).tocsc()
+    solution = splu(normal).solve(np.asarray(system.T @ rhs))
+    return solution[column[rows]]
+
+
+def unmix_view(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known: np.ndarray, scale: float,
+               edges: np.ndarray) -> CurveParameters:
+    """Parameters of the points ``rows`` from their unmixed ``q`` (see the module docstring)."""
+    q = solve_unknown(mix, rows, known, q_known, scale, edges)
+    noise = mix.noise[rows] / (scale * np.maximum(mix.path_mm[rows], 1e-6))
+    return curve_parameters(q, mix.times_s, noise, np.ones(len(rows)), np.ones(len(rows), bool), typical_per_mm=1.0)
