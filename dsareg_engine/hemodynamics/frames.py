@@ -3,8 +3,10 @@
 The same subtraction registration used (:mod:`dsareg_engine.io.xa_run`), applied to every frame:
 
 * **native run** (``image_reading.<view>.run == "native"``): in the log domain, each frame minus its mask
-  (the recipe's, else the frames before contrast arrives), the mask moved by the shift registration found on
-  its frame (``mask_shift_px.total_px``; the mask frames themselves are not moved); opacity ``= −D``;
+  (the recipe's, else the frames before contrast arrives, found as registration found them:
+  :func:`dsareg_engine.io.xa_run.subtraction_pairs`, on the ~1 mm grid), the mask moved by the recipe's shift
+  and then by the rigid move registration found on its frame (``mask_shift_px.found_px`` and ``rotation_deg``;
+  the mask frames themselves are not moved); opacity ``= −D``;
 * **subtracted run** (or ``subtraction: off``): the frames as stored (``MONOCHROME1`` inverted, vessels
   dark), opacity ``= −(frame − frame 0's median)``.
 
@@ -19,9 +21,8 @@ import io
 import numpy as np
 
 from ..io.image_io import dicom_number
-from ..io.xa_recipe import parse_recipe
-from ..io.xa_run import found_pairs, log_domain, recipe_pairs
-from ..vision.xa_motion import shift_image
+from ..io.xa_run import log_domain, subtraction_pairs
+from ..vision.xa_motion import Motion, move_image, shift_image
 from .measure import RunFrames
 from .timing import read_timing, require_timing
 
@@ -40,12 +41,11 @@ def _stack(dataset, field_name: str) -> np.ndarray:
     return stack * slope + intercept
 
 
-def native_opacity(stack: np.ndarray, dataset, shift_px: tuple[float, float], field_name: str
-                   ) -> tuple[np.ndarray, list[str]]:
-    """``(opacity (T, H, W), notes)`` of a native run (see the module docstring)."""
+def native_opacity(stack: np.ndarray, dataset, motion: Motion, field_name: str) -> tuple[np.ndarray, list[str]]:
+    """``(opacity (T, H, W), notes)`` of a native run (see the module docstring); ``motion``: the rigid move
+    registration found on its frame (after the recipe's shift)."""
     logs, _, _ = log_domain(stack, dataset, field_name)
-    items = parse_recipe(dataset, len(stack), field_name=field_name)
-    pairs = recipe_pairs(items, len(stack)) if items else found_pairs(logs, field_name)[0]
+    pairs, recipe, _ = subtraction_pairs(logs, dataset, field_name)
     first = pairs[min(pairs)]
     masks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (masks, recipe shift) → (mask, moved mask)
     out = np.empty(logs.shape, np.float32)
@@ -54,11 +54,12 @@ def native_opacity(stack: np.ndarray, dataset, shift_px: tuple[float, float], fi
         key = (pair.masks, pair.shift_px)
         if key not in masks:
             mask = logs[list(pair.masks)].mean(axis=0)
-            masks[key] = mask, shift_image(shift_image(mask, pair.shift_px), shift_px)
+            masks[key] = mask, move_image(shift_image(mask, pair.shift_px), motion.shift_px, motion.rotation_deg)
         mask, moved = masks[key]
         out[frame] = (mask if frame in pair.masks else moved) - logs[frame]
-    notes = [f"native run: each frame minus its mask in the log domain, mask moved by ({shift_px[0]:+.2f}, "
-             f"{shift_px[1]:+.2f}) px (down, right); {'recipe' if items else 'masks found'}"]
+    notes = [f"native run: each frame minus its mask in the log domain, mask moved by ({motion.shift_px[0]:+.2f}, "
+             f"{motion.shift_px[1]:+.2f}) px (down, right) and turned {motion.rotation_deg:+.2f} deg; "
+             f"{'recipe' if isinstance(recipe, list) else 'masks found on the ~1 mm grid'}"]
     return out, notes
 
 
@@ -77,10 +78,10 @@ def run_frames(data: bytes, field_name: str, record: dict | None) -> RunFrames:
     timing = require_timing(read_timing(dataset, len(stack), field_name), len(stack), field_name)
     record = record or {}
     if record.get("run") == "native":
-        total = (record.get("mask_shift_px") or {}).get("total_px") or [0.0, 0.0]
-        recipe = (record.get("mask_shift_px") or {}).get("recipe_px") or [0.0, 0.0]
-        found = (float(total[0]) - float(recipe[0]), float(total[1]) - float(recipe[1]))
-        opacity, notes = native_opacity(stack, dataset, found, field_name)
+        move = record.get("mask_shift_px") or {}
+        found = move.get("found_px") or [0.0, 0.0]
+        motion = Motion((float(found[0]), float(found[1])), float(move.get("rotation_deg") or 0.0))
+        opacity, notes = native_opacity(stack, dataset, motion, field_name)
     else:
         opacity, notes = stored_opacity(stack, dataset), ["subtracted run: frames as stored"]
     return RunFrames(opacity, timing, tuple(notes))

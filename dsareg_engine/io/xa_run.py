@@ -287,22 +287,29 @@ def _check_contrast(image: np.ndarray, field_name: str, frames: list[int]) -> No
             field=field_name, accepted="a run with contrast-filled vessels in its contrast frames")
 
 
+def subtraction_pairs(logs: np.ndarray, dataset, field_name: str
+                      ) -> tuple[dict[int, Pair], list[str] | str, InputDecision | None]:
+    """What each frame of a native run (``logs`` ``(N, H, W)``) is subtracted with: ``(pairs, the recipe as
+    recorded, the mask-frames decision)``: the file's recipe, else the masks found on the ~1 mm grid
+    (:func:`found_pairs`; no decision with a recipe). Registration's reading and hemodynamics both use it."""
+    items = parse_recipe(dataset, len(logs), field_name=field_name)
+    if items:
+        pairs = recipe_pairs(items, len(logs))
+        if not pairs:
+            raise DsaregInputError("the Mask Subtraction Sequence subtracts no frame", field=f"{field_name}.MaskSubtractionSequence")
+        return pairs, [item.describe() for item in items], None
+    factor, grid_mm = grid_factor(dataset, logs.shape[1:])
+    pairs, arrival, found = found_pairs(logs, field_name, factor, MOVE_MM / grid_mm)
+    return pairs, f"none in the file: mask = the frames before contrast arrives (frame index {arrival})", found
+
+
 def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field_name: str) -> RunImage:
     """The DSA image of a native run (see the module docstring)."""
     logs, intensity, warnings = log_domain(stack, dataset, field_name)
-    items = parse_recipe(dataset, len(stack), field_name=field_name)
     record: dict = {"frames": len(stack), "run": "native", "why": why, **intensity}
-    decisions: list[InputDecision] = []
-    factor, grid_mm = grid_factor(dataset, stack.shape[1:])
-    if items:
-        pairs = recipe_pairs(items, len(stack))
-        record["recipe"] = [item.describe() for item in items]
-        if not pairs:
-            raise DsaregInputError("the Mask Subtraction Sequence subtracts no frame", field=f"{field_name}.MaskSubtractionSequence")
-    else:
-        pairs, arrival, found = found_pairs(logs, field_name, factor, MOVE_MM / grid_mm)
-        decisions.append(found)
-        record["recipe"] = f"none in the file: mask = the frames before contrast arrives (frame index {arrival})"
+    factor, _ = grid_factor(dataset, stack.shape[1:])
+    pairs, record["recipe"], found = subtraction_pairs(logs, dataset, field_name)
+    decisions: list[InputDecision] = [found] if found is not None else []
     choice = choose_frames(_frame_scores(logs, pairs, factor, reading.motion_correction), reading.frame, len(stack), field_name)
     decisions.append(choice.decision)
     geometry_frame, used = choice.geometry_frame, choice.frames
