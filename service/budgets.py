@@ -3,7 +3,8 @@
 * JSON parts (``geometry``, ``options``): Python's ``json`` recurses once per nesting level
   (10,000 levels raise ``RecursionError``) and refuses integers over 4,300 digits with a
   bare ``ValueError``; both used to reach the generic 500 handler. :func:`parse_json_part`
-  bounds depth, number length and non-finite constants first and answers 422 naming the part.
+  bounds depth, number length and non-finite constants first and refuses the part by name
+  (:class:`service.intake.refusals.InvalidInput`, an HTTP 422).
 * Jobs whose estimated cost is above ``max_job_cost`` are refused at submission
   (:func:`check_job_cost`) instead of failing later in a worker; options the worker would reject
   (a non-rigid or NaN ``initial_mesh_to_world``…) are refused by
@@ -22,7 +23,7 @@ import re
 import struct
 from typing import Any
 
-from .problems import Problem
+from .intake.refusals import InvalidInput
 
 MAX_JSON_DEPTH = 32
 MAX_NUMBER_CHARS = 40
@@ -59,15 +60,15 @@ def parse_json_part(text: str, field: str, *, want_object: bool = True) -> Any:
     accepted = f"a JSON object, nested at most {MAX_JSON_DEPTH} levels, numbers of at most {MAX_NUMBER_CHARS} characters"
     depth = json_depth(text)
     if depth > MAX_JSON_DEPTH:
-        raise Problem(422, f"is nested {depth} levels deep (at most {MAX_JSON_DEPTH})", field=field, accepted=accepted)
+        raise InvalidInput(f"is nested {depth} levels deep (at most {MAX_JSON_DEPTH})", field=field, accepted=accepted)
     try:
         data = json.loads(text, parse_int=_number(int), parse_float=_number(float), parse_constant=_constant)
     except json.JSONDecodeError as exc:
-        raise Problem(422, f"is not valid JSON ({exc.msg} at line {exc.lineno})", field=field, accepted=accepted) from None
+        raise InvalidInput(f"is not valid JSON ({exc.msg} at line {exc.lineno})", field=field, accepted=accepted) from None
     except (ValueError, RecursionError) as exc:
-        raise Problem(422, f"is not acceptable JSON: {str(exc)[:200]}", field=field, accepted=accepted) from None
+        raise InvalidInput(f"is not acceptable JSON: {str(exc)[:200]}", field=field, accepted=accepted) from None
     if want_object and not isinstance(data, dict):
-        raise Problem(422, "must be a JSON object", field=field, accepted=accepted)
+        raise InvalidInput("must be a JSON object", field=field, accepted=accepted)
     return data
 
 
@@ -91,9 +92,9 @@ def check_job_cost(options: Any, view_sizes: list[tuple[int, int]], limit: float
         return
     cost = job_cost(options, view_sizes)
     if cost > limit:
-        raise Problem(
-            422, f"this job would cost about {cost:.3g} pixel-iterations (starts × max_iterations × pixels of "
-                 f"the views at working_size_px), above this server's limit of {limit:.3g}",
+        raise InvalidInput(
+            f"this job would cost about {cost:.3g} pixel-iterations (starts × max_iterations × pixels of "
+            f"the views at working_size_px), above this server's limit of {limit:.3g}",
             field="options", kind="job-too-expensive",
             accepted="fewer starts, fewer max_iterations or a smaller working_size_px")
 

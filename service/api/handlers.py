@@ -12,6 +12,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from ..engine_adapter import engine
+from ..intake.refusals import IdempotencyConflict, InvalidInput, Overloaded, QuotaExceeded, Refusal
 from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
 from ..storage.diskspace import RETRY_AFTER_SECONDS as DISK_RETRY_AFTER
 from ..storage.diskspace import DiskFull, is_disk_full
@@ -21,6 +22,9 @@ from .httpfaults import allowed_methods
 log = logging.getLogger("dsareg.service")
 
 STORE_RETRY_AFTER = "5"
+REFUSAL_STATUS: dict[type[Refusal], int] = {InvalidInput: 422, IdempotencyConflict: 409, QuotaExceeded: 429,
+                                            Overloaded: 503}
+"""The HTTP status of each intake refusal (:mod:`service.intake.refusals`); the most specific class wins."""
 
 
 def problem_response(status: int, body: dict[str, Any], headers: dict[str, str] | None = None) -> JSONResponse:
@@ -34,6 +38,18 @@ def route_template(request: Request) -> str:
 
 async def on_problem(request: Request, exc: Problem) -> JSONResponse:
     return problem_response(exc.status, exc.body(request.url.path), exc.headers)
+
+
+def refusal_problem(exc: Refusal) -> Problem:
+    """The problem an intake refusal is answered with: its status by class, a Retry-After when it says when."""
+    status = next((REFUSAL_STATUS[cls] for cls in type(exc).__mro__ if cls in REFUSAL_STATUS), 422)
+    headers = {"Retry-After": str(exc.retry_after_s)} if isinstance(exc, Overloaded) else None
+    return Problem(status, exc.detail, kind=exc.kind, field=exc.field, accepted=exc.accepted, headers=headers,
+                   extra=exc.extra)
+
+
+async def on_refusal(request: Request, exc: Refusal) -> JSONResponse:
+    return await on_problem(request, refusal_problem(exc))
 
 
 async def on_input_error(request: Request, exc: Exception) -> JSONResponse:
@@ -100,6 +116,7 @@ async def on_internal(request: Request, exc: Exception) -> JSONResponse:
 def install_handlers(app: FastAPI) -> None:
     app.add_exception_handler(Problem, on_problem)  # type: ignore[arg-type]
     app.add_exception_handler(engine.DsaregInputError, on_input_error)
+    app.add_exception_handler(Refusal, on_refusal)  # type: ignore[arg-type]
     app.add_exception_handler(StarletteHTTPException, on_http)  # type: ignore[arg-type]
     app.add_exception_handler(RequestValidationError, on_validation)  # type: ignore[arg-type]
     app.add_exception_handler(ClientDisconnect, on_disconnect)  # type: ignore[arg-type]

@@ -23,7 +23,7 @@ from ...pacs.dicomweb import DicomwebRegistrationRequest, resolve_server
 from ...pacs.dimse.pull import ROLE as PULL_ROLE
 from ...pacs.dimse.pull import DimseRegistrationRequest
 from ...pacs.dimse.scp import configured_peers
-from ...problems import Problem
+from ...intake.refusals import InvalidInput
 from ...storage.store import InputFile
 from ..deps import ServiceContext
 from .forms import read_body
@@ -51,7 +51,7 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
     body = await read_body(request, MAX_REFERENCE_BYTES)  # streamed: never buffered past the limit
     data = parse_json_part(body.decode("utf-8", errors="replace"), "body")
     if not isinstance(data, dict) or "source" not in data:
-        raise Problem(422, "a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} (or "
+        raise InvalidInput("a JSON body gives the inputs by reference: {\"source\": {\"dicomweb\": ...}} (or "
                            "{\"source\": {\"dimse\": ...}}) is required (or send multipart/form-data with the files "
                            "mesh (or volume), ap and lat)", field="source",
                       accepted="application/json with source.dicomweb or source.dimse, or multipart/form-data")
@@ -60,7 +60,7 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
             return DimseRegistrationRequest.model_validate(data)
         except ValidationError as exc:
             first = exc.errors()[0]
-            raise Problem(422, f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
+            raise InvalidInput(f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
                           accepted='{"source": {"dimse": {"peer", "study_uid", "ap": {"series_uid"}, '
                                    '"lat": {"series_uid"}, "volume": {"series_uid"}, "retrieve": "move" | "get"}}, '
                                    '"options": {}, "store_results": true}') from None
@@ -68,7 +68,7 @@ async def parse_reference(request: Request) -> DicomwebRegistrationRequest | Dim
         return DicomwebRegistrationRequest.model_validate(data)
     except ValidationError as exc:
         first = exc.errors()[0]
-        raise Problem(422, f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
+        raise InvalidInput(f"{first.get('msg', 'invalid')}", field=_field(first.get("loc", ())) or None,
                       accepted='{"source": {"dicomweb": {"url", "study_uid", "ap": {"series_uid"}, '
                                '"lat": {"series_uid"}, "volume": {"series_uid"}}}, "options": {}, "store_results": true}'
                       ) from None
@@ -80,12 +80,12 @@ def _stored_reference(ctx: ServiceContext, reference) -> tuple[str, bytes]:
     stored_reference = reference.model_copy(update={"options": {}})
     if isinstance(reference, DimseRegistrationRequest):
         if reference.source.dimse.peer not in configured_peers(ctx.settings):
-            raise Problem(422, "this DICOM peer is not configured on this registration server (the administrator "
+            raise InvalidInput("this DICOM peer is not configured on this registration server (the administrator "
                                "lists allowed peers in DSAREG_DICOM_PEERS)", field="source.dimse.peer")
         return PULL_ROLE, stored_reference.model_dump_json(exclude={"callback_url"}).encode()
     server = resolve_server(ctx.settings, reference.source.dicomweb.url)
     if server is None:
-        raise Problem(422, "this DICOMweb server is not configured on this registration server "
+        raise InvalidInput("this DICOMweb server is not configured on this registration server "
                            "(the administrator lists allowed servers in DSAREG_DICOMWEB_SERVERS)",
                       field="source.dicomweb.url")
     stored_reference.source.dicomweb.url = server.url  # normalized

@@ -22,7 +22,7 @@ from typing import Any
 from ...engine_adapter import job_case
 from ...pacs.dimse.grouping import PlannedJob
 from ...pacs.dimse.inbox import StoredInstance
-from ...problems import Problem
+from ...intake.refusals import Refusal
 from ...storage.store import InputFile
 from ..deps import ANONYMOUS, ServiceContext
 from .submission import check_queue, create_job, fingerprint, new_job, parse_options_json, validate_inputs
@@ -76,13 +76,14 @@ async def prevalidate(ctx: ServiceContext, study_uid: str, job: PlannedJob, by_u
     inputs, options = await _planned_inputs(ctx, study_uid, job, by_uid)
     try:
         await validate_inputs(ctx, inputs, None, options)
-    except Problem:
+    except Refusal:
         pass  # reported by the submission itself
 
 
 async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
                          by_uid: dict[str, StoredInstance]) -> tuple[str, bool]:
-    """One planned job → ``(job id, created)``; raises :class:`Problem` like the HTTP submission."""
+    """One planned job → ``(job id, created)``; raises a :class:`~service.intake.refusals.Refusal` like the HTTP
+    submission."""
     owner, key = job_owner(ctx.settings), idempotency_key(study_uid, job)
     existing = await asyncio.to_thread(ctx.store.find_idempotent, owner, key)
     if existing is not None:

@@ -21,6 +21,7 @@ from ...budgets import check_job_cost, parse_json_part
 from ...engine_adapter import check_options, engine, image_reading_json, job_case, submitted_geometry, volume_reading
 from ...jobs.callbacks import url_problem
 from ...pacs.instance_check import InstanceLimits, refusal_of_file
+from ...intake.refusals import IdempotencyConflict, InvalidInput, Overloaded, QuotaExceeded
 from ...problems import Problem
 from ...storage.blobs import safe_suffix
 from ...storage.diskspace import ensure_room
@@ -35,6 +36,8 @@ MAX_GEOMETRY_BYTES = MAX_TEXT_PART_BYTES
 MAX_OPTIONS_BYTES = MAX_TEXT_PART_BYTES
 MAX_VOLUME_FILES = 4000
 RETRY_AFTER_QUEUED = "2"
+QUEUE_RETRY_AFTER_S = 30
+ENGINE_RETRY_AFTER_S = 60
 FORM_FIELDS = ("mesh", "volume", "ap", "lat", "geometry", "options", "callback_url")
 FILE_ROLES = ("mesh", "volume", "ap", "lat")
 
@@ -61,7 +64,7 @@ def read_text_field(value: Any, name: str, limit: int) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError:
-        raise Problem(422, "is not UTF-8 text", field=name, accepted="UTF-8 JSON text") from None
+        raise InvalidInput("is not UTF-8 text", field=name, accepted="UTF-8 JSON text") from None
 
 
 def parse_options_json(data: Any) -> dict[str, Any]:
@@ -76,28 +79,28 @@ def form_files(form: Any) -> dict[str, list[UploadFile]]:
     """The file parts by role, checked for presence and count."""
     unknown = sorted(set(form.keys()) - set(FORM_FIELDS))
     if unknown:
-        raise Problem(422, f"unknown form field(s) {unknown[:5]}", field=str(unknown[0])[:64],
+        raise InvalidInput(f"unknown form field(s) {unknown[:5]}", field=str(unknown[0])[:64],
                       accepted=", ".join(FORM_FIELDS))
     files: dict[str, list[UploadFile]] = {}
     for name in FILE_ROLES:
         values = form.getlist(name)
         for value in values:
             if not isinstance(value, UploadFile):
-                raise Problem(422, "must be a file part (with a filename)", field=name)
+                raise InvalidInput("must be a file part (with a filename)", field=name)
         if values:
             files[name] = values  # type: ignore[assignment]
     if len(files.get("mesh", [])) > 1:
-        raise Problem(422, "give exactly one mesh file", field="mesh")
+        raise InvalidInput("give exactly one mesh file", field="mesh")
     for name in ("ap", "lat"):
         if len(files.get(name, [])) > 2:
-            raise Problem(422, "give one image file (or a .rad + .raw pair)", field=name)
+            raise InvalidInput("give one image file (or a .rad + .raw pair)", field=name)
     if "mesh" in files and "volume" in files:
-        raise Problem(422, "give either a mesh or a volume, not both", field="mesh", accepted="mesh or volume")
+        raise InvalidInput("give either a mesh or a volume, not both", field="mesh", accepted="mesh or volume")
     if "mesh" not in files and "volume" not in files:
-        raise Problem(422, "a 3D model is required", field="mesh", accepted="a mesh file or volume file(s)")
+        raise InvalidInput("a 3D model is required", field="mesh", accepted="a mesh file or volume file(s)")
     for name in ("ap", "lat"):
         if name not in files:
-            raise Problem(422, "this image is required", field=name, accepted="a DSA image or mask file")
+            raise InvalidInput("this image is required", field=name, accepted="a DSA image or mask file")
     return files
 
 
@@ -106,7 +109,7 @@ def form_geometry_and_options(form: Any) -> tuple[str | None, Any]:
     geometry_values = form.getlist("geometry")
     options_values = form.getlist("options")
     if len(geometry_values) > 1 or len(options_values) > 1:
-        raise Problem(422, "give geometry and options at most once",
+        raise InvalidInput("give geometry and options at most once",
                       field="geometry" if len(geometry_values) > 1 else "options")
     geometry = submitted_geometry(
         read_text_field(geometry_values[0], "geometry", MAX_GEOMETRY_BYTES) if geometry_values else None)
@@ -122,7 +125,7 @@ async def refuse_hostile_dicom(ctx: ServiceContext, role: str, digest: str) -> N
         return
     reason = await asyncio.to_thread(refusal_of_file, path, InstanceLimits.of(ctx.settings))
     if reason is not None:
-        raise Problem(422, f"DICOM file refused: {reason}", field=role,
+        raise InvalidInput(f"DICOM file refused: {reason}", field=role,
                       accepted="DICOM within DSAREG_MAX_DICOM_INSTANCE_BYTES (as stored and inflated) and "
                                "DSAREG_MAX_DICOM_PIXEL_BYTES, complete")
 
@@ -137,7 +140,7 @@ async def store_uploads(ctx: ServiceContext, files: dict[str, list[UploadFile]]
             await upload.seek(0)
             digest, size = await asyncio.to_thread(ctx.blobs.put_stream, upload.file)
             if size == 0:
-                raise Problem(422, "the file is empty", field=role)
+                raise InvalidInput("the file is empty", field=role)
             await refuse_hostile_dicom(ctx, role, digest)
             inputs.append(InputFile(role=role, sha256=digest, size=size, suffix=safe_suffix(upload.filename)))
             sources.append(upload)
@@ -157,11 +160,11 @@ def checked_callback_url(ctx: ServiceContext, value: Any, field: str = "callback
     if value is None or (isinstance(value, str) and not value.strip()):
         return None
     if not isinstance(value, str):
-        raise Problem(422, "must be text (a URL)", field=field)
+        raise InvalidInput("must be text (a URL)", field=field)
     url = value.strip()
     why = url_problem(url, ctx.settings.callbacks.callback_allowed)
     if why is not None:
-        raise Problem(422, f"callback_url {why}", field=field,
+        raise InvalidInput(f"callback_url {why}", field=field,
                       accepted="an http(s) URL under a prefix the administrator allowed (DSAREG_CALLBACK_ALLOWED)")
     return url
 
@@ -169,9 +172,9 @@ def checked_callback_url(ctx: ServiceContext, value: Any, field: str = "callback
 def form_callback_url(ctx: ServiceContext, form: Any) -> str | None:
     values = form.getlist("callback_url")
     if len(values) > 1:
-        raise Problem(422, "give callback_url at most once", field="callback_url")
+        raise InvalidInput("give callback_url at most once", field="callback_url")
     if values and isinstance(values[0], UploadFile):
-        raise Problem(422, "must be a text field, not a file", field="callback_url")
+        raise InvalidInput("must be a text field, not a file", field="callback_url")
     return checked_callback_url(ctx, values[0] if values else None)
 
 
@@ -179,14 +182,15 @@ def form_callback_url(ctx: ServiceContext, form: Any) -> str | None:
 
 
 async def check_queue(ctx: ServiceContext, who: str) -> None:
-    """Back-pressure: 503 when the queue is full, 429 when this key has too many queued jobs."""
+    """Back-pressure: :class:`Overloaded` when the queue is full, :class:`QuotaExceeded` when this owner has too
+    many queued jobs."""
     limits = ctx.settings.limits
     if await asyncio.to_thread(ctx.store.queued_count) >= limits.queue_limit:
-        raise Problem(503, f"the job queue is full ({limits.queue_limit} queued); retry later",
-                      kind="queue-full", headers={"Retry-After": "30"})
+        raise Overloaded(f"the job queue is full ({limits.queue_limit} queued); retry later", kind="queue-full",
+                         retry_after_s=QUEUE_RETRY_AFTER_S)
     if who != ANONYMOUS and await asyncio.to_thread(ctx.store.queued_count, who) >= limits.queue_limit_per_key:
-        raise Problem(429, f"this API key already has {limits.queue_limit_per_key} queued jobs; retry later",
-                      headers={"Retry-After": "30"})
+        raise QuotaExceeded(f"this API key already has {limits.queue_limit_per_key} queued jobs; retry later",
+                            retry_after_s=QUEUE_RETRY_AFTER_S)
 
 
 async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry: str | None,
@@ -205,13 +209,13 @@ async def validate_inputs(ctx: ServiceContext, inputs: list[InputFile], geometry
         "require_cuda": options.device == "cuda" and ctx.settings.jobs.executor == "embedded",
     })
     if outcome.unavailable:
-        raise Problem(503, "the registration engine is not available on this server", kind="engine-unavailable",
-                      headers={"Retry-After": "60"})
+        raise Overloaded("the registration engine is not available on this server", kind="engine-unavailable",
+                         retry_after_s=ENGINE_RETRY_AFTER_S)
     if outcome.busy:
-        raise Problem(503, outcome.message or "input validation is temporarily unavailable", kind="validator-unavailable",
-                      headers={"Retry-After": str(ctx.validator.RETRY_AFTER_SECONDS)})
+        raise Overloaded(outcome.message or "input validation is temporarily unavailable",
+                         kind="validator-unavailable", retry_after_s=ctx.validator.RETRY_AFTER_SECONDS)
     if not outcome.ok:
-        raise Problem(422, outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
+        raise InvalidInput(outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
     views = (outcome.summary or {}).get("views") or {}
     check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.limits.max_job_cost)
     return list((outcome.summary or {}).get("warnings", [])), (outcome.summary or {}).get("case")
@@ -233,10 +237,11 @@ def new_job(ctx: ServiceContext, who: str, key: str | None, *, options_json: dic
 
 
 def replay(existing: JobRecord, request_hash: str) -> Response:
-    """The job created earlier with this Idempotency-Key (200), or 409 if the request differs."""
+    """The job created earlier with this Idempotency-Key (200), or :class:`IdempotencyConflict` if the request
+    differs."""
     if existing.request_hash != request_hash:
-        raise Problem(409, "this Idempotency-Key was already used with a different request; use a new key",
-                      kind="idempotency-conflict", field="Idempotency-Key", extra={"job_id": existing.id})
+        raise IdempotencyConflict("this Idempotency-Key was already used with a different request; use a new key",
+                                  field="Idempotency-Key", job_id=existing.id)
     return JSONResponse(status_body(existing), status_code=200,
                         headers={"Location": f"/v1/registrations/{existing.id}", **previous_link_header(existing)})
 

@@ -25,14 +25,15 @@ import time
 from typing import Any
 
 from ...engine_adapter import xa_view_angle_deg
-from ...problems import Problem
+from ...intake.refusals import Overloaded, Refusal
 from .grouping import PlannedJob, StudyPlan, XaView, plan_study
 from .inbox import Inbox, StoredInstance
 from .query import DimsePacsError, latest_volume, retrieve
 
 log = logging.getLogger("dsareg.dimse")
 
-TRANSIENT_STATUS = {429, 503}
+OVERLOADED_RETRY_S = 5.0
+"""At most this long before a study whose job found no room (:class:`Overloaded`) is submitted again."""
 
 
 def angle_between(a: XaView, b: XaView) -> float:
@@ -148,14 +149,14 @@ class StudyDispatcher:
             future = asyncio.run_coroutine_threadsafe(self.intake.submit(study, job, by_uid), self.loop)
             try:
                 job_id, created = future.result(timeout=self.settings.limits.validation_timeout_seconds + 30)
-            except Problem as exc:
-                if exc.status in TRANSIENT_STATUS:
-                    self._retry_at[study] = time.time() + 5.0
-                    log.warning("study: job not queued yet (%s); retrying in 5 s", exc.detail)
-                    return
-                log.error("study: a planned job was refused (%d %s, field %s)", exc.status, exc.detail,
-                          getattr(exc, "field", None))
-                outcome["jobs"].append({"refused": exc.status, "detail": exc.detail, "instances": job.instances})
+            except Overloaded as exc:  # no room now (queue, quota, validators): the study is submitted again
+                wait_s = min(float(exc.retry_after_s), OVERLOADED_RETRY_S)
+                self._retry_at[study] = time.time() + wait_s
+                log.warning("study: job not queued yet (%s); retrying in %g s", exc.detail, wait_s)
+                return
+            except Refusal as exc:
+                log.error("study: a planned job was refused (%s: %s, field %s)", exc.kind, exc.detail, exc.field)
+                outcome["jobs"].append({"refused": exc.kind, "detail": exc.detail, "instances": job.instances})
                 continue
             outcome["jobs"].append({"job_id": job_id, "created": created, "pairing": job.rule})
             lag = time.time() - max(item.received_at for item in items)

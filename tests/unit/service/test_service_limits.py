@@ -22,7 +22,7 @@ from service.budgets import (
     json_depth,
     parse_json_part,
 )
-from service.problems import Problem
+from service.intake.refusals import InvalidInput
 
 
 def test_json_depth_ignores_brackets_in_strings():
@@ -40,9 +40,9 @@ def test_json_depth_ignores_brackets_in_strings():
     ("{broken", "not valid JSON"),
 ])
 def test_hostile_json_is_a_422_naming_the_part(text, needle):
-    with pytest.raises(Problem) as caught:
+    with pytest.raises(InvalidInput) as caught:
         parse_json_part(text, "geometry")
-    assert caught.value.status == 422 and caught.value.field == "geometry"
+    assert caught.value.field == "geometry"
     assert needle in caught.value.detail
 
 

@@ -1,0 +1,99 @@
+"""What the DICOM dispatcher does with the intake's refusals (service/pacs/dimse/dispatcher.py).
+
+A job with no room now (:class:`Overloaded`, a quota included) leaves the study waiting and submitted
+again a few seconds later; any other refusal is recorded by its kind and the study is done. The intake
+is called on a real event loop in its own thread, as the listener does; the study is three headers."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+import types
+
+import pytest
+
+from service.intake.refusals import InvalidInput, Overloaded, QuotaExceeded
+from service.pacs.dimse.dispatcher import OVERLOADED_RETRY_S, StudyDispatcher
+from service.pacs.dimse.inbox import StoredInstance
+
+from test_dimse_grouping import ct, xa  # headers of a two-XA study with a volume
+
+pytestmark = pytest.mark.filterwarnings("ignore:Invalid value for VR UI")
+STUDY = "1.2.3"
+
+
+class _Inbox:
+    """The received study: three instances, stable, and the instances marked dispatched."""
+
+    def __init__(self):
+        self.items = [StoredInstance(uid, STUDY, "s" + uid, "", "0" * 64, 10, "SENDER", time.time())
+                      for uid in ("1", "2", "v.0")]
+        self.dispatched: list[str] = []
+
+    def stable_studies(self, quiet_seconds, now):
+        return [] if self.dispatched else [STUDY]
+
+    def study(self, study_uid):
+        return list(self.items)
+
+    def mark_dispatched(self, study_uid, uids):
+        self.dispatched += uids
+
+
+class _Intake:
+    def __init__(self, *answers):
+        self.answers, self.calls = list(answers), 0
+
+    async def submit(self, study_uid, job, by_uid):
+        self.calls += 1
+        answer = self.answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+
+@pytest.fixture()
+def loop():
+    running = asyncio.new_event_loop()
+    thread = threading.Thread(target=running.run_forever, daemon=True)
+    thread.start()
+    yield running
+    running.call_soon_threadsafe(running.stop)
+    thread.join(5)
+
+
+def _dispatcher(intake, loop) -> tuple[StudyDispatcher, _Inbox]:
+    settings = types.SimpleNamespace(dimse=types.SimpleNamespace(dicom_stable_seconds=0.0, dicom_query_peer=None),
+                                     limits=types.SimpleNamespace(validation_timeout_seconds=5))
+    inbox = _Inbox()
+    dispatcher = StudyDispatcher(settings, None, inbox, intake, loop)
+    headers = {"1": xa("1", 85.0), "2": xa("2", -10.0, 20.0, time="130000"), "v.0": ct("v", 1)[0]}
+    dispatcher._headers = lambda study, items: headers  # the headers the blobs would give
+    return dispatcher, inbox
+
+
+@pytest.mark.parametrize("refusal", [
+    Overloaded("the job queue is full (3 queued); retry later", kind="queue-full", retry_after_s=30),
+    QuotaExceeded("this API key already has 2 queued jobs; retry later", retry_after_s=30),
+])
+def test_no_room_now_leaves_the_study_waiting_and_submits_it_again(loop, refusal):
+    dispatcher, inbox = _dispatcher(_Intake(refusal, ("job-1", True)), loop)
+    before = time.time()
+    assert dispatcher.dispatch_once() == 1
+    assert inbox.dispatched == [] and dispatcher.dispatched == []
+    assert before + OVERLOADED_RETRY_S - 1 <= dispatcher._retry_at[STUDY] <= time.time() + OVERLOADED_RETRY_S
+    assert dispatcher.dispatch_once() == 0  # not before its time
+    dispatcher._retry_at[STUDY] = 0.0
+    assert dispatcher.dispatch_once() == 1
+    assert inbox.dispatched == ["1", "2", "v.0"]
+    assert dispatcher.dispatched[-1]["jobs"][0]["job_id"] == "job-1"
+
+
+def test_an_invalid_input_is_recorded_by_kind_and_the_study_is_done(loop):
+    refusal = InvalidInput("DICOM file refused: cut", field="ap", kind="invalid-input")
+    dispatcher, inbox = _dispatcher(_Intake(refusal), loop)
+    assert dispatcher.dispatch_once() == 1
+    assert inbox.dispatched == ["1", "2", "v.0"] and STUDY not in dispatcher._retry_at
+    assert dispatcher.dispatched[-1]["jobs"] == [{"refused": "invalid-input", "detail": "DICOM file refused: cut",
+                                                  "instances": ["2", "1", "v.0"]}]
