@@ -6,6 +6,8 @@
 * nothing in the engine imports ``dsareg_engine.api`` (it is the top of the engine's graph);
 * the service's folders are layers: ``service.storage`` imports nothing else of the service,
   ``service.jobs`` never imports ``service.api``, and only ``service.app`` imports ``service.api``;
+* submission is a service layer: ``service.intake`` and ``service.pacs`` never import ``service.api``, and
+  ``service.intake`` imports no web framework (fastapi, starlette);
 * neither package has an import cycle, counting imports under ``if TYPE_CHECKING:`` too
   (:func:`test_no_import_cycles_even_type_only`).
 
@@ -180,10 +182,38 @@ def test_only_the_app_imports_the_api():
     assert not {m: ts for m, ts in bad.items() if ts}
 
 
+def test_intake_and_pacs_never_import_the_api():
+    bad = {m: [t for t in ts if _inside(t, "service.api")] for prefix in ("service.intake", "service.pacs")
+           for m, ts in _service_imports(prefix).items()}
+    assert not {m: ts for m, ts in bad.items() if ts}
+
+
+WEB_FRAMEWORKS = ("fastapi", "starlette")
+
+
+def _external_imports(path: Path) -> set[str]:
+    """The top-level names of the absolute imports in ``path`` (type-only imports included)."""
+    found = set()
+    for node in _import_nodes(ast.parse(path.read_text(), str(path)), type_only=True):
+        if isinstance(node, ast.Import):
+            found |= {alias.name.split(".")[0] for alias in node.names}
+        elif node.level == 0 and node.module:
+            found.add(node.module.split(".")[0])
+    return found
+
+
+def test_intake_imports_no_web_framework():
+    bad = {m: sorted(_external_imports(path) & set(WEB_FRAMEWORKS)) for m, path in _modules().items()
+           if _inside(m, "service.intake")}
+    assert bad and not {m: names for m, names in bad.items() if names}
+
+
 def test_folder_rules_see_a_violation():
     graph = _graph(type_only=True)
     assert "service.jobs.sweeper" in graph["service.api.deps"]  # a type-only import is read
     assert "service.storage.store" in graph["service.jobs.worker"]
+    assert "fastapi" in _external_imports(ROOT / "service" / "api" / "deps.py")
+    assert "service.intake.submission" in graph["service.pacs.dimse.submit"]
 
 
 def test_cycle_finder_finds_cycles():

@@ -1,7 +1,7 @@
 """The service context and the typed dependencies of the routes.
 
-``Ctx`` is the running service (store, blobs, executor...), ``Principal`` the caller
-(``'anonymous'`` or ``'key:<hash prefix>'``) and ``OwnedJob`` the path's ``job_id`` looked up
+``Ctx`` is the running service (the intake's store, blobs, validator, executor and what only HTTP needs),
+``Principal`` the caller (``'anonymous'`` or ``'key:<hash prefix>'``) and ``OwnedJob`` the path's ``job_id`` looked up
 and checked to belong to the caller (404 otherwise, for another key's job too: its existence is not told).
 """
 
@@ -15,27 +15,19 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CollectorRegistry, Counter
 
-from ..jobs.executor import Executor
+from ..intake.context import ANONYMOUS, IntakeContext
 from ..problems import Problem
-from ..settings import ServiceSettings, hash_api_key
-from ..storage.blobs import BlobStore
-from ..storage.store import JobRecord, JobStore, is_job_id
-from .intake.validation import ValidatorPool
+from ..settings import hash_api_key
+from ..storage.store import JobRecord, is_job_id
 
 if TYPE_CHECKING:
     from ..jobs.callbacks import CallbackDeliverer
     from ..jobs.sweeper import Sweeper
 
-ANONYMOUS = "anonymous"
-
-
 @dataclass
-class ServiceContext:
-    settings: ServiceSettings
-    store: JobStore
-    blobs: BlobStore
-    validator: ValidatorPool | None
-    executor: Executor
+class ServiceContext(IntakeContext):
+    """The intake (:class:`service.intake.context.IntakeContext`) and what the HTTP service adds to it."""
+
     registry: CollectorRegistry
     uploads: Counter
     sweeper: Sweeper | None = None

@@ -13,14 +13,11 @@ from fastapi import FastAPI
 
 from ..jobs.callbacks import CallbackDeliverer
 from ..jobs.exports import ExportDeliverer
-from ..storage.dbblobs import make_blob_store
+from ..intake.context import close_intake
 from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
 from ..settings import ServiceSettings
 from ..jobs.sweeper import Sweeper
-from ..storage.store import store_for
-from .intake.dimse import DimseIntake
-from .intake.validation import ValidatorPool
 from .schemas.jobs import summary_body
 from .deps import ServiceContext
 from .prometheus import ServiceMetrics
@@ -30,17 +27,8 @@ log = logging.getLogger("dsareg.service")
 
 def _open_context(settings: ServiceSettings, metrics: ServiceMetrics, executor: Executor | None,
                   make_executor: Callable[[ServiceSettings, Any], Executor], start_background: bool) -> ServiceContext:
-    settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
-    store = store_for(settings)
-    blobs = make_blob_store(settings, store.engine)
-    validator = None
-    if start_background:
-        validator = ValidatorPool(settings.limits.validation_processes, settings.limits.validation_timeout_seconds,
-                                  settings.limits.validation_memory_mb, threads=settings.jobs.threads_per_worker)
-        validator.start()
-    ex = executor or make_executor(settings, store)
-    return ServiceContext(settings=settings, store=store, blobs=blobs, validator=validator, executor=ex,
-                          registry=metrics.registry, uploads=metrics.uploads)
+    return ServiceContext.open(settings, lambda s, store: executor or make_executor(s, store),
+                               validate=start_background, registry=metrics.registry, uploads=metrics.uploads)
 
 
 def callback_body(job: Any) -> bytes:
@@ -61,7 +49,7 @@ def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
     """The DICOM node of ``dsareg serve`` when ``DSAREG_DICOM_PORT`` is set (its jobs go through this API's intake)."""
     if not ctx.settings.dimse.dicom_port:
         return None
-    listener = DicomListener(ctx.settings, ctx.store, ctx.blobs, DimseIntake(ctx), asyncio.get_running_loop())
+    listener = DicomListener(ctx, asyncio.get_running_loop())
     listener.start()
     return listener
 
@@ -105,10 +93,7 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
                 await asyncio.to_thread(ctx.extra["dicom_listener"].stop)
             if ctx.sweeper:
                 ctx.sweeper.stop()
-            await asyncio.to_thread(ctx.executor.stop)
-            if ctx.validator:
-                await asyncio.to_thread(ctx.validator.stop)
-            ctx.store.dispose()
+            await asyncio.to_thread(close_intake, ctx)
             holder["ctx"] = None
 
     return lifespan

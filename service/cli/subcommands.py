@@ -77,7 +77,7 @@ def _add_dicom_listener(subparsers: Any) -> None:
 
 
 def run_dicom_listener(args: argparse.Namespace) -> int:
-    from ..app import run_dicom_listener as run_listener
+    from ..pacs.dimse.standalone import run_dicom_listener as run_listener
     from ..settings import load_settings
 
     settings = load_settings(args.config, dicom_port=args.port, dicom_ae_title=args.ae_title, data_dir=args.data_dir,

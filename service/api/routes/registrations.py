@@ -12,8 +12,9 @@ from ...pacs.dimse.export import dimse_source
 from ...problems import Problem, problem_responses
 from ...storage.store import REVIEW_FILTERS, STATUSES, decode_cursor
 from ..deps import Ctx, OwnedJob, Principal
-from ..intake.forms import read_form
-from ..intake.submission import MAX_VOLUME_FILES, RETRY_AFTER_QUEUED, idempotency_key, submit_form
+from ..submit.accept import RETRY_AFTER_QUEUED, submit_by_reference, submit_form
+from ..submit.forms import read_form
+from ..submit.parts import MAX_VOLUME_FILES, idempotency_key
 from ..openapi import resource_router
 from ..schemas.jobs import JobList, JobStatus, previous_link_header, status_body, summary_body
 
@@ -57,8 +58,6 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
     key = idempotency_key(request)
     content_type = request.headers.get("content-type", "")
     if content_type.lower().startswith("application/json"):  # inputs by DICOMweb reference
-        from ..intake.dicom_reference import submit_by_reference
-
         return await submit_by_reference(ctx, request, who, key)
     if not content_type.lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files mesh (or volume), ap and lat",

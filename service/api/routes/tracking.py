@@ -16,23 +16,17 @@ from typing import Any
 
 from fastapi import Request
 from fastapi.responses import Response
-from starlette.datastructures import FormData, UploadFile
 
 from ...budgets import parse_json_part
 from ...engine_adapter import canonical_geometry
+from ...intake.refusals import InvalidInput
 from ...problems import Problem, problem_responses
 from ...storage.store import JobRecord
 from ..deps import Ctx, OwnedJob, Principal, ServiceContext
-from ..intake.forms import read_form
-from ..intake.submission import (
-    MAX_OPTIONS_BYTES,
-    form_callback_url,
-    form_files,
-    idempotency_key,
-    parse_options_json,
-    read_text_field,
-    submit_files,
-)
+from ...intake.submission import FileRequest, Upload, checked_roles, parse_options_json
+from ..submit.accept import accept_files
+from ..submit.forms import read_form
+from ..submit.parts import MAX_OPTIONS_BYTES, file_parts, form_callback_url, idempotency_key, read_text_field
 from ..openapi import resource_router
 from ..schemas.jobs import JobStatus
 
@@ -77,11 +71,11 @@ def _options(previous: JobRecord, form: Any) -> Any:
     """The new job's options: the previous job's (less INHERITED_OUT), the form's, mode track, its pose.
 
     Blocking (a file part is read, JSON parsed): called in a thread. The part is capped like on
-    ``POST /v1/registrations`` (:func:`service.api.submission.read_text_field`, 1 MiB, UTF-8)."""
+    ``POST /v1/registrations`` (:func:`service.api.submit.parts.read_text_field`, 1 MiB, UTF-8)."""
     options = {k: v for k, v in previous.options.items() if k not in INHERITED_OUT}
     options_values = form.getlist("options")
     if len(options_values) > 1:
-        raise Problem(422, "give options at most once", field="options")
+        raise InvalidInput("give options at most once", field="options")
     if options_values:
         text = read_text_field(options_values[0], "options", MAX_OPTIONS_BYTES)
         if text.strip():
@@ -91,14 +85,14 @@ def _options(previous: JobRecord, form: Any) -> Any:
     return parse_options_json(options)
 
 
-def _model_parts(ctx: ServiceContext, previous: JobRecord) -> list[tuple[str, UploadFile]]:
-    """The previous job's stored model files (mesh or volume) as (role, upload) form items."""
-    parts = []
+def _model_files(ctx: ServiceContext, previous: JobRecord) -> dict[str, list[Upload]]:
+    """The previous job's stored model files (mesh or volume) as uploads by role."""
+    files: dict[str, list[Upload]] = {}
     for item in previous.inputs:
         if item.role in ("mesh", "volume"):
             data = ctx.blobs.read(item.sha256)
-            parts.append((item.role, UploadFile(io.BytesIO(data), size=len(data), filename=f"{item.role}{item.suffix}")))
-    return parts
+            files.setdefault(item.role, []).append(Upload(f"{item.role}{item.suffix}", io.BytesIO(data), len(data)))
+    return files
 
 
 @router.post("/v1/registrations/{job_id}/track", **TRACK_DOC)
@@ -110,22 +104,17 @@ async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) 
     if not request.headers.get("content-type", "").lower().startswith("multipart/form-data"):
         raise Problem(415, "send multipart/form-data with the files ap and lat", accepted="multipart/form-data")
     form = await read_form(request, max_files=6, max_fields=5)
-    model_files: list[tuple[str, UploadFile]] = []
     try:
         unknown = sorted(set(form.keys()) - {"ap", "lat", "options", "callback_url"})
         if unknown:
-            raise Problem(422, f"unknown form field(s) {unknown[:5]}; the model and geometry are the job's",
-                          field=str(unknown[0])[:64], accepted="ap, lat, options, callback_url")
+            raise InvalidInput(f"unknown form field(s) {unknown[:5]}; the model and geometry are the job's",
+                               field=str(unknown[0])[:64], accepted="ap, lat, options, callback_url")
         callback_url = form_callback_url(ctx, form)
         options = await asyncio.to_thread(_options, previous, form)
-        model_files = _model_parts(ctx, previous)
-        items: list[tuple[str, Any]] = list(model_files)
-        items += [(name, value) for name in ("ap", "lat") for value in form.getlist(name)]
+        files = checked_roles({**_model_files(ctx, previous), **file_parts(form, ("ap", "lat"))})
         geometry = canonical_geometry(previous.geometry)  # the job's, as stored (parsed once at its submission)
         # the new job records its previous one: its status, result and 202 carry Link: rel="previous"
-        return await submit_files(ctx, form_files(FormData(items)), geometry, options, who, key,
-                                  callback_url=callback_url, previous_id=previous.id)
+        return await accept_files(ctx, FileRequest(files, geometry, options, callback_url=callback_url,
+                                                   previous_id=previous.id), who, key)
     finally:
-        for _, upload in model_files:
-            await upload.close()
         await form.close()

@@ -1,6 +1,6 @@
 """``result.dicom`` of a job whose inputs came over DIMSE: where from (``source.dimse``) and where its results
 went by C-STORE (``exported``). Written by service/pacs/dimse/export.py (a study the node received),
-service/pacs/dimse/pull.py (a pull by reference) and service/api/intake/dimse.py (the job's source document).
+service/pacs/dimse/pull.py (a pull by reference) and service/pacs/dimse/submit.py (the job's source document).
 """
 
 from __future__ import annotations

@@ -567,7 +567,7 @@ def document(schema: dict[str, Any]) -> dict[str, Any]:
                              "geometry": {"contentType": "text/plain, application/json"},
                              "volume": {"contentType": "application/octet-stream"}},
             },
-            # inputs by DICOMweb or DIMSE reference (service/api/intake/dicom_reference.py)
+            # inputs by DICOMweb or DIMSE reference (service/intake/reference.py)
             "application/json": {"schema": json_body_schema()},
         }}
     get_result = paths.get("/v1/registrations/{job_id}/result", {}).get("get")

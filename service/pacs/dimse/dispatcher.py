@@ -1,11 +1,12 @@
-"""Received studies → planned jobs, handed to the API's intake (:mod:`service.api.intake.dimse`).
+"""Received studies → planned jobs, handed to the intake (:mod:`.submit`, over :mod:`service.intake`).
 
 :class:`StudyDispatcher` looks (every ``tick_seconds``) for studies of the inbox that are
 stable (no instance for ``dicom_stable_seconds``), plans their jobs (:mod:`.grouping`) and
 hands each one to ``intake.submit`` — the same checks and queue as ``POST /v1/registrations``.
 When an association is released it asks ``intake.prevalidate`` to parse the planned inputs
 early (the validator caches successful parses by content), so the submission at stable time
-costs no parse. The intake is injected: this package knows nothing of the API.
+costs no parse. No room now (the intake's :class:`~service.intake.refusals.Overloaded`): the study
+waits a few seconds and is submitted again; any other refusal is recorded and logged.
 
 A stable study with biplane pairs but no volume, when ``dicom_query_peer`` is set: the patient's
 latest CT / MR / 3D-RA series is found by C-FIND and fetched by C-MOVE into the inbox

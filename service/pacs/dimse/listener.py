@@ -3,12 +3,12 @@
 Two ways to run it (same settings, ``DSAREG_DICOM_*``):
 
 * inside ``dsareg serve`` when ``DSAREG_DICOM_PORT`` is set (started by the API's lifespan):
-  jobs are submitted on the API's event loop with its validator, queue and executor;
-* alone, ``dsareg dicom-listener`` (:func:`service.app.run_dicom_listener`), e.g. next to Celery
-  workers: the same pieces, opened by that process.
+  jobs are submitted on the API's event loop with its intake (validator, queue and executor);
+* alone, ``dsareg dicom-listener`` (:mod:`.standalone`), e.g. next to Celery workers: the same
+  pieces, opened by that process.
 
-The ``intake`` (``submit`` / ``prevalidate`` coroutines, :class:`service.api.intake.dimse.DimseIntake`)
-is given by whoever composes the node. Only one listener per job database: at start it marks
+Received studies become jobs through the intake (:class:`service.intake.context.IntakeContext`,
+:mod:`.submit`), as every submission does. Only one listener per job database: at start it marks
 ``interrupted`` what associations of an earlier, dead listener left open — instances answered
 Success are kept and join their study when the sender comes back (:mod:`.inbox`).
 """
@@ -17,23 +17,26 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any
 
+from ...intake.context import IntakeContext
 from .dispatcher import StudyDispatcher
 from .inbox import Inbox
 from .scp import StoreScp, start_server
+from .submit import DimseIntake
 
 log = logging.getLogger("dsareg.dimse")
 
 
 class DicomListener:
-    def __init__(self, settings: Any, store: Any, blobs: Any, intake: Any, loop: asyncio.AbstractEventLoop):
-        self.settings, self.blobs = settings, blobs
+    def __init__(self, intake: IntakeContext, loop: asyncio.AbstractEventLoop):
+        """``loop``: the event loop the jobs are submitted on (running in another thread)."""
+        settings, store = intake.settings, intake.store
+        self.settings, self.blobs = settings, intake.blobs
         self.inbox = Inbox(store.engine, getattr(store, "writer", None))
         tick = min(0.25, settings.dimse.dicom_stable_seconds / 4)
-        self.dispatcher = StudyDispatcher(settings, blobs, self.inbox, intake, loop, tick_seconds=tick,
-                                          housekeeping=lambda: self.scp.sweep())
-        self.scp = StoreScp(settings, self.inbox, blobs, on_commit=self.dispatcher.wake)
+        self.dispatcher = StudyDispatcher(settings, self.blobs, self.inbox, DimseIntake(intake), loop,
+                                          tick_seconds=tick, housekeeping=lambda: self.scp.sweep())
+        self.scp = StoreScp(settings, self.inbox, self.blobs, on_commit=self.dispatcher.wake)
         self.server = None
 
     def start(self) -> None:

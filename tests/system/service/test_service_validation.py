@@ -9,7 +9,7 @@ from tests.support.service_testkit import make_example_case
 
 from service.storage.blobs import BlobStore
 from service.storage.store import InputFile
-from service.api.intake.validation import ValidatorPool
+from service.intake.validator import ValidatorPool
 
 
 def _loader_present() -> bool:

@@ -48,7 +48,7 @@ def test_every_command_of_the_command_line_exits_that_way(monkeypatch):
 
 def test_an_input_validator_exits_that_way():
     """A server's stop waits for its validators' (and workers') exit."""
-    probe = ("import signal; from service.api.intake.validation import _become_validator; _become_validator(None); "
+    probe = ("import signal; from service.intake.validator_process import _become_validator; _become_validator(None); "
              "from dsareg_engine.commands import process_exit; print(process_exit._registered)")
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=60, check=True)
     assert done.stdout.split() == ["True"], done.stdout + done.stderr

@@ -12,12 +12,11 @@ import time
 import types
 
 import pytest
+from test_dimse_grouping import ct, xa  # headers of a two-XA study with a volume
 
 from service.intake.refusals import InvalidInput, Overloaded, QuotaExceeded
 from service.pacs.dimse.dispatcher import OVERLOADED_RETRY_S, StudyDispatcher
 from service.pacs.dimse.inbox import StoredInstance
-
-from test_dimse_grouping import ct, xa  # headers of a two-XA study with a volume
 
 pytestmark = pytest.mark.filterwarnings("ignore:Invalid value for VR UI")
 STUDY = "1.2.3"

@@ -1,16 +1,16 @@
-"""Full input validation before a job is accepted, isolated from the API process.
+"""Full input validation before a job is accepted, isolated from the server's process.
 
-Why not validate in the API process: readers of meshes, DICOM and volumes are large
+Why not validate in the server's process: readers of meshes, DICOM and volumes are large
 C-backed libraries; a hostile or broken file can take seconds of CPU, gigabytes of
-memory, or crash the interpreter. So the API hands *stored blob paths* (never the
+memory, or crash the interpreter. So the intake hands *stored blob paths* (never the
 bytes) to a small pool of long-lived ``spawn`` processes that run exactly the loader
 the worker will run (:func:`service.engine_adapter.load_job_case`: the same
 ``stored_case_files`` and the engine's ``load_case_files``), each with
 
 * a wall-clock limit (``validation_timeout_seconds``): past it the process is killed
-  and replaced, and the request gets a 422 naming the time limit;
+  and replaced, and the submission is refused naming the time limit (an HTTP 422);
 * an address-space limit (``validation_memory_mb`` on top of what the warmed-up
-  process already uses): a decompression bomb fails with MemoryError → 422;
+  process already uses): a decompression bomb fails with MemoryError, refused alike;
 * crash containment: a dead or frozen process is replaced by a warm spare within
   ``WATCH_SECONDS`` and the request is sent once more to it (see :class:`ValidatorPool`).
 
@@ -34,120 +34,9 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
+from .validator_process import largest_input, validator_main
+
 log = logging.getLogger("dsareg.service.validation")
-
-
-def _set_memory_limit(extra_mb: int) -> None:
-    if extra_mb <= 0:
-        return
-    try:
-        import resource
-
-        with open("/proc/self/statm") as f:
-            pages = int(f.read().split()[0])
-        current = pages * os.sysconf("SC_PAGE_SIZE")
-        limit = current + extra_mb * 1024 * 1024
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    except Exception:  # noqa: BLE001, S110 - best effort on platforms without it
-        pass
-
-
-def _become_validator(parent_pid: int | None) -> None:
-    """Name the process (``dsareg-validate``), exit quickly, ignore Ctrl-C (the server stops it), die with the server."""
-    import signal
-
-    from ...engine_adapter import engine
-    from ...jobs.procwatch import die_with_parent, set_process_name
-
-    set_process_name("dsareg-validate")
-    engine.skip_exit_collections()  # a server's stop waits for its validators' exit
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
-        die_with_parent(parent_pid, signal.SIGKILL)
-
-
-def _validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
-    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
-    "volume_reading", "mesh_units"}``."""
-    _become_validator(parent_pid)
-    engine_ok = True
-    # parsing needs no torch (the engine imports it only to register); should a parser import it,
-    # its thread pool reads this at start-up
-    os.environ["OMP_NUM_THREADS"] = str(max(1, threads or 1))
-    try:
-        from ...engine_adapter import engine
-
-        engine.preload_case_loading()
-        engine.warm_up_parsers()
-    except Exception:  # noqa: BLE001
-        engine_ok = False
-    _set_memory_limit(memory_mb)
-    from ...storage.blobs import BlobStore
-    from ...engine_adapter import case_summary, engine, load_job_case
-    from ...storage.store import InputFile
-
-    conn.send({"ready": True, "engine": engine_ok})
-    while True:
-        try:
-            request = conn.recv()
-        except (EOFError, OSError):
-            return
-        if request is None:
-            return
-        if not engine_ok:
-            try:
-                engine.preload_case_loading()
-                engine_ok = True
-            except Exception:  # noqa: BLE001
-                conn.send({"ok": False, "unavailable": True})
-                continue
-        if request.get("require_cuda") and not _cuda_available():
-            conn.send({"ok": False, "message": "CUDA is not available on this server", "field": "options.device",
-                       "accepted": "auto or cpu"})
-            continue
-        try:
-            blobs = BlobStore(request["blob_root"])
-            inputs = [InputFile(**item) for item in request["inputs"]]
-            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
-                                 request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
-                                 hemodynamics=bool(request.get("hemodynamics")))
-            conn.send({"ok": True, "summary": case_summary(case)})
-        except engine.DsaregInputError as exc:
-            conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
-        except MemoryError:
-            conn.send({"ok": False, "message": f"decoding needs more than the {memory_mb} MB this server allows "
-                                               "for parsing one submission", "field": _largest_input(request),
-                       "accepted": "smaller inputs", "recycle": True})
-        except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
-            conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
-
-
-def _largest_input(request: dict) -> str | None:
-    """The input that most likely exhausted the memory limit: the largest decoded image, else the largest file."""
-    from ...storage.blobs import BlobStore
-    from ...budgets import image_decoded_bytes
-
-    blobs = BlobStore(request["blob_root"])
-    best, best_size = None, -1
-    for item in request["inputs"]:
-        size = item["size"]
-        if item["role"] in ("ap", "lat"):
-            try:
-                size = image_decoded_bytes(blobs.read(item["sha256"])) or size
-            except Exception:  # noqa: BLE001, S110 - informative only
-                pass
-        if size > best_size:
-            best, best_size = item["role"], size
-    return best
-
-
-def _cuda_available() -> bool:
-    try:
-        import torch
-
-        return bool(torch.cuda.is_available())
-    except Exception:  # noqa: BLE001
-        return False
 
 
 @dataclass
@@ -159,7 +48,7 @@ class ValidationOutcome:
     accepted: str | None = None
     unavailable: bool = False
     internal: bool = False
-    busy: bool = False  # no validator could take the request now (503 + Retry-After)
+    busy: bool = False  # no validator could take the request now (the intake answers Overloaded)
 
 
 WATCH_SECONDS = 0.2  # how often a waiting request (and the watchdog) looks at its validator's process
@@ -190,7 +79,7 @@ class _Slot:
     def start(self) -> None:
         parent, child = self.ctx.Pipe(duplex=True)
         self.process = self.ctx.Process(
-            target=_validator_main, args=(child, self.memory_mb, self.threads, os.getpid()), name="dsareg-validator",
+            target=validator_main, args=(child, self.memory_mb, self.threads, os.getpid()), name="dsareg-validator",
             daemon=True
         )
         self.process.start()
@@ -294,8 +183,8 @@ class ValidatorPool:
     ``WATCH_SECONDS``) or by the watchdog while idle — is killed and its slot takes the warm
     spare at once (a new spare starts once that request is answered), so a request is not kept waiting on
     a process that will not answer, nor on a cold start: the request in flight is sent again to
-    the fresh process; if that one dies too the input is what kills parsers (422 naming the
-    largest input); if it freezes too, 503 + Retry-After.
+    the fresh process; if that one dies too the input is what kills parsers (refused naming the
+    largest input); if it freezes too, busy (the intake answers Overloaded).
 
     Successful outcomes are cached by request content (inputs are content-addressed, so
     the same hashes + geometry + segmentation + volume reading + limits parse the same way)."""
@@ -435,9 +324,9 @@ class ValidatorPool:
             return ValidationOutcome(ok=False, busy=True, message="input validation is temporarily unavailable")
         if why == "timeout":
             return ValidationOutcome(ok=False, message=f"the inputs could not be parsed within {self.timeout:g} s",
-                                     field=_largest_input(request), accepted="smaller or simpler inputs")
+                                     field=largest_input(request), accepted="smaller or simpler inputs")
         return ValidationOutcome(ok=False, message="the inputs crashed the parser on two fresh processes",
-                                 field=_largest_input(request), accepted="well-formed mesh/volume and image files")
+                                 field=largest_input(request), accepted="well-formed mesh/volume and image files")
 
     def ready(self) -> bool:
         """Every parser process started and warmed up (so a submission is not kept waiting on imports)."""

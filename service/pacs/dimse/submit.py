@@ -1,8 +1,9 @@
-"""Jobs from studies received over DIMSE, through the same checks and queue as an HTTP submission.
+"""Jobs from studies received over DIMSE, through the intake like every submission (:mod:`service.intake`).
 
 :class:`DimseIntake` is what :class:`service.pacs.dimse.dispatcher.StudyDispatcher` calls for
 each planned job of a stable study: back-pressure (queue limits), the input validator, one row
-in the job table and the executor's ``submit`` — as ``POST /v1/registrations`` does.
+in the job table and the executor's ``submit`` — as ``POST /v1/registrations`` does. A job
+refused raises the intake's :mod:`~service.intake.refusals`.
 
 A job's inputs are the received instances themselves (roles ``ap``, ``lat``, ``volume``: the
 blobs the C-STORE wrote) and a small JSON input of role ``dimse`` (:func:`source_document`):
@@ -20,16 +21,18 @@ import logging
 from typing import Any
 
 from ...engine_adapter import job_case
-from ...pacs.dimse.grouping import PlannedJob
-from ...pacs.dimse.inbox import StoredInstance
+from ...intake.context import ANONYMOUS, IntakeContext
 from ...intake.refusals import Refusal
+from ...intake.submission import check_queue, create_job, fingerprint, new_job, parse_options_json, validate_inputs
 from ...storage.store import InputFile
-from ..deps import ANONYMOUS, ServiceContext
-from .submission import check_queue, create_job, fingerprint, new_job, parse_options_json, validate_inputs
+from .grouping import PlannedJob
+from .inbox import StoredInstance
 
 log = logging.getLogger("dsareg.dimse")
 
 ROLE = "dimse"
+
+
 def job_owner(settings: Any) -> str:
     hashes = settings.auth.api_key_hashes
     chosen = settings.dimse.dicom_job_owner_key_hash or (hashes[0] if hashes else None)
@@ -56,7 +59,7 @@ def idempotency_key(study_uid: str, job: PlannedJob) -> str:
     return "dimse:" + hashlib.sha256(text.encode()).hexdigest()
 
 
-async def _planned_inputs(ctx: ServiceContext, study_uid: str, job: PlannedJob,
+async def _planned_inputs(ctx: IntakeContext, study_uid: str, job: PlannedJob,
                           by_uid: dict[str, StoredInstance]) -> tuple[list[InputFile], Any]:
     """The job's inputs (the received instances and its ``dimse`` document) and its parsed options."""
     document = json.dumps(source_document(study_uid, job, by_uid, ctx.settings), sort_keys=True).encode()
@@ -70,7 +73,7 @@ async def _planned_inputs(ctx: ServiceContext, study_uid: str, job: PlannedJob,
     return inputs, parse_options_json(dict(ctx.settings.dimse.dicom_job_options) or None)
 
 
-async def prevalidate(ctx: ServiceContext, study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance]) -> None:
+async def prevalidate(ctx: IntakeContext, study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance]) -> None:
     """Parse a planned job's inputs ahead of time (when its association is released, before the study is
     stable): the validator keeps successful outcomes by content, so the submission then costs no parse."""
     inputs, options = await _planned_inputs(ctx, study_uid, job, by_uid)
@@ -80,7 +83,7 @@ async def prevalidate(ctx: ServiceContext, study_uid: str, job: PlannedJob, by_u
         pass  # reported by the submission itself
 
 
-async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
+async def submit_planned(ctx: IntakeContext, study_uid: str, job: PlannedJob,
                          by_uid: dict[str, StoredInstance]) -> tuple[str, bool]:
     """One planned job → ``(job id, created)``; raises a :class:`~service.intake.refusals.Refusal` like the HTTP
     submission."""
@@ -95,18 +98,17 @@ async def submit_planned(ctx: ServiceContext, study_uid: str, job: PlannedJob,
     record = new_job(ctx, owner, key, options_json=options_json, geometry=None, inputs=inputs, warnings=warnings,
                      request_hash=fingerprint(inputs, None, options_json), input_bytes=sum(i.size for i in inputs),
                      case=job_case(identity, "dimse"))
-    stored, _ = await create_job(ctx, record)
-    if stored is None:  # an equal request won the race
-        again = await asyncio.to_thread(ctx.store.find_idempotent, owner, key)
-        return (again.id if again else ""), False
-    await asyncio.to_thread(ctx.executor.submit, stored.id)
-    return stored.id, True
+    submitted = await create_job(ctx, record)
+    if submitted.created:  # else an equal request won the race
+        await asyncio.to_thread(ctx.executor.submit, submitted.job.id)
+    return submitted.job.id, submitted.created
 
 
 class DimseIntake:
-    """The API side the DICOM node's dispatcher submits through (coroutines, on the API's loop)."""
+    """What the DICOM node's dispatcher submits through (coroutines, on the loop it is given: the API's in
+    ``dsareg serve``, its own in ``dsareg dicom-listener``)."""
 
-    def __init__(self, ctx: ServiceContext):
+    def __init__(self, ctx: IntakeContext):
         self.ctx = ctx
 
     async def submit(self, study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance]) -> tuple[str, bool]:

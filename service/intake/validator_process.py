@@ -1,0 +1,126 @@
+"""The validator process itself: one request at a time from its pipe, parsed with the worker's own loader.
+
+Started by :class:`service.intake.validator.ValidatorPool` (``spawn``); it names itself ``dsareg-validate``,
+dies with the server, and runs under an address-space limit on top of its warmed-up size. A request is
+``{"inputs", "geometry", "segmentation", "blob_root", "limits", "reading", "volume_reading", "mesh_units",
+"hemodynamics", "require_cuda"}``; the reply ``{"ok": True, "summary"}`` or why not (``message``, ``field``,
+``accepted``; ``unavailable``: no engine; ``internal``: a reader raised; ``recycle``: replace this process).
+"""
+
+from __future__ import annotations
+
+import os
+from multiprocessing.connection import Connection
+
+
+def _set_memory_limit(extra_mb: int) -> None:
+    if extra_mb <= 0:
+        return
+    try:
+        import resource
+
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[0])
+        current = pages * os.sysconf("SC_PAGE_SIZE")
+        limit = current + extra_mb * 1024 * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    except Exception:  # noqa: BLE001, S110 - best effort on platforms without it
+        pass
+
+
+def _become_validator(parent_pid: int | None) -> None:
+    """Name the process (``dsareg-validate``), exit quickly, ignore Ctrl-C (the server stops it), die with the server."""
+    import signal
+
+    from ..engine_adapter import engine
+    from ..jobs.procwatch import die_with_parent, set_process_name
+
+    set_process_name("dsareg-validate")
+    engine.skip_exit_collections()  # a server's stop waits for its validators' exit
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
+        die_with_parent(parent_pid, signal.SIGKILL)
+
+
+def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
+    """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
+    "volume_reading", "mesh_units"}``."""
+    _become_validator(parent_pid)
+    engine_ok = True
+    # parsing needs no torch (the engine imports it only to register); should a parser import it,
+    # its thread pool reads this at start-up
+    os.environ["OMP_NUM_THREADS"] = str(max(1, threads or 1))
+    try:
+        from ..engine_adapter import engine
+
+        engine.preload_case_loading()
+        engine.warm_up_parsers()
+    except Exception:  # noqa: BLE001
+        engine_ok = False
+    _set_memory_limit(memory_mb)
+    from ..engine_adapter import case_summary, engine, load_job_case
+    from ..storage.blobs import BlobStore
+    from ..storage.store import InputFile
+
+    conn.send({"ready": True, "engine": engine_ok})
+    while True:
+        try:
+            request = conn.recv()
+        except (EOFError, OSError):
+            return
+        if request is None:
+            return
+        if not engine_ok:
+            try:
+                engine.preload_case_loading()
+                engine_ok = True
+            except Exception:  # noqa: BLE001
+                conn.send({"ok": False, "unavailable": True})
+                continue
+        if request.get("require_cuda") and not _cuda_available():
+            conn.send({"ok": False, "message": "CUDA is not available on this server", "field": "options.device",
+                       "accepted": "auto or cpu"})
+            continue
+        try:
+            blobs = BlobStore(request["blob_root"])
+            inputs = [InputFile(**item) for item in request["inputs"]]
+            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
+                                 request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
+                                 hemodynamics=bool(request.get("hemodynamics")))
+            conn.send({"ok": True, "summary": case_summary(case)})
+        except engine.DsaregInputError as exc:
+            conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
+        except MemoryError:
+            conn.send({"ok": False, "message": f"decoding needs more than the {memory_mb} MB this server allows "
+                                               "for parsing one submission", "field": largest_input(request),
+                       "accepted": "smaller inputs", "recycle": True})
+        except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
+            conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
+
+
+def largest_input(request: dict) -> str | None:
+    """The input that most likely exhausted the memory limit: the largest decoded image, else the largest file."""
+    from ..budgets import image_decoded_bytes
+    from ..storage.blobs import BlobStore
+
+    blobs = BlobStore(request["blob_root"])
+    best, best_size = None, -1
+    for item in request["inputs"]:
+        size = item["size"]
+        if item["role"] in ("ap", "lat"):
+            try:
+                size = image_decoded_bytes(blobs.read(item["sha256"])) or size
+            except Exception:  # noqa: BLE001, S110 - informative only
+                pass
+        if size > best_size:
+            best, best_size = item["role"], size
+    return best
+
+
+def _cuda_available() -> bool:
+    try:
+        import torch
+
+        return bool(torch.cuda.is_available())
+    except Exception:  # noqa: BLE001
+        return False
