@@ -45,6 +45,7 @@ SCENARIOS = (
     Scenario("4 fps, ramp, Gaussian, no recipe, LAT 0.3 s later",
              BolusSettings(fps=4.0, shape="ramp", noise="gaussian", lat_delay_s=0.3), "no-recipe"),
     Scenario("2 fps, ramp, Gaussian, subtracted", BolusSettings(fps=2.0, shape="ramp", noise="gaussian"), "subtracted"),
+    Scenario("7.5 fps, ramp, Gaussian, no recipe", BolusSettings(fps=7.5, shape="ramp", noise="gaussian"), "no-recipe"),
     Scenario("7.5 fps, gamma, Gaussian, enhanced XA, per-frame times ±20 ms",
              BolusSettings(fps=7.5, noise="gaussian", jitter_s=0.02), "enhanced"),
     Scenario("4 fps, gamma, partial filling", BolusSettings(fps=4.0, partial=True)),
