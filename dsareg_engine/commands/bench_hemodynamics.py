@@ -6,7 +6,7 @@ runs subtracted), and the hemodynamics step runs at the true pose (registration 
 elsewhere). Per vertex of the model file, the measured values are compared with the truth.
 Columns: mapped (of the vertices contrast reached; in brackets those no view sees clean, mapped by unmixing),
 arrival error median / p90 and peak-time error median in s and frame intervals, the same on the unmixed vertices
-alone (frame intervals), the views' agreement median, vertices contrast never reached that got a value, and the
+alone (frame intervals), the gamma-variate fit's mean transit time error (relative, gamma-shaped boluses only), the views' agreement median, vertices contrast never reached that got a value, and the
 step's CPU seconds (user + sys, all threads) per job.
 """
 
@@ -92,8 +92,18 @@ def case_files(mesh: TriangleMesh, mesh_bytes: bytes, scenario: Scenario, seed: 
     return CaseFiles(ap=files["ap"], lat=files["lat"], mesh=mesh_bytes, mesh_name="model.obj"), pose, run.truth
 
 
-def score(document: dict, truth, file_to_model: np.ndarray, fps: float, cpu_s: float) -> dict:
-    """One case's numbers (per file vertex)."""
+def mtt_truth_s(settings: BolusSettings, truth) -> np.ndarray:
+    """``(V,)`` the gamma-variate bolus's mean transit time ``(α + 1) β`` (``β = τp / α``); NaN for the ramp shape."""
+    from ..simulation.bolus_run import GAMMA_ALPHA, rise_time_s
+
+    if settings.shape != "gamma":
+        return np.full(len(truth.onset_s), np.nan)
+    return (GAMMA_ALPHA + 1.0) / GAMMA_ALPHA * rise_time_s(settings, truth.onset_s)
+
+
+def score(document: dict, truth, file_to_model: np.ndarray, fps: float, cpu_s: float,
+          mtt_s: np.ndarray | None = None) -> dict:
+    """One case's numbers (per file vertex); ``mtt_s`` the true mean transit time per model vertex (or NaN)."""
     def values(name: str) -> np.ndarray:
         return np.array([np.nan if v is None else v for v in document[name]], float)
 
@@ -106,8 +116,12 @@ def score(document: dict, truth, file_to_model: np.ndarray, fps: float, cpu_s: f
     peak_error = np.abs(peak[mapped] - truth.peak_s[file_to_model][mapped])
     nan = float("nan")
     unmixed = np.asarray(document["unmixed"], bool)[mapped]
+    mtt_true = (mtt_s if mtt_s is not None else np.full(len(truth.onset_s), np.nan))[file_to_model][mapped]
+    mtt_error = np.abs(values("mtt_s")[mapped] / mtt_true - 1.0)
+    mtt_error = mtt_error[np.isfinite(mtt_error)]
     return {"mapped": mapped.sum() / max(reached.sum(), 1), "arrival_med_s": np.median(error) if len(error) else nan,
             "unmixed_mapped": unmixed.sum() / max(reached.sum(), 1),
+            "mtt_rel_med": np.median(mtt_error) if len(mtt_error) else nan,
             "unmixed_med_s": np.median(error[unmixed]) if unmixed.any() else nan,
             "unmixed_p90_s": np.percentile(error[unmixed], 90) if unmixed.any() else nan,
             "unmixed_peak_med_s": np.median(peak_error[unmixed]) if unmixed.any() else nan,
@@ -138,7 +152,8 @@ def run_case(mesh, mesh_bytes, scenario: Scenario, seed: int, size_px: int, infl
         if picture_dir is not None:
             write_model_pictures(case, mesh_bytes, document, pose, out)
     file_to_model = cKDTree(mesh.vertices).query(vertices_as_given(mesh_bytes, "obj"))[1]
-    return score(document, truth, file_to_model, scenario.settings.fps, summary["cpu_s"])
+    return score(document, truth, file_to_model, scenario.settings.fps, summary["cpu_s"],
+                 mtt_truth_s(scenario.settings, truth))
 
 
 def write_model_pictures(case, mesh_bytes: bytes, document: dict, pose: np.ndarray, out: Path) -> None:
@@ -163,8 +178,8 @@ def table(rows: list[tuple[str, str, list[dict]]]) -> list[str]:
     """Markdown: one line per (mesh, scenario), the medians over its cases."""
     lines = ["| model | run | cases | mapped (of it unmixed) | arrival error median (s / frames) | p90 (s / frames) | "
              "peak error median (s / frames) | unmixed: arrival median / p90, peak median (frames) | agreement median (s) "
-             "| never reached: valued / all | overlap AP / LAT | CPU s per job |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| never reached: valued / all | overlap AP / LAT | MTT error median (gamma) | CPU s per job |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for model, name, cases in rows:
         def median(key: str) -> float:
             return float(np.nanmedian([c[key] for c in cases]))
@@ -179,7 +194,7 @@ def table(rows: list[tuple[str, str, list[dict]]]) -> list[str]:
             f"{median('unmixed_med_s') / interval:.2f} / {median('unmixed_p90_s') / interval:.2f}, "
             f"{median('unmixed_peak_med_s') / interval:.2f} | {median('agreement_s'):.3f} | "
             f"{sum(c['never_valued'] for c in cases)} / {never} | {100 * median('overlap_ap'):.0f} / "
-            f"{100 * median('overlap_lat'):.0f} % | {median('cpu_s'):.2f} (max {max(c['cpu_s'] for c in cases):.2f}) |")
+            f"{100 * median('overlap_lat'):.0f} % | {100 * median('mtt_rel_med'):.1f} % | {median('cpu_s'):.2f} (max {max(c['cpu_s'] for c in cases):.2f}) |")
     return lines
 
 

@@ -45,7 +45,7 @@ class ViewMeasure:
     def with_unmixed(self, rows: np.ndarray, found: CurveParameters) -> ViewMeasure:
         """This measure with the points ``rows`` (indices) taking the unmixed parameters ``found``."""
         merged = {}
-        for name in ("arrival_s", "peak_s", "peak_opacity", "filled", "noise"):
+        for name in ("arrival_s", "peak_s", "peak_opacity", "filled", "noise", "mtt_s", "area"):
             values = getattr(self.parameters, name).copy()
             values[rows] = getattr(found, name)
             merged[name] = values
@@ -60,7 +60,7 @@ def _mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def combine(ap: ViewMeasure, lat: ViewMeasure) -> dict[str, np.ndarray]:
-    """Per point arrays: ``arrival_s``, ``peak_s``, ``peak_opacity`` (combined), ``arrival_s_ap``,
+    """Per point arrays: ``arrival_s``, ``peak_s``, ``peak_opacity``, ``mtt_s``, ``area`` (combined), ``arrival_s_ap``,
     ``arrival_s_lat``, ``peak_s_ap``, ``peak_s_lat``, ``agreement_s`` (NaN = null), and the bool arrays
     ``clean_ap``, ``clean_lat``, ``unmixed_ap``, ``unmixed_lat``, ``never_arrived``, ``views_disagree``."""
     views = {"ap": ap, "lat": lat}
@@ -69,7 +69,7 @@ def combine(ap: ViewMeasure, lat: ViewMeasure) -> dict[str, np.ndarray]:
     disagree = (filled_clean["ap"] & empty_clean["lat"]) | (filled_clean["lat"] & empty_clean["ap"])
     never = (empty_clean["ap"] | empty_clean["lat"]) & ~filled_clean["ap"] & ~filled_clean["lat"]
     out: dict[str, np.ndarray] = {}
-    for name in ("arrival_s", "peak_s", "peak_opacity"):
+    for name in ("arrival_s", "peak_s", "peak_opacity", "mtt_s", "area"):
         combined = _mean(ap.value(name), lat.value(name))
         out[name] = np.where(disagree, np.nan, combined)
     for view_name, view in views.items():

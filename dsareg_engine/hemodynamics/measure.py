@@ -79,7 +79,7 @@ def measure_view(points: VesselPoints, view: ViewGeometry, mesh_to_world: np.nda
     measurable = projection.inside & (prints.footprint_pixels > 0) & on_model(projection, covered)
     chord = mean_chord_mm(projection, points.radii_mm)
     sampled = curves(stack, prints)
-    parameters = curve_parameters(sampled, times_s, noise, chord, measurable)
+    parameters = curve_parameters(sampled, times_s, noise, chord, measurable, gamma_fit=True)
     flags = overlapped(prints, stretches.layers) & measurable
     counts = {"points": len(points), "inside": int(measurable.sum()), "overlapped": int(flags.sum()),
               "filled": int((parameters.filled & measurable).sum()),

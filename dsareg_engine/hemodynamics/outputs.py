@@ -1,7 +1,8 @@
 """``hemodynamics.json``: per vertex of the model file as given, arrays with ``null`` where not measurable.
 
 Arrays (one value per vertex, in the order of the file's vertices, :mod:`.model_points`): ``arrival_s``,
-``peak_s``, ``peak_opacity``, ``arrival_s_ap``, ``arrival_s_lat``, ``agreement_s``; ``overlap_ap`` /
+``peak_s``, ``peak_opacity``, ``arrival_s_ap``, ``arrival_s_lat``, ``agreement_s``, ``mtt_s``, ``area`` (the
+gamma-variate fit, :mod:`.gamma_fit`); ``overlap_ap`` /
 ``overlap_lat`` (bool: that view is not clean there); ``unmixed`` (bool: no view is clean there, the values
 come from unmixing, :mod:`.unmixing`). Times are seconds on the AP run's clock (t = 0 at its
 first frame); ``frame_times_s`` gives each run's frame times on that clock.
@@ -17,7 +18,7 @@ import numpy as np
 
 from ..artifacts import HEMODYNAMICS_JSON, HEMODYNAMICS_PLY, HEMODYNAMICS_VTK  # noqa: F401 - the names, re-exported
 
-ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s")
+ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s", "mtt_s", "area")
 DIGITS = 4
 
 
@@ -46,7 +47,7 @@ def write_json(path: Path, document: dict) -> None:
     Path(path).write_text(json.dumps(document, separators=(",", ":")))
 
 
-MESH_ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s")
+MESH_ARRAYS = ("arrival_s", "peak_s", "peak_opacity", "arrival_s_ap", "arrival_s_lat", "agreement_s", "mtt_s", "area")
 
 
 def write_ply(path: Path, vertices_mm: np.ndarray, faces: np.ndarray, rgb: np.ndarray, comments: list[str]) -> None:

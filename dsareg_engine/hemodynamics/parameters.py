@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .gamma_fit import gamma_variate
+
 RUN_ARRIVAL_FRACTION = 0.1
 SIGNIFICANCE_SIGMAS = 5.0
 MIN_FILL_FRACTION = 0.4
@@ -35,13 +37,16 @@ PEAK_WINDOW_S = 0.35
 @dataclass(frozen=True)
 class CurveParameters:
     """Per point ``(N,)``: ``arrival_s``, ``peak_s``, ``peak_opacity`` (NaN where not measurable), ``filled``
-    (bool), ``noise`` (the curve's noise, opacity units)."""
+    (bool), ``noise`` (the curve's noise, opacity units); ``mtt_s``, ``area``: the gamma-variate fit
+    (:mod:`.gamma_fit`) when asked for."""
 
     arrival_s: np.ndarray
     peak_s: np.ndarray
     peak_opacity: np.ndarray
     filled: np.ndarray
     noise: np.ndarray
+    mtt_s: np.ndarray | None = None
+    area: np.ndarray | None = None
 
 
 def footprint_noise(stack: np.ndarray, background: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
@@ -121,11 +126,13 @@ def lift(curves: np.ndarray, measurable: np.ndarray) -> np.ndarray:
 
 
 def curve_parameters(curves: np.ndarray, times_s: np.ndarray, noise: np.ndarray, chord_mm: np.ndarray,
-                     measurable: np.ndarray, typical_per_mm: float | None = None) -> CurveParameters:
+                     measurable: np.ndarray, typical_per_mm: float | None = None, gamma_fit: bool = False
+                     ) -> CurveParameters:
     """Parameters of ``curves`` ``(N, T)`` at ``times_s`` ``(T,)``; ``noise`` ``(N,)`` the curves' noise,
     ``chord_mm`` ``(N,)`` the mean path through each vessel over its footprint (:func:`.sampling.mean_chord_mm`: what a
     filled vessel there shows, relative), ``measurable`` ``(N,)`` bool (the rest: NaN, not filled);
-    ``typical_per_mm``: what a filled vessel shows per mm when known (else the median over these curves)."""
+    ``typical_per_mm``: what a filled vessel shows per mm when known (else the median over these curves);
+    ``gamma_fit``: also fit the gamma variate (``mtt_s``, ``area``)."""
     times = np.asarray(times_s, float)
     count = len(curves)
     lifted = lift(curves, measurable)
@@ -138,5 +145,6 @@ def curve_parameters(curves: np.ndarray, times_s: np.ndarray, noise: np.ndarray,
     filled = significant & (per_mm >= MIN_FILL_FRACTION * typical)
     arrival = _half_rise(times, lifted, k, 0.5 * peak)
     nan = np.full(count, np.nan)
-    return CurveParameters(np.where(filled, arrival, nan), np.where(filled, peak_s, nan), np.where(filled, peak, nan),
-                           filled, noise)
+    arrival, peak_s, peak = np.where(filled, arrival, nan), np.where(filled, peak_s, nan), np.where(filled, peak, nan)
+    mtt, area = gamma_variate(times, lifted, arrival, peak_s, peak) if gamma_fit else (None, None)
+    return CurveParameters(arrival, peak_s, peak, filled, noise, mtt, area)

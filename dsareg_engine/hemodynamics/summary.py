@@ -30,6 +30,8 @@ def summarize(per_vertex: dict[str, np.ndarray], found, runs: dict, offset_s: fl
         "never_arrived": int(per_vertex["never_arrived"].sum()),
         "views_disagree": int(per_vertex["views_disagree"].sum()),
         "unmixed_vertices": int((per_vertex["unmixed_ap"] | per_vertex["unmixed_lat"]).sum()),
+        "mtt_median_s": _rounded(float(np.nanmedian(per_vertex["mtt_s"])) if np.isfinite(per_vertex["mtt_s"]).any()
+                                 else None),
         "agreement_points": int(both.sum()),
         "agreement_median_s": _rounded(float(np.median(np.abs(difference))) if both.any() else None),
         "lat_minus_ap_median_s": _rounded(float(np.median(difference)) if both.any() else None),

@@ -22,7 +22,7 @@ then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relat
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
@@ -130,7 +130,11 @@ def solve_unknown(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known:
 
 def unmix_view(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known: np.ndarray, scale: float,
                edges: np.ndarray) -> CurveParameters:
-    """Parameters of the points ``rows`` from their unmixed ``q`` (see the module docstring)."""
+    """Parameters of the points ``rows`` from their unmixed ``q`` (see the module docstring); ``peak_opacity`` and
+    ``area`` back in opacity: what the point's footprint would show were it clean (``q · s · Σ_j M_ij``)."""
     q = solve_unknown(mix, rows, known, q_known, scale, edges)
-    noise = mix.noise[rows] / (scale * np.maximum(mix.path_mm[rows], 1e-6))
-    return curve_parameters(q, mix.times_s, noise, np.ones(len(rows)), np.ones(len(rows), bool), typical_per_mm=1.0)
+    opacity_per_q = scale * np.maximum(mix.path_mm[rows], 1e-6)
+    found = curve_parameters(q, mix.times_s, mix.noise[rows] / opacity_per_q, np.ones(len(rows)),
+                             np.ones(len(rows), bool), typical_per_mm=1.0, gamma_fit=True)
+    return replace(found, peak_opacity=found.peak_opacity * opacity_per_q, area=found.area * opacity_per_q,
+                   noise=found.noise * opacity_per_q)

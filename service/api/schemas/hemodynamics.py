@@ -70,6 +70,8 @@ class HemodynamicsSummary(BaseModel):
     views_disagree: int = Field(description="Vertices one clean view sees filled and the other empty (left null).")
     unmixed_vertices: int = Field(0, description="Vertices no view sees clean whose values come from unmixing "
                                                  "(`unmixed` in hemodynamics.json).")
+    mtt_median_s: float | None = Field(None, description="Median mean transit time (gamma-variate fit) over the "
+                                                         "vertices with one, s.")
     agreement_points: int = Field(description="Vertices both views measured.")
     agreement_median_s: float | None = Field(None, description="Median |arrival AP − arrival LAT| over those, s.")
     lat_minus_ap_median_s: float | None = Field(None, description="Median arrival LAT − AP, s (a bias: clock offset "
@@ -107,6 +109,10 @@ class HemodynamicsDocument(BaseModel):
     arrival_s_ap: NullableSeries = Field(description="Arrival measured in the AP run (null where overlapped there).")
     arrival_s_lat: NullableSeries = Field(description="Arrival measured in the LAT run.")
     agreement_s: NullableSeries = Field(description="|arrival_s_ap − arrival_s_lat| where both measured.")
+    mtt_s: NullableSeries = Field(description="Mean transit time of the gamma-variate fit of the first pass, "
+                                              "(α + 1) β: its mean time after its onset, s.")
+    area: NullableSeries = Field(description="Area under the gamma-variate fit of the first pass, K β^(α+1) Γ(α+1) "
+                                             "(opacity × s).")
     overlap_ap: list[bool] = Field(description="The AP view is not clean there (another vessel overlaps, or outside).")
     overlap_lat: list[bool] = Field(description="The LAT view is not clean there.")
     unmixed: list[bool] = Field(description="No view is clean there: the values come from unmixing the vessels "
