@@ -17,7 +17,8 @@ from .input_decisions import InputDecision
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
 from .mesh_units import MeshUnit, unit_decision
-from ..vision.segmentation import SEGMENTATION_METHODS, vessel_coverage
+from ..vision.segmentation import SEGMENTATION_METHODS
+from ..vision.segmentation_scale import SegmentationScale, coverage_at_scale
 from .xa_run import ImageReading
 from .volume_io import read_volume
 from .volume_kind import VolumeReading
@@ -178,11 +179,15 @@ def load_case(
     masks: dict[str, np.ndarray] = {}
     targets: dict[str, np.ndarray] = {}
     views: dict[str, ViewGeometry] = {}
+    pitches: list[InputDecision] = []
     for name in VIEW_NAMES:
         image = images[name]
         view = _view_for_image(rig, name, image, warnings)
         method = "mask" if image.is_mask and segmentation == "auto" else segmentation
-        targets[name] = vessel_coverage(image.pixels, method, field_name=name)
+        spacing_mm = min(view.pixel_spacing_mm)
+        targets[name], factor = coverage_at_scale(image.pixels, method, spacing_mm, field_name=name)
+        if factor > 1:
+            pitches.append(_pitch_decision(name, spacing_mm, factor))
         masks[name] = binary_mask(targets[name])
         views[name] = view
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
@@ -190,7 +195,14 @@ def load_case(
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
                 readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
                 volume=volume_readout, sources=_sources(images, volume_sources),
-                decisions=decisions + [decision for name in VIEW_NAMES for decision in images[name].decisions])
+                decisions=decisions + [decision for name in VIEW_NAMES for decision in images[name].decisions] + pitches)
+
+
+def _pitch_decision(name: str, spacing_mm: float, factor: int) -> InputDecision:
+    """The record of a grey-level image segmented on ``factor`` × ``factor`` averaged pixels (:mod:`~dsareg_engine.vision.segmentation_scale`)."""
+    return InputDecision(name, "segmentation pitch", f"{factor}x{factor} pixels averaged ({factor * spacing_mm:.3f} mm)",
+                         f"detector pixel spacing (mm) finer than {SegmentationScale().pitch_mm} mm",
+                         round(float(spacing_mm), 5), source="tag")
 
 
 def _sources(images: dict[str, LoadedImage], volume: DicomSources) -> DicomSources:

@@ -153,6 +153,8 @@ def test_no_recipe_run_with_rotation_masks_and_rotation_found():
     assert record["run"] == "native" and record["mask_frame_indices"] == [0, 1, 2]
     assert record["mask_shift_px"]["rotation_deg"] == pytest.approx(0.5, abs=0.03)
     np.testing.assert_allclose(record["mask_shift_px"]["found_px"], (0.8, -0.5), atol=0.08)
+    for frame, total in record["mask_shift_px_per_frame"].items():  # the phase's other frames, from the peak's move
+        np.testing.assert_allclose(total, (0.8, -0.5), atol=0.08, err_msg=f"frame {frame}")
     kinds = {decision.what: decision for decision in image.decisions}
     assert kinds["run kind"].chosen == "native" and not kinds["run kind"].close
     assert kinds["mask frames"].chosen == "0,1,2" and not kinds["mask frames"].close

@@ -1,0 +1,75 @@
+"""The pixel pitch a grey-level DSA is segmented at: fine detector pixels area-averaged to a physical scale.
+
+The segmentation (:mod:`.dsa_border`, :mod:`.dsa_coverage`) works in pixels: its smoothing (1 px), its
+background scale (16 px), its reach (2–3 px) and its noise floor. Those are physical scales only at a
+given pixel pitch, and the noise is too: on the same detector and dose, a pixel half as wide holds a
+quarter of the photons, so its noise doubles while a vessel's contrast stays the same. Read at 2048 px
+(0.086 mm) a run holds ~220 photons per pixel and the vessels sink into the noise; the same run read at
+1024 px (0.17 mm) segments cleanly.
+
+So an image whose detector pixels are finer than about ``pitch_mm`` is area-averaged by the integer
+factor that brings its pitch closest to ``pitch_mm`` (the noise averaged as a coarser detector would,
+the vessels kept), segmented there, and its coverage brought back onto the image's own pixels by bilinear
+interpolation (pixel centres aligned; a coverage ramp is symmetric about its 0.5 level, so the sub-pixel
+border stays where the coarse segmentation put it). Pixels of ``pitch_mm`` or coarser are segmented as
+they are: at 512 and 1024 px on a 30 cm detector nothing changes. The factor is read from the pixel
+spacing (the image's tags or the geometry file), recorded as an
+:class:`~dsareg_engine.io.input_decisions.InputDecision` when it is above 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .segmentation import resolved_method, vessel_coverage
+
+
+@dataclass(frozen=True)
+class SegmentationScale:
+    """Attributes:
+        pitch_mm: the detector pixel pitch segmentation works at; finer pixels are averaged towards it
+            (the integer factor nearest ``pitch_mm / spacing``).
+    """
+
+    pitch_mm: float = 0.15
+
+
+def averaging_factor(spacing_mm: float | None, settings: SegmentationScale = SegmentationScale()) -> int:
+    """Pixels per side averaged into one segmentation pixel (1: none; unknown spacing: none)."""
+    if spacing_mm is None or not np.isfinite(spacing_mm) or spacing_mm <= 0:
+        return 1
+    return max(1, int(round(settings.pitch_mm / spacing_mm)))
+
+
+def area_averaged(pixels: np.ndarray, factor: int) -> np.ndarray:
+    """``pixels`` ``(H, W)`` averaged ``factor`` × ``factor`` into ``(⌈H/f⌉, ⌈W/f⌉)`` (edges replicated to fill)."""
+    height, width = pixels.shape
+    padded = cv2.copyMakeBorder(pixels.astype(np.float32), 0, (-height) % factor, 0, (-width) % factor,
+                                cv2.BORDER_REPLICATE)
+    return cv2.resize(padded, (padded.shape[1] // factor, padded.shape[0] // factor), interpolation=cv2.INTER_AREA)
+
+
+def back_on_pixels(coverage: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """A coverage ``(h, w)`` of :func:`area_averaged` pixels on the original ``(H, W)`` pixels: bilinear
+    (cv2's half-pixel centres: coarse pixel ``i`` is centred on fine ``f i + (f − 1) / 2``)."""
+    fine = cv2.resize(coverage.astype(np.float32), (coverage.shape[1] * factor, coverage.shape[0] * factor),
+                      interpolation=cv2.INTER_LINEAR)
+    return np.clip(fine[:shape[0], :shape[1]], 0.0, 1.0)
+
+
+def coverage_at_scale(pixels: np.ndarray, method: str, spacing_mm: float | None, *, field_name: str = "image",
+                      settings: SegmentationScale = SegmentationScale()) -> tuple[np.ndarray, int]:
+    """``(the registration target (H, W) as :func:`~.segmentation.vessel_coverage` gives it, factor)``, segmented
+    at the physical pitch (module docstring) when the method resolves to ``"dsa"``; other methods, masks and
+    pixels at or above ``pitch_mm`` unchanged (factor 1)."""
+    factor = averaging_factor(spacing_mm, settings)
+    pixels = np.asarray(pixels)
+    if factor <= 1 or pixels.ndim != 2 or pixels.dtype == bool or resolved_method(pixels, method) != "dsa" \
+            or min(pixels.shape) < 32 * factor:
+        return vessel_coverage(pixels, method, field_name=field_name), 1
+    small = area_averaged(pixels, factor)
+    coverage = vessel_coverage(small, method, field_name=field_name)
+    return back_on_pixels(np.asarray(coverage, np.float32), factor, pixels.shape), factor
