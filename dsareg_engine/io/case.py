@@ -201,7 +201,7 @@ def load_case(
 def _pitch_decision(name: str, spacing_mm: float, factor: int) -> InputDecision:
     """The record of a grey-level image segmented on ``factor`` × ``factor`` averaged pixels (:mod:`~dsareg_engine.vision.segmentation_scale`)."""
     return InputDecision(name, "segmentation pitch", f"{factor}x{factor} pixels averaged ({factor * spacing_mm:.3f} mm)",
-                         f"detector pixel spacing (mm) finer than {SegmentationScale().pitch_mm} mm",
+                         f"detector pixel spacing (mm) finer than {SegmentationScale().pitch_mm:g} mm / 1.5",
                          round(float(spacing_mm), 5), source="tag")
 
 
