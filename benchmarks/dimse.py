@@ -65,7 +65,7 @@ def big_study(slices: int = 40, side: int = 512):
 def transfer(folder: Path) -> dict:
     from pynetdicom import AE
 
-    from service.pacs.dimse.inbox import Inbox
+    from service.storage.inbox import Inbox
     from service.pacs.dimse.scp import StoreScp, start_server
     from service.settings import ServiceSettings
     from service.storage.blobs import BlobStore

@@ -27,8 +27,9 @@ from typing import Any
 
 from ...engine_adapter import xa_view_angle_deg
 from ...intake.refusals import Overloaded, Refusal
+from ...storage.interfaces import DicomInbox
+from ...storage.records import StoredInstance
 from .grouping import PlannedJob, StudyPlan, XaView, plan_study
-from .inbox import Inbox, StoredInstance
 from .query import DimsePacsError, latest_volume, retrieve
 
 log = logging.getLogger("dsareg.dimse")
@@ -55,7 +56,7 @@ class StudyDispatcher:
     HOUSEKEEPING_SECONDS = 5.0
     HEADER_CACHE_STUDIES = 32
 
-    def __init__(self, settings: Any, blobs: Any, inbox: Inbox, intake: Any, loop: asyncio.AbstractEventLoop,
+    def __init__(self, settings: Any, blobs: Any, inbox: DicomInbox, intake: Any, loop: asyncio.AbstractEventLoop,
                  tick_seconds: float = 0.25, housekeeping=None):
         self.settings, self.blobs, self.inbox, self.intake = settings, blobs, inbox, intake
         self.loop, self.tick = loop, tick_seconds

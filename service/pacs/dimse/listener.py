@@ -19,8 +19,8 @@ import asyncio
 import logging
 
 from ...intake.context import IntakeContext
+from ...storage.inbox import Inbox
 from .dispatcher import StudyDispatcher
-from .inbox import Inbox
 from .scp import StoreScp, start_server
 from .submit import DimseIntake
 

@@ -129,7 +129,7 @@ class DimsePullJob:
             return lambda level, keys, step: c_get(settings, source.peer, level, keys, step)
         import sqlalchemy as sa
 
-        from .inbox import Inbox
+        from ...storage.inbox import Inbox
 
         database = sa.create_engine(settings.effective_database_url)  # the job database: the node's inbox
         stack.callback(database.dispose)

@@ -34,8 +34,10 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
+from ...storage.interfaces import DicomInbox
+from ...storage.records import StoredInstance
 from ..instance_check import InstanceLimits, InstanceRefused, check_instance
-from .inbox import Inbox, StoredInstance, fsync_file
+from .inbox import fsync_file
 from .receive_bound import BoundedBuffer, bound_association
 
 log = logging.getLogger("dsareg.dimse")
@@ -113,7 +115,7 @@ def free_bytes(folder) -> int:
 class StoreScp:
     """The handlers of one listening AE; ``on_commit(study_uids)`` is told of released associations."""
 
-    def __init__(self, settings: Any, inbox: Inbox, blobs: Any, on_commit=None):
+    def __init__(self, settings: Any, inbox: DicomInbox, blobs: Any, on_commit=None):
         self.settings, self.inbox, self.blobs = settings, inbox, blobs
         self.on_commit = on_commit or (lambda studies: None)
         self.peers = configured_peers(settings)

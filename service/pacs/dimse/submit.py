@@ -24,9 +24,9 @@ from ...engine_adapter import job_case
 from ...intake.context import ANONYMOUS, IntakeContext
 from ...intake.refusals import Refusal
 from ...intake.submission import check_queue, create_job, fingerprint, new_job, parse_options_json, validate_inputs
+from ...storage.records import StoredInstance
 from ...storage.store import InputFile
 from .grouping import PlannedJob
-from .inbox import StoredInstance
 
 log = logging.getLogger("dsareg.dimse")
 

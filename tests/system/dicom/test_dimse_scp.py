@@ -9,7 +9,7 @@ import pydicom
 import pytest
 from pynetdicom import AE
 
-from service.pacs.dimse.inbox import Inbox
+from service.storage.inbox import Inbox
 from service.pacs.dimse.scp import StoreScp, start_server
 from service.settings import ServiceSettings
 from service.storage.blobs import BlobStore
@@ -97,7 +97,7 @@ def test_abort_keeps_what_was_answered_success_until_the_sender_comes_back(node,
 def _rows(scp):
     import sqlalchemy as sa
 
-    from service.pacs.dimse.inbox import instances
+    from service.storage.schema import dimse_instances as instances
 
     with scp.inbox.engine.connect() as conn:
         return conn.execute(sa.select(instances)).all()

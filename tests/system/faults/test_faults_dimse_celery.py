@@ -48,7 +48,7 @@ def node(tmp_path_factory, redis_server, postgres_server):
 
 
 def _rows(topo, study_uid: str) -> dict[str, int]:
-    from service.pacs.dimse.inbox import instances
+    from service.storage.schema import dimse_instances as instances
 
     with topo.store.engine.connect() as conn:
         rows = conn.execute(sa.select(instances.c.state, sa.func.count()).where(instances.c.study_uid == study_uid)

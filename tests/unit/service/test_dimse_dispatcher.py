@@ -16,7 +16,7 @@ from test_dimse_grouping import ct, xa  # headers of a two-XA study with a volum
 
 from service.intake.refusals import InvalidInput, Overloaded, QuotaExceeded
 from service.pacs.dimse.dispatcher import OVERLOADED_RETRY_S, StudyDispatcher
-from service.pacs.dimse.inbox import StoredInstance
+from service.storage.records import StoredInstance
 
 pytestmark = pytest.mark.filterwarnings("ignore:Invalid value for VR UI")
 STUDY = "1.2.3"

@@ -304,3 +304,31 @@ def test_a_deliverer_never_claims_what_its_own_pool_still_delivers(store, tmp_pa
     deliverer._pool.shutdown(wait=True)
     done = store.get(job.id).export
     assert done["state"] == "done" and done["attempts"] == 1
+
+
+def test_each_concern_stands_alone_on_one_database(tmp_path):
+    """Jobs, leases, reviews and deliveries as separate objects on one Database: a job created by one is claimed,
+    completed, reviewed and its callback and held export delivered by the others."""
+    from service.storage.database import Database
+    from service.storage.deliveries import SqlDeliveries
+    from service.storage.jobrows import SqlJobs
+    from service.storage.leases import SqlLeases
+    from service.storage.migrate import upgrade_database
+    from service.storage.reviews import SqlReviews
+
+    url = f"sqlite:///{tmp_path / 'jobs.sqlite3'}"
+    upgrade_database(url)
+    database = Database(url)
+    jobs, leases, reviews, deliveries = (kind(database) for kind in (SqlJobs, SqlLeases, SqlReviews, SqlDeliveries))
+    now = time.time()
+    job, created = jobs.create(JobRecord(id=new_job_id(), owner="a", status="queued", created_at=now, updated_at=now,
+                                         inputs=[InputFile("mesh", "a" * 64, 3, ".obj")], callback_url="http://h/cb"))
+    assert created and leases.claim("w1", 30).id == job.id
+    assert leases.complete(job.id, "w1", "succeeded", result={"ok": 1}, export={"via": "c-store", "peers": ["P"]})
+    assert deliveries.due_callbacks(time.time() + 1) == [job.id] and deliveries.due_exports(time.time() + 1) == []
+    assert reviews.review(job.id, "approved", "fine", "key:1").export["state"] == "pending"
+    assert deliveries.claim_export(job.id, time.time(), 30)["target"] == {"via": "c-store", "peers": ["P"]}
+    assert [e["event"] for e in reviews.events(job.id)] == [
+        "queued", "claimed", "succeeded", "export_awaiting_review", "reviewed", "export_queued"]
+    assert jobs.get(job.id).callback["state"] == "pending" and jobs.ping()
+    database.dispose()
