@@ -6,7 +6,7 @@ write every output, warnings joined there) → the artifacts and the result into
 (STOW-RS first for a job by reference that asked for it).
 
 Runs in its own process (started by an executor with the ``spawn`` context). See
-:mod:`service.storage.store` for the lease protocol. A background thread renews the lease
+:mod:`service.storage.leases` for the lease protocol. A background thread renews the lease
 every ``heartbeat`` seconds even when the engine reports no progress (loading,
 writing), and reads the job's ``cancel_requested`` flag; the engine's
 ``should_stop`` callback then answers from memory.

@@ -6,7 +6,7 @@ store's lease protocol (conditional UPDATE … WHERE status='queued'). So
 
 * a message delivered twice (re-dispatch, broker redelivery after a worker died) finds
   the job running or finished and is dropped: a job runs to completion at most once,
-  because completion is guarded by ``worker_id`` (see :mod:`service.storage.store`);
+  because completion is guarded by ``worker_id`` (see :mod:`service.storage.leases`);
 * a message the broker lost (Redis restarted without persistence) is re-sent by the
   API's sweeper (:meth:`CeleryExecutor.maintain`): queued rows are the truth;
 * a worker killed mid-job stops renewing its lease; the sweeper requeues the job and
