@@ -127,16 +127,10 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
         kind, source = reading.kind, "given: volume_kind"
     spacing = np.asarray(volume.spacing_mm)
     smooth = ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
-    if kind == "cta":
-        field, mask, levels, excluded = _cta(smooth, spacing, reading, field_name)
-    elif kind == "mra":
-        field, mask, levels, excluded = _mra(smooth, volume.affine, spacing, reading, field_name)
+    if kind == "3d-dsa":
+        (field, mask, levels), excluded, plate_share = _dsa3d(smooth, reading, field_name), None, None
     else:
-        (field, mask, levels), excluded = _dsa3d(smooth, reading, field_name), None
-    plate_share = None  # the medial plate share of the final mask, when already measured
-    if kind != "3d-dsa":  # bone in the window (a diploë, a cancellous skull base, marrow fat) is a plate: set aside
-        mask, plates, plate_share = _without_plates(mask, spacing, field_name)
-        excluded = plates if excluded is None else (excluded | plates)
+        field, mask, levels, excluded, plate_share = _tubes(kind, smooth, volume.affine, spacing, reading, field_name)
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
@@ -148,6 +142,31 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
     readout.faces = mesh.n_faces
     return VesselExtraction(mesh, readout, mask, excluded)
+
+
+def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
+           field_name: str):
+    """CTA / MRA: ``(field, mask, levels, excluded, plate_share)``. Bone in the window (a diploë, a cancellous skull
+    base, marrow fat) is a plate: set aside (:func:`_without_plates`). When plates were set aside and the vessel
+    level was estimated (not given), it was estimated with their voxels among the vessels' (a cancellous skull
+    base outweighs the vessels: the level lands above thin vessels, and the distal tree falls apart at coarse
+    voxels): the reading is done again with the plates and their rim left out of the estimate."""
+    from scipy import ndimage
+
+    def read(not_vessels):
+        if kind == "cta":
+            return _cta(smooth, spacing, reading, field_name, not_vessels)
+        return _mra(smooth, affine, spacing, reading, field_name, not_vessels)
+
+    field, mask, levels, excluded = read(None)
+    mask, plates, plate_share = _without_plates(mask, spacing, field_name)
+    if plates.any() and reading.vessel_min is None:
+        rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
+        set_aside = ndimage.binary_dilation(plates, iterations=rim)
+        field, mask, levels, excluded = read(set_aside)
+        mask, more, plate_share = _without_plates(mask, spacing, field_name)
+        plates |= more
+    return field, mask, levels, excluded | plates, plate_share
 
 
 def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str):
@@ -243,7 +262,9 @@ def _dsa3d(smooth: np.ndarray, reading: VolumeReading, field_name: str):
     return smooth, mask, {"min": level}
 
 
-def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str):
+def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str,
+         not_vessels: np.ndarray | None = None):
+    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
     from scipy import ndimage
 
     bone_hu = float(reading.vessel_max) if reading.vessel_max is not None else DEFAULT_BONE_HU
@@ -257,6 +278,8 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     band = PV_BAND_MM + float(spacing.max())
     near_bone = distance_to_bone <= band
     candidates = (smooth > tissue + 100.0) & (smooth < bone_hu) & ~near_bone
+    if not_vessels is not None:
+        candidates &= ~not_vessels
     if reading.vessel_min is not None:
         level = float(reading.vessel_min)
         vessel = None
@@ -326,7 +349,9 @@ def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
     return filled
 
 
-def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str):
+def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str,
+         not_vessels: np.ndarray | None = None):
+    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
     from scipy import ndimage
 
     head = _head_mask(smooth, affine)
@@ -336,6 +361,8 @@ def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: V
         raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
     values = smooth[interior]
     tissue, spread = _mode_and_upper_spread(values)
+    if not_vessels is not None:
+        values = smooth[interior & ~not_vessels]
     bright = values[values > tissue + 6.0 * spread]
     if reading.vessel_min is not None:
         level, vessel = float(reading.vessel_min), None

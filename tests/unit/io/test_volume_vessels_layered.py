@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from dsareg_engine.io.volume_io import read_volume
 from dsareg_engine.io.volume_vessels import extract_vessels
-from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
+from dsareg_engine.simulation.synthetic_heads_layered import CTA_LEVELS, make_layered_cta_head, make_layered_mra_head
 from dsareg_engine.simulation.synthetic_volumes import vessel_tree
 
 SMALL_HEAD_MM = (30.0, 30.0, 40.0)
@@ -44,3 +44,18 @@ def test_a_layered_head_is_read_as_its_vessels(kind, voxel_mm):
     # most of the tree is there (the trunk's segment through the cancellous skull base can be set aside with it)
     assert np.percentile(truth_to_model, 75) < 1.5 * coarse, np.percentile(truth_to_model, [50, 75, 90, 100])
     assert extraction.readout.plate_share < 0.35
+
+
+def test_a_cancellous_skull_base_does_not_raise_the_vessel_window():
+    """The skull base's cancellous core (550 HU, in the HU window) outweighed the vessels in the level estimate: on
+    main the window started at 259 HU instead of ~160 and at 0.8 mm the thin distal tree fell below it (42 % of the
+    tree's upper half kept; ADD 5.0 mm, ``check``, in the sweep). The level is estimated again without the plates."""
+    tree = vessel_tree(3, 3)
+    head = make_layered_cta_head(voxel_mm=0.8, tree=tree, min_head_mm=SMALL_HEAD_MM)
+    extraction = extract_vessels(read_volume(head.parts))
+    samples, _ = trimesh.sample.sample_surface(trimesh.Trimesh(tree.vertices, tree.faces, process=False), 20_000,
+                                               seed=1)
+    covered = cKDTree(extraction.mesh.vertices).query(samples)[0] < 1.0
+    upper = samples[:, 2] > np.median(samples[:, 2])  # the distal half: thin branches
+    assert covered[upper].mean() > 0.9, covered[upper].mean()
+    assert extraction.readout.vessel_min < 0.5 * (CTA_LEVELS["brain"] + CTA_LEVELS["vessel"]) + 20.0
