@@ -156,7 +156,7 @@ def _compile_search() -> None:
     import numba
     import numpy as np
 
-    from .registration.coverage_search import _SPLAT
+    from .registration.search.coverage_search import _SPLAT
 
     with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-search-") as work_dir:
         warm_up_job(Path(work_dir), pose_search=True)
@@ -221,8 +221,8 @@ def _group_dispatchers(name: str) -> list:
 
         return [jacobian_kernel("soft_log_keep_tangents")[0], jacobian_kernel("normal_equations")[0],
                 jacobian_numba.gather_faces_with_tangents]
-    from .registration.coverage_search import _SPLAT
-    from .registration.initialization import _SEARCH_KERNELS
+    from .registration.search.coverage_search import _SPLAT
+    from .registration.search.initialization import _SEARCH_KERNELS
     from numba import get_num_threads
 
     return [pair.pick(get_num_threads()) for pair in (*_SEARCH_KERNELS.values(), _SPLAT)]

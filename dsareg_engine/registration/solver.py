@@ -31,8 +31,8 @@ from ..geometry.vessel_tree import compact, select_region
 from .border import update_border_shift
 from .confidence import ConfidenceThresholds, assess, outside_fraction, runner_up, tolerant_f_score
 from .gauss_newton import levenberg_marquardt
-from .branch_search import with_branch_starts
-from .initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
+from .search.branch_search import with_branch_starts
+from .search.initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .mirror import with_mirror_check
 from .options import RegistrationOptions
 from .partial import looks_partial, match_fractions, trimmed_weight

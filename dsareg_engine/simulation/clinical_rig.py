@@ -75,7 +75,7 @@ def clinical_biplane_rig(size_px: int = 256, angle_between_deg: float = 107.0, d
 
 def uniform_rotation(rng: np.random.Generator) -> np.ndarray:
     """A rotation ``(3, 3)`` drawn uniformly over SO(3) (normalized Gaussian quaternion)."""
-    from ..registration.rotation_grid import quaternions_to_matrices
+    from ..registration.search.rotation_grid import quaternions_to_matrices
 
     quaternion = rng.normal(size=4)
     return quaternions_to_matrices((quaternion / np.linalg.norm(quaternion))[None])[0]

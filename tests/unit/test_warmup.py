@@ -123,7 +123,8 @@ def test_the_search_group_holds_the_coverage_searchs_splat(tmp_path):
         import numpy as np
         from dsareg_engine.threads import set_cpu_threads
         from dsareg_engine import warmup
-        from dsareg_engine.registration.coverage_search import _SPLAT, _splats, coverage_view, CoverageSettings
+        from dsareg_engine.registration.search.coverage_search import _SPLAT, _splats, coverage_view
+        from dsareg_engine.registration.search.settings import COVERAGE
         from dsareg_engine.geometry.rig import ViewGeometry
         set_cpu_threads(1)
         cached = warmup.group_cached("search")
@@ -131,7 +132,7 @@ def test_the_search_group_holds_the_coverage_searchs_splat(tmp_path):
                             principal_point_px=(31.5, 31.5), world_to_view=np.eye(4))
         mask = np.zeros((64, 64), bool)
         mask[20:40, 30:34] = True
-        canvas = coverage_view(view, mask, np.array([0.0, 0.0, 700.0]), 10.0, CoverageSettings())
+        canvas = coverage_view(view, mask, np.array([0.0, 0.0, 700.0]), 10.0, COVERAGE)
         points = np.ascontiguousarray(np.random.default_rng(0).normal(size=(50, 3)))
         _splats(canvas, np.eye(3)[None].repeat(2, axis=0), np.array([0.0, 0.0, 700.0]), points, 1)
         stats = _SPLAT.pick(1).stats

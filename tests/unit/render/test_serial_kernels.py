@@ -8,7 +8,7 @@ import torch
 from dsareg_engine.geometry.spec import load_rig
 from dsareg_engine.simulation.phantom import make_vessel_phantom
 from dsareg_engine.geometry.pose import make_transform, rotation_about_axis
-from dsareg_engine.registration import initialization
+from dsareg_engine.registration.search import initialization
 from dsareg_engine.render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette, silhouette
 from dsareg_engine.render.serial_kernels import KernelPair
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from ..render import kernels_numba  # noqa: F401  (sets the non-spinning threading layer first)
+from ...render import kernels_numba  # noqa: F401  (sets the non-spinning threading layer first)
 
 
 @njit(parallel=True, cache=True, fastmath=True)

@@ -27,38 +27,14 @@ import cv2
 import numba
 import numpy as np
 
-from ..geometry.rig import Rig, ViewGeometry
-from ..mesh import TriangleMesh
-from ..render.serial_kernels import KernelPair
+from ...geometry.rig import Rig, ViewGeometry
+from ...mesh import TriangleMesh
+from ...render.serial_kernels import KernelPair
 from . import search_kernels
-from .coverage_search import CoverageSettings, coverage_on, search_by_coverage
+from .coverage_search import coverage_on, search_by_coverage
 from .rotation_grid import grid_spacing_deg, rotation_grid
 from .rotation_refine import distinct, hill_climb, poses_from
-
-
-@dataclass(frozen=True)
-class SearchSettings:
-    """Knobs of the global search (defaults measured on the phantom and the paper's mesh).
-
-    Attributes:
-        rotations: size of the SO(3) grid (4096 → neighbours ~15° apart, any rotation within ~13°).
-        window_px: longest side of the scoring window around the mask.
-        margin: window margin around the mask's bounding box, as a fraction of its size.
-        points: surface points splatted per candidate.
-        blur_px: Gaussian blur of the mask in the window (px).
-        refine_top: candidates refined by the local hill-climb.
-        refine_steps_deg: rotation steps of the hill-climb, one round each.
-        distinct_deg: starts differ by at least this rotation.
-    """
-
-    rotations: int = 4096
-    window_px: int = 64
-    margin: float = 0.3
-    points: int = 2500
-    blur_px: float = 1.5
-    refine_top: int = 40
-    refine_steps_deg: tuple[float, ...] = (8.0, 4.0, 2.0)
-    distinct_deg: float = 30.0
+from .settings import CENTROID, COVERAGE, SearchSettings
 
 
 @dataclass
@@ -217,7 +193,7 @@ def surface_points(mesh: TriangleMesh, count: int, seed: int = 0) -> np.ndarray:
 
 
 _SEARCH_KERNELS = {name: KernelPair(getattr(search_kernels, name)) for name in ("mean_pixels", "splat_overlap")}
-"""The search kernels and their serial twins (used on a 1-thread budget, see :mod:`..render.serial_kernels`)."""
+"""The search kernels and their serial twins (used on a 1-thread budget, see :mod:`...render.serial_kernels`)."""
 
 
 def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -230,7 +206,7 @@ def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray)
 
 def _search_kernel(name: str):
     """The search kernel ``name`` for this thread budget (after any background compile of it is done)."""
-    from ..render.compile_lock import wait_for_group
+    from ...render.compile_lock import wait_for_group
 
     wait_for_group("search")
     return _SEARCH_KERNELS[name].pick(numba.get_num_threads())
@@ -284,8 +260,8 @@ def score_candidates(
 
 
 def search_initial_poses(
-    mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, count: int, settings: SearchSettings = SearchSettings(),
-    coverage: CoverageSettings | None = CoverageSettings(),
+    mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, count: int, settings: SearchSettings = CENTROID,
+    coverage: SearchSettings | None = COVERAGE,
 ) -> Initialization:
     """``count`` distinct starting poses for ``mesh`` from the views' masks (no pose needed).
 
@@ -316,7 +292,7 @@ def search_initial_poses(
 
 
 def _with_coverage_starts(found: Initialization, mesh, masks, rig, centre, points, count, settings,
-                          coverage: CoverageSettings, started: float) -> Initialization:
+                          coverage: SearchSettings, started: float) -> Initialization:
     """Score the grid by coverage (:mod:`.coverage_search`); when its best candidate explains the vessels
     while leaving part of the model unmatched (:func:`looks_partial`), its distinct best candidates lead the starts."""
     searched = search_by_coverage(mesh, masks, rig, centre, points, max(count, 2), settings.distinct_deg, coverage)

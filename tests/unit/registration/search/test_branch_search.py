@@ -3,9 +3,15 @@
 import numpy as np
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
-from dsareg_engine.registration.branch_search import (BranchCandidates, BranchSettings, candidate_parts, part_runner_up,
-                                                      search_parts, with_branch_starts)
-from dsareg_engine.registration.initialization import Initialization
+from dsareg_engine.registration.search.branch_search import (
+    BranchCandidates,
+    BranchSettings,
+    candidate_parts,
+    part_runner_up,
+    search_parts,
+    with_branch_starts,
+)
+from dsareg_engine.registration.search.initialization import Initialization
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 from dsareg_engine.simulation.partial_filling import early_filling, extra_territory
 

@@ -3,15 +3,25 @@
 import numpy as np
 import pytest
 
-from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks, uniform_rotation
-from dsareg_engine.simulation.partial_filling import early_filling
 from dsareg_engine.geometry.file import rig_from_dict
 from dsareg_engine.metrics import mean_distance_mm
 from dsareg_engine.registration import RegistrationOptions, register
-from dsareg_engine.registration.branch_search import BranchSettings, with_branch_starts
-from dsareg_engine.registration.initialization import (EXPLAINED, pixel_ray_world, resolve_initialization, search_initial_poses,
-                                                       triangulate)
-from dsareg_engine.registration.rotation_grid import angles_between_deg, grid_spacing_deg, rotation_grid
+from dsareg_engine.registration.search.branch_search import BranchSettings, with_branch_starts
+from dsareg_engine.registration.search.initialization import (
+    EXPLAINED,
+    pixel_ray_world,
+    resolve_initialization,
+    search_initial_poses,
+    triangulate,
+)
+from dsareg_engine.registration.search.rotation_grid import angles_between_deg, grid_spacing_deg, rotation_grid
+from dsareg_engine.simulation.clinical_rig import (
+    clinical_biplane_rig,
+    random_visible_pose,
+    render_masks,
+    uniform_rotation,
+)
+from dsareg_engine.simulation.partial_filling import early_filling
 
 
 def test_rotation_grid_covers_so3_evenly():

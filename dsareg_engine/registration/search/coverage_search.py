@@ -31,42 +31,14 @@ import numba
 import numpy as np
 import scipy.fft
 
-from ..geometry.rig import Rig, ViewGeometry
-from ..mesh import TriangleMesh
-from ..render.serial_kernels import KernelPair
+from ...geometry.rig import Rig, ViewGeometry
+from ...mesh import TriangleMesh
+from ...render.serial_kernels import KernelPair
+from ..parameterization import mesh_radius_mm
 from . import search_kernels
-from .parameterization import mesh_radius_mm
 from .rotation_grid import grid_spacing_deg, rotation_grid
 from .rotation_refine import distinct, hill_climb, poses_from
-
-
-@dataclass(frozen=True)
-class CoverageSettings:
-    """Knobs of the coverage search.
-
-    Attributes:
-        window_px: side of the scoring window (the canvas is twice as large).
-        model_reach: the window's half side covers at least this many projected model RMS radii.
-        margin: window margin around the mask's bounding box, as a fraction of its size.
-        beta: recall weighs β² times precision in the F-score.
-        chunk: candidates scored per FFT batch (memory: chunk × C² floats).
-        rotations: size of its SO(3) grid (coarser than the centroid search's: each candidate costs FFTs).
-        refine_top: best candidates refined by the hill-climb.
-        refine_steps_deg: rotation steps of the hill-climb, one round each.
-        past_edge_weight: a model pixel past the detector's edge counts this much against precision (one on
-            the detector but off the vessels counts 1): the field of view may cut the model, but a pose must
-            not win by hiding what it cannot explain past the edge.
-    """
-
-    window_px: int = 40
-    model_reach: float = 1.5
-    margin: float = 0.3
-    beta: float = 2.0
-    chunk: int = 512
-    rotations: int = 512
-    refine_top: int = 16
-    refine_steps_deg: tuple[float, ...] = (12.0, 6.0, 3.0)
-    past_edge_weight: float = 0.5
+from .settings import COVERAGE, SearchSettings
 
 
 @dataclass
@@ -84,7 +56,7 @@ class CoverageView:
 
 
 def coverage_view(view: ViewGeometry, mask: np.ndarray, centre_world: np.ndarray, radius_mm: float,
-                  settings: CoverageSettings) -> CoverageView:
+                  settings: SearchSettings) -> CoverageView:
     """The canvas of ``view`` for ``mask`` ``(H, W)`` bool, sized for a model of RMS radius ``radius_mm`` at ``centre_world``."""
     rows, cols = np.nonzero(mask)
     extent = max(cols.max() - cols.min(), rows.max() - rows.min()) + 1.0
@@ -123,7 +95,7 @@ def _placement(view: ViewGeometry, rotations: np.ndarray, centres: np.ndarray):
 
 
 def _splats(canvas: CoverageView, rotations: np.ndarray, centre: np.ndarray, points: np.ndarray, reach: int) -> np.ndarray:
-    from ..render.compile_lock import wait_for_group
+    from ...render.compile_lock import wait_for_group
 
     wait_for_group("search")  # the splat belongs to the search group (a background helper may be compiling it)
     size = canvas.view.width
@@ -171,7 +143,7 @@ def _jacobian(canvases: list[CoverageView], centre: np.ndarray) -> np.ndarray:
 
 
 def coverage_scores(canvases: list[CoverageView], rotations: np.ndarray, centre: np.ndarray, points: np.ndarray,
-                    settings: CoverageSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    settings: SearchSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Scores ``(B,)`` (``1 − F_β``, 0 best), positions ``(B, 3)`` (world mm of the points' origin) and
     per-view ``(precision, recall)`` ``(B, V, 2)`` of rotations ``(B, 3, 3)``."""
     jacobian = _jacobian(canvases, centre)
@@ -213,14 +185,14 @@ class CoverageCandidates:
 
 
 def _canvases(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray,
-              settings: CoverageSettings) -> list[CoverageView]:
+              settings: SearchSettings) -> list[CoverageView]:
     """One canvas per view of ``masks``, sized for ``mesh``'s RMS radius at ``centre``."""
     radius = mesh_radius_mm(mesh.vertices)
     return [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
 
 
 def search_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
-                       count: int, distinct_deg: float, settings: CoverageSettings = CoverageSettings()) -> CoverageCandidates:
+                       count: int, distinct_deg: float, settings: SearchSettings = COVERAGE) -> CoverageCandidates:
     """Grid of ``settings.rotations`` scored by coverage, the best refined by the hill-climb, ``count`` distinct
     (``distinct_deg`` apart) kept. ``centre`` (world mm): where the masks' centroids triangulate; ``points``
     ``(N, 3)``: the mesh's surface points less its centroid."""
@@ -237,7 +209,7 @@ def search_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Ri
 
 
 def coverage_on(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
-                rotations: np.ndarray, settings: CoverageSettings = CoverageSettings()) -> tuple[np.ndarray, np.ndarray]:
+                rotations: np.ndarray, settings: SearchSettings = COVERAGE) -> tuple[np.ndarray, np.ndarray]:
     """Rotations ``(B, 3, 3)`` each placed by coverage: scores ``(B,)`` and per-view (precision, recall) ``(B, V, 2)``
     (arguments as :func:`search_by_coverage`; no search)."""
     scores, _, detail = coverage_scores(_canvases(mesh, masks, rig, centre, settings), rotations, centre, points, settings)
@@ -245,7 +217,7 @@ def coverage_on(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, cent
 
 
 def refine_by_coverage(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, centre: np.ndarray, points: np.ndarray,
-                       poses: np.ndarray, settings: CoverageSettings) -> tuple[np.ndarray, np.ndarray]:
+                       poses: np.ndarray, settings: SearchSettings) -> tuple[np.ndarray, np.ndarray]:
     """Poses ``(K, 4, 4)`` hill-climbed on ``settings``' canvases (e.g. finer ones) from ``poses``' rotations;
     returns the refined poses and their scores ``(K,)`` (arguments as :func:`search_by_coverage`)."""
     canvases = _canvases(mesh, masks, rig, centre, settings)

@@ -1,10 +1,13 @@
 """The coverage search: precision / recall of a placed model over pixel shifts, and its pose search."""
 
+from dataclasses import replace
+
 import numpy as np
 
-from dsareg_engine.registration.coverage_search import CoverageSettings, coverage_scores, coverage_view, search_by_coverage
-from dsareg_engine.registration.initialization import surface_points, triangulate_mask_centroids
-from dsareg_engine.registration.rotation_grid import angles_between_deg
+from dsareg_engine.registration.search.coverage_search import coverage_scores, coverage_view, search_by_coverage
+from dsareg_engine.registration.search.initialization import surface_points, triangulate_mask_centroids
+from dsareg_engine.registration.search.rotation_grid import angles_between_deg
+from dsareg_engine.registration.search.settings import COVERAGE
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, render_masks
 
 
@@ -15,7 +18,7 @@ def _placed(phantom, rig, centroid_world):
 
 
 def _scores_at(phantom, rig, pose, masks, past_edge_weight):
-    settings = CoverageSettings(beta=1.0, past_edge_weight=past_edge_weight)
+    settings = replace(COVERAGE, beta=1.0, past_edge_weight=past_edge_weight)
     centre = pose[:3, :3] @ phantom.centroid + pose[:3, 3]  # canvases centred on the truth: no shift to linearize
     radius = float(np.sqrt(((phantom.vertices - phantom.centroid) ** 2).sum(axis=1).mean()))
     canvases = [coverage_view(rig.views[name], mask, centre, radius, settings) for name, mask in masks.items()]
@@ -37,7 +40,7 @@ def test_model_pixels_past_the_detector_edge_count_as_weighed(phantom):
     masks = render_masks(phantom, rig, pose)
     seen = ap.project(phantom.vertices @ pose[:3, :3].T + pose[:3, 3])[:, 0]
     assert 0.3 < (seen < 0).mean() < 0.7  # the case is what it claims: a large share past the edge
-    precision = {w: _scores_at(phantom, rig, pose, masks, w)[2][0, :, 0] for w in (0.0, CoverageSettings().past_edge_weight, 1.0)}
+    precision = {w: _scores_at(phantom, rig, pose, masks, w)[2][0, :, 0] for w in (0.0, COVERAGE.past_edge_weight, 1.0)}
     free, default, full = precision.values()
     assert free.min() > 0.95 and full[0] < 0.7 and full[1] > 0.95  # LAT sees it all
     assert full[0] < default[0] < free[0]
@@ -54,7 +57,7 @@ def test_the_search_finds_a_fully_visible_phantom(phantom):
     masks = render_masks(phantom, rig, pose)
     centre = triangulate_mask_centroids(masks, rig)
     points = np.ascontiguousarray(surface_points(phantom, 2500) - phantom.centroid)
-    found = search_by_coverage(phantom, masks, rig, centre, points, 2, 30.0, CoverageSettings(beta=1.0))
+    found = search_by_coverage(phantom, masks, rig, centre, points, 2, 30.0, replace(COVERAGE, beta=1.0))
     assert found.poses.shape == (2, 4, 4) and found.scores[0] <= found.scores[1]
     assert angles_between_deg(found.poses[:1, :3, :3], pose[:3, :3])[0] < 15.0
     placed = phantom.vertices @ found.poses[0][:3, :3].T + found.poses[0][:3, 3]

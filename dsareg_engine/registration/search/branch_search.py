@@ -47,16 +47,17 @@ Shapes: ``K`` parts, ``V`` vertices, ``F`` faces.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..geometry.rig import Rig
-from ..geometry.vessel_tree import VesselTree, compact, vessel_tree
-from ..mesh import TriangleMesh
-from .coverage_search import CoverageSettings, refine_by_coverage, search_by_coverage
+from ...geometry.rig import Rig
+from ...geometry.vessel_tree import VesselTree, compact, vessel_tree
+from ...mesh import TriangleMesh
+from ..parameterization import mesh_radius_mm
+from .coverage_search import refine_by_coverage, search_by_coverage
 from .initialization import Initialization, surface_points, triangulate_mask_centroids
-from .parameterization import mesh_radius_mm
+from .settings import COVERAGE, SearchSettings
 
 
 @dataclass(frozen=True)
@@ -70,17 +71,16 @@ class BranchSettings:
         overlap: a part overlapping a kept one by more than this (Jaccard, faces) is dropped.
         max_parts: branches and rests searched at most (the proximal parts come on top).
         starts: best parts whose poses become starts.
-        beta: the parts' coverage score is ``F_β`` (1: a part's branches off the vessels cost as much as vessels
-            it leaves uncovered, so the part that fits the filled vessels tightest wins).
-        points: surface points splatted per part.
-        fine_window_px / fine_steps_deg: each part's best pose is hill-climbed again on canvases this fine, by
-            these steps, and the parts are ranked by that score (on the coarse canvas a part of the model with a
-            third of it past the detector's edge scored as well as wrong parts, 0.11–0.16; on the fine one
-            0.14 against ≥ 0.25, measured on the paper's mesh).
         proximal_shares: proximal parts tried first: the faces nearest the inflow, these shares of them (an early
             arterial frame; see :func:`proximal_parts`).
-        coarse_points / coarse_top: the coarse search splats this many of a part's points and hill-climbs its this many
-            best rotations (the fine refinement then uses all ``points``).
+        coarse: each part's coverage search: its grid, the best ``refine_top`` rotations hill-climbed, on the first
+            ``points`` of the part's ``fine.points`` surface points. ``beta`` 1 (both passes): a part's branches off
+            the vessels cost as much as vessels it leaves uncovered, so the part that fits the filled vessels
+            tightest wins.
+        fine: the best pose of each part hill-climbed again on canvases this fine, by these steps, with all ``points``;
+            the parts are ranked by that score (on the coarse canvas a part of the model with a third of it past the
+            detector's edge scored as well as wrong parts, 0.11–0.16; on the fine one 0.14 against ≥ 0.25, measured
+            on the paper's mesh).
     """
 
     samples: int = 400
@@ -90,13 +90,9 @@ class BranchSettings:
     overlap: float = 0.85
     max_parts: int = 24
     starts: int = 2
-    beta: float = 1.0
-    points: int = 2500
-    fine_window_px: int = 96
-    fine_steps_deg: tuple[float, ...] = (3.0, 1.5, 0.75)
     proximal_shares: tuple[float, ...] = (0.3, 0.4, 0.5, 0.6, 0.75)
-    coarse_points: int = 1000
-    coarse_top: int = 6
+    coarse: SearchSettings = replace(COVERAGE, beta=1.0, refine_top=6, points=1000)
+    fine: SearchSettings = replace(COVERAGE, beta=1.0, window_px=96, refine_steps_deg=(3.0, 1.5, 0.75), points=2500)
 
 
 def proximal_parts(mesh: TriangleMesh, tree: VesselTree, shares: tuple[float, ...]) -> np.ndarray:
@@ -149,18 +145,17 @@ class BranchCandidates:
 
 def search_parts(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, settings: BranchSettings = BranchSettings()
                  ) -> BranchCandidates:
-    """Run the coverage search (``F_β``, β = ``settings.beta``) on every candidate part of ``mesh`` and on the
+    """Run the coverage search (``F_β``, β = ``settings.fine.beta``) on every candidate part of ``mesh`` and on the
     whole of it (steps 1–2 of the module)."""
     started = time.perf_counter()
     parts, proximal = candidate_parts(mesh, settings)
     centre = triangulate_mask_centroids(masks, rig)
-    coarse = CoverageSettings(beta=settings.beta, refine_top=settings.coarse_top)
-    fine = CoverageSettings(beta=settings.beta, window_px=settings.fine_window_px, refine_steps_deg=settings.fine_steps_deg)
+    coarse, fine = settings.coarse, settings.fine
     poses, scores = [], []
     for part in [*parts, np.ones(mesh.n_faces, bool)]:
         piece = compact(mesh, part)
-        points = np.ascontiguousarray(surface_points(piece, settings.points) - piece.centroid)
-        found = search_by_coverage(piece, masks, rig, centre, points[: settings.coarse_points], 1, 0.0, coarse)
+        points = np.ascontiguousarray(surface_points(piece, fine.points) - piece.centroid)
+        found = search_by_coverage(piece, masks, rig, centre, points[: coarse.points], 1, 0.0, coarse)
         refined, score = refine_by_coverage(piece, masks, rig, centre, points, found.poses[:1], fine)
         poses.append(refined[0])  # a part keeps the model's frame: its pose places the whole model
         scores.append(float(score[0]))
