@@ -14,6 +14,10 @@ pose, or ``search``). Steps:
    over the views (0 = identical). The best candidates are refined by a local hill-climb.
 3. **Starts.** The best *distinct* candidates (rotations ≥ ``distinct_deg`` apart) become the
    multi-start's starts.
+4. **All of the model shown?** Each start is placed again by the coverage search's shift
+   (:func:`~.coverage_search.coverage_on`); when none has :data:`EXPLAINED` of its model pixels on
+   the vessels in every view, the images show part of the model and the partial searches run
+   (:mod:`.coverage_search` here, :mod:`.branch_search` in the solver).
 
 Array shapes: ``B`` candidates, ``N`` surface points, ``(H, W)`` the search window.
 """
