@@ -17,7 +17,9 @@ where only the other view sees it clean. **Unknown** points are measurable in th
 view, their ``q`` solves the least-squares system of their own rows (known contributions subtracted) with a
 smoothness prior along the model's edges (``SMOOTHNESS`` per edge, rows normalised by their path length):
 a vessel's concentration changes little from one vertex to the next. The parameters of the unknown points are
-then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relative to 1: a typical filled vessel).
+then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relative to 1: a typical filled vessel),
+and an unmixed curve whose peak lies before contrast reached the run or at its last frame is not taken as filled
+(:func:`within_run`: what an imperfect subtraction leaves, e.g. a blocked branch crossed by filled vessels).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry.rig import ViewGeometry
 from ..render.ray_layers import RayStretches
-from .parameters import CurveParameters, curve_parameters
+from .parameters import CurveParameters, baseline_frames, curve_parameters
 
 SMOOTHNESS = 0.3
 RIDGE = 1e-6
@@ -136,5 +138,17 @@ def unmix_view(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known: np
     opacity_per_q = scale * np.maximum(mix.path_mm[rows], 1e-6)
     found = curve_parameters(q, mix.times_s, mix.noise[rows] / opacity_per_q, np.ones(len(rows)),
                              np.ones(len(rows), bool), typical_per_mm=1.0, gamma_fit=True)
-    return replace(found, peak_opacity=found.peak_opacity * opacity_per_q, area=found.area * opacity_per_q,
-                   noise=found.noise * opacity_per_q)
+    found = replace(found, peak_opacity=found.peak_opacity * opacity_per_q, area=found.area * opacity_per_q,
+                    noise=found.noise * opacity_per_q)
+    return within_run(found, mix.times_s, mix.times_s[baseline_frames(mix.curves)])
+
+
+def within_run(found: CurveParameters, times_s: np.ndarray, run_arrival_s: float) -> CurveParameters:
+    """``found`` with the points whose peak is not inside the run's contrast phase made not filled (every value
+    NaN): a peak before contrast reached the run anywhere (``run_arrival_s``) or at its last frame (no peak seen)
+    is what a subtraction of the crossing vessels left, not a bolus."""
+    inside = (found.peak_s >= run_arrival_s) & (found.peak_s < times_s[-1])
+    keep = found.filled & inside
+    fields = {name: np.where(keep, getattr(found, name), np.nan)
+              for name in ("arrival_s", "peak_s", "peak_opacity", "mtt_s", "area")}
+    return replace(found, filled=keep, **fields)
