@@ -121,6 +121,10 @@ class JobSettings(_Group):
                                                                  "DICOMweb / DIMSE retries) before it is marked failed.")
     export_retry_backoff_seconds: float = Field(
         5.0, ge=0.0, description="Delay before the second export attempt; doubles each attempt, at most 300 s.")
+    export_lease_seconds: float = Field(
+        15.0, gt=0.0, le=300.0,
+        description="An export attempt is its API process's until this long after its last renewal (renewed every "
+                    "third of it): an API killed or frozen mid-export leaves the export to another one after this long.")
 
     @property
     def effective_heartbeat_seconds(self) -> float:

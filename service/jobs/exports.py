@@ -11,7 +11,7 @@
 * **Delivered by the API process** (:class:`ExportDeliverer`, the loop of completion callbacks,
   :mod:`.leased`), in both topologies: claimed with a lease, stored, recorded (``done``, or a
   ``pacs-error`` and a retry after ``export_retry_backoff_seconds`` doubling, ``export_max_attempts``
-  in all, then ``failed``). The lease is short (``EXPORT_LEASE_SECONDS``) and renewed every third of
+  in all, then ``failed``). The lease is short (``export_lease_seconds``, 15 s) and renewed every third of
   it while the attempt runs: an API killed (or frozen) between the approval and the store, or during
   it, leaves the row pending or leased for at most that long; after the restart it is stored then
   (at least once; a PACS keeps one copy of a SOP Instance UID stored twice). Every step is an audit
@@ -40,7 +40,6 @@ log = logging.getLogger("dsareg.service.exports")
 
 STOW, CSTORE = "stow-rs", "c-store"
 MAX_BACKOFF_SECONDS = 300.0
-EXPORT_LEASE_SECONDS = 15.0  # renewed every 5 s while an attempt runs: recovery after an API crash ≤ 15 s + a poll
 
 
 def export_target(pacs: Any, dimse: Any) -> dict[str, Any] | None:
@@ -120,11 +119,11 @@ class ExportDeliverer(LeasedDeliverer):
     """The API process's loop that stores approved jobs' results into their PACS (see the module docstring)."""
 
     name = "exports"
-    renewed_lease_seconds = EXPORT_LEASE_SECONDS
 
     def __init__(self, store: JobStore, blobs: BlobStore, settings: ServiceSettings):
         super().__init__(threads=2)
         self.store, self.blobs, self.settings = store, blobs, settings
+        self.renewed_lease_seconds = settings.jobs.export_lease_seconds  # recovery after an API crash: this + a poll
 
     def due(self, now: float) -> list[str]:
         return self.store.due_exports(now)

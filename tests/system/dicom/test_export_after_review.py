@@ -22,6 +22,8 @@ from tests.support.service_testkit import Server, wait_for
 
 RESULTS = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm")
 START_S = 240.0  # a worker's start (torch, kernels, warm-up job) on a loaded 2-core machine has taken > 90 s
+EXPORT_LEASE_S = 5.0  # (default 15 s) the frozen and the killed API wait for it to lapse: renewed every 1.7 s
+FROZEN_S = EXPORT_LEASE_S + 2.0  # the API stays frozen past its export lease
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +48,7 @@ def node(tmp_path_factory, orthanc):
     destination = StoreScp(root / "storescp").start()
     dicom_port = free_port()
     env = {"DSAREG_EXPORT_AFTER_REVIEW": "true", "DSAREG_EXPORT_MAX_ATTEMPTS": "2",
+           "DSAREG_EXPORT_LEASE_SECONDS": str(EXPORT_LEASE_S),
            "DSAREG_EXPORT_RETRY_BACKOFF_SECONDS": "0.5",
            "DSAREG_DICOMWEB_SERVERS": json.dumps([{"url": orthanc.dicomweb_url, "username": orthanc.user,
                                                    "password": orthanc.password}]),
@@ -169,7 +172,7 @@ def test_a_pacs_that_does_not_answer_gives_a_pacs_error_without_holding_the_revi
 
 
 def test_an_api_frozen_past_its_export_lease_finishes_that_attempt_and_no_other(node, study, tmp_path):
-    """SIGSTOP of the API (17 s, past the 15 s export lease) while its C-STORE waits on a frozen destination: once
+    """SIGSTOP of the API (7 s, past its 5 s export lease) while its C-STORE waits on a frozen destination: once
     both resume, the same attempt stores the results; no second attempt starts beside it; exported once."""
     study_uid, paths = renamed_study(study, tmp_path / "study")
     assert storescu(node.dicom_port, paths).returncode == 0
@@ -185,7 +188,7 @@ def test_an_api_frozen_past_its_export_lease_finishes_that_attempt_and_no_other(
             review(client, job["id"], "approved")
             export_state(client, job["id"], ("exporting",), timeout=10)
             os.kill(node.process.pid, signal.SIGSTOP)
-            time.sleep(17.0)
+            time.sleep(FROZEN_S)
         finally:
             os.kill(destination, signal.SIGCONT)
             time.sleep(0.5)

@@ -240,18 +240,16 @@ def _lease_until(store: SqlJobStore, job_id: str) -> float:
 
 
 def test_an_export_lease_is_short_and_renewed_while_the_attempt_runs(store, tmp_path):
-    from service.jobs.exports import EXPORT_LEASE_SECONDS, ExportDeliverer
+    from service.jobs.exports import ExportDeliverer
     from service.settings import ServiceSettings
     from service.storage.blobs import BlobStore
 
-    assert EXPORT_LEASE_SECONDS <= 15.0
+    assert ServiceSettings().jobs.export_lease_seconds <= 15.0
     job = _succeeded(store, TARGET)
     store.review(job.id, "approved", "", "key:1")
     seen: list[float] = []
 
     class SlowPacs(ExportDeliverer):
-        renewed_lease_seconds = 0.6
-
         def deliver(self, row):  # an attempt that takes 4 leases (the PACS itself is not the point here)
             for _ in range(8):
                 time.sleep(0.3)
@@ -261,7 +259,7 @@ def test_an_export_lease_is_short_and_renewed_while_the_attempt_runs(store, tmp_
                                 next_attempt_at=None)
             return "done"
 
-    deliverer = SlowPacs(store, BlobStore(tmp_path), ServiceSettings(data_dir=tmp_path))
+    deliverer = SlowPacs(store, BlobStore(tmp_path), ServiceSettings(data_dir=tmp_path, export_lease_seconds=0.6))
     started = time.time()
     assert deliverer.deliver_due() == 1
     deadline = time.monotonic() + 10
@@ -285,8 +283,6 @@ def test_a_deliverer_never_claims_what_its_own_pool_still_delivers(store, tmp_pa
     release = threading.Event()
 
     class Frozen(ExportDeliverer):
-        renewed_lease_seconds = 0.3
-
         def renew(self, row, until):  # frozen: no renewal either
             return True
 
@@ -296,7 +292,7 @@ def test_a_deliverer_never_claims_what_its_own_pool_still_delivers(store, tmp_pa
                                 next_attempt_at=None)
             return "done"
 
-    deliverer = Frozen(store, BlobStore(tmp_path), ServiceSettings(data_dir=tmp_path))
+    deliverer = Frozen(store, BlobStore(tmp_path), ServiceSettings(data_dir=tmp_path, export_lease_seconds=0.3))
     assert deliverer.deliver_due() == 1
     time.sleep(0.5)  # past the lease: the row looks abandoned
     assert store.due_exports(time.time()) == [job.id] and deliverer.deliver_due() == 0
