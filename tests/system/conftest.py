@@ -21,12 +21,12 @@ TIMED = (
     "service/test_service_resilience.py",  # SIGKILLs and restarts servers; a start within 90 s
     "service/test_service_httpdeadlines.py",  # a late head or a stalled body answered within its deadline + 1 s
     "service/test_service_review_workspace.py",  # the job page loads in ≤ 2 s
-    "dicom/test_dimse.py",  # the REG in Orthanc ≤ 2 s after the job
+    "dicom/test_dimse.py::test_orthanc_sends_a_study_and_gets_the_reg_back",  # the REG in Orthanc ≤ 2 s after the job
     "dicom/test_dicomweb_client.py::test_a_trickling_pacs_holds_the_client_no_longer_than_the_jobs_budget",  # ≤ 3.5 s
     "dicom/test_export_after_review.py",  # the review answers in < 2 s
     "dicom/test_dimse_query.py",  # a peer answering 'pending' for ever is cut within its deadline + 3.8 s
     "dicom/test_dicomweb.py::test_a_trickling_pacs_frees_the_worker_after_the_jobs_pacs_deadline",  # ≤ 11 s
-    "scaleout/test_scaleout_celery.py",  # a cancel stops the Celery worker's job in < 10 s
+    "scaleout/test_scaleout_celery.py::test_cancel_running_job_on_celery_worker",  # the worker's job stops in < 10 s
 )
 
 
