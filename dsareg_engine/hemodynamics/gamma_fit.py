@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import gammaln
 
-ONSET_CANDIDATES = 12
+ONSET_CANDIDATES = 8
 ONSET_REACH = 2.0
 TAIL_FRACTION = 0.3
 MIN_SAMPLES = 4
@@ -31,13 +31,19 @@ def _fit_at(times: np.ndarray, curves: np.ndarray, onset: np.ndarray, use: np.nd
     window = use
     use = use & (tau > 0) & (curves > 0)
     safe_tau = np.where(use, tau, 1.0)
-    design = np.stack([np.ones_like(safe_tau), np.log(safe_tau), -safe_tau], axis=2)  # (N, T, 3)
+    log_tau = np.log(safe_tau)
     weight = np.where(use, curves, 0.0) ** 2
     target = np.log(np.where(use, curves, 1.0))
-    normal = np.einsum("nt,nti,ntj->nij", weight, design, design) + 1e-9 * np.eye(3)
-    rhs = np.einsum("nt,nti,nt->ni", weight, design, target)
+    columns = (np.ones_like(safe_tau), log_tau, -safe_tau)  # the design's columns, (N, T) each
+    normal = np.empty((len(curves), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            normal[:, i, j] = normal[:, j, i] = (weight * columns[i] * columns[j]).sum(axis=1)
+    normal += 1e-9 * np.eye(3)
+    rhs = np.stack([(weight * column * target).sum(axis=1) for column in columns], axis=1)
     coefficients = np.linalg.solve(normal, rhs[..., None])[..., 0]
-    fitted = np.where(tau > 0, np.exp(np.clip(np.einsum("nti,ni->nt", design, coefficients), -50, 50)), 0.0)
+    log_fit = coefficients[:, :1] + coefficients[:, 1:2] * log_tau - coefficients[:, 2:] * safe_tau
+    fitted = np.where(tau > 0, np.exp(np.clip(log_fit, -50, 50)), 0.0)
     residual = np.where(window, (fitted - curves) ** 2, 0.0).sum(axis=1)  # the same samples for every onset
     enough = use.sum(axis=1) >= MIN_SAMPLES
     return coefficients[:, 0], coefficients[:, 1], coefficients[:, 2], np.where(enough, residual, np.inf)
