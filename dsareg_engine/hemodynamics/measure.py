@@ -22,7 +22,8 @@ from .overlap import overlapped
 from .parameters import curve_parameters, footprint_noise, lift
 from .sampling import Projection, curves, footprints, mean_chord_mm, project_points
 from .timing import RunTiming
-from .unmixing import ViewMixing, known_concentration, on_clock, stretch_owners, unique_edges, unmix_view, view_scale
+from .unmixing import (ViewMixing, empty_around, known_concentration, not_filled, on_clock, stretch_owners, unique_edges,
+                        unmix_view, view_scale)
 
 VIEWS = ("ap", "lat")
 
@@ -118,6 +119,8 @@ def unmix(measures: dict[str, ViewMeasure], mixes: dict[str, ViewMixing], faces:
               for name, m in measures.items()}
     own = {name: known_concentration(mixes[name], clean[name], scales[name]) for name in VIEWS}
     edges = unique_edges(faces)
+    known_empty = (clean["ap"] & ~measures["ap"].parameters.filled) | (clean["lat"] & ~measures["lat"].parameters.filled)
+    contradicted = empty_around(edges, known_empty, carried)
     out = {}
     for name, other in zip(VIEWS, VIEWS[::-1]):
         measure_, mix = measures[name], mixes[name]
@@ -129,6 +132,7 @@ def unmix(measures: dict[str, ViewMeasure], mixes: dict[str, ViewMixing], faces:
         moved = on_clock(own[other], mixes[other].times_s, mix.times_s)
         q_known = np.where(clean[name][:, None], own[name], moved)
         found = unmix_view(mix, rows, carried, q_known, scales[name], edges)
+        found = not_filled(found, contradicted[rows])
         out[name] = measure_.with_unmixed(rows, found)
         notes[name].update(unmixed=len(rows), unmixed_filled=int(found.filled.sum()))
     return out

@@ -18,7 +18,8 @@ view, their ``q`` solves the least-squares system of their own rows (known contr
 smoothness prior along the model's edges (``SMOOTHNESS`` per edge, rows normalised by their path length):
 a vessel's concentration changes little from one vertex to the next. The parameters of the unknown points are
 then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relative to 1: a typical filled vessel),
-and an unmixed curve whose peak lies before contrast reached the run or at its last frame is not taken as filled
+and an unmixed curve whose peak lies before contrast reached the run or at its last frame, or stands above
+``MAX_RELATIVE_PEAK`` typical vessels, is not taken as filled
 (:func:`within_run`: what an imperfect subtraction leaves, e.g. a blocked branch crossed by filled vessels).
 """
 
@@ -36,6 +37,8 @@ from ..render.ray_layers import RayStretches
 from .parameters import CurveParameters, baseline_frames, curve_parameters
 
 SMOOTHNESS = 0.3
+MAX_RELATIVE_PEAK = 5.0
+NEIGHBOUR_RINGS = 3
 RIDGE = 1e-6
 
 
@@ -138,17 +141,37 @@ def unmix_view(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known: np
     opacity_per_q = scale * np.maximum(mix.path_mm[rows], 1e-6)
     found = curve_parameters(q, mix.times_s, mix.noise[rows] / opacity_per_q, np.ones(len(rows)),
                              np.ones(len(rows), bool), typical_per_mm=1.0, gamma_fit=True)
-    found = replace(found, peak_opacity=found.peak_opacity * opacity_per_q, area=found.area * opacity_per_q,
-                    noise=found.noise * opacity_per_q)
-    return within_run(found, mix.times_s, mix.times_s[baseline_frames(mix.curves)])
+    found = within_run(found, mix.times_s, mix.times_s[baseline_frames(mix.curves)])
+    return replace(found, peak_opacity=found.peak_opacity * opacity_per_q, area=found.area * opacity_per_q,
+                   noise=found.noise * opacity_per_q)
 
 
 def within_run(found: CurveParameters, times_s: np.ndarray, run_arrival_s: float) -> CurveParameters:
-    """``found`` with the points whose peak is not inside the run's contrast phase made not filled (every value
-    NaN): a peak before contrast reached the run anywhere (``run_arrival_s``) or at its last frame (no peak seen)
-    is what a subtraction of the crossing vessels left, not a bolus."""
-    inside = (found.peak_s >= run_arrival_s) & (found.peak_s < times_s[-1])
-    keep = found.filled & inside
+    """``found`` (in ``q``: 1 = a typical filled vessel's peak) with the implausible unmixed curves made not filled
+    (every value NaN): a peak before contrast reached the run anywhere (``run_arrival_s``), at its last frame (no
+    peak seen), or above ``MAX_RELATIVE_PEAK`` (an ill-conditioned solve) is what a subtraction of the crossing
+    vessels left, not a bolus."""
+    inside = (found.peak_s >= run_arrival_s) & (found.peak_s < times_s[-1]) & (found.peak_opacity <= MAX_RELATIVE_PEAK)
+    return not_filled(found, ~inside)
+
+
+def not_filled(found: CurveParameters, drop: np.ndarray) -> CurveParameters:
+    """``found`` with the points ``drop`` (bool) not filled: every value NaN."""
+    keep = found.filled & ~drop
     fields = {name: np.where(keep, getattr(found, name), np.nan)
               for name in ("arrival_s", "peak_s", "peak_opacity", "mtt_s", "area")}
     return replace(found, filled=keep, **fields)
+
+
+def empty_around(edges: np.ndarray, known_empty: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: most of the known points within ``NEIGHBOUR_RINGS`` edges of each point are known empty (a
+    clean view saw no contrast there). An unmixed value there contradicts the clean measurements of its own
+    vessel around it, as a clean view that sees it empty would (:mod:`.combine`'s ``views_disagree``)."""
+    count = len(known)
+    adjacency = sparse.csr_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                                  shape=(count, count)) + sparse.identity(count, format="csr")
+    reach = adjacency
+    for _ in range(NEIGHBOUR_RINGS - 1):
+        reach = ((reach @ adjacency) > 0).astype(float)
+    empty, seen = reach @ known_empty.astype(float), reach @ known.astype(float)
+    return empty > 0.5 * np.maximum(seen, 1e-9)

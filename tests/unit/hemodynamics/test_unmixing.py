@@ -24,3 +24,18 @@ def test_an_unmixed_curve_peaking_before_the_run_filled_or_at_its_end_is_not_fil
     assert np.isfinite(kept.arrival_s[0]) and np.isfinite(kept.mtt_s[0])
     for name in ("arrival_s", "peak_s", "peak_opacity", "mtt_s", "area"):
         assert np.isnan(getattr(kept, name)[1:]).all(), name
+
+
+def test_an_unmixed_point_among_vessel_points_a_clean_view_saw_empty_is_contradicted():
+    """A chain of 12 points (edges i – i+1): 0–4 seen clean and empty, 7–11 seen clean and filled, 5 and 6 unmixed.
+    Within 3 edges, point 5 sees 2, 3, 4 empty and 7, 8 filled (3 of 5 empty: contradicted); point 6 sees 3, 4
+    empty and 7, 8, 9 filled (2 of 5: not)."""
+    from dsareg_engine.hemodynamics.unmixing import empty_around
+
+    edges = np.array([[i, i + 1] for i in range(11)])
+    known = np.ones(12, bool)
+    known[[5, 6]] = False
+    known_empty = np.zeros(12, bool)
+    known_empty[:5] = True
+    contradicted = empty_around(edges, known_empty, known)
+    assert contradicted[[0, 1, 2, 3, 4, 5]].all() and not contradicted[[6, 7, 8, 9, 10, 11]].any()
