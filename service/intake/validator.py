@@ -277,9 +277,9 @@ class ValidatorPool:
                             why = "dead twice" if second == "dead" else second
                         else:
                             why = None
-                elif reply is not None and reply.get("recycle"):  # memory the allocator keeps after a MemoryError
+                elif reply is not None and reply.get("recycle"):  # memory kept after a MemoryError, or grown past one allowance
                     slot.kill()
-                    self._refill(slot, "recycled after MemoryError")
+                    self._refill(slot, "recycled: memory kept after a parse")
             finally:
                 self._ensure_spare()
         return reply, why
