@@ -277,9 +277,9 @@ class ValidatorPool:
                             why = "dead twice" if second == "dead" else second
                         else:
                             why = None
-                elif reply is not None and reply.get("recycle"):  # memory kept after a MemoryError, or grown past one allowance
+                elif reply is not None and reply.get("recycle"):  # memory the allocator keeps after a MemoryError
                     slot.kill()
-                    self._refill(slot, "recycled: memory kept after a parse")
+                    self._refill(slot, "recycled after MemoryError")
             finally:
                 self._ensure_spare()
         return reply, why

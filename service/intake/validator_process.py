@@ -1,8 +1,7 @@
 """The validator process itself: one request at a time from its pipe, parsed with the worker's own loader.
 
 Started by :class:`service.intake.validator.ValidatorPool` (``spawn``); it names itself ``dsareg-validate``,
-dies with the server, and parses each request under an address-space limit on top of its size at that
-request's start (a process grown by more than one allowance is replaced after answering). A request is
+dies with the server, and runs under an address-space limit on top of its warmed-up size. A request is
 ``{"inputs", "geometry", "segmentation", "blob_root", "limits", "reading", "volume_reading", "mesh_units",
 "hemodynamics", "require_cuda"}``; the reply ``{"ok": True, "summary"}`` or why not (``message``, ``field``,
 ``accepted``; ``unavailable``: no engine; ``internal``: a reader raised; ``recycle``: replace this process).
@@ -14,36 +13,19 @@ import os
 from multiprocessing.connection import Connection
 
 
-def _address_space_bytes() -> int:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
-
-
-def _allow_next_parse(extra_mb: int) -> None:
-    """The next parse may use ``extra_mb`` MB of address space on top of the process's size *now* (soft
-    RLIMIT_AS, re-set before every request, so what earlier parses left mapped — thread arenas, lazily loaded
-    libraries — does not eat into the next one's allowance; a process that kept more than one allowance is
-    recycled, see :func:`_grown_too_much`)."""
+def _set_memory_limit(extra_mb: int) -> None:
     if extra_mb <= 0:
         return
     try:
         import resource
 
-        _, hard = resource.getrlimit(resource.RLIMIT_AS)
-        limit = _address_space_bytes() + extra_mb * 1024 * 1024
-        if hard != resource.RLIM_INFINITY:
-            limit = min(limit, hard)
-        resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[0])
+        current = pages * os.sysconf("SC_PAGE_SIZE")
+        limit = current + extra_mb * 1024 * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     except Exception:  # noqa: BLE001, S110 - best effort on platforms without it
         pass
-
-
-def _grown_too_much(start_bytes: int, extra_mb: int) -> bool:
-    """The process keeps more than one parse's allowance beyond its warmed-up size: replace it."""
-    try:
-        return extra_mb > 0 and _address_space_bytes() > start_bytes + extra_mb * 1024 * 1024
-    except OSError:
-        return False
 
 
 def _become_validator(parent_pid: int | None) -> None:
@@ -75,7 +57,7 @@ def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: i
         engine.warm_up_parsers()
     except Exception:  # noqa: BLE001
         engine_ok = False
-    start_bytes = _address_space_bytes()
+    _set_memory_limit(memory_mb)
     from ..engine_adapter import case_summary, engine, load_job_case
     from ..storage.blobs import BlobStore
     from ..storage.store import InputFile
@@ -99,14 +81,13 @@ def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: i
             conn.send({"ok": False, "message": "CUDA is not available on this server", "field": "options.device",
                        "accepted": "auto or cpu"})
             continue
-        _allow_next_parse(memory_mb)
         try:
             blobs = BlobStore(request["blob_root"])
             inputs = [InputFile(**item) for item in request["inputs"]]
             case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
                                  request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
                                  hemodynamics=bool(request.get("hemodynamics")))
-            conn.send({"ok": True, "summary": case_summary(case), "recycle": _grown_too_much(start_bytes, memory_mb)})
+            conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
         except MemoryError:
