@@ -39,6 +39,7 @@ from . import search_kernels
 from .rotation_grid import grid_spacing_deg, rotation_grid
 from .rotation_refine import distinct, hill_climb, poses_from
 from .settings import COVERAGE, SearchSettings
+from .window import mask_extent_px, mask_window
 
 
 @dataclass
@@ -58,31 +59,18 @@ class CoverageView:
 def coverage_view(view: ViewGeometry, mask: np.ndarray, centre_world: np.ndarray, radius_mm: float,
                   settings: SearchSettings) -> CoverageView:
     """The canvas of ``view`` for ``mask`` ``(H, W)`` bool, sized for a model of RMS radius ``radius_mm`` at ``centre_world``."""
-    rows, cols = np.nonzero(mask)
-    extent = max(cols.max() - cols.min(), rows.max() - rows.min()) + 1.0
+    extent = mask_extent_px(mask)
     depth = float((view.world_to_view[:3, :3] @ centre_world + view.world_to_view[:3, 3])[2])
     radius_px = radius_mm * max(view.focal_px) / max(depth, 1.0)
     side = max(extent * (1.0 + 2.0 * settings.margin), 2.0 * settings.model_reach * radius_px)
-    scale = min(1.0, settings.window_px / side)
-    level = view.scaled(scale)
-    pixel_scale = level.width / view.width
-    canvas = 4 * round(side * pixel_scale / 4.0)
-    centre = np.array([(cols.max() + cols.min()) / 2.0, (rows.max() + rows.min()) / 2.0])
-    corner = np.round(pixel_scale * (centre + 0.5) - 0.5 - canvas / 2.0)
-    u0, v0 = level.principal_point_px
-    canvas_view = ViewGeometry((canvas, canvas), level.pixel_spacing_mm, level.sid_mm,
-                               (u0 - corner[0], v0 - corner[1]), level.world_to_view)
-    coverage = cv2.resize(mask.astype(np.float32), level.image_size, interpolation=cv2.INTER_AREA)
-    padded = np.zeros((canvas, canvas), np.float32)
-    c0, r0 = int(corner[0]), int(corner[1])
-    src = coverage[max(r0, 0): r0 + canvas, max(c0, 0): c0 + canvas]
-    padded[max(-r0, 0): max(-r0, 0) + src.shape[0], max(-c0, 0): max(-c0, 0) + src.shape[1]] = src
-    occupied = (padded > 0.05).astype(np.float32)
+    window = mask_window(view, mask, side, settings.window_px, multiple=4)
+    canvas, (c0, r0), level = window.coverage.shape[0], window.corner_px, window.level
+    occupied = (window.coverage > 0.05).astype(np.float32)
     near = cv2.dilate(occupied, np.ones((3, 3), np.uint8))
     detector = np.zeros((canvas, canvas), np.float32)
     detector[max(-r0, 0): max(level.height - r0, 0), max(-c0, 0): max(level.width - c0, 0)] = 1.0
     spectra = [np.conj(scipy.fft.rfft2(image)) for image in (occupied, near, detector)]
-    return CoverageView(canvas_view, *spectra, float(occupied.sum()), canvas // 4)
+    return CoverageView(window.view, *spectra, float(occupied.sum()), canvas // 4)
 
 
 _SPLAT = KernelPair(search_kernels.splat_images)

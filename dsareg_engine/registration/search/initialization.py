@@ -39,6 +39,7 @@ from .coverage_search import coverage_on, search_by_coverage
 from .rotation_grid import grid_spacing_deg, rotation_grid
 from .rotation_refine import distinct, hill_climb, poses_from
 from .settings import CENTROID, COVERAGE, SearchSettings
+from .window import mask_extent_px, mask_window
 
 
 @dataclass
@@ -157,28 +158,13 @@ class _Window:
 
 
 def _window(view: ViewGeometry, mask: np.ndarray, settings: SearchSettings) -> _Window:
-    rows, cols = np.nonzero(mask)
-    size = max(cols.max() - cols.min(), rows.max() - rows.min()) + 1.0
-    side = size * (1.0 + 2.0 * settings.margin)
-    scale = min(1.0, settings.window_px / side)
-    centre = np.array([(cols.max() + cols.min()) / 2.0, (rows.max() + rows.min()) / 2.0])
-    level = view.scaled(scale)
-    pixel_scale = level.width / view.width
-    window_side = int(round(side * pixel_scale))
-    corner = np.round(pixel_scale * (centre + 0.5) - 0.5 - window_side / 2.0)  # window origin in level px
-    u0, v0 = level.principal_point_px
-    window_view = ViewGeometry((window_side, window_side), level.pixel_spacing_mm, level.sid_mm,
-                               (u0 - corner[0], v0 - corner[1]), level.world_to_view)
-    coverage = cv2.resize(mask.astype(np.float32), level.image_size, interpolation=cv2.INTER_AREA)
-    padded = np.zeros((window_side, window_side), np.float32)
-    c0, r0 = int(corner[0]), int(corner[1])
-    src = coverage[max(r0, 0): r0 + window_side, max(c0, 0): c0 + window_side]
-    padded[max(-r0, 0): max(-r0, 0) + src.shape[0], max(-c0, 0): max(-c0, 0) + src.shape[1]] = src
+    window = mask_window(view, mask, mask_extent_px(mask) * (1.0 + 2.0 * settings.margin), settings.window_px)
+    padded = window.coverage
     occupied = (padded > 0.05).astype(np.float32)
     target = np.ascontiguousarray(cv2.GaussianBlur(occupied, (0, 0), settings.blur_px, borderType=cv2.BORDER_CONSTANT))
     rows, cols = np.indices(padded.shape)
     centroid = np.array([(padded * cols).sum(), (padded * rows).sum()]) / padded.sum()
-    return _Window(window_view, target, float(np.linalg.norm(target)), centroid)
+    return _Window(window.view, target, float(np.linalg.norm(target)), centroid)
 
 
 # ---- splatting and scoring --------------------------------------------------------------
