@@ -187,3 +187,28 @@ def _assert_store_reads(url: str) -> None:
         assert claimed.id == JOBS["queued"] and claimed.inputs[0].size == 5_000_000_000
     finally:
         store.dispose()
+
+
+def assert_concurrent_starts_migrate_once(url: str, processes: int = 4) -> None:
+    """``processes`` threads start at once on an empty database at ``url``: one creates the schema, the others
+    find it at head; none fails."""
+    import threading
+
+    from service.storage.migrate import upgrade_database
+    from service.storage.revisions import head
+
+    reports, errors = [], []
+
+    def start() -> None:
+        try:
+            reports.append(upgrade_database(url))
+        except Exception as exc:  # noqa: BLE001 - the assertion below shows it
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start) for _ in range(processes)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors and sorted(r.created for r in reports) == [False] * (processes - 1) + [True], (errors, reports)
+    assert all(r.after == head() for r in reports)

@@ -4,17 +4,16 @@ migrations build the schema the metadata declares. SQLite: tests/unit/service/te
 
 from __future__ import annotations
 
-import threading
 import uuid
 
 import pytest
 import sqlalchemy as sa
 from alembic import command
 
-from service.storage.migrate import locked, migration_engine, upgrade_database
-from service.storage.revisions import alembic_config, head
+from service.storage.migrate import locked, migration_engine
+from service.storage.revisions import alembic_config
 from service.storage.schema import metadata
-from tests.support.migration_kit import assert_upgrade_loses_nothing, schema_diff
+from tests.support.migration_kit import assert_concurrent_starts_migrate_once, assert_upgrade_loses_nothing, schema_diff
 
 
 @pytest.fixture
@@ -44,18 +43,4 @@ def test_migrations_and_metadata_agree(database):
 
 
 def test_processes_starting_together_migrate_once(database):
-    reports, errors = [], []
-
-    def start() -> None:
-        try:
-            reports.append(upgrade_database(database))
-        except Exception as exc:  # noqa: BLE001 - the assertion below shows it
-            errors.append(exc)
-
-    threads = [threading.Thread(target=start) for _ in range(4)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    assert not errors and sorted(r.created for r in reports) == [False, False, False, True]
-    assert all(r.after == head() for r in reports)
+    assert_concurrent_starts_migrate_once(database)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
@@ -15,7 +14,13 @@ from alembic import command
 from service.storage.migrate import HEAD, locked, migration_engine, upgrade_database
 from service.storage.revisions import alembic_config, head
 from service.storage.schema import SchemaError, metadata
-from tests.support.migration_kit import assert_upgrade_loses_nothing, make_release_database, schema_diff, snapshot
+from tests.support.migration_kit import (
+    assert_concurrent_starts_migrate_once,
+    assert_upgrade_loses_nothing,
+    make_release_database,
+    schema_diff,
+    snapshot,
+)
 from tests.support.release_schema import release_statements
 
 
@@ -73,21 +78,7 @@ def test_migrations_and_metadata_agree(tmp_path):
 
 
 def test_processes_starting_together_migrate_once(tmp_path):
-    url, reports, errors = _url(tmp_path), [], []
-
-    def start() -> None:
-        try:
-            reports.append(upgrade_database(url))
-        except Exception as exc:  # noqa: BLE001 - the assertion below shows it
-            errors.append(exc)
-
-    threads = [threading.Thread(target=start) for _ in range(4)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    assert not errors and sorted(r.created for r in reports) == [False, False, False, True]
-    assert all(r.after == head() for r in reports)
+    assert_concurrent_starts_migrate_once(_url(tmp_path))
 
 
 def test_a_database_of_a_newer_version_is_refused_untouched(tmp_path):
