@@ -18,14 +18,29 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings.exceptions import SettingsError
 
 ENV_PREFIX = "DSAREG_"
+
+
+class SettingError(ValueError):
+    """A setting that cannot be used, found when the settings load or a component starts: which variable, what
+    was wrong, what is accepted (one line on the command line, exit status 2; never a traceback)."""
+
+    def __init__(self, name: str, problem: str, accepted: str | None = None):
+        self.name, self.problem, self.accepted = name, problem, accepted
+        super().__init__(f"invalid setting {env_name(name)}: {problem}" + (f" (accepted: {accepted})" if accepted else ""))
+
+    def cli_explanation(self) -> tuple[bool, str]:
+        """For :func:`dsareg_engine.commands.failures.explain`: the operator's fault, one line."""
+        return True, str(self)
 
 
 def hash_api_key(key: str) -> str:
@@ -292,7 +307,9 @@ class DimseSettings(_Group):
         None, description="SHA-256 hex of the API key that owns jobs made from DICOM studies (it sees them in the "
                           "API); default the first configured key, or anonymous when auth is off.")
     dicom_job_options: dict[str, Any] = Field(
-        default_factory=dict, description="RegistrationOptions (as in the multipart form) of jobs made from DICOM studies.")
+        default_factory=dict, description="RegistrationOptions (as in the multipart form) of jobs made from DICOM studies; "
+                                        "checked when the DICOM node starts: an option the API would refuse stops "
+                                        "the start (exit status 2, naming the option).")
 
     @field_validator("dicom_peers", "dicom_export", mode="before")
     @classmethod
@@ -474,6 +491,19 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
     return {key.lower(): value for key, value in data.items()}
 
 
+def _from_environment() -> ServiceSettings:
+    """The settings of the environment (and defaults); a variable that is not valid JSON where JSON is expected
+    (pydantic-settings' ``SettingsError``) is a :class:`SettingError` naming it."""
+    try:
+        return ServiceSettings()
+    except SettingsError as exc:
+        named = re.search(r'field "(\w+)"', str(exc))
+        cause = exc.__cause__
+        raise SettingError(named.group(1) if named else "?", f"not valid JSON ({cause})" if cause else str(exc),
+                           "JSON text: an object {...} or a list [...] as the setting's reference says "
+                           "(docs/settings.md)") from None
+
+
 def load_settings(config_file: str | Path | None = None, **overrides: Any) -> ServiceSettings:
     """Settings from (lowest first) the config file, the environment, then ``overrides`` (flat names).
 
@@ -483,7 +513,7 @@ def load_settings(config_file: str | Path | None = None, **overrides: Any) -> Se
     config_file = config_file or os.environ.get("DSAREG_CONFIG")
     if config_file:
         file_values = load_config_file(config_file)
-    env_only = ServiceSettings()  # environment (and defaults)
+    env_only = _from_environment()
     env_set = {name for name in GROUP_OF if env_name(name) in os.environ}
     env_values = env_only.flat()
     merged: dict[str, Any] = dict(file_values)

@@ -152,6 +152,10 @@ def run_serve(args: argparse.Namespace) -> int:
     )
     logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log = logging.getLogger("dsareg.service")
+    if settings.dimse.dicom_port:  # the DICOM node's settings, before anything starts (a SettingError, exit 2)
+        from ..pacs.dimse.job_options import dicom_job_options
+
+        dicom_job_options(settings)
     if settings.effective_database_url.startswith("sqlite"):
         settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     migrate_at_start(settings.effective_database_url)  # the job database's schema (docs/operations/upgrades.md)

@@ -21,6 +21,7 @@ import logging
 from ...intake.context import IntakeContext
 from ...storage.inbox import Inbox
 from .dispatcher import StudyDispatcher
+from .job_options import dicom_job_options
 from .scp import StoreScp, start_server
 from .submit import DimseIntake
 
@@ -31,6 +32,7 @@ class DicomListener:
     def __init__(self, intake: IntakeContext, loop: asyncio.AbstractEventLoop):
         """``loop``: the event loop the jobs are submitted on (running in another thread)."""
         settings, store = intake.settings, intake.store
+        dicom_job_options(settings)  # a SettingError now, not a failure of every study later
         self.settings, self.blobs = settings, intake.blobs
         self.inbox = Inbox(store.engine, getattr(store, "writer", None))
         tick = min(0.25, settings.dimse.dicom_stable_seconds / 4)

@@ -18,6 +18,7 @@ from ...intake.context import IntakeContext, close_intake
 from ...jobs.executor import Executor, NoExecutor
 from ...jobs.factory import make_executor
 from ...settings import ServiceSettings
+from .job_options import dicom_job_options
 from .listener import DicomListener
 
 log = logging.getLogger("dsareg.dimse")
@@ -40,6 +41,7 @@ def run_dicom_listener(settings: ServiceSettings) -> int:
     if not settings.dimse.dicom_port:
         log.error("set DSAREG_DICOM_PORT (the listener's TCP port)")
         return 2
+    dicom_job_options(settings)  # before anything starts: a SettingError naming DSAREG_DICOM_JOB_OPTIONS
     intake = IntakeContext.open(settings, listener_executor)
     loop = asyncio.new_event_loop()
     loop_thread = threading.Thread(target=loop.run_forever, name="dimse-submit-loop", daemon=True)

@@ -23,10 +23,11 @@ from typing import Any
 from ...engine_adapter import job_case
 from ...intake.context import ANONYMOUS, IntakeContext
 from ...intake.refusals import Refusal
-from ...intake.submission import check_queue, create_job, fingerprint, new_job, parse_options_json, validate_inputs
+from ...intake.submission import check_queue, create_job, fingerprint, new_job, validate_inputs
 from ...storage.records import StoredInstance
 from ...storage.store import InputFile
 from .grouping import PlannedJob
+from .job_options import dicom_job_options
 
 log = logging.getLogger("dsareg.dimse")
 
@@ -70,7 +71,7 @@ async def _planned_inputs(ctx: IntakeContext, study_uid: str, job: PlannedJob,
 
     inputs = [item("ap", job.ap), item("lat", job.lat), *(item("volume", uid) for uid in job.volume),
               InputFile(role=ROLE, sha256=digest, size=size, suffix=".json")]
-    return inputs, parse_options_json(dict(ctx.settings.dimse.dicom_job_options) or None)
+    return inputs, dicom_job_options(ctx.settings)  # checked when the node started
 
 
 async def prevalidate(ctx: IntakeContext, study_uid: str, job: PlannedJob, by_uid: dict[str, StoredInstance]) -> None:
