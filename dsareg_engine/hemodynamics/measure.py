@@ -18,8 +18,8 @@ from ..render.compile_lock import wait_for_group
 from ..render.ray_layers import RayStretches, ray_stretches
 from .combine import ViewMeasure, combine
 from .model_points import VesselPoints, vessel_points
-from .overlap import overlapped
-from .parameters import curve_parameters, footprint_noise, lift
+from .overlap import OVERLAP_SHARE, foreign_share, overlapped, own_path_mm
+from .parameters import curve_parameters, lift, mean_noise
 from .sampling import Projection, curves, footprints, mean_chord_mm, project_points
 from .timing import RunTiming
 from .unmixing import (ViewMixing, empty_around, known_concentration, not_filled, on_clock, stretch_owners, unique_edges,
@@ -74,21 +74,22 @@ def measure_view(points: VesselPoints, view: ViewGeometry, mesh_to_world: np.nda
     prints = footprints(projection, covered)
     stack = run.opacity.astype(np.float32, copy=False)
     background = ~cv2.dilate(covered.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    ring_radius = np.sqrt(np.maximum(prints.ring_pixels, 1) / np.pi)
-    own = footprint_noise(stack, background, np.stack([projection.footprint_px, ring_radius]).ravel())
+    own = mean_noise(stack, background, np.concatenate([prints.footprint_pixels, prints.ring_pixels]))
     noise = np.hypot(own[: len(points)], np.where(prints.ring_pixels > 0, own[len(points):], 0.0))
     measurable = projection.inside & (prints.footprint_pixels > 0) & on_model(projection, covered)
     chord = mean_chord_mm(projection, points.radii_mm)
     sampled = curves(stack, prints)
     parameters = curve_parameters(sampled, times_s, noise, chord, measurable, gamma_fit=True)
-    flags = overlapped(prints, stretches.layers) & measurable
+    mixing = (prints.footprint @ stretch_owners(stretches, view, mesh_to_world, centres, len(points))).tocsr()
+    own_mm = own_path_mm(mixing, points.centres_mm, points.radii_mm)
+    beside = foreign_share(mixing, own_mm) >= OVERLAP_SHARE
+    flags = (overlapped(prints, stretches.layers) | beside) & measurable
     counts = {"points": len(points), "inside": int(measurable.sum()), "overlapped": int(flags.sum()),
               "filled": int((parameters.filled & measurable).sum()),
               "median_footprint_px": round(float(np.median(projection.footprint_px[measurable])), 3)
               if measurable.any() else None}
-    mixing = prints.footprint @ stretch_owners(stretches, view, mesh_to_world, centres, len(points))
     return (ViewMeasure(parameters, measurable, flags), counts,
-            ViewMixing(lift(sampled, measurable), noise, mixing.tocsr(), np.asarray(times_s, float)))
+            ViewMixing(lift(sampled, measurable), noise, mixing, np.asarray(times_s, float), own_mm))
 
 
 def measure(mesh: TriangleMesh, mesh_to_world: np.ndarray, rig: Rig, runs: dict[str, RunFrames],

@@ -11,7 +11,7 @@ For a curve ``c(t)`` (background-corrected opacity, :mod:`.sampling`) sampled at
   ``baseline + ½ peak`` before the peak frame, interpolated linearly between the two frames around it; not
   measurable (NaN) when the first frame is already above it;
 * **filled**: the peak stands ``SIGNIFICANCE_SIGMAS`` times above the noise of the curve (the spread a footprint
-  of that size shows on background pixels between frames, :func:`footprint_noise`) and reaches
+  of that many pixels shows on background pixels between frames, :func:`mean_noise`) and reaches
   ``MIN_FILL_FRACTION`` of what a vessel of that size shows in this run (the median opacity per mm of mean path
   through the vessel over its footprint, over the significant points: a thin vessel whose footprint reaches past
   its walls is expected to show less). A curve that is not filled never saw contrast: every value is NaN.
@@ -29,7 +29,7 @@ from .gamma_fit import gamma_variate
 RUN_ARRIVAL_FRACTION = 0.1
 SIGNIFICANCE_SIGMAS = 5.0
 MIN_FILL_FRACTION = 0.4
-NOISE_RADII_PX = (1.0, 2.0, 4.0, 8.0, 16.0)
+NOISE_RADII_PX = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 NOISE_SAMPLE_STEP = 3
 PEAK_WINDOW_S = 0.35
 
@@ -49,27 +49,43 @@ class CurveParameters:
     area: np.ndarray | None = None
 
 
-def footprint_noise(stack: np.ndarray, background: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
-    """``(N,)``: the noise of a footprint mean of radius ``radii_px`` ``(N,)``, measured on the run itself: the
-    robust spread of disc-averaged frame-to-frame differences over ``background`` ``(H, W)`` bool (every
-    ``NOISE_SAMPLE_STEP``-th pixel each way), ÷ √2."""
+def _noise_levels(stack: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pixels (L,), noise (L,))``: the noise of the mean over each disc of ``NOISE_RADII_PX`` (its pixel count),
+    measured on the run itself: the robust spread of disc-averaged frame-to-frame differences over ``background``
+    ``(H, W)`` bool (every ``NOISE_SAMPLE_STEP``-th pixel each way), ÷ √2."""
     pairs = np.linspace(0, len(stack) - 2, min(3, len(stack) - 1)).round().astype(int)
     sample = np.zeros(background.shape, bool)
     sample[::NOISE_SAMPLE_STEP, ::NOISE_SAMPLE_STEP] = True
     sample &= background
-    levels = []
+    pixels, levels = [], []
     for radius in NOISE_RADII_PX:
         size = 2 * int(np.ceil(radius)) + 1
         yy, xx = np.mgrid[:size, :size] - size // 2
         kernel = (np.hypot(xx, yy) <= radius).astype(np.float32)
+        pixels.append(kernel.sum())
         kernel /= kernel.sum()
         spreads = []
         for k in pairs:
             diff = cv2.filter2D((stack[k + 1] - stack[k]).astype(np.float32), -1, kernel)[sample]
             spreads.append(1.4826 * np.median(np.abs(diff - np.median(diff))) / np.sqrt(2.0))
         levels.append(float(np.median(spreads)) if spreads else 0.0)
-    logs = np.log(np.maximum(levels, 1e-12))
+    return np.array(pixels, float), np.array(levels, float)
+
+
+def footprint_noise(stack: np.ndarray, background: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
+    """``(N,)``: the noise of a footprint mean over a disc of radius ``radii_px`` ``(N,)`` (:func:`_noise_levels`,
+    interpolated in log–log between the measured radii)."""
+    logs = np.log(np.maximum(_noise_levels(stack, background)[1], 1e-12))
     return np.exp(np.interp(np.log(np.maximum(radii_px, 1e-6)), np.log(NOISE_RADII_PX), logs))
+
+
+def mean_noise(stack: np.ndarray, background: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """``(N,)``: the noise of a mean over ``pixels`` ``(N,)`` neighbouring pixels (a footprint or a ring as sampled,
+    whatever its shape; :func:`_noise_levels`, interpolated in log–log between the discs' pixel counts; one pixel
+    at least). What the curve of a footprint of a few pixels shows, which its nominal radius would understate."""
+    counts, levels = _noise_levels(stack, background)
+    logs = np.log(np.maximum(levels, 1e-12))
+    return np.exp(np.interp(np.log(np.maximum(pixels, 1.0)), np.log(counts), logs))
 
 
 def baseline_frames(curves: np.ndarray) -> int:

@@ -17,7 +17,9 @@ where only the other view sees it clean. **Unknown** points are measurable in th
 view, their ``q`` solves the least-squares system of their own rows (known contributions subtracted) with a
 smoothness prior along the model's edges (``SMOOTHNESS`` per edge, rows normalised by their path length):
 a vessel's concentration changes little from one vertex to the next. The parameters of the unknown points are
-then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relative to 1: a typical filled vessel),
+then taken from ``q`` (:func:`.parameters.curve_parameters`, the fill test relative to 1: a typical filled vessel;
+its noise in ``q`` is the curve's over ``s`` × the footprint's path through the point's own vessel, ``own_mm``: a
+point whose footprint is mostly other vessels has little evidence of its own),
 and an unmixed curve whose peak lies before contrast reached the run or at its last frame, or stands above
 ``MAX_RELATIVE_PEAK`` typical vessels, is not taken as filled
 (:func:`within_run`: what an imperfect subtraction leaves, e.g. a blocked branch crossed by filled vessels).
@@ -45,12 +47,15 @@ RIDGE = 1e-6
 @dataclass(frozen=True)
 class ViewMixing:
     """One view's curves and what they are made of: ``curves`` ``(N, T)`` (baseline removed), ``noise`` ``(N,)``,
-    ``mixing`` ``(N, N)`` csr (``M`` of the module docstring, mm), ``times_s`` ``(T,)`` on the common clock."""
+    ``mixing`` ``(N, N)`` csr (``M`` of the module docstring, mm), ``times_s`` ``(T,)`` on the common clock,
+    ``own_mm`` ``(N,)`` the part of each footprint's path through its own vessel (:func:`.overlap.own_path_mm`;
+    ``None``: all of it)."""
 
     curves: np.ndarray
     noise: np.ndarray
     mixing: sparse.csr_matrix
     times_s: np.ndarray
+    own_mm: np.ndarray | None = None
 
     @property
     def path_mm(self) -> np.ndarray:
@@ -139,11 +144,12 @@ def unmix_view(mix: ViewMixing, rows: np.ndarray, known: np.ndarray, q_known: np
     ``area`` back in opacity: what the point's footprint would show were it clean (``q · s · Σ_j M_ij``)."""
     q = solve_unknown(mix, rows, known, q_known, scale, edges)
     opacity_per_q = scale * np.maximum(mix.path_mm[rows], 1e-6)
-    found = curve_parameters(q, mix.times_s, mix.noise[rows] / opacity_per_q, np.ones(len(rows)),
+    own_mm = mix.path_mm[rows] if mix.own_mm is None else mix.own_mm[rows]
+    found = curve_parameters(q, mix.times_s, mix.noise[rows] / (scale * np.maximum(own_mm, 1e-6)), np.ones(len(rows)),
                              np.ones(len(rows), bool), typical_per_mm=1.0, gamma_fit=True)
     found = within_run(found, mix.times_s, mix.times_s[baseline_frames(mix.curves)])
     return replace(found, peak_opacity=found.peak_opacity * opacity_per_q, area=found.area * opacity_per_q,
-                   noise=found.noise * opacity_per_q)
+                   noise=mix.noise[rows])
 
 
 def within_run(found: CurveParameters, times_s: np.ndarray, run_arrival_s: float) -> CurveParameters:

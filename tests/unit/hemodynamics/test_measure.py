@@ -70,10 +70,10 @@ def test_phantom_run_meets_the_targets_and_a_blocked_branch_stays_null():
     assert np.median(np.abs(found["peak_s"][mapped] - run.truth.peak_s[mapped])) <= interval
 
 
-def _tube_along(start, end, count: int = 40):
+def _tube_along(start, end, count: int = 40, radius_mm: float = 1.6):
     ring = np.linspace(0.0, 1.0, count)[:, None]
     return _tube(np.asarray(start, float) + ring * (np.asarray(end, float) - np.asarray(start, float)),
-                 np.full(count, 1.6), 12)
+                 np.full(count, radius_mm), 12)
 
 
 def test_a_point_both_views_overlap_is_unmixed_from_the_vessels_crossing_it():
@@ -108,3 +108,33 @@ def test_a_point_both_views_overlap_is_unmixed_from_the_vessels_crossing_it():
     interval = 1.0 / settings.fps
     assert np.median(np.abs(found["arrival_s"][middle] - truth.arrival_s[middle])) <= 0.5 * interval
     assert np.median(np.abs(found["peak_s"][middle] - truth.peak_s[middle])) <= interval
+
+
+def test_a_footprint_reaching_past_its_walls_onto_a_filled_vessel_beside_it_gives_no_value():
+    """Tube T (radius 0.5 mm, along z at x = 75 mm, outside the AP field) never fills; tube F (radius 1.6 mm, filled)
+    runs beside it in LAT (rays along x) 95 mm nearer the detector, its wall 0.5 px from T's: no ray crosses both.
+    T's points are given a 1 mm radius (a local radius overestimated), so their footprints reach onto F's pixels:
+    their curves are F's contrast. They are overlapped (beside) in LAT, unmixed, and stay null; F keeps its values."""
+    from dsareg_engine.hemodynamics.model_points import VesselPoints, vessel_points
+    from dsareg_engine.simulation.bolus_run import iodine_frames, noisy_log_frames
+
+    parts = [_tube_along([75.0, 0.5, -30.0], [75.0, 0.5, 30.0], 60, 0.5), _tube_along([-20.0, 2.6, -12.0], [-20.0, 2.6, 12.0])]
+    mesh = TriangleMesh(np.concatenate([parts[0][0], parts[1][0]]), np.concatenate([parts[0][1], parts[1][1] + len(parts[0][0])]))
+    on_t = np.arange(len(mesh.vertices)) < len(parts[0][0])
+    rig = Rig(views={name: plane.view(128) for name, plane in SQUARE.items()})
+    settings = BolusSettings(fps=4.0, n_frames=24, noise="gaussian", supersample=1, blur_px=0.0)
+    rng = np.random.default_rng(0)
+    times = np.arange(settings.n_frames) / settings.fps
+    onset = np.where(on_t, np.inf, 1.5)
+    runs = {}
+    for name, view in rig.views.items():
+        log = noisy_log_frames(iodine_frames(mesh, view, np.eye(4), onset, settings, times), settings, rng)
+        runs[name] = RunFrames((log - log[0]).astype(np.float32), RunTiming(times, "FrameTime"))
+    given = vessel_points(mesh)
+    radii = np.where(on_t, 1.0, given.radii_mm)
+    inward = (mesh.vertices - given.centres_mm) / given.radii_mm[:, None]
+    found = measure(mesh, np.eye(4), rig, runs, points=VesselPoints(mesh.vertices - inward * radii[:, None], radii)).values
+    beside = on_t & ~found["clean_lat"] & found["unmixed_lat"]
+    assert beside.sum() >= 60 and not found["clean_ap"][on_t].any()
+    assert not np.isfinite(found["arrival_s"][on_t]).any()
+    assert np.isfinite(found["arrival_s"][~on_t]).all()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dsareg_engine.hemodynamics.parameters import curve_parameters, footprint_noise
+from dsareg_engine.hemodynamics.parameters import curve_parameters, footprint_noise, mean_noise
 
 
 def gamma_variate(t: np.ndarray, start: float, peak_after: float, alpha: float = 3.0) -> np.ndarray:
@@ -53,3 +53,12 @@ def test_footprint_noise_falls_with_the_footprint_size():
     assert levels[0] > levels[1] > levels[2]
     assert abs(levels[0] - 0.1 / np.sqrt(5)) < 0.006  # a disc of radius 1 holds 5 pixels
     assert abs(levels[2] - 0.1 / np.sqrt(113)) < 0.004  # a disc of radius 6 holds 113 pixels
+
+
+def test_the_noise_of_a_mean_follows_its_pixel_count_down_to_one_pixel():
+    """A footprint of a few pixels (a thin vessel's) is as noisy as its pixel count says, not as a radius-1 disc."""
+    rng = np.random.default_rng(3)
+    stack = rng.normal(0.0, 0.1, (6, 128, 128)).astype(np.float32)
+    one, two, five, many = mean_noise(stack, np.ones((128, 128), bool), np.array([1.0, 2.0, 5.0, 113.0]))
+    assert abs(one - 0.1) < 0.01 and abs(five - 0.1 / np.sqrt(5)) < 0.006 and abs(many - 0.1 / np.sqrt(113)) < 0.004
+    assert one > two > five
