@@ -34,7 +34,9 @@ from .io.volume_kind import VolumeReading
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
-from .registration import RegistrationCanceled, RegistrationOptions, RegistrationResult, register
+from .registration import RegistrationOptions
+from .registration.result import RegistrationResult
+from .registration.solver import RegistrationCanceled, register
 from .registration.options import image_reading, parse_options
 from .registration.partial import PARTIAL_UNMATCHED, unmatched_pixels
 from .registration.progress import REGISTRATION_SHARE

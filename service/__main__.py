@@ -8,11 +8,11 @@ import sys
 
 def main(argv: list[str] | None = None) -> int:
     from .cli.subcommands import add_parser
-    from .engine_adapter import engine
+    from .engine_adapter import commands
 
     parser = argparse.ArgumentParser(prog="python -m service")
     add_parser(parser.add_subparsers(dest="command", required=True))
-    return engine.run_parsed(parser.parse_args(argv))
+    return commands.run_parsed(parser.parse_args(argv))
 
 
 if __name__ == "__main__":

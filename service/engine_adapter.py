@@ -1,6 +1,7 @@
 """The service's boundary with the registration engine: the only module in ``service/`` that
 imports :mod:`dsareg_engine`, and only its application API :mod:`dsareg_engine.api`
-(re-exported here as ``engine``; its heavy parts load on first use).
+(re-exported here as ``engine``; its heavy parts load on first use) and the helpers of the command line,
+:mod:`dsareg_engine.commands.kit` (as ``commands``, for :mod:`service.cli`).
 
 * geometry: :func:`submitted_geometry` parses a submission's ``geometry`` part once
   (``engine.parse_geometry``) and returns the canonical JSON the job stores;
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dsareg_engine import api as engine
+from dsareg_engine.commands import kit as commands
 
 from .storage.blobs import BlobStore
 from .budgets import image_decoded_bytes, parse_json_part

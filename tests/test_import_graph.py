@@ -1,9 +1,14 @@
 """The import graph, read statically (``ast``), function-level imports included:
 
 * ``dsareg_engine`` never imports ``service`` (the engine has no web code);
-* in ``service/`` only the boundary module ``service.engine_adapter`` imports the engine, and only
-  ``dsareg_engine.api`` (``benchmarks`` is developer tooling that makes phantom cases);
-* nothing in the engine imports ``dsareg_engine.api`` (it is the top of the engine's graph);
+* in ``service/`` only the boundary module ``service.engine_adapter`` imports the engine, and only its two
+  public modules: ``dsareg_engine.api`` and the command line's ``dsareg_engine.commands.kit``
+  (``benchmarks`` is developer tooling that makes phantom cases);
+* nothing in the engine imports either (they are the top of the engine's graph), and ``dsareg_engine.api``
+  holds no command-line helper (it imports neither ``dsareg_engine.cli`` nor ``dsareg_engine.commands``, but
+  ``commands.process_exit``, a process's set-up);
+* no package re-exports lazily: a module-level ``__getattr__`` only in ``dsareg_engine.api``, whose lazy names
+  are the heavy ones its docstring measures (:func:`test_lazy_names_only_where_start_up_needs_them`);
 * the service's folders are layers: ``service.storage`` imports nothing else of the service,
   ``service.jobs`` never imports ``service.api``, and only ``service.app`` imports ``service.api``;
 * submission is a service layer: ``service.intake`` and ``service.pacs`` never import ``service.api``, and
@@ -23,6 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("dsareg_engine", "service")
 BOUNDARY = "service.engine_adapter"
 ENGINE_API = "dsareg_engine.api"
+ENGINE_PUBLIC = (ENGINE_API, "dsareg_engine.commands.kit")
+LAZY_MODULES = {"dsareg_engine.pipeline", "dsareg_engine.io.case", "dsareg_engine.io.xa_run",
+                "dsareg_engine.hemodynamics.intake"}
+"""What ``dsareg_engine.api`` loads on first use: torch and numba, or pydicom and PIL (its docstring measures them)."""
 
 
 def _modules() -> dict[str, Path]:
@@ -122,7 +131,7 @@ def test_the_graph_is_read():
     graph = _graph()
     assert {"dsareg_engine.api", "dsareg_engine.pipeline", "service.app", "service.api.routes.registrations"} <= set(graph)
     assert "service.api.deps" in graph["service.api.routes.registrations"]
-    assert ENGINE_API in graph[BOUNDARY]
+    assert set(ENGINE_PUBLIC) <= graph[BOUNDARY]
 
 
 def test_engine_never_imports_service():
@@ -137,14 +146,40 @@ def test_only_the_boundary_imports_the_engine():
         if module.split(".")[0] != "service":
             continue
         engine = sorted(t for t in targets if t.split(".")[0] == "dsareg_engine")
-        allowed = [ENGINE_API] if module == BOUNDARY else []
+        allowed = list(ENGINE_PUBLIC) if module == BOUNDARY else []
         if engine != allowed and engine:
             bad[module] = engine
-    assert not bad, f"only {BOUNDARY} may import the engine, and only {ENGINE_API}: {bad}"
+    assert not bad, f"only {BOUNDARY} may import the engine, and only {ENGINE_PUBLIC}: {bad}"
 
 
 def test_nothing_in_the_engine_imports_its_api():
-    assert not [m for m, ts in _graph().items() if m.startswith("dsareg_engine") and ENGINE_API in ts]
+    assert not [m for m, ts in _graph().items() if m.startswith("dsareg_engine") and set(ENGINE_PUBLIC) & ts]
+
+
+def test_the_api_holds_no_command_line_helper():
+    commands = [t for t in _graph(type_only=True)[ENGINE_API]
+                if _inside(t, "dsareg_engine.commands") or t == "dsareg_engine.cli"]
+    assert commands == ["dsareg_engine.commands.process_exit"]
+
+
+def _module_getattr(path: Path) -> bool:
+    return any(isinstance(node, ast.FunctionDef) and node.name == "__getattr__"
+               for node in ast.parse(path.read_text(), str(path)).body)
+
+
+def _lazy_targets(path: Path) -> set[str]:
+    """The module names in the ``_LAZY`` table of ``path`` (``{name: module}``)."""
+    for node in ast.parse(path.read_text(), str(path)).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "_LAZY" for t in node.targets):
+            return {value.value for value in node.value.values}
+    return set()
+
+
+def test_lazy_names_only_where_start_up_needs_them():
+    modules = _modules()
+    lazy = sorted(m for m, path in modules.items() if _module_getattr(path))
+    assert lazy == [ENGINE_API], "re-export plainly, or import from the defining module (docs/concepts/layout.md)"
+    assert _lazy_targets(modules[ENGINE_API]) == LAZY_MODULES
 
 
 def test_no_import_cycles():

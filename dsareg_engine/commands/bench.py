@@ -16,7 +16,8 @@ from ..geometry.rig import Rig
 from ..geometry.spec import load_rig
 from ..metrics import mean_distance_mm
 from ..geometry.pose import so3_log
-from ..registration import RegistrationOptions, register
+from ..registration import RegistrationOptions
+from ..registration.solver import register
 from ..registration.parameterization import PoseIncrement, random_start_poses
 from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
 from ..simulation.segmentation_errors import corrupt

@@ -100,7 +100,7 @@ CASE_KINDS += _volume_rows()
 def run_one(case: ClinicalCase, options: dict) -> dict:
     """Load and register one case as ``dsareg register`` does; ADD, verdict, wall and CPU seconds."""
     from ..io.case import load_case_files
-    from ..registration import register
+    from ..registration.solver import register
     from ..registration.options import image_reading, parse_options
 
     parsed = parse_options({**options, "ground_truth_mesh_to_world": case.mesh_to_world.tolist()})

@@ -79,7 +79,7 @@ def run_row(build: Callable[[int, int], VolumeCaseFiles], seed: int = 0, size_px
     lowers ``ok`` to ``check``, as the result's), its reasons, faces, voxels kept, plate share, CPU and wall s."""
     from ..io.case import load_case_files
     from ..io.input_decisions import with_close_calls
-    from ..registration import register
+    from ..registration.solver import register
     from ..registration.options import parse_options
 
     case = build(seed, size_px)

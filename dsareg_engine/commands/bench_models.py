@@ -42,7 +42,8 @@ def model_as(mesh, row: str):
 
 def run_case(mesh, row: str, seed: int, size_px: int, options: dict) -> dict:
     from ..geometry.rig import Rig
-    from ..registration import parse_options, register
+    from ..registration import parse_options
+    from ..registration.solver import register
     from ..simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 
     rig = clinical_biplane_rig(size_px=size_px)

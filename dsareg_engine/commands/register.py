@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.volume_kind import VolumeReading
     from ..pipeline import write_outputs
     from ..geometry.pose_file import load_pose
-    from ..registration import register
+    from ..registration.solver import register
     from ..registration.options import image_reading, parse_options
     from ..hemodynamics.dicom import write_parametric_dicom
     from ..hemodynamics.run import attach

@@ -47,16 +47,16 @@ def _failing_as_command(url: str) -> Iterator[None]:
     """A schema or connection error as the command's one-line failure (exit 1)."""
     import sqlalchemy as sa
 
-    from ..engine_adapter import engine
+    from ..engine_adapter import commands
     from ..storage.schema import SchemaError
 
     try:
         yield
     except SchemaError as exc:
-        raise engine.CommandFailed(str(exc)) from None
+        raise commands.CommandFailed(str(exc)) from None
     except (sa.exc.OperationalError, sa.exc.InterfaceError) as exc:
         reason = str(getattr(exc, "orig", None) or exc).splitlines()[0]
-        raise engine.CommandFailed(f"cannot use the job database {_shown(url)}: {reason}") from None
+        raise commands.CommandFailed(f"cannot use the job database {_shown(url)}: {reason}") from None
 
 
 def _run(action: str, url: str) -> int:

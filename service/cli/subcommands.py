@@ -87,10 +87,10 @@ def run_dicom_listener(args: argparse.Namespace) -> int:
 
 
 def _add_submit(subparsers: Any) -> None:
-    from ..engine_adapter import engine
+    from ..engine_adapter import commands
 
-    input_file, options_help = engine.input_file, engine.options_help
-    require_choices, not_met = engine.REQUIRE_CHOICES, engine.VERDICT_NOT_MET_EXIT
+    input_file, options_help = commands.input_file, commands.options_help
+    require_choices, not_met = commands.REQUIRE_CHOICES, commands.VERDICT_NOT_MET_EXIT
 
     submit = subparsers.add_parser(
         "submit", help="submit a registration to a dsareg server (and wait for it)",
@@ -221,10 +221,10 @@ def run_submit(args: argparse.Namespace) -> int:
     import os
 
     from .client import RegistrationClient
-    from ..engine_adapter import engine
+    from ..engine_adapter import commands, engine
 
-    CommandFailed, DsaregInputError = engine.CommandFailed, engine.DsaregInputError
-    geometry_argument, json_argument, load_pose = engine.geometry_argument, engine.json_argument, engine.load_pose
+    CommandFailed, DsaregInputError = commands.CommandFailed, engine.DsaregInputError
+    geometry_argument, json_argument, load_pose = commands.geometry_argument, commands.json_argument, commands.load_pose
 
     spec = geometry_argument(args.geometry)  # parsed here: errors before any upload
     geometry = None if spec is None else spec.as_input()
@@ -246,7 +246,7 @@ def run_submit(args: argparse.Namespace) -> int:
         if not wait:
             print(json.dumps(job, indent=2) if args.json else job["id"])
             return 0
-        final = _wait(client, job["id"], args.timeout, engine.ProgressPrinter())
+        final = _wait(client, job["id"], args.timeout, commands.ProgressPrinter())
         if final["status"] != "succeeded":
             err = final.get("error") or {}
             detail = f": {err.get('title')}: {err.get('detail')}" if err else ""
@@ -256,10 +256,10 @@ def run_submit(args: argparse.Namespace) -> int:
                 print(f"  wrote {path}", file=sys.stderr)
         print(json.dumps(final.get("result"), indent=2) if args.json else summary_line(final))
         verdict = final.get("verdict") or ((final.get("result") or {}).get("verdict"))
-        if not engine.verdict_meets(verdict, args.require):
+        if not commands.verdict_meets(verdict, args.require):
             print(f"dsareg: job {final['id']}: verdict {verdict or 'none'} is below --require {args.require}",
                   file=sys.stderr)
-            return engine.VERDICT_NOT_MET_EXIT
+            return commands.VERDICT_NOT_MET_EXIT
         return 0
     finally:
         client.close()

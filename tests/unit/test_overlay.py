@@ -73,7 +73,7 @@ def test_animation_starts_at_the_initial_contour_and_has_stage_labels(tmp_path):
     from dsareg_engine.geometry.spec import load_rig
     from dsareg_engine.simulation.phantom import make_vessel_phantom
     from dsareg_engine.pipeline import animation_frames, write_outputs
-    from dsareg_engine.registration import register
+    from dsareg_engine.registration.solver import register
     from dsareg_engine.registration.options import RegistrationOptions
     from dsareg_engine.registration.parameterization import random_start_poses
     from dsareg_engine.render import Camera, render_hard_silhouette
@@ -109,7 +109,7 @@ def test_animation_last_frame_shows_the_dice_of_the_result(tmp_path, monkeypatch
     from dsareg_engine.geometry.rig import Rig
     from dsareg_engine.geometry.spec import load_rig
     from dsareg_engine.simulation.phantom import make_vessel_phantom
-    from dsareg_engine.registration import register
+    from dsareg_engine.registration.solver import register
     from dsareg_engine.registration.options import RegistrationOptions
     from dsareg_engine.render import Camera, render_hard_silhouette
 

@@ -8,7 +8,7 @@ import trimesh
 from dsareg_engine.errors import DsaregInputError
 from dsareg_engine.geometry.file import paper_rig
 from dsareg_engine.geometry.spec import parse_geometry
-from dsareg_engine.io import Case, load_case
+from dsareg_engine.io.case import Case, load_case
 from dsareg_engine.io.rad import format_rad_header
 from dsareg_engine.io.volume_io import RAS_TO_LPS
 from dsareg_engine.simulation.phantom import make_vessel_phantom

@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 
 from dsareg_engine.errors import DsaregInputError
 from dsareg_engine.geometry.spec import parse_geometry
-from dsareg_engine.io import load_case
+from dsareg_engine.io.case import load_case
 from dsareg_engine.io.mesh_io import read_mesh_detailed
 from dsareg_engine.io.mesh_units import MeshUnit, mesh_unit, unit_decision
 from dsareg_engine.mesh import TriangleMesh

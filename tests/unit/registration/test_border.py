@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.border import MAX_BORDER_SHIFT_PX, update_border_shift
 from dsareg_engine.registration.targets import binary_mask, shifted_mask, signed_border_distance
 from dsareg_engine.simulation.segmentation_errors import grow_border

@@ -7,7 +7,8 @@ import pytest
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 from dsareg_engine.mesh import TriangleMesh
 from dsareg_engine.simulation.phantom import _tube, make_vessel_phantom
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.confidence import assess, outside_fraction, tolerant_f_score
 
 

@@ -6,7 +6,8 @@ import pytest
 
 from dsareg_engine.vision.segmentation import segment_vessels, vessel_coverage
 from dsareg_engine.metrics import iou
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.simulation.synthetic_dsa import DsaSettings, synthesize_dsa, vessel_thickness_mm
 
 

@@ -6,7 +6,8 @@ import pytest
 
 from dsareg_engine.geometry.rig import Rig
 from dsareg_engine.mesh import TriangleMesh
-from dsareg_engine.registration import parse_options, register
+from dsareg_engine.registration import parse_options
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.mirror import flipped_axis, mirrored, needs_mirror_check
 from dsareg_engine.simulation.clinical_rig import (clinical_biplane_rig, random_visible_pose, render_masks,
                                                    uniform_rotation)

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.confidence import assess
 from dsareg_engine.registration.partial import looks_partial, match_fractions, trimmed_weight
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks

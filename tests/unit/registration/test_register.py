@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dsareg_engine.errors import DsaregInputError
-from dsareg_engine.registration import RegistrationCanceled, RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import RegistrationCanceled, register
 
 
 def test_two_view_registration_recovers_a_5deg_5mm_offset(phantom, synthetic_case):

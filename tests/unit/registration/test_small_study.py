@@ -13,7 +13,8 @@ from dsareg_engine.geometry.rig import Rig
 from dsareg_engine.io.dicom_xa import view_from_angles
 from dsareg_engine.io.volume_io import read_volume, volume_to_mesh
 from dsareg_engine.simulation.phantom_study import AP_ANGLES, LAT_ANGLES, SID_MM, SOD_MM, make_biplane_study
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.schedule import pyramid_scales
 from dsareg_engine.registration.solver import _pyramid_side_px
 from dsareg_engine.render import Camera, render_hard_silhouette

@@ -9,7 +9,8 @@ from dsareg_engine.cli import main
 from dsareg_engine.geometry.rig import Rig
 from dsareg_engine.geometry.file import save_rig
 from dsareg_engine.geometry.pose_file import save_pose
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.parameterization import random_start_poses
 from dsareg_engine.registration.track import build_track_schedule, motion_between, track_scale
 

@@ -5,7 +5,8 @@ import pytest
 
 from dsareg_engine.geometry.file import rig_from_dict
 from dsareg_engine.metrics import mean_distance_mm
-from dsareg_engine.registration import RegistrationOptions, register
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.search.branch_search import BranchSettings, with_branch_starts
 from dsareg_engine.registration.search.initialization import (
     EXPLAINED,
