@@ -334,6 +334,9 @@ def bench_track(args: argparse.Namespace) -> int:
     return 0
 
 
+_SAFETY_ROWS = {"wrong_tree": "wrong_tree", "swapped_views": "swapped_views", "swapped_views+early_filling": "swapped_early"}
+
+
 def _partial_cases(mesh, args: argparse.Namespace):
     """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
     from ..geometry.vessel_tree import vessel_tree
@@ -352,14 +355,15 @@ def _partial_cases(mesh, args: argparse.Namespace):
             rows.append(("full", 1.0, lambda: made.full_visibility(mesh)))
         elif kind == "extra_territory":
             rows.append(("extra_territory", None, lambda: made.extra_territory(mesh, tree)))
+        elif kind in _SAFETY_ROWS:
+            rows.append((kind, 0.5 if kind == "swapped_views+early_filling" else None, _SAFETY_ROWS[kind]))
         elif kind == "foreign_territory":
             other = make_vessel_phantom(seed=args.seed + 3)
             rows.append((kind, None, lambda other=other: made.foreign_territory(mesh, other, tree)))
         else:
             rows += [(kind, fraction, lambda f=fraction, kind=kind: per_fraction[kind](f)) for fraction in args.fractions]
     if not args.no_safety:
-        rows += [("wrong_tree", None, "wrong_tree"), ("swapped_views", None, "swapped_views"),
-                 ("swapped_views+early_filling", 0.5, "swapped_early")]
+        rows += [(name, 0.5 if name == "swapped_views+early_filling" else None, tag) for name, tag in _SAFETY_ROWS.items()]
     return rows
 
 
@@ -445,7 +449,8 @@ def _partial_row(name: str, index: int, made, rig, args: argparse.Namespace, ext
     row = {"add": add, "right": add < 1.0 and name != "wrong_tree", "verdict": confidence["verdict"],
            "cpu": time.process_time() - cpu, "fraction": fraction,
            "partial": any("do not show" in reason for reason in confidence["reasons"])}
-    return row, {"reasons": confidence["reasons"], "initialization": result.metrics["initialization"]}
+    return row, {"reasons": confidence["reasons"], "initialization": result.metrics["initialization"],
+                 "seconds": result.metrics.get("seconds")}
 
 
 def _print_partial_row(name: str, rows: list[dict]) -> None:

@@ -150,8 +150,10 @@ def _add_partial(which) -> None:
                          help="visible fractions of the model's faces (early filling and one branch)")
     partial.add_argument("--kinds", nargs="+", default=["full", "early_filling", "selective_injection", "extra_territory"],
                          choices=["full", "early_filling", "selective_injection", "extra_territory", "reflux_injection",
-                                  "foreign_territory", "bolus_front"],
-                         help="rows to run (reflux_injection, foreign_territory, bolus_front: the second generator family)")
+                                  "foreign_territory", "bolus_front", "wrong_tree", "swapped_views",
+                                  "swapped_views+early_filling"],
+                         help="rows to run (reflux_injection, foreign_territory, bolus_front: the second generator family; "
+                         "wrong_tree, swapped_views, swapped_views+early_filling: one safety row, e.g. with --no-safety)")
     partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
     partial.add_argument("--options", default="{}", help="extra registration options as JSON")
     partial.add_argument("--corruption", default="none", choices=list(CORRUPTIONS),
