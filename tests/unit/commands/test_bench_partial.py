@@ -20,3 +20,17 @@ def test_bench_partial_prints_its_rows_and_writes_one_line_per_case(tmp_path, ca
         assert line["verdict"] in ("ok", "check", "failed") and line["add"] >= 0.0
     assert lines[0]["fraction"] == 1.0 and 0.15 < lines[1]["fraction"] < 0.85
     assert lines[1]["initialization"]["method"].startswith("search")
+
+
+def test_a_safety_row_runs_alone_and_the_default_still_appends_all_three():
+    from argparse import Namespace
+
+    from dsareg_engine.commands.bench import _partial_cases
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
+
+    mesh = make_vessel_phantom(depth=2)
+    alone = _partial_cases(mesh, Namespace(kinds=["swapped_views+early_filling"], no_safety=True, seed=0, fractions=[0.5]))
+    assert [(name, fraction, tag) for name, fraction, tag in alone] == [("swapped_views+early_filling", 0.5, "swapped_early")]
+    default = _partial_cases(mesh, Namespace(kinds=["full"], no_safety=False, seed=0, fractions=[0.5]))
+    assert [(name, fraction) for name, fraction, _ in default] == [
+        ("full", 1.0), ("wrong_tree", None), ("swapped_views", None), ("swapped_views+early_filling", 0.5)]
