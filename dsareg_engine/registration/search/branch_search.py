@@ -39,7 +39,10 @@ run filled, the model matches the images like a fully visible one. So:
    that scores best, below :data:`PART_MATCHES` and below the whole model, is the only start too, but the
    *whole* model is fitted from it (an early frame shows the tree up to a front that no proximal share
    meets exactly; the loss for partial visibility lets the unfilled distal branches lie on background).
-   Either way the loss for partial visibility (:mod:`.partial`) is on.
+   Either way the loss for partial visibility (:mod:`.partial`) is on. When neither any part nor the whole
+   model scores below :data:`PART_MATCHES`, nothing of the model is on the images (another patient's tree, AP
+   and LAT swapped): the multi-start fit would search every start for a pose that is not there, so the first
+   start alone is fitted, for a pose and its verdict (``branch.matches`` false).
 
 Shapes: ``K`` parts, ``V`` vertices, ``F`` faces.
 """
@@ -179,6 +182,7 @@ def with_branch_starts(found: Initialization, mesh: TriangleMesh, masks: dict[st
     best_poses, best_scores = parts.poses[: settings.starts], parts.scores[: settings.starts]
     proximal_leads = parts.proximal[0] and best_scores[0] < min(parts.whole_score, PART_MATCHES)
     if proximal_leads or best_scores[0] < min(parts.whole_score - PART_MARGIN, PART_MATCHES):
+        found.branch["matches"] = True
         found.poses, found.scores, found.method = best_poses[:1], best_scores[:1], "search+branch"
         found.fit_faces = None if proximal_leads else parts.faces[0]  # an early frame: the whole model is fitted
         found.branch["runner_up"] = part_runner_up(mesh, parts)
@@ -188,6 +192,9 @@ def with_branch_starts(found: Initialization, mesh: TriangleMesh, masks: dict[st
         found.poses = np.concatenate([best_poses[better], found.poses])
         found.scores = np.concatenate([best_scores[better], found.scores])
         found.method = f"{found.method}+branch"
+    found.branch["matches"] = bool(min(best_scores[0], parts.whole_score) < PART_MATCHES)
+    if not found.branch["matches"]:  # no part of the model is on the images: one fit, for the pose and its verdict
+        found.poses, found.scores = found.poses[:1], found.scores[:1]
     return found
 
 
@@ -210,7 +217,9 @@ PART_MATCHES = 0.2
 """A part whose fine coverage score (``1 − F_1``) is below this matches the images as a fully visible model does.
 Measured (512 px, clinical rig; docs/benchmarks/partial.md): the filled part 0.03–0.14 (0.14 with a third of the
 model past the detector's edge), the next best part 0.25–0.34, the whole model 0.31–0.41. The whole-model
-searches' candidates then lose to wrong poses in the loss, so the matching part's pose is the only start."""
+searches' candidates then lose to wrong poses in the loss, so the matching part's pose is the only start. When no
+part and not the whole model scores below it, nothing of the model is on the images (measured: another vessel tree's
+best part 0.22–0.35, AP and LAT swapped 0.37–0.53): the solver fits the first start alone."""
 PART_MARGIN = 0.05
 """... and beats the whole model's score by this much (measured: 0.09–0.49 where a part was filled; 0.005–0.008
 on early filling, where a part holding the filled proximal tree scores like the whole model and the whole

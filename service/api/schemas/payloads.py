@@ -195,6 +195,9 @@ class BranchSearch(BaseModel):
                                   "inflow, as an early arterial frame fills them): the whole model is then fitted from its pose.")
     runner_up: PartRunnerUp | None = Field(None, description="When one part led alone: another part scoring almost as "
                                                              "well at a distinct pose, or null.")
+    matches: bool | None = Field(None, description="True when some part or the whole model scored below 0.2 (it matches "
+                                 "the images as a visible model does); false: nothing of the model is on the images "
+                                 "(another tree, swapped views) and the fit ran from the first start alone.")
 
 
 class Initialization(BaseModel):

@@ -80,3 +80,18 @@ def test_a_part_scoring_as_well_elsewhere_is_the_runner_up(phantom):
     assert part_runner_up(phantom, parts([0.10, 0.105, 0.11], [0.0, 0.3, 12.0])) == {"score": 0.11, "distance_mm": 12.0}
     assert part_runner_up(phantom, parts([0.10, 0.105, 0.16], [0.0, 0.3, 12.0])) is None  # too far behind
     assert part_runner_up(phantom, parts([0.10], [0.0])) is None
+
+
+def test_another_tree_matches_no_part_and_is_fitted_from_one_start(phantom):
+    # The images show another vessel tree: no part of the model and not the whole model scores below PART_MATCHES,
+    # so the many starts (here 6) are cut to the first: a multi-start fit would look for a pose that is not there.
+    from dsareg_engine.registration.search.branch_search import PART_MATCHES
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
+
+    rig = clinical_biplane_rig(192)
+    truth = random_visible_pose(phantom, rig, np.random.default_rng(4), 30.0)
+    masks = render_masks(make_vessel_phantom(seed=7), rig, truth)
+    start = Initialization(np.repeat(np.eye(4)[None], 6, axis=0), np.linspace(0.3, 0.4, 6), "search", 0, 0.0)
+    found = with_branch_starts(start, phantom, masks, rig, BranchSettings(samples=150, max_parts=8))
+    assert found.branch["best_score"] >= PART_MATCHES and found.branch["whole_score"] >= PART_MATCHES
+    assert found.branch["matches"] is False and len(found.poses) == 1 == len(found.scores)
