@@ -11,6 +11,8 @@
   are the heavy ones its docstring measures (:func:`test_lazy_names_only_where_start_up_needs_them`);
 * the service's folders are layers: ``service.storage`` imports nothing else of the service,
   ``service.jobs`` never imports ``service.api``, and only ``service.app`` imports ``service.api``;
+* the store's callers take the narrow interface they use (``service.storage.interfaces``): only the code that
+  opens the store names the whole of it (``JobStore``, ``SqlJobStore``);
 * submission is a service layer: ``service.intake`` and ``service.pacs`` never import ``service.api``, and
   ``service.intake`` imports no web framework (fastapi, starlette);
 * neither package has an import cycle, counting imports under ``if TYPE_CHECKING:`` too
@@ -221,6 +223,22 @@ def test_intake_and_pacs_never_import_the_api():
     bad = {m: [t for t in ts if _inside(t, "service.api")] for prefix in ("service.intake", "service.pacs")
            for m, ts in _service_imports(prefix).items()}
     assert not {m: ts for m, ts in bad.items() if ts}
+
+
+STORE_OPENERS = {"service.intake.context", "service.cli.subcommands"}
+"""The modules that open the job store (the service's context; ``dsareg db``'s first start) and so hold all of it."""
+
+
+def _imported_names(path: Path) -> set[str]:
+    """The names ``path`` imports with ``from … import name`` (type-only imports included)."""
+    return {alias.name for node in _import_nodes(ast.parse(path.read_text(), str(path)), type_only=True)
+            if isinstance(node, ast.ImportFrom) for alias in node.names}
+
+
+def test_store_callers_take_a_narrow_interface():
+    whole = {m for m, path in _modules().items() if _inside(m, "service") and not _inside(m, "service.storage")
+             and {"JobStore", "SqlJobStore"} & _imported_names(path)}
+    assert whole == STORE_OPENERS, "take Jobs, Leases, Reviews, DeliveryStore, Upkeep or DicomInbox"
 
 
 WEB_FRAMEWORKS = ("fastapi", "starlette")

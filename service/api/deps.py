@@ -18,6 +18,7 @@ from prometheus_client import CollectorRegistry, Counter
 from ..intake.context import ANONYMOUS, IntakeContext
 from ..problems import Problem
 from ..settings import hash_api_key
+from ..storage.interfaces import JobReader, Jobs, Reviews
 from ..storage.store import JobRecord, is_job_id
 
 if TYPE_CHECKING:
@@ -65,19 +66,35 @@ def principal(request: Request, credentials: HTTPAuthorizationCredentials | None
 Principal = Annotated[str, Depends(principal)]
 
 
-def owned_job(ctx: ServiceContext, job_id: str, who: str) -> JobRecord:
+def get_jobs(request: Request) -> Jobs:
+    return get_ctx(request).jobs
+
+
+JobsStore = Annotated[Jobs, Depends(get_jobs)]
+"""The job table as the routes use it (:class:`~service.storage.interfaces.Jobs`)."""
+
+
+def get_reviews(request: Request) -> Reviews:
+    return get_ctx(request).store
+
+
+ReviewStore = Annotated[Reviews, Depends(get_reviews)]
+"""Reviews and the audit log (:class:`~service.storage.interfaces.Reviews`)."""
+
+
+def owned_job(jobs: JobReader, job_id: str, who: str) -> JobRecord:
     """The job ``job_id`` of the caller; an id that cannot be one (syntax) never reaches the database."""
     if not is_job_id(job_id):
         raise Problem(404, "no registration job with this id", kind="job-not-found", field="job_id",
                       accepted="a job id as returned by POST /v1/registrations (1 to 64 of A-Z a-z 0-9 _ -)")
-    job = ctx.store.get(job_id)
+    job = jobs.get(job_id)
     if job is None or job.owner != who:  # another key's job answers as if it did not exist (no existence leak)
         raise Problem(404, f"no registration job with id '{job_id}'", kind="job-not-found")
     return job
 
 
-def _owned_job(job_id: str, ctx: Ctx, who: Principal) -> JobRecord:
-    return owned_job(ctx, job_id, who)
+def _owned_job(job_id: str, jobs: JobsStore, who: Principal) -> JobRecord:
+    return owned_job(jobs, job_id, who)
 
 
 OwnedJob = Annotated[JobRecord, Depends(_owned_job)]

@@ -16,7 +16,8 @@ from ..jobs.executor import Executor
 from ..settings import ServiceSettings
 from ..storage.blobs import BlobStore
 from ..storage.dbblobs import make_blob_store
-from ..storage.store import JobStore, store_for
+from ..storage.interfaces import Jobs, JobStore
+from ..storage.store import store_for
 from .validator import ValidatorPool
 
 ANONYMOUS = "anonymous"
@@ -41,6 +42,11 @@ class IntakeContext:
         return cls(settings=settings, store=store, blobs=make_blob_store(settings, store.engine),
                    validator=start_validator(settings) if validate else None,
                    executor=make_executor(settings, store), **more)
+
+    @property
+    def jobs(self) -> Jobs:
+        """The job table as a submission uses it (count the queue, find by idempotency key, create)."""
+        return self.store
 
 
 def start_validator(settings: ServiceSettings) -> ValidatorPool:

@@ -141,10 +141,10 @@ async def check_queue(ctx: IntakeContext, who: str) -> None:
     """Back-pressure: :class:`Overloaded` when the queue is full, :class:`QuotaExceeded` when this owner has too
     many queued jobs."""
     limits = ctx.settings.limits
-    if await asyncio.to_thread(ctx.store.queued_count) >= limits.queue_limit:
+    if await asyncio.to_thread(ctx.jobs.queued_count) >= limits.queue_limit:
         raise Overloaded(f"the job queue is full ({limits.queue_limit} queued); retry later", kind="queue-full",
                          retry_after_s=QUEUE_RETRY_AFTER_S)
-    if who != ANONYMOUS and await asyncio.to_thread(ctx.store.queued_count, who) >= limits.queue_limit_per_key:
+    if who != ANONYMOUS and await asyncio.to_thread(ctx.jobs.queued_count, who) >= limits.queue_limit_per_key:
         raise QuotaExceeded(f"this API key already has {limits.queue_limit_per_key} queued jobs; retry later",
                             retry_after_s=QUEUE_RETRY_AFTER_S)
 
@@ -203,14 +203,14 @@ def replay(existing: JobRecord, request_hash: str) -> Submitted:
 async def find_replay(ctx: IntakeContext, who: str, key: str | None, request_hash: str) -> Submitted | None:
     if key is None:
         return None
-    existing = await asyncio.to_thread(ctx.store.find_idempotent, who, key)
+    existing = await asyncio.to_thread(ctx.jobs.find_idempotent, who, key)
     return None if existing is None else replay(existing, request_hash)
 
 
 async def create_job(ctx: IntakeContext, job: JobRecord) -> Submitted:
     """Insert the job: created, or the replay of an equal request that won the race."""
     try:
-        stored, created = await asyncio.to_thread(ctx.store.create, job)
+        stored, created = await asyncio.to_thread(ctx.jobs.create, job)
     except ConflictError as exc:
         return replay(exc.existing, job.request_hash)
     return Submitted(stored, created=True) if created else replay(stored, job.request_hash)

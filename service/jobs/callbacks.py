@@ -31,7 +31,8 @@ from urllib.parse import unquote, urlsplit
 import httpx
 
 from ..settings import ServiceSettings
-from ..storage.store import JobRecord, JobStore
+from ..storage.interfaces import DeliveryStore
+from ..storage.store import JobRecord
 from .leased import LeasedDeliverer
 
 log = logging.getLogger("dsareg.service.callbacks")
@@ -111,7 +112,7 @@ class CallbackDeliverer(LeasedDeliverer):
 
     name = "callbacks"
 
-    def __init__(self, store: JobStore, settings: ServiceSettings, payload: Callable[[JobRecord], bytes],
+    def __init__(self, store: DeliveryStore, settings: ServiceSettings, payload: Callable[[JobRecord], bytes],
                  user_agent: str = "dsareg"):
         super().__init__()
         self.store, self.settings, self.payload = store, settings, payload

@@ -14,11 +14,14 @@ import multiprocessing as mp
 import os
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .procwatch import WakeLink
 from ..settings import ServiceSettings
 from .worker import worker_id_prefix, worker_main
+
+if TYPE_CHECKING:
+    from ..storage.interfaces import Leases, Upkeep
 
 log = logging.getLogger("dsareg.service.executor")
 
@@ -53,7 +56,7 @@ class Executor(abc.ABC):
         if job_ids:
             self.notify()
 
-    def maintain(self, store: Any) -> None:
+    def maintain(self, store: Upkeep) -> None:
         """Periodic work of the API's sweeper (e.g. re-dispatching jobs a broker lost)."""
 
     def describe(self) -> dict[str, Any]:
@@ -83,7 +86,7 @@ class EmbeddedProcessExecutor(Executor):
     it stops the worker) instead of process-shared events, whose internal lock a SIGKILLed
     worker could leave held and so block every later notify."""
 
-    def __init__(self, settings: ServiceSettings, workers: int | None = None, store: Any = None):
+    def __init__(self, settings: ServiceSettings, workers: int | None = None, store: Leases | None = None):
         self.settings = settings
         self.store = store  # to tell warmed-up workers (they register in the store after warm-up) from warming ones
         self.count = settings.jobs.workers if workers is None else workers

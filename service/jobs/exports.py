@@ -33,7 +33,8 @@ from ..pacs.dimse.pull import DimsePullJob
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
 from ..storage.blobs import BlobStore
-from ..storage.store import JobRecord, JobStore
+from ..storage.interfaces import DeliveryStore
+from ..storage.store import JobRecord
 from .leased import LeasedDeliverer
 
 log = logging.getLogger("dsareg.service.exports")
@@ -120,7 +121,7 @@ class ExportDeliverer(LeasedDeliverer):
 
     name = "exports"
 
-    def __init__(self, store: JobStore, blobs: BlobStore, settings: ServiceSettings):
+    def __init__(self, store: DeliveryStore, blobs: BlobStore, settings: ServiceSettings):
         super().__init__(threads=2)
         self.store, self.blobs, self.settings = store, blobs, settings
         self.renewed_lease_seconds = settings.jobs.export_lease_seconds  # recovery after an API crash: this + a poll

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from ..settings import ServiceSettings
 from .executor import EmbeddedProcessExecutor, Executor, NoExecutor
 
+if TYPE_CHECKING:
+    from ..storage.interfaces import Leases
 
-def make_executor(settings: ServiceSettings, store: Any = None) -> Executor:
+
+def make_executor(settings: ServiceSettings, store: Leases | None = None) -> Executor:
     """The executor the settings ask for (the one place that knows every kind)."""
     if settings.jobs.executor == "celery":
         from .celery.executor import CeleryExecutor

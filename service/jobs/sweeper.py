@@ -10,7 +10,8 @@ from typing import Protocol
 
 from ..settings import ServiceSettings
 from ..storage.blobs import BlobStore
-from ..storage.store import JobStore, store_outage_errors
+from ..storage.interfaces import Upkeep
+from ..storage.store import store_outage_errors
 from .executor import Executor
 
 log = logging.getLogger("dsareg.service")
@@ -20,7 +21,7 @@ class SweptService(Protocol):
     """What the sweeper reads (the API's ``ServiceContext`` is one); attributes are read on every sweep."""
 
     settings: ServiceSettings
-    store: JobStore
+    store: Upkeep
     blobs: BlobStore
     executor: Executor
 

@@ -32,7 +32,8 @@ from ..storage.diskspace import has_room, is_disk_full
 from ..engine_adapter import collect_artifacts, engine, fetched_case, run_job, stored_case_files
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
-from ..storage.store import JobRecord, JobStore, random_token, store_for, store_outage_errors
+from ..storage.interfaces import Leases
+from ..storage.store import JobRecord, random_token, store_for, store_outage_errors
 
 log = logging.getLogger("dsareg.service.worker")
 
@@ -52,7 +53,7 @@ def make_worker_id(index: int) -> str:
 class _JobControl:
     """State shared by the engine callbacks and the heartbeat thread of one running job."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
+    def __init__(self, store: Leases, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
                  cancel_hint: Any = None):
         self.store = store
         self.cancel_hint = cancel_hint  # e.g. "the Celery task was revoked": cancel without waiting for a beat
@@ -151,7 +152,7 @@ def with_store_retries(call: Any, settings: ServiceSettings, what: str, job_id: 
 class _Finisher:
     """Guarded end-state writes of one claimed job, each with bounded retries on store outages."""
 
-    def __init__(self, store: JobStore, job: JobRecord, worker_id: str, settings: ServiceSettings):
+    def __init__(self, store: Leases, job: JobRecord, worker_id: str, settings: ServiceSettings):
         self.store, self.job, self.worker_id, self.settings = store, job, worker_id, settings
 
     def complete(self, status: str, **values: Any) -> str:
@@ -173,7 +174,7 @@ class _Finisher:
         return "released"
 
 
-def run_one(store: JobStore, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
+def run_one(store: Leases, blobs: BlobStore, job: JobRecord, worker_id: str, settings: ServiceSettings, stop: Any,
             cancel_hint: Any = None) -> str:
     """Run a claimed job to an end state; returns what happened (for logs and tests).
 
@@ -289,7 +290,7 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
     return outcome
 
 
-def _record_case(store: JobStore, job: JobRecord, files: Any, source: str, settings: ServiceSettings) -> None:
+def _record_case(store: Leases, job: JobRecord, files: Any, source: str, settings: ServiceSettings) -> None:
     """Whose case a job by PACS reference is, once its inputs were fetched (informative: never fails the job)."""
     case, search = fetched_case(files, source)
     try:

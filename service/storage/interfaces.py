@@ -1,14 +1,18 @@
 """The job store by concern: a small interface each, implemented on the one schema (:mod:`service.storage.schema`).
 
-* :class:`Jobs` — the API's side of the job table: create (idempotently), read, list, cancel, delete;
+* :class:`Jobs` — the API's side of the job table: create (idempotently), read (:class:`JobReader`), list, cancel,
+  delete;
 * :class:`Leases` — the workers' and the sweeper's side: claim, heartbeat, complete, release, recover (the lease
-  protocol: :mod:`service.storage.leases`), worker liveness, retention;
+  protocol: :mod:`service.storage.leases`), the case a worker read, worker liveness, retention;
 * :class:`Reviews` — a person's review of a finished job and the audit log of every transition;
 * :class:`Deliveries` — completion callbacks and PACS exports held for review, each leased like a job;
 * :class:`DicomInbox` — the DICOM node's durable index of received instances.
 
 :class:`JobStore` is the first four together, what :class:`~service.storage.store.SqlJobStore` is; code that
-needs one concern takes that one.
+needs one concern takes that one: the API's routes (``service.api.deps``: ``JobsStore``, ``ReviewStore``) and the
+intake (``IntakeContext.jobs``) :class:`Jobs`, a worker :class:`Leases`, the callback and export deliverers
+:class:`DeliveryStore`, the sweeper and the executors' upkeep :class:`Upkeep`, the DICOM node :class:`DicomInbox`.
+Only the code that opens the store (``store_for``: the service context, a worker's claim loop) holds all of it.
 """
 
 from __future__ import annotations
@@ -18,22 +22,21 @@ from typing import Any, Protocol
 from .records import JobRecord, StoredInstance
 
 
-class Jobs(Protocol):
+class JobReader(Protocol):
+    def get(self, job_id: str) -> JobRecord | None:
+        """The job with its callback's delivery state, its held export and its previous job."""
+
+
+class Jobs(JobReader, Protocol):
     def create(self, job: JobRecord) -> tuple[JobRecord, bool]:
         """Insert; with an idempotency key already used by ``job.owner``: the existing job and ``False`` if its
         request hash matches, else :class:`~service.storage.records.ConflictError`."""
 
     def find_idempotent(self, owner: str, key: str) -> JobRecord | None: ...
 
-    def get(self, job_id: str) -> JobRecord | None:
-        """The job with its callback's delivery state, its held export and its previous job."""
-
     def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,
              review: str | None = None, q: str | None = None) -> tuple[list[JobRecord], str | None]:
         """Newest first; ``q``: only jobs whose ``case_search`` contains it (case-insensitive)."""
-
-    def set_case(self, job_id: str, case: dict[str, Any], search: str | None) -> None:
-        """Record whose case a job is, once its inputs were read (jobs by PACS reference: by the worker)."""
 
     def count_by_status(self) -> dict[str, int]: ...
 
@@ -56,6 +59,10 @@ class Leases(Protocol):
 
     def queued_since(self, before: float, limit: int = 1000) -> list[str]:
         """Ids of queued jobs not updated since ``before`` (oldest first)."""
+
+    def set_case(self, job_id: str, case: dict[str, Any], search: str | None) -> None:
+        """Record whose case a job is, once its inputs were read (jobs by PACS reference: by the worker holding it;
+        implemented with the job rows, :mod:`service.storage.jobrows`)."""
 
     def heartbeat(self, job_id: str, worker_id: str, lease_seconds: float,
                   progress: dict | None = None) -> tuple[bool, bool]:
@@ -120,6 +127,14 @@ class Deliveries(Protocol):
     def finish_export(self, job_id: str, attempt: int, *, state: str, outcome: dict | None, error: dict | None,
                       next_attempt_at: float | None) -> bool:
         """Record export ``attempt``: ``done``, ``pending`` again (a retry) or ``failed``; an audit event each."""
+
+
+class DeliveryStore(JobReader, Deliveries, Protocol):
+    """What the callback and export deliverers use: their leased rows and the job each one delivers."""
+
+
+class Upkeep(Jobs, Leases, Protocol):
+    """What the sweeper and an executor's upkeep use: leases recovered, retention (a job deleted), the queue read."""
 
 
 class JobStore(Jobs, Leases, Reviews, Deliveries, Protocol):

@@ -62,13 +62,13 @@ def get_result(job: OwnedJob) -> Response:
 @router.get("/v1/registrations/{job_id}/overlays/{view}.png", summary="Overlay of the registered mesh",
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 404, 422)})
 def get_overlay(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
-    return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("overlays", view)])
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), *ARTIFACTS[("overlays", view)])
 
 
 @router.get("/v1/registrations/{job_id}/masks/{view}.png", summary="Vessel mask used for a view",
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 404, 422)})
 def get_mask(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
-    return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("masks", view)])
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), *ARTIFACTS[("masks", view)])
 
 
 @router.get("/v1/registrations/{job_id}/images/{view}.png", summary="The image registered (8-bit grey)",
@@ -76,7 +76,7 @@ def get_mask(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) 
                         "at its own pixel grid, contrast stretched (0.5–99.5 percentiles).",
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
 def get_registered_image(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
-    return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("images", view)])
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), *ARTIFACTS[("images", view)])
 
 
 @router.get("/v1/registrations/{job_id}/layers/{view}.png", summary="Outlines and mask as RGB layers",
@@ -85,7 +85,7 @@ def get_registered_image(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who:
                         "under them (unfilled). A page draws each as a toggle.",
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
 def get_layers(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
-    return artifact_file(ctx, owned_job(ctx, job_id, who), *ARTIFACTS[("layers", view)])
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), *ARTIFACTS[("layers", view)])
 
 
 @router.get("/v1/registrations/{job_id}/model.json", summary="The model, both poses and the C-arm (3D scene)",
@@ -121,4 +121,4 @@ def get_loss_plot(ctx: Ctx, job: OwnedJob) -> Response:
                              "description": "A DICOM Part 10 file."},
                        **problem_responses(401, 404, 422)})
 def get_dicom(ctx: Ctx, job_id: str, name: DicomName, who: Principal) -> Response:
-    return artifact_file(ctx, owned_job(ctx, job_id, who), name, engine.DICOM_FILES[name], filename=name)
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), name, engine.DICOM_FILES[name], filename=name)

@@ -61,7 +61,7 @@ def frame(event: str, data: dict[str, Any], number: int) -> bytes:
 
 
 async def _read(ctx: ServiceContext, job_id: str) -> JobRecord | None:
-    return await anyio.to_thread.run_sync(ctx.store.get, job_id)
+    return await anyio.to_thread.run_sync(ctx.jobs.get, job_id)
 
 
 async def job_events(request: Request, ctx: ServiceContext, job: JobRecord) -> AsyncIterator[bytes]:

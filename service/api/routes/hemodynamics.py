@@ -34,11 +34,11 @@ def get_hemodynamics(ctx: Ctx, job: OwnedJob) -> Response:
                        **problem_responses(401, 403, 404, 422)})
 def get_hemodynamics_model(ctx: Ctx, job_id: str, kind: Literal["ply", "vtk"], who: Principal) -> Response:
     name = f"hemodynamics.{kind}"
-    return artifact_file(ctx, owned_job(ctx, job_id, who), name, engine.ARTIFACTS[name], filename=name)
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), name, engine.ARTIFACTS[name], filename=name)
 
 
 @router.get("/v1/registrations/{job_id}/parametric/{view}.png", summary="A run colour-coded by arrival time",
             response_class=Response, responses={**PNG_RESPONSE, **problem_responses(401, 403, 404, 422)})
 def get_parametric(ctx: Ctx, job_id: str, view: Literal["ap", "lat"], who: Principal) -> Response:
     name = engine.parametric_png(view)
-    return artifact_file(ctx, owned_job(ctx, job_id, who), name, engine.ARTIFACTS[name])
+    return artifact_file(ctx, owned_job(ctx.jobs, job_id, who), name, engine.ARTIFACTS[name])

@@ -29,7 +29,7 @@ def healthz() -> Health:
                         "`checks.warming` and `checks.workers_ready` / `checks.workers_alive`.",
             responses={503: {"description": "Not ready", "model": Health}})
 def readyz(ctx: Ctx) -> Response:
-    store_ok = ctx.store.ping()
+    store_ok = ctx.jobs.ping()
     # workers are counted in the database (Celery's alive, everyone's ready): not asked again when it just
     # failed (one deadline, not three)
     alive = ctx.executor.alive_workers() if store_ok or ctx.settings.jobs.executor == "embedded" else 0

@@ -10,8 +10,9 @@ from fastapi.responses import JSONResponse, Response
 
 from ...pacs.dimse.export import dimse_source
 from ...problems import Problem, problem_responses
+from ...storage.interfaces import Jobs
 from ...storage.store import REVIEW_FILTERS, STATUSES, decode_cursor
-from ..deps import Ctx, OwnedJob, Principal
+from ..deps import Ctx, JobsStore, OwnedJob, Principal
 from ..submit.accept import RETRY_AFTER_QUEUED, submit_by_reference, submit_form
 from ..submit.forms import read_form
 from ..submit.parts import MAX_VOLUME_FILES, idempotency_key
@@ -69,7 +70,7 @@ async def submit(request: Request, ctx: Ctx, who: Principal) -> Response:
         await form.close()
 
 
-def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | None,
+def list_page(jobs: Jobs, who: str, status: str | None, limit: int, cursor: str | None,
               review: str | None = None, q: str | None = None) -> dict:
     if status is not None and status not in STATUSES:
         raise Problem(422, f"unknown status '{status[:20]}'", field="status", accepted=", ".join(STATUSES))
@@ -81,8 +82,8 @@ def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | 
         except Exception:  # noqa: BLE001
             raise Problem(400, "the cursor is not valid; use next_cursor from a previous page", field="cursor") from None
     q = q.strip() if q else None
-    records, next_cursor = ctx.store.list(owner=who, status=status, limit=limit, cursor=cursor, review=review,
-                                          q=q or None)
+    records, next_cursor = jobs.list(owner=who, status=status, limit=limit, cursor=cursor, review=review,
+                                     q=q or None)
     next_link = None
     if next_cursor:
         next_link = (f"/v1/registrations?limit={limit}&cursor={next_cursor}" + (f"&status={status}" if status else "")
@@ -93,7 +94,7 @@ def list_page(ctx: Ctx, who: str, status: str | None, limit: int, cursor: str | 
 @router.get("/v1/registrations", response_model=JobList, summary="List jobs (newest first)",
             responses=problem_responses(400, 401, 422))
 def list_jobs(
-    ctx: Ctx,
+    jobs: JobsStore,
     status: str | None = Query(None, description="Only jobs in this state.",
                                json_schema_extra={"enum": list(STATUSES)}),
     limit: int = Query(20, ge=1, le=100, description="Page size."),
@@ -110,7 +111,7 @@ def list_jobs(
     *,
     who: Principal,
 ) -> Response:
-    return JSONResponse(list_page(ctx, who, status, limit, cursor, review, q))
+    return JSONResponse(list_page(jobs, who, status, limit, cursor, review, q))
 
 
 @router.get("/v1/registrations/{job_id}", response_model=JobStatus, summary="Job status",
@@ -128,11 +129,11 @@ def get_job(ctx: Ctx, job: OwnedJob) -> Response:
                          "(202, poll until status is canceled). A finished job gives 409.",
              responses={202: {"description": "Cancellation requested; the worker stops shortly.", "model": JobStatus},
                         **problem_responses(401, 404, 409)})
-def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
+def cancel_job(ctx: Ctx, jobs: JobsStore, job: OwnedJob) -> Response:
     if job.status in ("succeeded", "failed"):
         raise Problem(409, f"the job already finished ({job.status}); nothing to cancel", kind="job-finished",
                       extra={"job_status": job.status})
-    updated = ctx.store.request_cancel(job.id) or job
+    updated = jobs.request_cancel(job.id) or job
     ctx.executor.cancel(job.id)
     code = 202 if updated.status == "running" else 200
     return JSONResponse(status_body(updated), status_code=code, headers=previous_link_header(updated))
@@ -140,11 +141,11 @@ def cancel_job(ctx: Ctx, job: OwnedJob) -> Response:
 
 @router.delete("/v1/registrations/{job_id}", status_code=204, summary="Delete a job and its files",
                response_class=Response, responses={204: {"description": "Deleted."}, **problem_responses(401, 404)})
-def delete_job(ctx: Ctx, job: OwnedJob) -> Response:
+def delete_job(ctx: Ctx, jobs: JobsStore, job: OwnedJob) -> Response:
     if job.status == "running":
-        ctx.store.request_cancel(job.id)
+        jobs.request_cancel(job.id)
         ctx.executor.cancel(job.id)
-    orphans = ctx.store.delete(job.id)
+    orphans = jobs.delete(job.id)
     ctx.blobs.delete(orphans, min_age_seconds=0.0)
     ctx.blobs.remove_job_work(job.id)
     log.info("job %s: deleted", job.id)

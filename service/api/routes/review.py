@@ -12,7 +12,7 @@ import logging
 from fastapi.responses import JSONResponse, Response
 
 from ...problems import Problem, problem_responses
-from ..deps import Ctx, OwnedJob, Principal
+from ..deps import OwnedJob, Principal, ReviewStore
 from ..openapi import resource_router
 from ..schemas.jobs import JobStatus, status_body
 from ..schemas.review import AuditLog, ReviewRequest, audit_event, reviewer_label
@@ -29,11 +29,11 @@ router = resource_router("registrations")
                 "the earlier one on the job; each stays in the job's audit log. A queued or running job gives 409.",
     responses=problem_responses(400, 401, 404, 408, 409, 422),
 )
-def review_job(body: ReviewRequest, ctx: Ctx, job: OwnedJob, who: Principal) -> Response:
+def review_job(body: ReviewRequest, reviews: ReviewStore, job: OwnedJob, who: Principal) -> Response:
     if job.status in ("queued", "running"):
         raise Problem(409, f"the job has not finished ({job.status}); review it once it has", kind="job-not-finished",
                       extra={"job_status": job.status})
-    reviewed = ctx.store.review(job.id, body.decision, body.comment, reviewer_label(who))
+    reviewed = reviews.review(job.id, body.decision, body.comment, reviewer_label(who))
     if reviewed is None:  # deleted meanwhile (a finished job never becomes unfinished)
         raise Problem(404, f"no registration job with id '{job.id}'", kind="job-not-found")
     log.info("job %s: reviewed (%s)", job.id, body.decision)
@@ -46,6 +46,6 @@ def review_job(body: ReviewRequest, ctx: Ctx, job: OwnedJob, who: Principal) -> 
                 "PACS export held for review, each with who did it (an API key's label, never the key) and details.",
     responses=problem_responses(401, 404),
 )
-def get_audit(ctx: Ctx, job: OwnedJob) -> Response:
-    items = [audit_event(row, job.owner) for row in ctx.store.events(job.id)]
+def get_audit(reviews: ReviewStore, job: OwnedJob) -> Response:
+    items = [audit_event(row, job.owner) for row in reviews.events(job.id)]
     return JSONResponse(AuditLog(job_id=job.id, items=items).model_dump(mode="json"))

@@ -24,11 +24,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .app import TASK_NAME, make_celery
 from ..executor import Executor
 from ...settings import ServiceSettings
+
+if TYPE_CHECKING:
+    from ...storage.interfaces import Leases, Upkeep
 
 log = logging.getLogger("dsareg.service.celery")
 
@@ -36,7 +39,7 @@ log = logging.getLogger("dsareg.service.celery")
 class CeleryExecutor(Executor):
     """Submits and cancels through Celery; workers are separate processes/machines."""
 
-    def __init__(self, settings: ServiceSettings, store: Any = None):
+    def __init__(self, settings: ServiceSettings, store: Leases | None = None):
         self.settings = settings
         self.store = store
         self.app = make_celery(settings)
@@ -95,7 +98,7 @@ class CeleryExecutor(Executor):
         except Exception:  # noqa: BLE001 - broker unreachable
             return None
 
-    def maintain(self, store: Any) -> None:
+    def maintain(self, store: Upkeep) -> None:
         """Re-send queued jobs the broker may have lost (the job table is the truth).
 
         A queued job that nobody claimed for ``redispatch_after_seconds`` is sent again when the

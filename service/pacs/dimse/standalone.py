@@ -12,19 +12,19 @@ import logging
 import signal
 import threading
 import time
-from typing import Any
 
 from ...intake.context import IntakeContext, close_intake
 from ...jobs.executor import Executor, NoExecutor
 from ...jobs.factory import make_executor
 from ...settings import ServiceSettings
+from ...storage.interfaces import Leases
 from .job_options import dicom_job_options
 from .listener import DicomListener
 
 log = logging.getLogger("dsareg.dimse")
 
 
-def listener_executor(settings: ServiceSettings, store: Any) -> Executor:
+def listener_executor(settings: ServiceSettings, store: Leases) -> Executor:
     """Celery's executor (a message per job) when the settings use Celery; else none (``dsareg serve``'s embedded
     workers take the jobs from the table)."""
     return make_executor(settings, store) if settings.jobs.executor == "celery" else NoExecutor()

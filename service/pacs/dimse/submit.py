@@ -89,7 +89,7 @@ async def submit_planned(ctx: IntakeContext, study_uid: str, job: PlannedJob,
     """One planned job → ``(job id, created)``; raises a :class:`~service.intake.refusals.Refusal` like the HTTP
     submission."""
     owner, key = job_owner(ctx.settings), idempotency_key(study_uid, job)
-    existing = await asyncio.to_thread(ctx.store.find_idempotent, owner, key)
+    existing = await asyncio.to_thread(ctx.jobs.find_idempotent, owner, key)
     if existing is not None:
         return existing.id, False
     inputs, options = await _planned_inputs(ctx, study_uid, job, by_uid)
