@@ -117,16 +117,46 @@ def _header(plain: bytes | memoryview, transfer_syntax: str) -> tuple[Any, int]:
     """The data set up to Pixel Data, and where Pixel Data starts (-1: none)."""
     from pydicom.filereader import read_dataset
 
-    stream = io.BytesIO(plain[:HEADER_KEEP_BYTES])  # a copy of the header's part only
-    try:
-        header = read_dataset(stream, transfer_syntax == IMPLICIT_LITTLE, transfer_syntax != BIG_ENDIAN,
-                              stop_when=lambda tag, vr, length: int(tag) in PIXEL_TAGS)
-        for element in header:  # force every value's decoding (a truncated value raises here)
-            _ = element.value
-    except Exception as exc:  # noqa: BLE001 - any undecodable header
-        raise InstanceRefused(CANNOT_UNDERSTAND, f"the header does not parse ({type(exc).__name__})") from None
-    at = stream.tell()
+    with memoryview(plain) as whole, whole[:HEADER_KEEP_BYTES] as part:
+        stream = _ViewStream(part)  # reads what the header takes (was a copy of its first 32 MiB, pages all touched)
+        try:
+            header = read_dataset(stream, transfer_syntax == IMPLICIT_LITTLE, transfer_syntax != BIG_ENDIAN,
+                                  stop_when=lambda tag, vr, length: int(tag) in PIXEL_TAGS)
+            for element in header:  # force every value's decoding (a truncated value raises here)
+                _ = element.value
+        except Exception as exc:  # noqa: BLE001 - any undecodable header
+            raise InstanceRefused(CANNOT_UNDERSTAND, f"the header does not parse ({type(exc).__name__})") from None
+        at = stream.tell()
     return header, (at if at < min(len(plain), HEADER_KEEP_BYTES) else -1)
+
+
+class _ViewStream(io.RawIOBase):
+    """A seekable, read-only file over a memory view, copying only what is read."""
+
+    def __init__(self, view: memoryview):
+        super().__init__()
+        self.view, self.at = view, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        count = max(0, min(len(buffer), len(self.view) - self.at))
+        with memoryview(buffer) as out, self.view[self.at:self.at + count] as source:
+            out[:count] = source
+        self.at += count
+        return count
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.at, io.SEEK_END: len(self.view)}[whence]
+        self.at = max(0, base + offset)
+        return self.at
+
+    def tell(self) -> int:
+        return self.at
 
 
 def _uid(header: Any, keyword: str) -> str:

@@ -97,6 +97,26 @@ def scu_send(port: int, paths: list[Path], calling: str, *, abort_after: int | N
     return statuses
 
 
+def large_xa(size_mb: float, study: str, series: str, number: int = 1) -> bytes:
+    """One multi-frame XA instance of about ``size_mb`` MB (1024² uint16 frames of noise: nothing compresses it),
+    Part 10, Explicit VR Little Endian; synthetic, no patient."""
+    import numpy as np
+
+    from dsareg_engine.io.dicom_out import new_instance
+
+    frames = max(1, round(size_mb * 2**20 / (1024 * 1024 * 2)))
+    ds = new_instance("1.2.840.10008.5.1.4.1.1.12.1", new_uid(), charset="ISO_IR 100")
+    ds.PatientName, ds.PatientID, ds.StudyInstanceUID, ds.SeriesInstanceUID = "TEST^LARGE", "TEST", study, series
+    ds.Modality, ds.InstanceNumber, ds.NumberOfFrames = "XA", number, frames
+    ds.Rows = ds.Columns = 1024
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 12, 11, 0
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.PixelData = np.random.default_rng(number).integers(0, 4000, (frames, 1024, 1024), dtype=np.uint16).tobytes()
+    buffer = io.BytesIO()
+    ds.save_as(buffer, enforce_file_format=True)
+    return buffer.getvalue()
+
+
 def jobs_of_study(client, study_uid: str) -> list[dict]:
     """Every job of the service made from ``study_uid`` (by its ``source.dimse``)."""
     found = []

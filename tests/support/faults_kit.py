@@ -208,6 +208,46 @@ def frozen(pids: Iterable[int]):
         resume(pids)
 
 
+def established(local_port: int | None = None, remote_port: int | None = None) -> int:
+    """TCP connections of this machine in state ESTABLISHED with that local and / or remote port (IPv4 and IPv6,
+    from /proc/net): a socket a process still holds open on a live connection."""
+    count = 0
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            rows = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            fields = row.split()
+            local, remote, state = int(fields[1].rsplit(":", 1)[1], 16), int(fields[2].rsplit(":", 1)[1], 16), fields[3]
+            if state == "01" and local_port in (None, local) and remote_port in (None, remote):
+                count += 1
+    return count
+
+
+def open_files_under(folder: Path, pid: int | None = None) -> list[str]:
+    """The files under ``folder`` a process (default this one) holds open, deleted ones included."""
+    fd_dir = Path(f"/proc/{pid or os.getpid()}/fd")
+    found = []
+    for fd in list(fd_dir.iterdir()) if fd_dir.is_dir() else []:
+        try:
+            target = os.readlink(fd)
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith(str(folder)):
+            found.append(target)
+    return found
+
+
+def wait_until(check: Callable[[], bool], timeout: float, what: str) -> float:
+    """Seconds until ``check()`` holds (AssertionError naming ``what`` after ``timeout``)."""
+    started = time.monotonic()
+    while not check():
+        assert time.monotonic() - started < timeout, f"{what}: not within {timeout} s"
+        time.sleep(0.05)
+    return time.monotonic() - started
+
+
 def spawn_children(pid: int) -> set[int]:
     """Descendants of ``pid`` started by multiprocessing's spawn (workers, validators), not its resource tracker."""
     found = set()

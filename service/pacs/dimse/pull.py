@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, Literal
@@ -23,7 +24,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...engine_adapter import engine, fetched_case_files
 from ..dicomweb import ReferenceRequestFields, StudyReference
-from .query import DimsePacsError, bounded, deadline_of, retrieve, scu_ae
+from .get_receive import GetReceiver
+from .query import DimsePacsError, bounded, deadline_of, query_identifier, retrieve, scu_ae, silence_detail
 from .scp import STORAGE_CLASSES, configured_peers, decodable_transfer_syntaxes
 
 ROLE = "dimse-reference"
@@ -52,25 +54,19 @@ class DimseRegistrationRequest(ReferenceRequestFields):
     store_results: bool = Field(True, description="C-STORE the REG and the overlays back to the peer.")
 
 
-def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str) -> list[bytes]:
-    """The instances a C-GET at ``level`` with ``keys`` returns from peer ``title`` (Part 10 bytes)."""
-    from pydicom.dataset import Dataset
+def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str,
+          on_received: Callable[[int], None] | None = None) -> list[bytes]:
+    """The instances a C-GET at ``level`` with ``keys`` returns from peer ``title`` (Part 10 bytes), each held on
+    disk while the retrieval lasts (:mod:`.get_receive`); ``on_received(count)`` after each one kept.
+
+    A peer that stops answering (frozen, or gone without closing) ends it after ``dicom_timeout_seconds`` of
+    silence: the association is aborted and :class:`DimsePacsError` says so."""
     from pynetdicom import build_role, evt
 
     peer = configured_peers(settings).get(title)
     if peer is None:
         raise DimsePacsError(title, "configuration", "no longer one of this server's DSAREG_DICOM_PEERS")
-    received: list[bytes] = []
-    room = [settings.limits.max_upload_bytes]  # all of one C-GET at most, as an upload
-
-    def on_store(event: Any) -> int:
-        data = bytes(event.encoded_dataset(include_meta=True))
-        room[0] -= len(data)
-        if room[0] < 0:
-            return 0xA700  # out of resources: the peer is told, the C-GET ends with failures
-        received.append(data)
-        return SUCCESS
-
+    receiver = GetReceiver(settings, on_received)
     ae = scu_ae(settings)
     ae.add_requested_context(GET_MODEL)
     syntaxes = decodable_transfer_syntaxes()
@@ -78,27 +74,40 @@ def c_get(settings: Any, title: str, level: str, keys: dict[str, str], step: str
         ae.add_requested_context(sop_class, syntaxes)
     roles = [build_role(sop_class, scp_role=True) for sop_class in STORAGE_CLASSES]
     assoc = ae.associate(peer.host, peer.port, ae_title=peer.ae_title, ext_neg=roles,
-                         evt_handlers=[(evt.EVT_C_STORE, on_store)])
+                         evt_handlers=[(evt.EVT_C_STORE, receiver.on_store)])
     if not assoc.is_established:
         raise DimsePacsError(title, step, "association rejected" if assoc.is_rejected else
                              f"no association with {peer.host}:{peer.port} (connection refused, timed out or aborted)")
-    query = Dataset()
-    query.QueryRetrieveLevel = level
-    for keyword, value in keys.items():
-        setattr(query, keyword, value)
-    final = None
     try:
-        for status, _identifier in bounded(assoc, assoc.send_c_get(query, GET_MODEL), deadline_of(settings), title,
-                                           step):
-            code = int(getattr(status, "Status", -1)) if status else None
-            if code not in PENDING:
-                final = code
+        receiver.bind(assoc)
+        final = _get_answers(settings, assoc, query_identifier(level, keys), title, step, receiver)
+        if final not in (SUCCESS, 0xB000) or not receiver.kept:
+            raise DimsePacsError(title, step, _get_failure(settings, final, receiver), final)
+        return receiver.instances()
     finally:
+        receiver.close()
         if assoc.is_established:
             assoc.release()
-    if final not in (SUCCESS, 0xB000) or not received:
-        raise DimsePacsError(title, step, f"{len(received)} instance(s) received", final)
-    return received
+
+
+def _get_answers(settings: Any, assoc: Any, query: Any, title: str, step: str, receiver: GetReceiver) -> int | None:
+    """The C-GET's final status (None: no final answer: the peer went silent, or the association ended)."""
+    final = None
+    for status, _identifier in bounded(assoc, assoc.send_c_get(query, GET_MODEL), deadline_of(settings), title, step):
+        if not status:  # no answer in time, or the association ended
+            continue
+        receiver.heard()
+        code = int(getattr(status, "Status", -1))
+        if code not in PENDING:
+            final = code
+    return final
+
+
+def _get_failure(settings: Any, final: int | None, receiver: GetReceiver) -> str:
+    received = f"{len(receiver.kept)} instance(s) received"
+    if receiver.refused:
+        received += f", {len(receiver.refused)} refused ({receiver.refused[0]})"
+    return received if final is not None else silence_detail(settings, receiver.silent_s(), received)
 
 
 def _first_by_number(parts: list[bytes]) -> bytes:

@@ -16,6 +16,7 @@ by ``pacs_deadline_seconds`` in all (:func:`bounded`: the association is aborted
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -92,7 +93,7 @@ def _accepted(assoc: Any, *models: str) -> str | None:
     return next((uid for uid in models if uid in uids), None)
 
 
-def _identifier(level: str, keys: dict[str, Any]):
+def query_identifier(level: str, keys: dict[str, Any]):
     from pydicom.dataset import Dataset
 
     query = Dataset()
@@ -109,7 +110,7 @@ def c_find(assoc: Any, title: str, level: str, keys: dict[str, Any], step: str,
     if model is None:
         raise DimsePacsError(title, step, "the peer accepted neither Study Root nor Patient Root C-FIND")
     found, final = [], None
-    for status, identifier in bounded(assoc, assoc.send_c_find(_identifier(level, keys), model), deadline_at,
+    for status, identifier in bounded(assoc, assoc.send_c_find(query_identifier(level, keys), model), deadline_at,
                                       title, step):
         code = int(getattr(status, "Status", -1)) if status else None
         if code in PENDING and identifier is not None:
@@ -180,36 +181,55 @@ def latest_volume(settings: Any, title: str, patient_id: str, exclude_study: str
 
 
 def c_move(settings: Any, title: str, level: str, keys: dict[str, Any], step: str,
-           deadline_at: float | None = None) -> int:
-    """C-MOVE the matches of ``keys`` to our own AE; the number of sub-operations the peer completed."""
+           deadline_at: float | None = None, on_progress: Callable[[int], None] | None = None) -> int:
+    """C-MOVE the matches of ``keys`` to our own AE; the number of sub-operations the peer completed.
+    ``on_progress(completed)`` at each of the peer's pending answers. A peer silent for ``dicom_timeout_seconds``
+    (frozen, or gone without closing) ends it: the association is aborted and :class:`DimsePacsError` says so."""
     deadline_at = deadline_of(settings) if deadline_at is None else deadline_at
     assoc = associate(settings, title, (STUDY_MOVE, PATIENT_MOVE), step)
-    final, completed = None, 0
+    final, completed, heard_at = None, 0, time.monotonic()
     try:
         model = _accepted(assoc, STUDY_MOVE, PATIENT_MOVE)
         if model is None:
             raise DimsePacsError(title, step, "the peer accepted neither Study Root nor Patient Root C-MOVE")
-        answers = assoc.send_c_move(_identifier(level, keys), settings.dimse.dicom_ae_title, model)
+        answers = assoc.send_c_move(query_identifier(level, keys), settings.dimse.dicom_ae_title, model)
         for status, _answer in bounded(assoc, answers, deadline_at, title, step):
-            code = int(getattr(status, "Status", -1)) if status else None
-            completed = int(getattr(status, "NumberOfCompletedSuboperations", completed) or completed) if status \
-                else completed
+            if not status:  # no answer in time, or the association ended
+                continue
+            heard_at, code = time.monotonic(), int(getattr(status, "Status", -1))
+            completed = int(getattr(status, "NumberOfCompletedSuboperations", completed) or completed)
             if code not in PENDING:
                 final = code
+            elif on_progress is not None:
+                on_progress(completed)
     finally:
         if assoc.is_established:
             assoc.release()
     if final not in (SUCCESS, WARNING) or not completed:
-        detail = "no answer (timed out or aborted)" if final is None else (
-            f"{completed} instance(s) sent to {settings.dimse.dicom_ae_title} (does the peer know {settings.dimse.dicom_ae_title} "
-            "as a DICOM modality, and is dsareg's DICOM node listening?)")
-        raise DimsePacsError(title, step, detail, final)
+        raise DimsePacsError(title, step, _move_failure(settings, final, completed, time.monotonic() - heard_at), final)
     return completed
 
 
-def retrieve(settings: Any, inbox: Any, title: str, level: str, keys: dict[str, Any], step: str) -> list[Any]:
+def silence_detail(settings: Any, silent_s: float, received: str) -> str:
+    """Why a retrieval without its final answer ended: the peer silent past the timeout, or the association lost."""
+    if silent_s >= 0.9 * settings.dimse.dicom_timeout_seconds:  # pynetdicom's timers start a little after ours
+        return (f"the peer stopped answering (nothing for {settings.dimse.dicom_timeout_seconds:g} s, "
+                f"DSAREG_DICOM_TIMEOUT_SECONDS): association aborted, {received}")
+    return f"the association ended before the peer's final answer (aborted or connection lost), {received}"
+
+
+def _move_failure(settings: Any, final: int | None, completed: int, silent_s: float) -> str:
+    ours = settings.dimse.dicom_ae_title
+    if final is None:
+        return silence_detail(settings, silent_s, f"{completed} instance(s) sent to {ours} before")
+    return (f"{completed} instance(s) sent to {ours} (does the peer know {ours} as a DICOM modality, and is dsareg's "
+            "DICOM node listening?)")
+
+
+def retrieve(settings: Any, inbox: Any, title: str, level: str, keys: dict[str, Any], step: str,
+             on_progress: Callable[[int], None] | None = None) -> list[Any]:
     """C-MOVE one series (or one instance of it) to us; its ``retrieved`` inbox rows once all have arrived."""
-    completed = c_move(settings, title, level, keys, step)
+    completed = c_move(settings, title, level, keys, step, on_progress=on_progress)
     series, sop = keys["SeriesInstanceUID"], keys.get("SOPInstanceUID")
     deadline = time.monotonic() + settings.dimse.dicom_timeout_seconds
     while True:

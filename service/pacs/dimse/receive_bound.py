@@ -79,6 +79,19 @@ class BoundedBuffer(io.BytesIO):
         """All of it as bytes (pynetdicom's ``encoded_dataset``; a copy)."""
         return bytes(self.view()) if self._file is not None else super().getvalue()
 
+    def copy_to(self, out: Any) -> int:
+        """Write the data set to the file object ``out`` (from its file in chunks, without mapping it into
+        memory); the bytes written."""
+        if self._file is None:
+            with super().getbuffer() as view:
+                return out.write(view)
+        self._file.flush()
+        self._file.seek(0)
+        written = 0
+        while chunk := self._file.read(CHUNK_BYTES):
+            written += out.write(chunk)
+        return written
+
     def reader(self, prefix: bytes = b"") -> io.RawIOBase:
         """A file object reading ``prefix`` then the data set (to store it without a copy in memory)."""
         return _Chained(prefix, self.view())
@@ -123,9 +136,16 @@ class _Chained(io.RawIOBase):
 
 
 def bound_association(assoc: Any, limit_bytes: int, spill_dir: Path) -> None:
-    """Every DIMSE message this association receives from now on gathers its data set in a BoundedBuffer."""
+    """Every DIMSE message this association receives from now on gathers its data set in a BoundedBuffer.
+
+    pynetdicom's standard logging handler of received messages (bound to every association) calls ``getvalue()``
+    on each data set to say whether one is present, whatever the log level: a whole copy in memory (a spilled one
+    mapped and copied: twice its size). It is unbound from this association."""
+    from pynetdicom import evt
+    from pynetdicom._handlers import standard_dimse_recv_handler
     from pynetdicom.dimse_messages import DIMSEMessage
 
+    assoc.unbind(evt.EVT_DIMSE_RECV, standard_dimse_recv_handler)
     dimse = assoc.dimse
     receive = dimse.receive_primitive
 

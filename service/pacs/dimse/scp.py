@@ -213,16 +213,7 @@ class StoreScp:
 
     def check(self, event: Any):
         """The checked header of the C-STORE's data set (:class:`InstanceRefused` otherwise)."""
-        buffer = event.request.DataSet
-        if getattr(buffer, "exceeded", False):
-            raise InstanceRefused(OUT_OF_RESOURCES, f"more than {self.limits.max_instance_bytes} bytes received")
-        if getattr(buffer, "failed", False):
-            raise InstanceRefused(OUT_OF_RESOURCES, "the data set could not be held while it arrived (disk full?)")
-        request = event.request
-        view = buffer.view() if isinstance(buffer, BoundedBuffer) else buffer.getbuffer()
-        return check_instance(view, str(event.context.transfer_syntax),
-                              str(request.AffectedSOPClassUID), str(request.AffectedSOPInstanceUID),
-                              STORAGE_CLASSES, self.limits)
+        return check_received(event, self.limits)
 
     @staticmethod
     def _part10(event: Any) -> Any:
@@ -316,6 +307,21 @@ class StoreScp:
             log.warning("%d study(ies) with interrupted instances committed: the sender did not come back within %g s",
                         len(studies), self.settings.dimse.dicom_interrupted_wait_seconds)
         return studies
+
+
+def check_received(event: Any, limits: InstanceLimits):
+    """The checked header of a C-STORE's data set as received (a :class:`BoundedBuffer` or pynetdicom's own
+    buffer): :class:`InstanceRefused` past the bound, when it could not be held, or when it does not check."""
+    buffer = event.request.DataSet
+    if getattr(buffer, "exceeded", False):
+        raise InstanceRefused(OUT_OF_RESOURCES, f"more than {limits.max_instance_bytes} bytes received")
+    if getattr(buffer, "failed", False):
+        raise InstanceRefused(OUT_OF_RESOURCES, "the data set could not be held while it arrived (disk full?)")
+    request = event.request
+    view = buffer.view() if isinstance(buffer, BoundedBuffer) else buffer.getbuffer()
+    return check_instance(view, str(event.context.transfer_syntax),
+                          str(request.AffectedSOPClassUID), str(request.AffectedSOPInstanceUID),
+                          STORAGE_CLASSES, limits)
 
 
 def make_ae(settings: Any):

@@ -11,6 +11,7 @@ import io
 import json
 import sqlite3
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -366,6 +367,148 @@ def test_a_frozen_query_peer_is_a_bounded_clear_error_and_holds_nothing(node, or
     assert seconds <= STABLE_S + 5.0 + 10.0, seconds  # the stable time, one DIMSE timeout, a loaded machine
     assert patient not in node.logs()
     assert httpx.get(f"{orthanc.url}/system", auth=(orthanc.user, orthanc.password), timeout=30).status_code == 200
+
+
+def _scu_settings(node, orthanc, tmp_path):
+    """Settings of a Query/Retrieve SCU in this process as the node's worker has them (AE DSAREG: Orthanc moves to
+    the node), with a 3 s DIMSE timeout."""
+    from service.settings import ServiceSettings
+
+    return ServiceSettings(data_dir=tmp_path / "scu", database_url=f"sqlite:///{node.data_dir / 'jobs.sqlite3'}",
+                           dicom_timeout_seconds=3.0, dicom_ae_title="DSAREG",
+                           dicom_peers=[{"ae_title": "ORTHANC", "host": "127.0.0.1", "port": orthanc.dicom_port}])
+
+
+def _in_orthanc(orthanc, paths) -> tuple[str, str, int]:
+    """``paths`` stored in Orthanc; (study, volume series, its instance count)."""
+    with _pacs(orthanc) as pacs:
+        for path in paths:
+            assert pacs.post("/instances", content=path.read_bytes()).status_code == 200
+    headers = [pydicom.dcmread(p, stop_before_pixels=True) for p in paths]
+    volume = [h for h in headers if h.Modality == "CT"]
+    return str(headers[0].StudyInstanceUID), str(volume[0].SeriesInstanceUID), len(volume)
+
+
+def _retrieving(node, series: str) -> int:
+    with sqlite3.connect(node.data_dir / "jobs.sqlite3") as db:
+        return db.execute("SELECT count(*) FROM dimse_instances WHERE series_uid = ? AND state = 'retrieving'",
+                          (series,)).fetchone()[0]
+
+
+def test_a_peer_frozen_mid_c_move_fails_in_bound_and_its_retry_after_sigcont_completes_once(node, orthanc, study,
+                                                                                           tmp_path):
+    """Orthanc SIGSTOPped after moving 3 of the volume's instances to the node: the C-MOVE fails within the DIMSE
+    timeout (3 s) naming the peer's silence, our association is gone, the node drops Orthanc's frozen
+    sub-association within its own timeout (5 s) and keeps nothing half-done ('retrieving'); after SIGCONT the
+    same C-MOVE completes with each instance once, and the moved instances make no job."""
+    import threading
+
+    import sqlalchemy as sa
+
+    from service.pacs.dimse.query import DimsePacsError, retrieve
+    from service.storage.inbox import Inbox
+    from tests.support.faults_kit import established, resume, stop, wait_until
+
+    study_uid, series, count = _in_orthanc(orthanc, renamed_study(study, tmp_path / "study")[1])
+    settings, threads = _scu_settings(node, orthanc, tmp_path), threading.active_count()
+    database = sa.create_engine(settings.effective_database_url)
+    keys = {"StudyInstanceUID": study_uid, "SeriesInstanceUID": series}
+    frozen_at: list[float] = []
+
+    def freeze(completed: int) -> None:
+        if completed >= 3 and not frozen_at:
+            stop([orthanc.process.pid])
+            frozen_at.append(time.monotonic())
+
+    try:
+        with pytest.raises(DimsePacsError) as failed:
+            retrieve(settings, Inbox(database), "ORTHANC", "SERIES", keys, "retrieve volume (C-MOVE)", freeze)
+        took = time.monotonic() - frozen_at[0]
+        assert "the peer stopped answering (nothing for 3 s" in str(failed.value) and failed.value.server == "ORTHANC"
+        assert took <= 3.0 + 5.0, took  # the DIMSE timeout, a loaded machine
+        wait_until(lambda: established(remote_port=orthanc.dicom_port) == 0, 5, "our C-MOVE association closed")
+        dropped = wait_until(lambda: established(local_port=node.dicom_port) == 0, 5.0 + 10.0,
+                             "the node dropped the frozen sub-association")
+        wait_until(lambda: _retrieving(node, series) == 0, 5, "nothing left 'retrieving'")
+    finally:
+        resume([orthanc.process.pid])
+    again = retrieve(settings, Inbox(database), "ORTHANC", "SERIES", keys, "retrieve volume (C-MOVE)")
+    database.dispose()
+    assert len(again) == count and len({item.sop_instance_uid for item in again}) == count  # each once
+    wait_until(lambda: threading.active_count() <= threads, 5, "no association thread left in this process")
+    with node.client() as client:
+        assert jobs_of_study(client, study_uid) == []
+    print(f"\nC-MOVE, peer frozen after 3 of {count}: failed {took:.2f} s after the freeze; the node dropped the "
+          f"frozen sub-association {dropped:.2f} s later")
+
+
+def test_a_peer_frozen_mid_c_get_fails_in_bound_holds_nothing_and_after_sigkill_a_restart_serves_it(
+        node, orthanc, study, tmp_path):
+    """Orthanc SIGSTOPped after sending 3 of the volume's instances by C-GET: the C-GET fails within the DIMSE
+    timeout, its association closed, no thread and no file (spooled or spilled) left open; then SIGKILLed,
+    restarted: the same C-GET brings every instance once."""
+    import threading
+
+    from service.pacs.dimse.pull import c_get
+    from service.pacs.dimse.query import DimsePacsError
+    from tests.support.faults_kit import established, open_files_under, stop, wait_until
+
+    study_uid, series, count = _in_orthanc(orthanc, renamed_study(study, tmp_path / "study")[1])
+    settings, threads = _scu_settings(node, orthanc, tmp_path), threading.active_count()
+    keys = {"StudyInstanceUID": study_uid, "SeriesInstanceUID": series}
+    frozen_at: list[float] = []
+
+    def freeze(received: int) -> None:
+        if received == 3:
+            stop([orthanc.process.pid])
+            frozen_at.append(time.monotonic())
+
+    try:
+        with pytest.raises(DimsePacsError) as failed:
+            c_get(settings, "ORTHANC", "SERIES", keys, "retrieve volume (C-GET)", on_received=freeze)
+        took = time.monotonic() - frozen_at[0]
+        assert "the peer stopped answering (nothing for 3 s" in str(failed.value) and "3 instance(s)" in str(failed.value)
+        assert took <= 3.0 + 5.0, took
+        wait_until(lambda: established(remote_port=orthanc.dicom_port) == 0, 5, "our C-GET association closed")
+        assert open_files_under(settings.storage.data_dir) == [] and not any(settings.storage.data_dir.rglob("*.*"))
+        wait_until(lambda: threading.active_count() <= threads, 5, "no association thread left in this process")
+    finally:
+        orthanc.kill()  # SIGKILL, frozen
+    orthanc.start()
+    received = c_get(settings, "ORTHANC", "SERIES", keys, "retrieve volume (C-GET)")
+    uids = {str(pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True).SOPInstanceUID) for data in received}
+    assert len(received) == len(uids) == count
+    print(f"\nC-GET, peer frozen after 3 of {count}: failed {took:.2f} s after the freeze")
+
+
+def test_c_get_holds_a_large_instance_on_disk_while_it_arrives(node, orthanc, tmp_path):
+    """A 48 MiB instance by C-GET: this process's peak resident memory grows by the instance it returns and little
+    more (it was twice the instance and more: pynetdicom's buffer, its logging handler's copy, the Part 10 copy, the
+    check's copy of the first 32 MiB)."""
+    import ctypes
+
+    from service.pacs.dimse.pull import c_get
+    from tests.support.dimse_kit import large_xa
+
+    study_uid, series = new_uid(), new_uid()
+    data = large_xa(48, study_uid, series)
+    with _pacs(orthanc) as pacs:
+        assert pacs.post("/instances", content=data).status_code == 200
+    del data
+    status = Path("/proc/self/status")
+
+    def kib(key: str) -> int:
+        return int(next(line for line in status.read_text().splitlines() if line.startswith(key + ":")).split()[1])
+
+    ctypes.CDLL("libc.so.6").malloc_trim(0)  # freed memory still resident would hide what the C-GET takes
+    Path("/proc/self/clear_refs").write_text("5")  # the peak restarts from the resident size now
+    before = kib("VmRSS")
+    (got,) = c_get(_scu_settings(node, orthanc, tmp_path), "ORTHANC", "SERIES",
+                   {"StudyInstanceUID": study_uid, "SeriesInstanceUID": series}, "retrieve (C-GET)")
+    above_mib = (kib("VmHWM") - before) / 1024
+    print(f"\nC-GET of a {len(got) / 2**20:.0f} MiB instance: peak +{above_mib:.0f} MiB resident")
+    assert pydicom.dcmread(io.BytesIO(got)).pixel_array.shape == (24, 1024, 1024)
+    assert above_mib < 1.5 * len(got) / 2**20, above_mib
 
 
 def test_generated_client_pulls_by_dimse_reference_with_c_move(node, orthanc, study, tmp_path):
