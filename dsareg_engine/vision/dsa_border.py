@@ -19,8 +19,10 @@ faint vessels then come out narrow and thick ones too, by different amounts (mea
 
 5. **Catheter** (``REMOVE_CATHETER``): an unbranched, long, uniform-width branch entering from
    the image border once and ending free or in a fork whose other branches stay inside is removed
-   (:func:`catheter_pixels`). A real vessel leaving the field that looks just like that (no side
-   branch over 8 % of the image, width constant within 12 % away from its forks) is removed too.
+   (:func:`catheter_pixels`), unless it feeds a fork and is about as wide as the image's widest
+   vessel: the tree's trunk entering a small field (a catheter lies in a wider proximal vessel).
+   A distal vessel leaving the field that looks just like a catheter (no side branch over 8 % of the
+   image, width constant within 12 % away from its forks) is removed too.
 
 The registration's border correction then removes what uniform width error remains.
 """
@@ -208,26 +210,58 @@ CATHETER_MAX_WIDTH_CV = 0.12
 """... with a width this uniform (standard deviation of the radius along it ≤ this × its mean + 0.25 px)."""
 
 
-def _meets_a_crossing(branch: np.ndarray, forks: np.ndarray, branches: np.ndarray, edge: np.ndarray) -> bool:
-    """True when, at a fork the branch ends in, another branch also runs to the image border: a
-    vessel crossing the field (two straight vessels crossing), not a catheter ending in a tree."""
+TRUNK_WIDTH_RATIO = 0.9
+"""A branch from the border that ends in a junction (it feeds branches) and is at least this wide relative
+to the widest other vessel in the image is the tree's trunk entering the field, not a catheter: a catheter
+lies in a proximal vessel wider than itself. Measured (median radius away from forks): a 1.4-mm catheter
+0.54× the widest vessel of its 512-px image (its tip in a distal branch, about as wide as the catheter);
+trunks entering a small field 1.28× and 1.67× (0.08-mm pixels, phantom)."""
+
+
+def _fork_clusters(forks: np.ndarray) -> np.ndarray:
+    """Forks closer than ~8 px labelled as one junction (a crossing often skeletonizes into two 3-way forks)."""
+    return ndimage.label(cv2.dilate(forks.astype(np.uint8), np.ones((9, 9), np.uint8)))[0]
+
+
+def _junction_branches(branch: np.ndarray, fork_labels: np.ndarray, branches: np.ndarray) -> list[set[int]]:
+    """Per junction the branch ends in, the labels of the other branches meeting there."""
     own = set(np.unique(branches[branch]))
     near = cv2.dilate(branch.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    # forks closer than ~8 px are one junction (a crossing often skeletonizes into two 3-way forks)
-    fork_labels, _ = ndimage.label(cv2.dilate(forks.astype(np.uint8), np.ones((9, 9), np.uint8)))
-    reaching_edge = set(np.unique(branches[edge & (branches > 0)]))
+    meetings = []
     for index in set(np.unique(fork_labels[near & (fork_labels > 0)])):
         around = cv2.dilate((fork_labels == index).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        others = set(np.unique(branches[around & (branches > 0)])) - own
-        if others & reaching_edge:
-            return True
-    return False
+        meetings.append(set(np.unique(branches[around & (branches > 0)])) - own)
+    return meetings
+
+
+def _meets_a_crossing(meetings: list[set[int]], reaching_edge: set[int]) -> bool:
+    """True when, at a junction the branch ends in, another branch also runs to the image border: a
+    vessel crossing the field (two straight vessels crossing), not a catheter ending in a tree."""
+    return any(others & reaching_edge for others in meetings)
+
+
+def _branch_radii(branches: np.ndarray, radius: np.ndarray, from_fork: np.ndarray) -> dict[int, float]:
+    """Median radius (px) of each skeleton branch over its pixels away from forks (branches with fewer than
+    three such pixels, pieces of a junction whose radius the junction inflates, are left out)."""
+    away = from_fork > 2.0 * radius + 3.0
+    radii = {}
+    for index, sl in enumerate(ndimage.find_objects(branches), start=1):
+        kept = radius[sl][(branches[sl] == index) & away[sl]] if sl is not None else ()
+        if len(kept) >= 3:
+            radii[index] = float(np.median(kept))
+    return radii
+
+
+def _is_trunk(meetings: list[set[int]], own_px: float, index: int, radii: dict[int, float]) -> bool:
+    """True when the branch feeds a junction and is about as wide as the widest other vessel (TRUNK_WIDTH_RATIO)."""
+    widest_px = max((width for other, width in radii.items() if other != index), default=0.0)
+    return any(meetings) and own_px >= TRUNK_WIDTH_RATIO * widest_px
 
 
 def catheter_pixels(mask: np.ndarray, skeleton: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Pixels of ``mask`` ``(H, W)`` explained by a catheter: an unbranched skeleton branch that
     enters from the image border once and ends inside (its tip, or where it meets the parent
-    vessel), is long and has a uniform width (vessels taper and branch).
+    vessel, thinner than that vessel), is long and has a uniform width (vessels taper and branch).
 
     ``rows``, ``cols``: for each pixel, its nearest skeleton pixel.
     """
@@ -243,15 +277,18 @@ def catheter_pixels(mask: np.ndarray, skeleton: np.ndarray, rows: np.ndarray, co
     from_fork = ndimage.distance_transform_edt(~forks) if forks.any() else np.full(mask.shape, np.inf)
     edge = np.zeros(mask.shape, bool)
     edge[:3], edge[-3:], edge[:, :3], edge[:, -3:] = True, True, True, True
+    fork_labels, reaching_edge = _fork_clusters(forks), set(np.unique(branches[edge & (branches > 0)])) - {0}
+    radii = _branch_radii(branches, radius, from_fork)
     catheter = np.zeros(mask.shape, bool)
-    for index in np.unique(branches[edge & (branches > 0)]):
+    for index in sorted(reaching_edge):
         along = branches == index
         widths = radius[along & ~edge & (from_fork > 2.0 * radius + 3.0)]  # away from where it joins
         if along.sum() < CATHETER_MIN_LENGTH * max(height, width) or len(widths) < 10:
             continue
         if label(along & edge, connectivity=2).max() != 1:  # crosses the field: a vessel, not a catheter tip
             continue
-        if _meets_a_crossing(along, forks, branches, edge):
+        meetings = _junction_branches(along, fork_labels, branches)
+        if _meets_a_crossing(meetings, reaching_edge) or _is_trunk(meetings, float(np.median(widths)), index, radii):
             continue
         if widths.std() <= CATHETER_MAX_WIDTH_CV * widths.mean() + 0.25:  # + the distance map's pixel steps
             catheter |= along

@@ -175,7 +175,8 @@ def test_fine_low_dose_xa_is_segmented_at_the_physical_pitch():
     """Subtracted XA at 0.08 mm detector pixels with few photons each (white noise σ 0.1 per pixel): the
     tree is found on 3x3-averaged pixels (0.24 mm; main, pixel by pixel: AP recall 0.49), the target keeps the
     image's size, and the pitch is recorded. (In the LAT view of this small field the trunk enters from the
-    border unbranched and is taken for a catheter at any pitch, hence its lower recall.)"""
+    border unbranched: kept as the trunk, not taken for a catheter (LAT recall 0.61 before); thin branches
+    leaving the field are still removed, hence its lower recall.)"""
     import cv2
 
     from dsareg_engine.simulation.native_run import IODINE_PER_MM, Plane, subtracted_xa
@@ -194,6 +195,6 @@ def test_fine_low_dose_xa_is_segmented_at_the_physical_pitch():
         assert case.targets[name].shape == (768, 768)
         found = case.masks[name]
         recall, precision = (found & truth[name]).sum() / truth[name].sum(), (found & truth[name]).sum() / found.sum()
-        assert recall > (0.85 if name == "ap" else 0.55) and precision > 0.9, (name, recall, precision)
+        assert recall > (0.85 if name == "ap" else 0.8) and precision > 0.9, (name, recall, precision)
     pitch = [d for d in case.decisions if d.what == "segmentation pitch"]
     assert [d.input for d in pitch] == ["ap", "lat"] and pitch[0].chosen.startswith("3x3") and not pitch[0].close
