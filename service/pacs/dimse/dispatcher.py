@@ -10,10 +10,11 @@ waits a few seconds and is submitted again; any other refusal is recorded and lo
 
 A stable study with biplane pairs but no volume, when ``dicom_query_peer`` is set: the patient's
 latest CT / MR / 3D-RA series is found by C-FIND and fetched by C-MOVE into the inbox
-(:mod:`.query`, bounded by ``dicom_timeout_seconds``), and the pairs become jobs with it. No
-volume found, or the peer down: a WARNING naming the peer, the step and the status, the outcome
-in :attr:`StudyDispatcher.dispatched`, and the study waits ``dicom_query_retry_seconds`` before
-it is asked for again (a volume sent meanwhile makes the job).
+(:mod:`.query`, bounded by ``dicom_timeout_seconds``), and the pairs become jobs with it. The lookup
+runs on a thread of its own (:class:`VolumeLookups`): a slow, large or frozen query peer holds that
+study only, never the dispatch of the others. No volume found, or the peer down: a WARNING naming
+the peer, the step and the status, the outcome in :attr:`StudyDispatcher.dispatched`, and the study
+waits ``dicom_query_retry_seconds`` before it is asked for again (a volume sent meanwhile makes the job).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import io
 import logging
 import threading
 import time
+from concurrent.futures import Future
 from typing import Any
 
 from ...engine_adapter import xa_view_angle_deg
@@ -50,6 +52,39 @@ def _header(blobs: Any, item: StoredInstance):
     return pydicom.dcmread(source, stop_before_pixels=True)
 
 
+class VolumeLookups:
+    """The patient's-volume lookups (C-FIND, then C-MOVE of the series) in progress, each on a daemon thread of its
+    own, at most ``parallel`` talking to peers at once; ``done`` is called when one ends (wakes the dispatcher)."""
+
+    def __init__(self, find: Any, done: Any, parallel: int = 2):
+        self.find, self.done = find, done
+        self.running: dict[str, Future] = {}
+        self._slots = threading.BoundedSemaphore(parallel)
+
+    def busy(self, study: str) -> bool:
+        """A lookup of ``study`` is still running."""
+        future = self.running.get(study)
+        return future is not None and not future.done()
+
+    def start(self, study: str, *args: Any) -> None:
+        future: Future = Future()
+
+        def run() -> None:
+            with self._slots:
+                try:
+                    future.set_result(self.find(*args))
+                except BaseException as exc:  # noqa: BLE001 - handed to the dispatcher
+                    future.set_exception(exc)
+            self.done()
+
+        self.running[study] = future
+        threading.Thread(target=run, name="dimse-volume-lookup", daemon=True).start()
+
+    def take(self, study: str) -> Future | None:
+        """The finished lookup of ``study`` (removed), or None when none was started."""
+        return self.running.pop(study, None)
+
+
 class StudyDispatcher:
     """A thread: stable studies → planned jobs → ``intake.submit`` on ``loop`` (the API's event loop, or its own)."""
 
@@ -68,6 +103,7 @@ class StudyDispatcher:
         self._early: set[str] = set()
         self._header_cache: dict[str, dict[tuple[str, str], Any]] = {}
         self._lock = threading.Lock()
+        self._lookups = VolumeLookups(self._find_volume, self._wake.set)
         self._thread = threading.Thread(target=self._run, name="dimse-dispatcher", daemon=True)
         self.dispatched: list[dict[str, Any]] = []  # recent outcomes, for logs and tests
 
@@ -136,6 +172,8 @@ class StudyDispatcher:
         return len(studies)
 
     def _dispatch(self, study: str) -> None:
+        if self._lookups.busy(study):
+            return  # its patient's volume is being looked up (the lookup wakes us)
         started = time.perf_counter()
         items = self.inbox.study(study)
         headers = self._headers(study, items)
@@ -173,18 +211,16 @@ class StudyDispatcher:
 
     def _patient_volume(self, study: str, plan: StudyPlan, headers: dict[str, Any], by_uid: dict[str, StoredInstance],
                         outcome: dict[str, Any]) -> bool:
-        """Fill ``plan.jobs`` with the patient's latest volume from the query peer; False: none (retried later)."""
-        peer = self.settings.dimse.dicom_query_peer
-        patient = str(getattr(headers[plan.unmodelled[0][0]], "PatientID", "") or "")
+        """Fill ``plan.jobs`` with the patient's latest volume from the query peer, looked up on a thread of its own
+        (:class:`VolumeLookups`); False: not yet (the lookup was started), or none (retried later)."""
+        lookup, peer = self._lookups.take(study), self.settings.dimse.dicom_query_peer
+        if lookup is None:
+            patient = str(getattr(headers[plan.unmodelled[0][0]], "PatientID", "") or "")
+            self._lookups.start(study, study, patient)
+            log.info("study: asking %s for the patient's latest volume", peer)
+            return False
         try:
-            if not patient:
-                raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "the XA images have no Patient ID")
-            found = latest_volume(self.settings, peer, patient, exclude_study=study)
-            if found is None:
-                raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "no CT / MR / 3D-RA series of the "
-                                     "patient (the study waits for a volume)")
-            volume = retrieve(self.settings, self.inbox, peer, "SERIES", {
-                "StudyInstanceUID": found.study_uid, "SeriesInstanceUID": found.series_uid}, "C-MOVE volume")
+            found, ordered = _lookup_result(lookup, peer)
         except DimsePacsError as exc:
             self._retry_at[study] = time.time() + self.settings.dimse.dicom_query_retry_seconds
             log.warning("study: %s; asking again in %g s", exc, self.settings.dimse.dicom_query_retry_seconds)
@@ -192,7 +228,6 @@ class StudyDispatcher:
                                 "dimse_status": exc.status, "detail": str(exc)}
             self._remember(outcome)
             return False
-        ordered = sorted(volume, key=lambda item: _instance_number(self.blobs, item))
         by_uid.update({item.sop_instance_uid: item for item in ordered})
         origin = {"peer": peer, "study_uid": found.study_uid, "modality": found.modality, "study_date": found.study_date}
         plan.jobs = [PlannedJob(ap, lat, [item.sop_instance_uid for item in ordered], f"{rule}; patient's latest volume",
@@ -201,9 +236,35 @@ class StudyDispatcher:
                  len(ordered), peer)
         return True
 
+    def _find_volume(self, study: str, patient: str) -> tuple[Any, list[StoredInstance]]:
+        """The patient's latest volume series (C-FIND) and its instances retrieved into the inbox (C-MOVE), ordered
+        by Instance Number; :class:`DimsePacsError` when there is none or the peer fails (on a lookup thread)."""
+        peer = self.settings.dimse.dicom_query_peer
+        if not patient:
+            raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "the XA images have no Patient ID")
+        found = latest_volume(self.settings, peer, patient, exclude_study=study)
+        if found is None:
+            raise DimsePacsError(peer, "C-FIND studies (patient's volume)", "no CT / MR / 3D-RA series of the "
+                                 "patient (the study waits for a volume)")
+        volume = retrieve(self.settings, self.inbox, peer, "SERIES", {
+            "StudyInstanceUID": found.study_uid, "SeriesInstanceUID": found.series_uid}, "C-MOVE volume")
+        return found, sorted(volume, key=lambda item: _instance_number(self.blobs, item))
+
     def _remember(self, outcome: dict[str, Any]) -> None:
         self.dispatched.append(outcome)
         del self.dispatched[:-100]
+
+
+def _lookup_result(lookup: Future, peer: str) -> Any:
+    """A finished lookup's result; an unexpected error in it is a :class:`DimsePacsError` too (logged with its
+    traceback), so that the study waits and is asked for again like any failed lookup."""
+    try:
+        return lookup.result()
+    except DimsePacsError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - on the lookup thread; reported here
+        log.error("study: the patient's volume lookup failed", exc_info=exc)
+        raise DimsePacsError(peer, "patient's volume lookup", f"{type(exc).__name__}: {exc}") from None
 
 
 def _instance_number(blobs: Any, item: StoredInstance) -> float:
