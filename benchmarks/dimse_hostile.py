@@ -3,7 +3,8 @@
 Starts ``dsareg serve --workers 0`` with its DICOM node (default limits), then sends, each in one
 association from a pynetdicom SCU: a deflate bomb (Deflated Explicit VR Little Endian, an XA whose
 Pixel Data is ``--bomb-gb`` GB of zeros: about 1.5 MB on the wire), and, with ``--native-mb``, a plain
-instance that large (past ``MAX_DICOM_INSTANCE_BYTES`` as it arrives). Prints one JSON object: per
+instance that large (past ``MAX_DICOM_INSTANCE_BYTES`` as it arrives), with ``--valid-mb`` one within the
+bounds (stored). Prints one JSON object: per
 instance the C-STORE status and answer seconds, the API's peak RSS (VmHWM) before and after, the
 largest file in the data folder, and the slowest ``/healthz`` while the bomb was processed.
 """
@@ -58,7 +59,7 @@ def _watch_healthz(url: str, stop: threading.Event, worst: list[float]) -> None:
             worst[0] = max(worst[0], time.monotonic() - started)
 
 
-def run(bomb_gb: float, native_mb: int, folder: Path) -> dict:
+def run(bomb_gb: float, native_mb: int, folder: Path, valid_mb: int = 0) -> dict:
     files = folder / "send"
     files.mkdir(parents=True)
     made = time.process_time()
@@ -69,6 +70,10 @@ def run(bomb_gb: float, native_mb: int, folder: Path) -> dict:
         big = xa_header(rows=1024, columns=1024, frames=1)
         sends["native, too large"] = part10(encoded(big, pixel_bytes=native_mb << 20), XA, big.SOPInstanceUID,
                                             EXPLICIT, files / "big.dcm")
+    if valid_mb:  # within the bounds: stored (1024² 16-bit frames, as many as make valid_mb)
+        valid = xa_header(rows=1024, columns=1024, frames=max(1, valid_mb // 2))
+        sends["native, within the bounds"] = part10(encoded(valid), XA, valid.SOPInstanceUID, EXPLICIT,
+                                                    files / "valid.dcm")
     report: dict = {"bomb_gb": bomb_gb, "bomb_bytes_on_wire": bomb_path.stat().st_size,
                     "build_cpu_s": round(time.process_time() - made, 2)}
     dicom_port = free_port()
@@ -101,9 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bomb-gb", type=float, default=1.5)
     parser.add_argument("--native-mb", type=int, default=0, help="also a plain instance this large (0: none)")
+    parser.add_argument("--valid-mb", type=int, default=0,
+                        help="also a plain instance this large within the bounds, stored (0: none)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="dsareg-hostile-") as tmp:
-        print(json.dumps(run(args.bomb_gb, args.native_mb, Path(tmp)), indent=1))
+        print(json.dumps(run(args.bomb_gb, args.native_mb, Path(tmp), args.valid_mb), indent=1))
     return 0
 
 
