@@ -93,8 +93,13 @@ class BoundedBuffer(io.BytesIO):
         return written
 
     def reader(self, prefix: bytes = b"") -> io.RawIOBase:
-        """A file object reading ``prefix`` then the data set (to store it without a copy in memory)."""
-        return _Chained(prefix, self.view())
+        """A file object reading ``prefix`` then the data set (to store it without a copy in memory; a spilled one
+        read from its file, never mapped: a map's pages read would count in the process's resident memory)."""
+        if self._file is None:
+            return _Chained(prefix, super().getbuffer())
+        self._file.flush()
+        self._file.seek(0)
+        return _Chained(prefix, self._file)
 
     def release(self) -> None:
         """Drop what is held (the spilled file, the memory)."""
@@ -115,8 +120,10 @@ class BoundedBuffer(io.BytesIO):
 
 
 class _Chained(io.RawIOBase):
-    def __init__(self, prefix: bytes, body: memoryview | mmap.mmap):
-        self.parts, self.at = [memoryview(prefix), memoryview(body)], 0
+    """``prefix`` then ``body`` (a memory view, or a file read from where it is) as one readable stream."""
+
+    def __init__(self, prefix: bytes, body: Any):
+        self.parts, self.at = [memoryview(prefix), body], 0
 
     def readable(self) -> bool:
         return True
@@ -124,15 +131,19 @@ class _Chained(io.RawIOBase):
     def read(self, size: int = -1) -> bytes:
         if size is None or size < 0:
             return b"".join(iter(lambda: self.read(CHUNK_BYTES), b""))
-        while self.parts and self.at >= len(self.parts[0]):
+        while self.parts:
+            part = self.parts[0]
+            if not isinstance(part, memoryview):  # a file
+                chunk = part.read(size)
+                if chunk:
+                    return chunk
+            elif self.at < len(part):
+                end = min(len(part), self.at + size)
+                chunk, self.at = bytes(part[self.at:end]), end
+                return chunk
             self.parts.pop(0)
             self.at = 0
-        if not self.parts:
-            return b""
-        part = self.parts[0]
-        end = min(len(part), self.at + size)
-        chunk, self.at = bytes(part[self.at:end]), end
-        return chunk
+        return b""
 
 
 def bound_association(assoc: Any, limit_bytes: int, spill_dir: Path) -> None:
