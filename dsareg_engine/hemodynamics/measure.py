@@ -6,7 +6,7 @@ rig); :mod:`.run` reads the files and writes the outputs around it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -19,11 +19,11 @@ from ..render.ray_layers import RayStretches, ray_stretches
 from .combine import ViewMeasure, combine
 from .model_points import VesselPoints, vessel_points
 from .overlap import OVERLAP_SHARE, foreign_share, overlapped, own_path_mm
-from .parameters import curve_parameters, lift, mean_noise
+from .parameters import baseline_frames, curve_parameters, lift, mean_noise
 from .sampling import Projection, curves, footprints, mean_chord_mm, project_points
 from .timing import RunTiming
-from .unmixing import (ViewMixing, empty_around, known_concentration, not_filled, on_clock, stretch_owners, unique_edges,
-                        unmix_view, view_scale)
+from .unmixing import (ViewMixing, empty_around, known_concentration, measured_within_run, not_filled, on_clock,
+                        stretch_owners, unique_edges, unmix_view, view_scale)
 
 VIEWS = ("ap", "lat")
 
@@ -110,6 +110,14 @@ def measure(mesh: TriangleMesh, mesh_to_world: np.ndarray, rig: Rig, runs: dict[
     return Measurement(combine(measures["ap"], measures["lat"]), points, notes)
 
 
+def plausible(measure_: ViewMeasure, mix: ViewMixing, scale: float) -> ViewMeasure:
+    """``measure_`` with its measured curves that cannot be the point's own bolus not filled
+    (:func:`.unmixing.measured_within_run`)."""
+    run_arrival = mix.times_s[baseline_frames(mix.curves[measure_.measurable])] if measure_.measurable.any() else -np.inf
+    found = measured_within_run(measure_.parameters, mix.times_s, run_arrival, mix.own_mm, scale)
+    return replace(measure_, parameters=found)
+
+
 def unmix(measures: dict[str, ViewMeasure], mixes: dict[str, ViewMixing], faces: np.ndarray, notes: dict
           ) -> dict[str, ViewMeasure]:
     """Each view's measure with the points no view sees clean unmixed (:mod:`.unmixing`); ``notes[view]["unmixed"]``
@@ -118,6 +126,7 @@ def unmix(measures: dict[str, ViewMeasure], mixes: dict[str, ViewMixing], faces:
     carried = clean["ap"] | clean["lat"]
     scales = {name: view_scale(m.parameters.peak_opacity, mixes[name].path_mm, m.clean & m.parameters.filled)
               for name, m in measures.items()}
+    measures = {name: plausible(m, mixes[name], scales[name]) for name, m in measures.items()}
     own = {name: known_concentration(mixes[name], clean[name], scales[name]) for name in VIEWS}
     edges = unique_edges(faces)
     known_empty = (clean["ap"] & ~measures["ap"].parameters.filled) | (clean["lat"] & ~measures["lat"].parameters.filled)

@@ -12,8 +12,9 @@ both from the model itself:
   another one (a thin vessel whose footprint, at least ``MIN_FOOTPRINT_PX`` wide, reaches past its walls onto a
   vessel running beside it in the image, at any depth): each stretch a ray crosses is owned by the vessel point
   nearest its middle (:func:`.unmixing.stretch_owners`), and a stretch is **foreign** to point ``i`` when its
-  owner ``j`` lies farther than ``OWN_VESSEL_RADII · (r_i + r_j)`` from it (its own vessel's points, along its
-  axis and round its wall, lie within about two radii; a bifurcation's stretches join its own). A footprint with
+  owner ``j`` lies farther than ``OWN_VESSEL_RADII · (r_i + r_j)`` from it (two separate vessels' walls meet at
+  ``r_i + r_j``; the margin is for radii estimated from the mesh; its own vessel's points, along its axis within
+  the footprint and round its wall, and a bifurcation's, lie within it). A footprint with
   at least ``OVERLAP_SHARE`` of its path (mm) foreign is overlapped.
 
 Either way its curve there is mostly another vessel's contrast: the other view carries the point, or it is
@@ -29,7 +30,7 @@ from scipy import sparse
 from .sampling import Footprints
 
 OVERLAP_SHARE = 0.2
-OWN_VESSEL_RADII = 2.0
+OWN_VESSEL_RADII = 1.5
 
 
 def overlapped(prints: Footprints, layers: np.ndarray) -> np.ndarray:

@@ -161,6 +161,18 @@ def within_run(found: CurveParameters, times_s: np.ndarray, run_arrival_s: float
     return not_filled(found, ~inside)
 
 
+def measured_within_run(found: CurveParameters, times_s: np.ndarray, run_arrival_s: float, own_mm: np.ndarray | None,
+                        scale: float) -> CurveParameters:
+    """``found`` (measured curves, opacity) with the implausible ones made not filled: a peak before contrast
+    reached the run anywhere (``run_arrival_s``: a noise spike), or above ``MAX_RELATIVE_PEAK`` times what the
+    footprint's path through the point's own vessel shows at the peak (``scale · own_mm`` ``(N,)``: the contrast
+    is another vessel's, or the vessel is barely in the footprint)."""
+    early = found.peak_s < run_arrival_s
+    if own_mm is not None and scale > 0:
+        early = early | (found.peak_opacity > MAX_RELATIVE_PEAK * scale * own_mm)
+    return not_filled(found, early)
+
+
 def not_filled(found: CurveParameters, drop: np.ndarray) -> CurveParameters:
     """``found`` with the points ``drop`` (bool) not filled: every value NaN."""
     keep = found.filled & ~drop
