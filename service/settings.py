@@ -332,6 +332,19 @@ class DimseSettings(_Group):
             peers.append({"ae_title": title, "host": str(item["host"]).strip(), "port": port})
         return peers
 
+    @model_validator(mode="after")
+    def _named_peers(self) -> DimseSettings:
+        """The query peer and the export destinations are peers (else every study would fail on them, later)."""
+        known = {peer["ae_title"] for peer in self.dicom_peers}
+        named = {"dicom_query_peer": [self.dicom_query_peer] if self.dicom_query_peer else [],
+                 "dicom_export": list(self.dicom_export)}
+        for name, titles in named.items():
+            unknown = [title for title in titles if title not in known]
+            if unknown:
+                raise ValueError(f"{name} ({env_name(name)}) names {', '.join(map(repr, unknown))}, not one of "
+                                 f"DSAREG_DICOM_PEERS (AE titles: {', '.join(sorted(known)) or 'none'})")
+        return self
+
 
 class CallbackSettings(_Group):
     """Completion callbacks (service/jobs/callbacks.py, docs/api/callbacks.md)."""

@@ -118,3 +118,14 @@ def test_the_cli_names_the_env_variable_without_a_traceback(tmp_path):
     assert done.returncode == 2, done.stderr
     assert "DSAREG_LEASE_SECONDS" in done.stderr and "valid number" in done.stderr
     assert "Traceback" not in done.stderr + done.stdout
+
+
+@pytest.mark.parametrize(("name", "value"), [("DSAREG_DICOM_QUERY_PEER", "PACS2"), ("DSAREG_DICOM_EXPORT", "PACS,PACS2")])
+def test_a_query_peer_or_export_destination_must_be_a_peer(monkeypatch, name, value):
+    """Named but not in DSAREG_DICOM_PEERS: refused at load (was: every study's lookup or export failed, later)."""
+    monkeypatch.setenv("DSAREG_DICOM_PEERS", '[{"ae_title": "PACS", "host": "10.0.0.2", "port": 104}]')
+    monkeypatch.setenv(name, value)
+    with pytest.raises(ValidationError, match=f"{name}\\) names 'PACS2', not one of DSAREG_DICOM_PEERS \\(AE titles: PACS\\)"):
+        load_settings(None)
+    monkeypatch.setenv(name, "PACS")
+    assert load_settings(None).dimse.dicom_peers[0]["ae_title"] == "PACS"
