@@ -38,6 +38,9 @@ log = logging.getLogger("dsareg.dimse")
 
 OVERLOADED_RETRY_S = 5.0
 """At most this long before a study whose job found no room (:class:`Overloaded`) is submitted again."""
+FAILED_RETRY_S = 30.0
+"""A study whose dispatch failed unexpectedly (a missing blob, a database error) is tried again after this long;
+the studies after it are dispatched meanwhile (an error used to end the pass: every study behind it waited)."""
 
 
 def angle_between(a: XaView, b: XaView) -> float:
@@ -168,7 +171,12 @@ class StudyDispatcher:
         studies = [s for s in self.inbox.stable_studies(self.settings.dimse.dicom_stable_seconds, now)
                    if self._retry_at.get(s, 0.0) <= now]
         for study in studies:
-            self._dispatch(study)
+            try:
+                self._dispatch(study)
+            except Exception:  # noqa: BLE001 - this study waits; the others go on
+                self._retry_at[study] = time.time() + FAILED_RETRY_S
+                log.exception("study: dispatching it failed; the other studies go on, this one is tried again in "
+                              "%g s", FAILED_RETRY_S)
         return len(studies)
 
     def _dispatch(self, study: str) -> None:

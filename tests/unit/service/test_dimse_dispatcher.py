@@ -170,3 +170,23 @@ def test_a_slow_volume_lookup_holds_its_own_study_only(loop, holding_peer, tmp_p
         dispatcher.dispatch_once()
     assert "no CT / MR / 3D-RA series" in dispatcher.dispatched[-1]["error"]["detail"]
     assert inbox.dispatched_studies == [STUDY] and intake.calls == 1
+
+
+def test_a_study_whose_dispatch_fails_waits_and_the_others_go_on(loop):
+    """An unexpected error dispatching one study (here its submission raises) sets that study aside for a while; the
+    study after it in the same pass is still submitted (the error used to end the pass, every 2 s, for ever)."""
+    from service.pacs.dimse.dispatcher import FAILED_RETRY_S
+
+    inbox = _TwoStudies()
+    dispatcher = StudyDispatcher(types.SimpleNamespace(dimse=types.SimpleNamespace(dicom_stable_seconds=0.0,
+                                                                                 dicom_query_peer=None),
+                                                       limits=types.SimpleNamespace(validation_timeout_seconds=5)),
+                                 None, inbox, _Intake(RuntimeError("blob gone"), ("job-whole", True)), loop)
+    headers = {"XA-ONLY": {"x1": xa("x1", 85.0), "x2": xa("x2", -10.0, 20.0), "v.0": ct("v", 1)[0]},
+               STUDY: {"1": xa("1", 85.0), "2": xa("2", -10.0, 20.0, time="130000"), "v.0": ct("v", 1)[0]}}
+    dispatcher._headers = lambda study, items: headers[study]
+    before = time.time()
+    assert dispatcher.dispatch_once() == 2
+    assert inbox.dispatched_studies == [STUDY]  # the failing one first in the pass, the other still submitted
+    assert before + FAILED_RETRY_S - 1 <= dispatcher._retry_at["XA-ONLY"] <= time.time() + FAILED_RETRY_S
+    assert dispatcher.dispatch_once() == 0  # set aside, not tried every pass
