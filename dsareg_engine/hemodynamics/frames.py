@@ -21,7 +21,7 @@ import io
 import numpy as np
 
 from ..io.image_io import dicom_number
-from ..io.xa_run import log_domain, subtraction_pairs
+from ..io.xa_run import Pair, log_domain, subtraction_pairs
 from ..vision.xa_motion import Motion, move_image, shift_image
 from .measure import RunFrames
 from .timing import read_timing, require_timing
@@ -41,11 +41,29 @@ def _stack(dataset, field_name: str) -> np.ndarray:
     return stack * slope + intercept
 
 
-def native_opacity(stack: np.ndarray, dataset, motion: Motion, field_name: str) -> tuple[np.ndarray, list[str]]:
+def recorded_pairs(record: dict, n_frames: int) -> dict[int, Pair] | None:
+    """The subtraction registration found for a run without a recipe (every frame from contrast arrival on minus
+    the mean of the frames before it), rebuilt from its record (``recipe`` a sentence, ``mask_frame_indices``
+    0 … k − 1) rather than found again: the same pairs :func:`dsareg_engine.io.xa_run.found_pairs` gives on the
+    same frames. ``None`` when the record does not say so (a recipe, or no record)."""
+    masks = record.get("mask_frame_indices")
+    if not isinstance(record.get("recipe"), str) or not masks or list(masks) != list(range(len(masks))) \
+            or len(masks) >= n_frames:
+        return None
+    masks = tuple(int(m) for m in masks)
+    return {n: Pair(n, (n,), masks) for n in range(len(masks), n_frames)}
+
+
+def native_opacity(stack: np.ndarray, dataset, motion: Motion, field_name: str, record: dict | None = None
+                   ) -> tuple[np.ndarray, list[str]]:
     """``(opacity (T, H, W), notes)`` of a native run (see the module docstring); ``motion``: the rigid move
-    registration found on its frame (after the recipe's shift)."""
+    registration found on its frame (after the recipe's shift); ``record``: registration's reading of the run
+    (its masks are reused where it found them, :func:`recorded_pairs`)."""
     logs, _, _ = log_domain(stack, dataset, field_name)
-    pairs, recipe, _ = subtraction_pairs(logs, dataset, field_name)
+    pairs = recorded_pairs(record or {}, len(logs))
+    recipe = (record or {}).get("recipe")
+    if pairs is None:
+        pairs, recipe, _ = subtraction_pairs(logs, dataset, field_name)
     first = pairs[min(pairs)]
     masks: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (masks, recipe shift) → (mask, moved mask)
     out = np.empty(logs.shape, np.float32)
@@ -81,7 +99,7 @@ def run_frames(data: bytes, field_name: str, record: dict | None) -> RunFrames:
         move = record.get("mask_shift_px") or {}
         found = move.get("found_px") or [0.0, 0.0]
         motion = Motion((float(found[0]), float(found[1])), float(move.get("rotation_deg") or 0.0))
-        opacity, notes = native_opacity(stack, dataset, motion, field_name)
+        opacity, notes = native_opacity(stack, dataset, motion, field_name, record)
     else:
         opacity, notes = stored_opacity(stack, dataset), ["subtracted run: frames as stored"]
     return RunFrames(opacity, timing, tuple(notes))

@@ -28,3 +28,22 @@ def test_a_native_run_with_a_turned_head_is_subtracted_as_registration_subtracte
     shifted_only = dict(record, mask_shift_px=dict(record["mask_shift_px"], rotation_deg=0.0))
     unturned = -run_frames(data, "lat", shifted_only).opacity[7] - image.pixels
     assert np.percentile(np.abs(unturned), 99) > 5 * np.percentile(np.abs(difference), 99)
+
+
+def test_the_masks_registration_found_are_reused_and_give_the_stack_finding_them_again_gives():
+    """No recipe: the stack built from registration's record (its masks, not found again) is the stack built by
+    finding them again, to the bit; a record with a recipe (a list) or without masks is not taken for found masks."""
+    from dsareg_engine.hemodynamics.frames import recorded_pairs
+
+    fill = (0.0, 0.0, 0.0, 0.2, 0.6, 1.0, 1.2, 1.1)
+    settings = SkullRunSettings(size_px=128, fill=fill, strength=(1.0,) * 8, mask_frames=(1, 2),
+                                motion_px=(0.0, 0.0), rotation_deg=0.0, recipe=False, catheter_mm=2.0)
+    data = make_skull_run(2, settings).files["ap"]
+    record = read_image(data, "ap.dcm", field_name="ap", frame=6).reading
+    pairs = recorded_pairs(record, len(fill))
+    assert pairs is not None and min(pairs) == len(record["mask_frame_indices"])
+    reused = run_frames(data, "ap", record).opacity
+    found_again = run_frames(data, "ap", dict(record, mask_frame_indices=None)).opacity
+    assert np.array_equal(reused, found_again)
+    assert recorded_pairs(dict(record, recipe=["AVG_SUB"]), len(fill)) is None
+    assert recorded_pairs(dict(record, mask_frame_indices=[1, 2]), len(fill)) is None
