@@ -49,7 +49,6 @@ SMOOTHING_SIGMA_VOX = 0.5
 VESSEL_CONTRAST_MIN = {"cta": 100.0, "mra": 6.0}  # vessel over tissue: HU (CTA), noise spreads (MRA)
 VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast than this: a close call
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
-BONE_REACH_MM = PV_BAND_MM + 1.0  # CTA: a plate part's surface this near bone (plus a voxel) touches it
 BONE_CONTACT_SHARE = 0.5  # CTA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
 PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
@@ -160,16 +159,14 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
             return _cta(smooth, spacing, reading, field_name, not_vessels)
         return _mra(smooth, affine, spacing, reading, field_name, not_vessels)
 
-    def bone(levels):  # CTA: what encloses cancellous bone (cortex above the bone threshold); MRA: not seen
-        return smooth > levels["max"] if kind == "cta" else None
-
-    field, mask, levels, excluded = read(None)
-    mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone(levels))
+    field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
+    bone = excluded if kind == "cta" else None  # cancellous bone lies between cortical plates; in MRA bone is dark
+    mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone)
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside = ndimage.binary_dilation(plates, iterations=rim)
         field, mask, levels, excluded = read(set_aside)
-        mask, more, plate_share = _without_plates(mask, spacing, field_name, bone(levels))
+        mask, more, plate_share = _without_plates(mask, spacing, field_name, excluded if kind == "cta" else None)
         plates |= more
     return field, mask, levels, excluded | plates, plate_share
 
@@ -178,7 +175,7 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     """``mask`` without its bone plates (:func:`_bone_plates`), its largest tube components kept; what was set
     aside; and the plate share of the mask returned when it is ``mask`` itself (else None: measure it again).
     Unchanged when the plate share is below the close-call band (vessels alone) or no plate part is bone.
-    ``bone``: CTA, the voxels above the bone threshold (None: MRA, where bone is dark)."""
+    ``bone``: CTA, bone and its partial-volume band beyond the kept voxels (None: MRA, where bone is dark)."""
     from scipy import ndimage
 
     shape = medial_shape(mask, spacing, with_parts=True)
@@ -203,10 +200,10 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
 
 def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone: np.ndarray | None) -> np.ndarray:
     """The plate parts (connected) that are bone: bone-sized (at least ``PLATE_PART_MM3``) and, in a CTA,
-    bone-placed: at least ``BONE_CONTACT_SHARE`` of the part's surface within ``BONE_REACH_MM`` plus a voxel of
-    bone (cancellous bone in the vessels' HU window, a diploë or a skull-base core, lies between cortical
-    plates). A close-packed or bulging stretch of a vessel tree can read plate-like on the medial measure; it lies
-    in tissue (or against bone on one side: a vessel in a bony groove), so it stays with its tree."""
+    bone-placed: at least ``BONE_CONTACT_SHARE`` of the part's surface voxels touch ``bone`` (bone and its
+    partial-volume band: cancellous bone in the vessels' HU window, a diploë or a skull-base core, lies between
+    cortical plates). A close-packed or bulging stretch of a vessel tree can read plate-like on the medial
+    measure; it lies in tissue (or against bone on one side: a vessel in a bony groove), so it stays with its tree."""
     from scipy import ndimage
 
     labels, count = ndimage.label(plate)
@@ -214,28 +211,26 @@ def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone: np.ndarray | None
     large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
     if bone is None or len(large) == 0:
         return np.isin(labels, large)
-    reach = BONE_REACH_MM + float(spacing.max())
     boxes = ndimage.find_objects(labels)
-    placed = [index for index in large if _bone_contact(labels, index, boxes[index - 1], bone, spacing, reach)
-              >= BONE_CONTACT_SHARE]
+    placed = [index for index in large if _bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE]
     return np.isin(labels, placed)
 
 
-def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray, spacing: np.ndarray,
-                  reach_mm: float) -> float:
-    """The share of plate part ``index``'s surface voxels within ``reach_mm`` of ``bone`` (in its box plus the
-    reach)."""
-    from scipy import ndimage
-
-    pad = np.ceil(reach_mm / spacing).astype(int) + 1
-    region = tuple(slice(max(s.start - p, 0), min(s.stop + p, n)) for s, p, n in zip(box, pad, labels.shape))
-    part = labels[region] == index
-    surface = part & ~ndimage.binary_erosion(part)
-    near = bone[region]
-    if not near.any():
-        return 0.0
-    distance = ndimage.distance_transform_edt(~near, sampling=spacing)
-    return float(np.mean(distance[surface] <= reach_mm))
+def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
+    """The share of plate part ``index``'s surface voxels (a face neighbour outside it) with a face neighbour in
+    ``bone``; ``box``: the part's bounding box (slices)."""
+    inside = np.nonzero(labels[box] == index)
+    voxels = [i + s.start for i, s in zip(inside, box)]
+    surface = np.zeros(len(voxels[0]), bool)
+    touching = np.zeros(len(voxels[0]), bool)
+    for axis in range(3):
+        for step in (-1, 1):
+            neighbour = list(voxels)
+            neighbour[axis] = np.clip(voxels[axis] + step, 0, labels.shape[axis] - 1)
+            outside = labels[tuple(neighbour)] != index
+            surface |= outside
+            touching |= outside & bone[tuple(neighbour)]
+    return float(touching.sum() / max(int(surface.sum()), 1))
 
 
 def _decisions(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray, levels: dict) -> list[InputDecision]:
