@@ -303,6 +303,10 @@ class DimseSettings(_Group):
         300.0, gt=0.0, description="Instances answered Success in an association that ended without release (abort, "
                                    "dropped connection, listener killed) are kept; they join their study when the "
                                    "sender comes back, or after this long without it.")
+    dicom_inbox_retention_hours: float = Field(
+        72.0, gt=0.0, description="Received DICOM instances (their files and inbox rows) are removed this long after "
+                                  "their study settled: every instance dispatched, its jobs finished (or refused); "
+                                  "files a kept job still uses go with the job (DSAREG_RETENTION_HOURS).")
     dicom_job_owner_key_hash: str | None = Field(
         None, description="SHA-256 hex of the API key that owns jobs made from DICOM studies (it sees them in the "
                           "API); default the first configured key, or anonymous when auth is off.")

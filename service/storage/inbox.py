@@ -20,6 +20,8 @@ Rows go through these states:
   Originator is our AE title: a volume of the patient, or the inputs of a pull by reference);
   ``retrieved`` once its association ends, however it ends; never grouped into jobs of their own,
   read by :meth:`Inbox.series` for the job that asked.
+* ``purging``: settled and past ``DSAREG_DICOM_INBOX_RETENTION_HOURS``, its file and row being removed
+  (:mod:`.inbox_retention`); read by nothing.
 
 Restarts: a listener that starts finds the ``received`` rows of associations that died with
 the previous process and marks them ``interrupted`` (:meth:`interrupt_stale`); committed studies

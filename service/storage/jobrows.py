@@ -14,7 +14,7 @@ from .audit import record_event
 from .database import OnDatabase
 from .deliveries import add_callback, callback_of, delete_deliveries, delivery_columns, export_of
 from .records import STATUSES, ConflictError, InputFile, JobRecord, decode_cursor, dump_json, encode_cursor, load_json
-from .schema import job_blobs, job_callbacks, job_events, job_exports, job_previous, jobs
+from .schema import dimse_instances, job_blobs, job_callbacks, job_events, job_exports, job_previous, jobs
 
 
 def row_to_job(row: Any) -> JobRecord:
@@ -162,6 +162,8 @@ class SqlJobs(OnDatabase):
             still = set()
             if hashes:
                 still = {r[0] for r in conn.execute(sa.select(job_blobs.c.sha256).where(job_blobs.c.sha256.in_(hashes)))}
+                still |= set(conn.execute(sa.select(dimse_instances.c.sha256)  # the inbox's: its own retention
+                                          .where(dimse_instances.c.sha256.in_(hashes))).scalars())
         return sorted(hashes - still)
 
     def ping(self) -> bool:

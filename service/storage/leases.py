@@ -29,7 +29,7 @@ from .database import OnDatabase
 from .deliveries import hold_export
 from .jobrows import read_job
 from .records import FINISHED, JobRecord, dump_json
-from .schema import job_blobs, jobs, workers
+from .schema import dimse_instances, job_blobs, jobs, workers
 
 
 class SqlLeases(OnDatabase):
@@ -188,8 +188,11 @@ class SqlLeases(OnDatabase):
             ).scalars())
 
     def referenced_blobs(self) -> set[str]:
+        """Digests a job or a received DICOM instance uses (the inbox's files go by its own retention,
+        :mod:`.inbox_retention`: garbage collection used to remove a study's files while it waited for a volume)."""
         with self.engine.connect() as conn:
-            return set(conn.execute(sa.select(job_blobs.c.sha256).distinct()).scalars())
+            used = set(conn.execute(sa.select(job_blobs.c.sha256).distinct()).scalars())
+            return used | set(conn.execute(sa.select(dimse_instances.c.sha256).distinct()).scalars())
 
     def worker_seen(self, worker_id: str, pid: int) -> None:
         now = time.time()

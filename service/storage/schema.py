@@ -147,7 +147,7 @@ dimse_instances = sa.Table(
     sa.Column("size", sa.BigInteger, nullable=False),
     sa.Column("association", sa.String(64), nullable=False, index=True),
     sa.Column("calling_ae", sa.String(16), nullable=False),
-    sa.Column("state", sa.String(16), nullable=False),  # received | interrupted | committed | dispatched | retrieving | retrieved
+    sa.Column("state", sa.String(16), nullable=False),  # received | interrupted | committed | dispatched | retrieving | retrieved | purging
     sa.Column("received_at", sa.Float, nullable=False),
     sa.Index("ix_dimse_state_study", "state", "study_uid"),
 )

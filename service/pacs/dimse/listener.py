@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 from ...intake.context import IntakeContext
 from ...storage.inbox import Inbox
+from ...storage.inbox_retention import purge_settled
 from .dispatcher import StudyDispatcher
 from .job_options import dicom_job_options
 from .scp import StoreScp, start_server
@@ -37,9 +39,22 @@ class DicomListener:
         self.inbox = Inbox(store.engine, getattr(store, "writer", None))
         tick = min(0.25, settings.dimse.dicom_stable_seconds / 4)
         self.dispatcher = StudyDispatcher(settings, self.blobs, self.inbox, DimseIntake(intake), loop,
-                                          tick_seconds=tick, housekeeping=lambda: self.scp.sweep())
+                                          tick_seconds=tick, housekeeping=self.housekeeping)
         self.scp = StoreScp(settings, self.inbox, self.blobs, on_commit=self.dispatcher.wake)
         self.server = None
+        self._last_purge = float("-inf")  # the first housekeeping purges
+
+    def housekeeping(self) -> None:
+        """On the dispatcher's thread: dead associations (often), the inbox retention (every sweep interval)."""
+        self.scp.sweep()
+        if time.monotonic() - self._last_purge < self.settings.retention.sweep_interval_seconds:
+            return
+        self._last_purge = time.monotonic()
+        retention_s = self.settings.dimse.dicom_inbox_retention_hours * 3600.0
+        done = purge_settled(self.inbox.engine, self.inbox.writer, self.blobs, retention_s)
+        if done.rows:
+            log.info("inbox retention: removed %d instance(s) of %d settled stud(ies), %d file(s)", done.rows,
+                     done.studies, done.files)
 
     def start(self) -> None:
         # pydicom and pynetdicom are imported here, in the starting thread, before the dispatcher thread runs:

@@ -56,6 +56,7 @@ ADDED_SINCE_BASE |= {"DSAREG_MAX_DICOM_INSTANCE_BYTES", "DSAREG_MAX_DICOM_PIXEL_
                      "DSAREG_HTTP_HEADER_TIMEOUT_SECONDS", "DSAREG_HTTP_BODY_IDLE_TIMEOUT_SECONDS",
                      "DSAREG_HTTP_MAX_CONNECTIONS"}
 """Settings added after the base commit (each a new env name; none of the base's may go or change)."""
+ADDED_SINCE_BASE |= {"DSAREG_DICOM_INBOX_RETENTION_HOURS"}  # the DICOM inbox is purged once settled
 ADDED_SINCE_BASE |= {"DSAREG_EXPORT_LEASE_SECONDS"}  # issue 34: was a constant (15 s); the tests wait less for it
 
 
