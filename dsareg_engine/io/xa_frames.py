@@ -102,9 +102,12 @@ def combine(images: list[np.ndarray], combined: str) -> np.ndarray:
     maximum opacity (the minimum after a running mean over ``TEMPORAL_FRAMES``)."""
     if len(images) == 1:
         return images[0]
-    stack = np.asarray(images, np.float32)
-    if combined == "arterial" and len(stack) >= TEMPORAL_FRAMES:
-        kernel = TEMPORAL_FRAMES
-        sums = np.cumsum(np.concatenate([np.zeros_like(stack[:1]), stack]), axis=0)
-        stack = (sums[kernel:] - sums[:-kernel]) / kernel
-    return stack.min(axis=0)
+    if combined != "arterial" or len(images) < TEMPORAL_FRAMES:
+        return np.min(np.asarray(images, np.float32), axis=0)
+    window = np.sum(np.asarray(images[:TEMPORAL_FRAMES], np.float64), axis=0)  # a running sum, one frame at a time
+    lowest = window.copy()
+    for first, last in zip(images, images[TEMPORAL_FRAMES:]):
+        window += last
+        window -= first
+        np.minimum(lowest, window, out=lowest)
+    return (lowest / TEMPORAL_FRAMES).astype(np.float32)

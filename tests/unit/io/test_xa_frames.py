@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dsareg_engine.io.image_io import read_image
-from dsareg_engine.io.xa_frames import END_FRACTION, arterial_phase, choose_frames
+from dsareg_engine.io.xa_frames import END_FRACTION, TEMPORAL_FRAMES, arterial_phase, choose_frames, combine
 from dsareg_engine.io.xa_run import RunReading
 from dsareg_engine.simulation.native_run import IODINE_PER_MM
 from dsareg_engine.simulation.native_run_bolus import Bolus
@@ -51,3 +51,19 @@ def test_default_combines_the_arterial_phase_of_a_passing_bolus(passing):
     assert whole > single + 0.1, (whole, single)
     decision = next(d for d in image.decisions if d.what == "frames combined")
     assert decision.source == "measured" and decision.chosen.endswith("(arterial phase)")
+
+
+@pytest.mark.parametrize("n_frames", [1, 2, TEMPORAL_FRAMES, 9])
+def test_arterial_combination_is_the_minimum_of_the_running_means(n_frames):
+    frames = [np.random.default_rng(n).normal(0.0, 50.0, (16, 12)).astype(np.float32) for n in range(n_frames)]
+    if n_frames == 1:
+        expected = frames[0]
+    elif n_frames < TEMPORAL_FRAMES:
+        expected = np.minimum(*frames)
+    else:  # every window of TEMPORAL_FRAMES consecutive frames averaged, then the per-pixel minimum
+        windows = [np.mean(frames[k:k + TEMPORAL_FRAMES], axis=0) for k in range(n_frames - TEMPORAL_FRAMES + 1)]
+        expected = np.min(windows, axis=0)
+    combined = combine(frames, "arterial")
+    assert combined.dtype == np.float32 and combined.shape == (16, 12)
+    assert np.abs(combined - expected).max() < 1e-4
+    assert np.array_equal(combine(frames, "minip"), np.min(frames, axis=0))
