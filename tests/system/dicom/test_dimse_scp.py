@@ -182,6 +182,9 @@ def test_a_full_disk_mid_association_keeps_what_was_answered_success(node, study
             assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(data))).Status == 0x0000
         fill_disk(disk)
         assert assoc.send_c_store(pydicom.dcmread(io.BytesIO(sent[3]))).Status == 0xA700
+        # no half file: the blobs are those of the rows answered 0000, nothing left in tmp/
+        assert set(scp.blobs.all_digests()) == {row.sha256 for row in _rows(scp)} and len(_rows(scp)) == 3
+        assert not list(scp.blobs.tmp_dir.iterdir())
         assoc.release()  # the commit may fail on the full disk: the rows stay, never dropped
         assert sum(scp.inbox.counts().values()) == 3
         empty_disk(disk)
