@@ -8,7 +8,7 @@ last instance's arrival (a refused study settles when it is dispatched, seconds 
 
 One pass (:func:`purge_settled`, run by the DICOM node's housekeeping every ``DSAREG_SWEEP_INTERVAL_SECONDS``):
 
-1. the settled rows become ``purging`` (one transaction: they no longer count as the study's instances);
+1. the rows of (at most :data:`STUDIES_PER_PASS`) settled studies become ``purging`` (one transaction: they no longer count as the study's instances);
 2. their files are deleted, but for those a job (``job_blobs``) or another inbox row still uses, or that were
    written again in the last minute (a re-sent instance: :meth:`BlobStore._adopt` refreshes the mtime);
 3. the ``purging`` rows are deleted.
@@ -35,6 +35,9 @@ OPEN_STATES = ("received", "interrupted", "committed", "retrieving")
 """A study with a row in one of these states is not settled (not dispatched yet, or still arriving)."""
 SETTLED_STATES = ("dispatched", "retrieved")
 PURGING = "purging"
+STUDIES_PER_PASS = 200
+"""At most this many studies are marked per pass: a months-long backlog is removed over several passes, never
+holding the dispatcher's thread (which runs the pass) for long."""
 REWRITTEN_GRACE_S = 60.0
 """A file written again this recently is kept (an instance re-sent while its old row was being purged)."""
 
@@ -60,26 +63,29 @@ def _held_studies(cutoff: float) -> sa.Select:
         instances.c.sha256.in_(_unsettled_blobs(cutoff))))
 
 
-def mark_settled(writer: sa.Engine, cutoff: float) -> int:
-    """Step 1: the rows of studies settled before ``cutoff`` become ``purging``; how many."""
+def mark_settled(writer: sa.Engine, cutoff: float, limit: int = STUDIES_PER_PASS) -> int:
+    """Step 1: the rows of (at most ``limit``) studies settled before ``cutoff`` become ``purging``; how many."""
+    settled = instances.c.state.in_(SETTLED_STATES)
+    studies = (sa.select(instances.c.study_uid).where(settled, instances.c.study_uid.not_in(_held_studies(cutoff)))
+               .distinct().limit(limit))
     with writer.begin() as conn:
-        return conn.execute(instances.update().where(
-            instances.c.state.in_(SETTLED_STATES), instances.c.study_uid.not_in(_held_studies(cutoff)))
-            .values(state=PURGING)).rowcount
+        chosen = list(conn.execute(studies).scalars())
+        if not chosen:
+            return 0
+        return conn.execute(instances.update().where(settled, instances.c.study_uid.in_(chosen))
+                            .values(state=PURGING)).rowcount
 
 
 def purging_files(engine: sa.Engine) -> tuple[list[str], int]:
     """The digests of the ``purging`` rows that nothing else uses (no job, no other inbox row); number of studies."""
+    purging = instances.c.state == PURGING
+    others = sa.select(instances.c.sha256).where(instances.c.state != PURGING)
+    free = (sa.select(instances.c.sha256).where(purging, instances.c.sha256.not_in(sa.select(job_blobs.c.sha256)),
+                                                instances.c.sha256.not_in(others)).distinct())
     with engine.connect() as conn:
-        digests = set(conn.execute(sa.select(instances.c.sha256).where(instances.c.state == PURGING)).scalars())
-        studies = conn.execute(sa.select(sa.func.count(sa.distinct(instances.c.study_uid)))
-                               .where(instances.c.state == PURGING)).scalar_one()
-        if not digests:
-            return [], 0
-        used = set(conn.execute(sa.select(job_blobs.c.sha256).where(job_blobs.c.sha256.in_(digests))).scalars())
-        used |= set(conn.execute(sa.select(instances.c.sha256).where(
-            instances.c.sha256.in_(digests), instances.c.state != PURGING)).scalars())
-    return sorted(digests - used), int(studies)
+        studies = conn.execute(sa.select(sa.func.count(sa.distinct(instances.c.study_uid))).where(purging)).scalar_one()
+        digests = sorted(conn.execute(free).scalars()) if studies else []
+    return digests, int(studies)
 
 
 def delete_purging(writer: sa.Engine) -> int:

@@ -122,3 +122,13 @@ def test_a_crash_between_row_and_file_deletion_is_finished_by_the_next_pass(node
     assert (done.rows, done.files) == (3, 2)
     assert inbox.counts() == {"dispatched": 1} and _on_disk(blobs) == {kept[0].sha256}
     assert not {item.sha256 for item in items} & _on_disk(blobs)
+
+
+def test_a_backlog_goes_a_bounded_number_of_studies_per_pass(node):
+    store, inbox, blobs = node
+    for study in ("5.1", "5.2", "5.3"):
+        _receive(inbox, blobs, study, 2)
+    cutoff = time.time() - HOUR_S
+    assert mark_settled(store.writer, cutoff, limit=2) == 4 and inbox.counts() == {"purging": 4, "dispatched": 2}
+    assert purge_settled(store.engine, store.writer, blobs, HOUR_S).rows == 6  # the two marked, then the third
+    assert inbox.counts() == {} and blobs.all_digests() == []
