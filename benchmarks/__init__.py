@@ -1,7 +1,11 @@
-"""Benchmarks: commands that print numbers, not imported by the service; run them from the repository root.
+"""Every benchmark: commands that print numbers (not tests), run from the repository root, not part of the installed
+package (like ``tests/``); nothing in ``dsareg_engine`` or ``service`` imports them.
 
-* ``python -m benchmarks.load``: embedded-executor load benchmark (submissions/s, jobs/min).
-* ``python -m benchmarks.scaleout``: the Celery path with 1, 2, 4 workers.
+* :mod:`benchmarks.engine` — ``python -m benchmarks.engine NAME``: the paper's Table 1, the renderer, tracking,
+  capture range, robustness, no initial pose, partial visibility, clinical inputs, models, hemodynamics;
+  imports the engine only.
+* :mod:`benchmarks.service` — ``python -m benchmarks.service.NAME``: load, scale-out, first start, kernel compile,
+  DIMSE, DICOM reads…; they start servers.
 
-The throw-away Redis, PostgreSQL and Orthanc servers they start live in :mod:`tests.support.servers`.
+Results, with their commands, machines and dates: ``docs/benchmarks/``.
 """

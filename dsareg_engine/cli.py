@@ -22,7 +22,6 @@ COMMAND_MODULES = (
     "dsareg_engine.commands.render",
     "dsareg_engine.commands.inputs",
     "dsareg_engine.commands.register",
-    "dsareg_engine.commands.bench_cli",
     "dsareg_engine.commands.warmup",
     "dsareg_engine.commands.phantom_study",
 )

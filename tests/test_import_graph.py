@@ -15,6 +15,8 @@
   opens the store names the whole of it (``JobStore``, ``SqlJobStore``);
 * submission is a service layer: ``service.intake`` and ``service.pacs`` never import ``service.api``, and
   ``service.intake`` imports no web framework (fastapi, starlette);
+* every benchmark lives in ``benchmarks/`` (not packaged): nothing in the two packages imports it, and
+  ``benchmarks.engine`` imports the engine only (it runs where only the engine's packages are installed);
 * neither package has an import cycle, counting imports under ``if TYPE_CHECKING:`` too
   (:func:`test_no_import_cycles_even_type_only`).
 
@@ -253,6 +255,17 @@ def _external_imports(path: Path) -> set[str]:
         elif node.level == 0 and node.module:
             found.add(node.module.split(".")[0])
     return found
+
+
+def test_benchmarks_live_outside_the_packages():
+    benchmarks = sorted((ROOT / "benchmarks").rglob("*.py"))
+    assert ROOT / "benchmarks" / "engine" / "cli.py" in benchmarks and ROOT / "benchmarks" / "service" / "load.py" in benchmarks
+    importers = {m for m, path in _modules().items() if "benchmarks" in _external_imports(path)}
+    assert not importers, f"the packages never import benchmarks/: {sorted(importers)}"
+    assert not [p for p in (ROOT / "dsareg_engine").rglob("*.py") if p.name.startswith("bench")]
+    engine = {str(p.relative_to(ROOT)): sorted(_external_imports(p) & {"service", "tests", "sqlalchemy", "fastapi"})
+              for p in benchmarks if "engine" in p.relative_to(ROOT).parts}
+    assert not {path: names for path, names in engine.items() if names}, engine
 
 
 def test_intake_imports_no_web_framework():

@@ -69,7 +69,7 @@ CORRUPTIONS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] 
     "speckle": add_speckle,
     "all": lambda mask, rng: add_speckle(add_catheter(drop_segments(grow_border(mask, 1), rng), rng), rng),
 }
-"""Named corruptions for ``dsareg bench robustness``; ``all`` chains grow, drop, catheter, speckle."""
+"""Named corruptions for ``python -m benchmarks.engine robustness``; ``all`` chains grow, drop, catheter, speckle."""
 
 
 def corrupt(mask: np.ndarray, name: str, rng: np.random.Generator) -> np.ndarray:

@@ -1,5 +1,5 @@
 """The peak resident memory of one C-GET, in a fresh process (used by a test and by
-``python -m benchmarks.dimse_get_memory``).
+``python -m benchmarks.service.dimse_get_memory``).
 
 :func:`probe` runs this module in a new interpreter: it imports what a worker's C-GET needs, restarts the kernel's
 peak counter (``VmHWM``, by ``/proc/self/clear_refs``), retrieves the series with

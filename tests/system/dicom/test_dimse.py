@@ -130,7 +130,7 @@ def test_storescu_study_becomes_one_job_and_the_results_reach_storescp(node, stu
         print(f"\nstorescu {len(paths)} instances: {sent_s:.2f} s; job listed {queued_s:.2f} s after the last "
               f"(stable {STABLE_S:g} s)")
         # the target (stable + 2 s) holds when the stable time covers the input parse, which starts at the
-        # association's release (benchmarks/dimse.py measures it with the default 10 s); here stable is
+        # association's release (benchmarks/service/dimse.py measures it with the default 10 s); here stable is
         # 1 s and the parse of the volume takes seconds on a loaded machine
         assert queued_s <= STABLE_S + 2.0 + 12.0
         assert job["source"]["dimse"]["calling_ae"] == "STORESCU"

@@ -47,7 +47,6 @@ CASE = ["--mesh", str(PHANTOM / "mesh.ply"), "--ap", str(PHANTOM / "ap.png"), "-
     (["submit", "--server", "http://127.0.0.1:9", "--mesh", "gone.obj", *CASE[2:]], 2, ["--mesh", "file not found"]),
     (["submit", "--server", "http://127.0.0.1:9", *CASE, "--geometry", "missing.json"], 2, ["not found"]),
     (["render", "--geometry", "no-such-geometry", "--out", "x"], 2, ["not found", "paper"]),
-    (["bench", "render", "--mesh", "nope.obj"], 2, ["--mesh", "not found", "built-in phantom"]),
     (["serve", "--config", "/nonexistent/dsareg.toml"], 2, ["not found", "dsareg.toml"]),
     (["inspect", "nothing.png"], 2, ["does not exist"]),
     (["frobnicate"], 2, ["invalid choice"]),
@@ -96,7 +95,7 @@ def test_every_command_and_option_has_help():
     parser = build_parser()
     subcommands = {a.dest: a for a in parser._actions if isinstance(a, argparse._SubParsersAction)}
     helped = {c.dest for a in subcommands.values() for c in a._choices_actions if c.help}
-    assert {"register", "submit", "serve", "render", "inspect", "segment", "mesh", "bench"} <= helped
+    assert {"register", "submit", "serve", "render", "inspect", "segment", "mesh"} <= helped
     missing = []
     for path, sub in _walk(parser):
         for action in sub._actions:

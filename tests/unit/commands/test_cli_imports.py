@@ -40,7 +40,7 @@ def test_building_the_parser_imports_no_engine():
     assert _python("from dsareg_engine.cli import build_parser\nbuild_parser()\n" + LOADED)["loaded"] == []
 
 
-@pytest.mark.parametrize("argv", [["register", "--bogus"], ["bench", "render", "--size", "x"], ["render"],
+@pytest.mark.parametrize("argv", [["register", "--bogus"], ["render"],
                                   ["submit", "--server"], ["serve", "--port", "x"]])
 def test_an_argument_error_imports_no_engine(argv):
     code = (f"from dsareg_engine.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit as exc:\n"

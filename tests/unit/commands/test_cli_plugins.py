@@ -67,7 +67,7 @@ def test_installed_metadata_declares_the_group():
 
 
 def test_a_contributor_missing_its_dependencies_leaves_the_engine_commands_working():
-    """Without SQLAlchemy (a GPU box with only the engine's packages) `dsareg bench ...` still runs;
+    """Without SQLAlchemy (a GPU box with only the engine's packages) `dsareg register ...` still runs;
     building the service's `submit` parser must not import the job store."""
     import subprocess
 
@@ -77,7 +77,7 @@ def test_a_contributor_missing_its_dependencies_leaves_the_engine_commands_worki
             "print(sorted(action.choices))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
-    assert {"bench", "register", "submit"} <= set(eval(done.stdout.strip()))
+    assert {"register", "inspect", "submit"} <= set(eval(done.stdout.strip()))
 
 
 def test_a_contributor_that_cannot_import_a_module_is_left_out_with_a_note(monkeypatch, capsys):

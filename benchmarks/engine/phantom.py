@@ -1,6 +1,6 @@
-"""``dsareg bench``: benchmarks that print numbers (render speed, Table 1, capture range, robustness).
+"""``python -m benchmarks.engine``: benchmarks that print numbers (render speed, Table 1, capture range, robustness).
 
-The runs; their arguments are in :mod:`dsareg_engine.commands.bench_cli` (parsed without loading torch)."""
+The runs; their arguments are in :mod:`benchmarks.engine.cli` (parsed without loading torch)."""
 
 from __future__ import annotations
 
@@ -12,17 +12,17 @@ import time
 import numpy as np
 import torch
 
-from ..geometry.rig import Rig
-from ..geometry.spec import load_rig
-from ..metrics import mean_distance_mm
-from ..geometry.pose import so3_log
-from ..registration import RegistrationOptions
-from ..registration.solver import register
-from ..registration.parameterization import PoseIncrement, random_start_poses
-from ..render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
-from ..simulation.segmentation_errors import corrupt
-from .bench_cli import GREY_VARIANTS
-from .render import load_mesh_argument
+from dsareg_engine.geometry.rig import Rig
+from dsareg_engine.geometry.spec import load_rig
+from dsareg_engine.metrics import mean_distance_mm
+from dsareg_engine.geometry.pose import so3_log
+from dsareg_engine.registration import RegistrationOptions
+from dsareg_engine.registration.solver import register
+from dsareg_engine.registration.parameterization import PoseIncrement, random_start_poses
+from dsareg_engine.render import Camera, SilhouetteSettings, render_hard_silhouette, render_soft_silhouette
+from dsareg_engine.simulation.segmentation_errors import corrupt
+from .cli import GREY_VARIANTS
+from dsareg_engine.commands.render import load_mesh_argument
 
 
 def _device(requested: str = "auto") -> str:
@@ -229,8 +229,8 @@ def _signal_summary(signals: list[dict]) -> str:
 def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", truth: np.ndarray | None = None) -> dict:
     """Targets segmented (``method``; ``dsa``: the coverage registration fits, ``dsa_binary``: its former
     binary mask) from DSA images synthesized from the model at ``truth`` (default identity)."""
-    from ..vision.segmentation import segment_vessels, vessel_coverage
-    from ..simulation.synthetic_dsa import DsaSettings, synthesize_dsa
+    from dsareg_engine.vision.segmentation import segment_vessels, vessel_coverage
+    from dsareg_engine.simulation.synthetic_dsa import DsaSettings, synthesize_dsa
 
     changes, bits = GREY_VARIANTS[variant]
     images = synthesize_dsa(mesh, rig, np.eye(4) if truth is None else truth, seed=seed, settings=DsaSettings(**changes))
@@ -245,7 +245,7 @@ def _grey_masks(mesh, rig, method: str, seed: int, variant: str = "default", tru
 
 def bench_autoinit(args: argparse.Namespace) -> int:
     """No initial pose: uniform random rotations, positions anywhere the mesh stays in both views."""
-    from ..simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+    from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 
     mesh = load_mesh_argument(args.mesh)
     rig = clinical_biplane_rig(args.size)
@@ -339,9 +339,9 @@ _SAFETY_ROWS = {"wrong_tree": "wrong_tree", "swapped_views": "swapped_views", "s
 
 def _partial_cases(mesh, args: argparse.Namespace):
     """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
-    from ..geometry.vessel_tree import vessel_tree
-    from ..simulation import partial_filling as made
-    from ..simulation.phantom import make_vessel_phantom
+    from dsareg_engine.geometry.vessel_tree import vessel_tree
+    from dsareg_engine.simulation import partial_filling as made
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
 
     tree = vessel_tree(mesh)
     rng = np.random.default_rng(args.seed)
@@ -369,9 +369,9 @@ def _partial_cases(mesh, args: argparse.Namespace):
 
 def _partial_case(mesh, rig, rng, case, args):
     """``(model, masks, visible fraction, true pose)`` of one case of a ``bench partial`` row."""
-    from ..simulation.clinical_rig import random_visible_pose, render_masks
-    from ..simulation.partial_filling import early_filling
-    from ..simulation.phantom import make_vessel_phantom
+    from dsareg_engine.simulation.clinical_rig import random_visible_pose, render_masks
+    from dsareg_engine.simulation.partial_filling import early_filling
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
 
     if isinstance(case, str):
         truth = random_visible_pose(mesh, rig, rng, 40.0)
@@ -392,7 +392,7 @@ def _fit_size(mask: np.ndarray, shape) -> np.ndarray:
 
 def bench_partial(args: argparse.Namespace) -> int:
     """Partial visibility: success / ADD / verdict per visible fraction, and the confusion table."""
-    from ..simulation.clinical_rig import clinical_biplane_rig
+    from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig
 
     mesh = load_mesh_argument(args.mesh)
     width, height = args.size
@@ -429,7 +429,7 @@ def bench_partial(args: argparse.Namespace) -> int:
 
 def _corrupted(made, corruption: str, rng):
     """A case with its masks put through a simulated segmentation error (:mod:`..simulation.segmentation_errors`)."""
-    from ..simulation.segmentation_errors import corrupt
+    from dsareg_engine.simulation.segmentation_errors import corrupt
 
     if corruption == "none":
         return made

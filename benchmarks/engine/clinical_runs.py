@@ -1,4 +1,4 @@
-"""``dsareg bench clinical --sweep runs``: native XA runs across the axes real runs vary on.
+"""``python -m benchmarks.engine clinical --sweep runs``: native XA runs across the axes real runs vary on.
 
 Each row is one cell of the sweep, at its own image size: generator A (skull, photon noise, classic XA)
 or B (texture, Gaussian noise, enhanced XA, LOG / MONOCHROME1), image side 512 / 1024 / 2048 px, bits
@@ -15,9 +15,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..simulation.native_run_bolus import Bolus
-from ..simulation.native_run_skull import SkullRunSettings
-from ..simulation.native_run_texture import TextureRunSettings
+from dsareg_engine.simulation.native_run_bolus import Bolus
+from dsareg_engine.simulation.native_run_skull import SkullRunSettings
+from dsareg_engine.simulation.native_run_texture import TextureRunSettings
 
 FILL_12 = (0.0, 0.0, 0.0, 0.1, 0.3, 0.55, 0.8, 1.0, 1.2, 1.3, 1.3, 1.3)
 STRENGTH_12 = (1.0,) * 9 + (0.95, 0.85, 0.7)
@@ -47,17 +47,17 @@ def _build(generator: str, settings, mesh_path: str | None) -> Callable[[int], o
         if mesh_path is not None:
             from pathlib import Path
 
-            from ..io.mesh_io import read_mesh
-            from ..simulation.native_run import lowest_point
+            from dsareg_engine.io.mesh_io import read_mesh
+            from dsareg_engine.simulation.native_run import lowest_point
 
             mesh = read_mesh(Path(mesh_path).read_bytes(), Path(mesh_path).name)
             root = lowest_point(mesh)
         if generator == "A":
-            from ..simulation.native_run_skull import make_skull_run
+            from dsareg_engine.simulation.native_run_skull import make_skull_run
 
             run = make_skull_run(seed, settings, mesh, root)
         else:
-            from ..simulation.native_run_texture import make_texture_run
+            from dsareg_engine.simulation.native_run_texture import make_texture_run
 
             run = make_texture_run(seed, settings, mesh, root)
         return run

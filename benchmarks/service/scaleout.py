@@ -1,6 +1,6 @@
 """Celery scale-out benchmark on this machine (a command, not a test).
 
-    python -m benchmarks.scaleout [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
+    python -m benchmarks.service.scaleout [--workers 1,2,4] [--jobs 12] [--size 64] [--iterations 10] [--sequential 8]
 
 Starts a throw-away Redis and PostgreSQL on loopback (or uses ``--broker-url`` /
 ``--database-url``), the API with ``DSAREG_EXECUTOR=celery`` and, for each worker count,
@@ -34,7 +34,7 @@ from dsareg_engine.warmup import phantom_case_files
 
 from tests.support.servers import free_port
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _spawn(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
@@ -121,7 +121,7 @@ def _sequential(url: str, case: dict[str, Any], options: str, n: int) -> list[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.scaleout", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.service.scaleout", description=__doc__.split("\n\n")[0])
     parser.add_argument("--workers", default="1,2,4", help="Celery worker process counts")
     parser.add_argument("--jobs", type=int, default=12, help="jobs per worker count")
     parser.add_argument("--size", type=int, default=64, help="image size of the phantom case (px)")

@@ -1,6 +1,6 @@
 """Bounded load benchmark of the service on loopback (a command, not a test).
 
-    python -m benchmarks.load [--submissions 200] [--concurrency 20] [--workers 1,2]
+    python -m benchmarks.service.load [--submissions 200] [--concurrency 20] [--workers 1,2]
 
 For each worker count it starts ``python -m service serve`` on a free loopback port
 with a fresh data dir, submits ``--submissions`` tiny registrations (the phantom seen
@@ -200,7 +200,7 @@ def run_for_workers(workers: int, case: dict, args: argparse.Namespace, root: Pa
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.load", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.service.load", description=__doc__.split("\n\n")[0])
     parser.add_argument("--submissions", type=int, default=200)
     parser.add_argument("--concurrency", type=int, default=20)
     parser.add_argument("--workers", default="1,2", help="comma-separated worker counts to measure")

@@ -1,4 +1,4 @@
-"""Hostile DIMSE peers against ``dsareg serve``: ``python -m benchmarks.dimse_hostile [--bomb-gb 1.5]``.
+"""Hostile DIMSE peers against ``dsareg serve``: ``python -m benchmarks.service.dimse_hostile [--bomb-gb 1.5]``.
 
 Starts ``dsareg serve --workers 0`` with its DICOM node (default limits), then sends, each in one
 association from a pynetdicom SCU: a deflate bomb (Deflated Explicit VR Little Endian, an XA whose

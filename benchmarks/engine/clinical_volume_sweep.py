@@ -1,4 +1,4 @@
-"""``dsareg bench clinical --sweep volumes``: CTA and TOF-MRA heads across the voxel sizes real series have.
+"""``python -m benchmarks.engine clinical --sweep volumes``: CTA and TOF-MRA heads across the voxel sizes real series have.
 
 A cell is one head series read as the model (``--volume``) and the XA pair of its true tree (256 px, the DICOM
 phantom study's biplane, geometry in the tags; no geometry file, no initial pose): input kind (CTA, TOF-MRA) ×
@@ -60,13 +60,13 @@ def cells(*, mesh: bool, kinds=KINDS, generators=GENERATORS, trees=("phantom", "
 
 
 def build_cell(cell: VolumeCell, tree_mesh=None, seed: int = 0):
-    """The :class:`~dsareg_engine.commands.bench_clinical_volumes.VolumeCaseFiles` of ``cell`` (``tree_mesh``:
+    """The :class:`~benchmarks.engine.clinical_volumes.VolumeCaseFiles` of ``cell`` (``tree_mesh``:
     the mesh tree, already turned trunk-up, for ``cell.tree == "mesh"``)."""
-    from ..io.case import CaseFiles
-    from ..simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
-    from ..simulation.synthetic_volumes import (fitting_pixel_spacing_mm, make_cta_head, make_tof_mra_head,
+    from dsareg_engine.io.case import CaseFiles
+    from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
+    from dsareg_engine.simulation.synthetic_volumes import (fitting_pixel_spacing_mm, make_cta_head, make_tof_mra_head,
                                                 vessel_tree, volume_case_of)
-    from .bench_clinical_volumes import TREE_DEPTH, VolumeCaseFiles
+    from .clinical_volumes import TREE_DEPTH, VolumeCaseFiles
 
     tree = tree_mesh if cell.tree == "mesh" else vessel_tree(TREE_DEPTH, 3 + seed)
     if cell.generator == "A":
@@ -86,15 +86,15 @@ def _mesh_tree(path: str | None):
         return None
     from pathlib import Path
 
-    from ..io.mesh_io import read_mesh
-    from ..simulation.synthetic_volumes import tree_of_mesh
+    from dsareg_engine.io.mesh_io import read_mesh
+    from dsareg_engine.simulation.synthetic_volumes import tree_of_mesh
 
     return tree_of_mesh(read_mesh(Path(path).read_bytes(), Path(path).name))
 
 
 def bench_volumes(args) -> int:
     """Print the sweep's table, one row per cell (``--cells-out``: also one JSON line per cell)."""
-    from .bench_clinical_volumes import run_row
+    from .clinical_volumes import run_row
 
     voxels = [parse_voxel(v) for v in args.voxels] if getattr(args, "voxels", None) else VOXELS_MM
     kinds = [k for k in KINDS if not args.kinds or any(w.lower() in (k, "tof-mra" if k == "mra" else k)
@@ -122,7 +122,7 @@ def bench_volumes(args) -> int:
 
 
 def _run_cell(cell: VolumeCell, tree_mesh, seed: int, run_row) -> dict:
-    from ..errors import DsaregInputError
+    from dsareg_engine.errors import DsaregInputError
 
     case = build_cell(cell, tree_mesh, seed)
     try:

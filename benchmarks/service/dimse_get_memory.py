@@ -1,4 +1,4 @@
-"""Peak memory of a C-GET pull: ``python -m benchmarks.dimse_get_memory [--size-mb 200] [--instances 1]``.
+"""Peak memory of a C-GET pull: ``python -m benchmarks.service.dimse_get_memory [--size-mb 200] [--instances 1]``.
 
 Orthanc (its DICOM server on loopback) holds ``--instances`` multi-frame XA instances of about ``--size-mb`` MB
 each (uint16 noise, Explicit VR Little Endian: nothing compresses them); a fresh Python process retrieves them

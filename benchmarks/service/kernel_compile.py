@@ -1,6 +1,6 @@
 """Where a fresh install's first start goes: numba compile seconds per kernel specialization (a command).
 
-    python -m benchmarks.kernel_compile [--threads 2] [--steps renderer,job,search]
+    python -m benchmarks.service.kernel_compile [--threads 2] [--steps renderer,job,search]
 
 Runs, in this process, with ``NUMBA_CACHE_DIR`` pointed at a new empty folder (the worktree's own
 ``__pycache__`` is neither read nor written), the steps a worker's warm-up takes: ``renderer``

@@ -1,6 +1,6 @@
 """How often, and at what cost, a DICOM case's inputs are parsed: ``load_case_files`` + the REG/SC writer.
 
-``python -m benchmarks.dicom_reads OUT_DIR [REPEATS] [STUDY.pkl]`` prints the median and least CPU seconds,
+``python -m benchmarks.service.dicom_reads OUT_DIR [REPEATS] [STUDY.pkl]`` prints the median and least CPU seconds,
 wall seconds, the peak memory tracemalloc saw and the ``pydicom.dcmread`` calls of one pass, and writes each
 pass's DICOM outputs (UIDs and times fixed) under OUT_DIR. The study (2 XA + a 43-slice 512 × 512 CT series
 of the phantom) is saved to STUDY.pkl on the first run, so that another tree (e.g. ``git archive ad8dd6e``,

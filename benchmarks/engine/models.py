@@ -1,4 +1,4 @@
-"""``dsareg bench models``: the model's units and handedness, on the phantom and on a given mesh.
+"""``python -m benchmarks.engine models``: the model's units and handedness, on the phantom and on a given mesh.
 
 Each case: the model at a random visible pose on a clinical biplane rig (107°, a mirrored LAT detector, no
 initial pose), its silhouettes as the masks. Rows: the model as an OBJ in mm (the reference); the same model
@@ -27,8 +27,8 @@ def model_as(mesh, row: str):
     """The model a user would send for ``row``: read back through the mesh reader (mm inside)."""
     import trimesh
 
-    from ..io.mesh_io import read_mesh_detailed
-    from ..mesh import TriangleMesh
+    from dsareg_engine.io.mesh_io import read_mesh_detailed
+    from dsareg_engine.mesh import TriangleMesh
 
     if row.startswith("mirrored"):
         axis = "xyz".index(row[-1])
@@ -41,10 +41,10 @@ def model_as(mesh, row: str):
 
 
 def run_case(mesh, row: str, seed: int, size_px: int, options: dict) -> dict:
-    from ..geometry.rig import Rig
-    from ..registration import parse_options
-    from ..registration.solver import register
-    from ..simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
+    from dsareg_engine.geometry.rig import Rig
+    from dsareg_engine.registration import parse_options
+    from dsareg_engine.registration.solver import register
+    from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 
     rig = clinical_biplane_rig(size_px=size_px)
     truth = random_visible_pose(mesh, rig, np.random.default_rng(seed))
@@ -59,7 +59,7 @@ def run_case(mesh, row: str, seed: int, size_px: int, options: dict) -> dict:
 
 
 def bench_models(args: argparse.Namespace) -> int:
-    from .render import load_mesh_argument
+    from dsareg_engine.commands.render import load_mesh_argument
 
     options = {"device": args.device if args.device != "auto" else "cpu", **json.loads(args.options)}
     meshes = [(path, load_mesh_argument(path)) for path in args.mesh] or [("phantom", load_mesh_argument(None))]

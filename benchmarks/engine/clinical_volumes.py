@@ -1,4 +1,4 @@
-"""The volume rows of ``dsareg bench clinical``: vessel models read from CTA and TOF-MRA heads.
+"""The volume rows of ``python -m benchmarks.engine clinical``: vessel models read from CTA and TOF-MRA heads.
 
 Each kind builds one synthetic case (:func:`dsareg_engine.simulation.synthetic_volumes.make_volume_case`):
 the head's DICOM series as the model (``--volume``), the XA pair of the true tree with the geometry in their
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.case import CaseFiles
+from dsareg_engine.io.case import CaseFiles
 
 
 @dataclass(frozen=True)
@@ -33,7 +33,7 @@ PIXEL_SPACING_MM = 0.6
 
 def _volume_case(kind: str, variant: str, as_mesh: bool = False) -> Callable[[int, int], VolumeCaseFiles]:
     def build(seed: int, size_px: int) -> VolumeCaseFiles:
-        from ..simulation.synthetic_volumes import make_volume_case
+        from dsareg_engine.simulation.synthetic_volumes import make_volume_case
 
         case = make_volume_case(kind, variant, voxel_mm=VOXEL_MM, depth=TREE_DEPTH, seed=3 + seed, image_px=size_px,
                                 pixel_spacing_mm=PIXEL_SPACING_MM * 256 / size_px)
@@ -77,10 +77,10 @@ def _cpu_seconds() -> float:
 def run_row(build: Callable[[int, int], VolumeCaseFiles], seed: int = 0, size_px: int = 256) -> dict:
     """Load and register one case as ``dsareg register --volume`` does: ADD, verdict (a close call about an input
     lowers ``ok`` to ``check``, as the result's), its reasons, faces, voxels kept, plate share, CPU and wall s."""
-    from ..io.case import load_case_files
-    from ..io.input_decisions import with_close_calls
-    from ..registration.solver import register
-    from ..registration.options import parse_options
+    from dsareg_engine.io.case import load_case_files
+    from dsareg_engine.io.input_decisions import with_close_calls
+    from dsareg_engine.registration.solver import register
+    from dsareg_engine.registration.options import parse_options
 
     case = build(seed, size_px)
     options = parse_options({"device": "cpu", "ground_truth_mesh_to_world": case.mesh_to_world.tolist()})
@@ -101,7 +101,7 @@ def run_row(build: Callable[[int, int], VolumeCaseFiles], seed: int = 0, size_px
 
 
 def main(words: list[str]) -> int:
-    """``python -m dsareg_engine.commands.bench_clinical_volumes [WORD ...]``: the rows whose name has a word."""
+    """``python -m benchmarks.engine.clinical_volumes [WORD ...]``: the rows whose name has a word."""
     print("| input kind | faces | ADD mm | rotation deg | verdict | read CPU s | job CPU s | wall s |")
     print("|---|---|---|---|---|---|---|---|")
     for name, _, build in VOLUME_CASE_KINDS:

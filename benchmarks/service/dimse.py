@@ -1,4 +1,4 @@
-"""DIMSE benchmark: ``python -m benchmarks.dimse [--stable-seconds 10] [--transfer-only]``.
+"""DIMSE benchmark: ``python -m benchmarks.service.dimse [--stable-seconds 10] [--transfer-only]``.
 
 1. **transfer**: a 20 MB study (40 CT slices of 512 × 512 × 16 bit) by C-STORE from a pynetdicom
    SCU to the node's C-STORE SCP in this process (fsync + index per instance included), over
@@ -204,7 +204,7 @@ def _get(client, path: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.dimse", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.service.dimse", description=__doc__.splitlines()[0])
     parser.add_argument("--stable-seconds", type=float, default=10.0)
     parser.add_argument("--transfer-only", action="store_true")
     parser.add_argument("--lag-studies", type=int, default=0,

@@ -1,4 +1,4 @@
-"""``dsareg bench clinical``: registration from clinical inputs as they are stored, per input kind.
+"""``python -m benchmarks.engine clinical``: registration from clinical inputs as they are stored, per input kind.
 
 :data:`CASE_KINDS` is the table of rows: each kind builds one synthetic case (the files a client
 would send, and the true pose) from a seed and an image size. Every case is registered as a user
@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from ..io.case import CaseFiles
+    from dsareg_engine.io.case import CaseFiles
 
 SUCCESS_ADD_MM = 1.0
 
@@ -53,11 +53,11 @@ def _mesh_bytes(mesh) -> bytes:
 def _native(generator: str, subtracted: bool) -> Callable[[int, int], ClinicalCase]:
     def build(seed: int, size_px: int) -> ClinicalCase:
         if generator == "skull":
-            from ..simulation.native_run_skull import SkullRunSettings, make_skull_run
+            from dsareg_engine.simulation.native_run_skull import SkullRunSettings, make_skull_run
 
             run = make_skull_run(seed, SkullRunSettings(size_px=size_px))
         else:
-            from ..simulation.native_run_texture import TextureRunSettings, make_texture_run
+            from dsareg_engine.simulation.native_run_texture import TextureRunSettings, make_texture_run
 
             run = make_texture_run(seed, TextureRunSettings(size_px=size_px))
         return case_of(run, subtracted)
@@ -67,7 +67,7 @@ def _native(generator: str, subtracted: bool) -> Callable[[int, int], ClinicalCa
 def case_of(run, subtracted: bool = False) -> ClinicalCase:
     """The case of a :class:`~dsareg_engine.simulation.native_run.NativeRunCase`: its native runs (or their
     pre-subtracted peak frames) and its mesh."""
-    from ..io.case import CaseFiles
+    from dsareg_engine.io.case import CaseFiles
 
     images = run.subtracted if subtracted else run.files
     files = CaseFiles(ap=images["ap"], ap_name="ap.dcm", lat=images["lat"], lat_name="lat.dcm",
@@ -89,7 +89,7 @@ CASE_KINDS: list[CaseKind] = [
 
 def _volume_rows() -> list[CaseKind]:
     """The CTA / TOF-MRA rows (:mod:`.bench_clinical_volumes`): a head series as the model, the XA pair."""
-    from .bench_clinical_volumes import VOLUME_CASE_KINDS
+    from .clinical_volumes import VOLUME_CASE_KINDS
 
     return [CaseKind(name, description, build) for name, description, build in VOLUME_CASE_KINDS]
 
@@ -99,9 +99,9 @@ CASE_KINDS += _volume_rows()
 
 def run_one(case: ClinicalCase, options: dict) -> dict:
     """Load and register one case as ``dsareg register`` does; ADD, verdict, wall and CPU seconds."""
-    from ..io.case import load_case_files
-    from ..registration.solver import register
-    from ..registration.options import image_reading, parse_options
+    from dsareg_engine.io.case import load_case_files
+    from dsareg_engine.registration.solver import register
+    from dsareg_engine.registration.options import image_reading, parse_options
 
     parsed = parse_options({**options, "ground_truth_mesh_to_world": case.mesh_to_world.tolist()})
     wall, cpu = time.perf_counter(), _cpu_seconds()
@@ -125,11 +125,11 @@ def bench_clinical(args: argparse.Namespace) -> int:
 
     options = {"device": args.device if args.device != "auto" else "cpu", **json.loads(args.options)}
     if getattr(args, "sweep", None) == "runs":
-        from .bench_clinical_runs import bench_runs
+        from .clinical_runs import bench_runs
 
         return bench_runs(args, options, run_one, case_of)
     if getattr(args, "sweep", None) == "volumes":
-        from .bench_clinical_volume_sweep import bench_volumes
+        from .clinical_volume_sweep import bench_volumes
 
         return bench_volumes(args)
     kinds = [k for k in CASE_KINDS if not args.kinds or any(word.lower() in k.name.lower() for word in args.kinds)]

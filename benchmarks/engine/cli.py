@@ -1,13 +1,16 @@
-"""``dsareg bench`` arguments: the parser only, so that ``dsareg --help`` and argument errors never load
-torch (the runs are in :mod:`dsareg_engine.commands.bench`, imported when a benchmark starts)."""
+"""``python -m benchmarks.engine NAME``: the engine's benchmarks (render, table1, capture, track, robustness, autoinit,
+partial, clinical, models, hemodynamics). The parser only, so that ``--help`` and argument errors never load torch
+(the runs are in :mod:`benchmarks.engine.phantom` and its siblings, imported when a benchmark starts); errors go
+through the ``dsareg`` error path (one line, exit status 2 or 1, ``--debug`` for a traceback)."""
 
 from __future__ import annotations
 
 import argparse
 
-from ..registration.options import CONFIGURATIONS
-from ..simulation.segmentation_errors import CORRUPTIONS
-from .deferred import deferred
+from dsareg_engine.commands.deferred import deferred
+from dsareg_engine.commands.kit import run_parsed
+from dsareg_engine.registration.options import CONFIGURATIONS
+from dsareg_engine.simulation.segmentation_errors import CORRUPTIONS
 
 GREY_VARIANTS = {
     "default": ({}, 16),
@@ -23,12 +26,17 @@ GREY_VARIANTS = {
 """Grey-level image formations (:class:`~dsareg_engine.simulation.synthetic_dsa.DsaSettings` changes, bits per pixel)."""
 
 
-def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser(
-        "bench", help="benchmarks (render, table1, capture, robustness, track, autoinit, partial, clinical)",
+def main(argv: list[str] | None = None) -> int:
+    return run_parsed(build_parser().parse_args(argv))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.engine",
         description="Benchmarks that print Markdown tables. Every one runs on the built-in phantom unless --mesh "
                     "names a mesh (the paper's mesh is published in the authors' TwoViewsDSAReg repository).")
-    which = parser.add_subparsers(dest="bench", required=True)
+    parser.add_argument("--debug", action="store_true", help="show Python tracebacks of errors (for bug reports)")
+    which = parser.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
     _add_render(which)
     _add_table1_capture(which)
     _add_track(which)
@@ -38,10 +46,11 @@ def add_parser(subparsers) -> None:
     _add_clinical(which)
     _add_hemodynamics(which)
     _add_models(which)
+    return parser
 
 
 def _add_render(which) -> None:
-    """``dsareg bench``: the renderer's speed."""
+    """``python -m benchmarks.engine``: the renderer's speed."""
     render = which.add_parser("render", help="ms per forward and forward+backward")
     _add_mesh(render)
     render.add_argument("--size", type=int, nargs="+", default=[256, 400, 800], help="image sides in px")
@@ -51,11 +60,11 @@ def _add_render(which) -> None:
     render.add_argument("--backend", default="auto", choices=["auto", "numba", "torch"], help="rasterizer (default auto)")
     render.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (registration uses 1 on CPU)")
     _add_device(render)
-    render.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_render"))
+    render.set_defaults(func=deferred("benchmarks.engine.phantom:bench_render"))
 
 
 def _add_table1_capture(which) -> None:
-    """``dsareg bench``: the paper's Table 1 and the capture range."""
+    """``python -m benchmarks.engine``: the paper's Table 1 and the capture range."""
     for name in ("table1", "capture"):
         sub = which.add_parser(name, help={"table1": "the paper's Table 1: accuracy per configuration",
                                            "capture": "capture range: success per initial mTRE bin"}[name])
@@ -68,11 +77,11 @@ def _add_table1_capture(which) -> None:
         sub.add_argument("--max-mtre", type=float, default=20.0, help="largest initial mTRE in mm")
         sub.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"coarse_to_fine\": false})")
         _add_device(sub)
-        sub.set_defaults(func=deferred(f"dsareg_engine.commands.bench:bench_{name}"))
+        sub.set_defaults(func=deferred(f"benchmarks.engine.phantom:bench_{name}"))
 
 
 def _add_track(which) -> None:
-    """``dsareg bench``: tracking."""
+    """``python -m benchmarks.engine``: tracking."""
     track = which.add_parser("track", help="re-registration (options.mode track) along sequences of small motions")
     _add_mesh(track)
     track.add_argument("--sequences", type=int, default=5, help="independent motion sequences")
@@ -85,11 +94,11 @@ def _add_track(which) -> None:
                        help="per-frame translation range (mm, random direction)")
     track.add_argument("--options", default="{}", help="extra registration options as JSON")
     _add_device(track)
-    track.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_track"))
+    track.set_defaults(func=deferred("benchmarks.engine.phantom:bench_track"))
 
 
 def _add_robustness(which) -> None:
-    """``dsareg bench``: segmentation errors and grey-level DSA."""
+    """``python -m benchmarks.engine``: segmentation errors and grey-level DSA."""
     robust = which.add_parser("robustness", help="accuracy when the masks carry simulated segmentation errors")
     _add_mesh(robust)
     robust.add_argument("--starts", type=int, default=5, help="initial poses per corruption")
@@ -108,11 +117,11 @@ def _add_robustness(which) -> None:
     robust.add_argument("--multistart", type=int, default=4, help="parallel starts inside each registration")
     robust.add_argument("--options", default="{}", help="extra registration options as JSON (e.g. {\"border_correction\": true})")
     _add_device(robust)
-    robust.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_robustness"))
+    robust.set_defaults(func=deferred("benchmarks.engine.phantom:bench_robustness"))
 
 
 def _add_autoinit(which) -> None:
-    """``dsareg bench``: no initial pose."""
+    """``python -m benchmarks.engine``: no initial pose."""
     auto = which.add_parser("autoinit", help="registration with no initial pose on a clinical-like rig (107°, mirrored LAT)")
     _add_mesh(auto)
     auto.add_argument("--cases", type=int, default=20, help="random poses (rotation uniform over SO(3))")
@@ -122,7 +131,7 @@ def _add_autoinit(which) -> None:
     auto.add_argument("--options", default="{}", help="extra registration options as JSON")
     auto.add_argument("--grey", action="store_true",
                       help="register from grey-level DSA synthesized from the model (segmented as 'auto' does)")
-    auto.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_autoinit"))
+    auto.set_defaults(func=deferred("benchmarks.engine.phantom:bench_autoinit"))
 
 
 def _image_size(text: str) -> tuple[int, int]:
@@ -137,7 +146,7 @@ def _image_size(text: str) -> tuple[int, int]:
 
 
 def _add_partial(which) -> None:
-    """``dsareg bench``: partial visibility."""
+    """``python -m benchmarks.engine``: partial visibility."""
     partial = which.add_parser("partial", help="no initial pose, images showing part of the model (early filling, "
                                "one injected branch, a model with an extra territory) plus safety cases")
     _add_mesh(partial)
@@ -161,11 +170,11 @@ def _add_partial(which) -> None:
                          "missing segments, a catheter, speckle)")
     partial.add_argument("--cases-out", metavar="FILE.jsonl", help="also write one JSON line per case (ADD, verdict, "
                          "reasons, what the pose search did)")
-    partial.set_defaults(func=deferred("dsareg_engine.commands.bench:bench_partial"))
+    partial.set_defaults(func=deferred("benchmarks.engine.phantom:bench_partial"))
 
 
 def _add_clinical(which) -> None:
-    """``dsareg bench clinical``: one row per input kind (:data:`dsareg_engine.commands.bench_clinical.CASE_KINDS`)."""
+    """``python -m benchmarks.engine clinical``: one row per input kind (:data:`benchmarks.engine.clinical.CASE_KINDS`)."""
     sub = which.add_parser("clinical", help="registration from stored clinical inputs, per input kind "
                                             "(native XA runs, ...), with no geometry file and no initial pose")
     sub.add_argument("--cases", type=int, default=3, help="cases (seeds) per input kind")
@@ -186,11 +195,11 @@ def _add_clinical(which) -> None:
     sub.add_argument("--trees", nargs="*", default=[], choices=["phantom", "mesh"],
                      help="--sweep volumes: only these vessel trees")
     sub.add_argument("--cells-out", metavar="FILE.jsonl", help="--sweep volumes: also append one JSON line per cell")
-    sub.set_defaults(func=deferred("dsareg_engine.commands.bench_clinical:bench_clinical"))
+    sub.set_defaults(func=deferred("benchmarks.engine.clinical:bench_clinical"))
 
 
 def _add_models(which) -> None:
-    """``dsareg bench models``: mesh units (GLB in metres) and handedness (mirrored models)."""
+    """``python -m benchmarks.engine models``: mesh units (GLB in metres) and handedness (mirrored models)."""
     sub = which.add_parser("models", help="a GLB in metres and mirrored models (x, y, z) on a clinical rig, "
                                           "no initial pose: ADD, verdicts, the mirror named, CPU s")
     sub.add_argument("--mesh", nargs="*", default=[], help="meshes in mm (default: the built-in phantom)")
@@ -200,11 +209,11 @@ def _add_models(which) -> None:
     sub.add_argument("--rows", nargs="*", default=[], help="only the rows whose name contains one of these words")
     sub.add_argument("--options", default="{}", help="extra registration options as JSON")
     sub.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="options.device (auto: cpu)")
-    sub.set_defaults(func=deferred("dsareg_engine.commands.bench_models:bench_models"))
+    sub.set_defaults(func=deferred("benchmarks.engine.models:bench_models"))
 
 
 def _add_hemodynamics(which) -> None:
-    """``dsareg bench hemodynamics``: arrival / peak on the model from simulated bolus runs."""
+    """``python -m benchmarks.engine hemodynamics``: arrival / peak on the model from simulated bolus runs."""
     sub = which.add_parser("hemodynamics", help="contrast arrival and time to peak mapped onto the model from "
                                                 "simulated biplane bolus runs with known times")
     sub.add_argument("--mesh", nargs="+", metavar="FILE", help="mesh files ('phantom' for the built-in one; default it)")
@@ -213,7 +222,7 @@ def _add_hemodynamics(which) -> None:
     sub.add_argument("--size", type=int, default=512, help="image side in px")
     sub.add_argument("--rows", nargs="*", default=[], help="only the rows whose name contains one of these words")
     sub.add_argument("--pictures", metavar="DIR", help="keep the first case's outputs and model pictures per row here")
-    sub.set_defaults(func=deferred("dsareg_engine.commands.bench_hemodynamics:bench_hemodynamics"))
+    sub.set_defaults(func=deferred("benchmarks.engine.hemodynamics:bench_hemodynamics"))
 
 
 def _add_mesh(parser) -> None:

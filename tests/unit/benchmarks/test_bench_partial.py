@@ -1,13 +1,13 @@
-"""``dsareg bench partial``: its table and its per-case lines."""
+"""``python -m benchmarks.engine partial``: its table and its per-case lines."""
 
 import json
 
-from dsareg_engine.cli import main
+from benchmarks.engine.cli import main
 
 
 def test_bench_partial_prints_its_rows_and_writes_one_line_per_case(tmp_path, capsys):
     cases = tmp_path / "cases.jsonl"
-    assert main(["bench", "partial", "--size", "160x128", "--cases", "1", "--kinds", "full", "selective_injection",
+    assert main(["partial", "--size", "160x128", "--cases", "1", "--kinds", "full", "selective_injection",
                  "--fractions", "0.5", "--no-safety", "--corruption", "catheter", "--cases-out", str(cases)]) == 0
     printed = capsys.readouterr().out
     assert "masks with segmentation errors (catheter) of the visible part" in printed and "rig 160x128 px" in printed
@@ -25,7 +25,7 @@ def test_bench_partial_prints_its_rows_and_writes_one_line_per_case(tmp_path, ca
 def test_a_safety_row_runs_alone_and_the_default_still_appends_all_three():
     from argparse import Namespace
 
-    from dsareg_engine.commands.bench import _partial_cases
+    from benchmarks.engine.phantom import _partial_cases
     from dsareg_engine.simulation.phantom import make_vessel_phantom
 
     mesh = make_vessel_phantom(depth=2)

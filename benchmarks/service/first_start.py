@@ -1,6 +1,6 @@
 """Fresh-install first start: ``dsareg serve`` → /readyz 200 → the first job running (a command, not a test).
 
-    python -m benchmarks.first_start [--ref HEAD] [--workers 1]
+    python -m benchmarks.service.first_start [--ref HEAD] [--workers 1]
 
 Exports the sources of git revision ``--ref`` (``git archive``: no ``__pycache__``, so no numba cache
 and no bytecode, as after a fresh install) into a temporary folder, starts ``python -m service serve``
@@ -28,7 +28,7 @@ from dsareg_engine.warmup import phantom_case_files
 
 from tests.support.servers import free_port
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TICKS = os.sysconf("SC_CLK_TCK")
 
 

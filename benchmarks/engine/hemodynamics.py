@@ -1,4 +1,4 @@
-"""``dsareg bench hemodynamics``: arrival and peak on the model from simulated biplane bolus runs with known times.
+"""``python -m benchmarks.engine hemodynamics``: arrival and peak on the model from simulated biplane bolus runs with known times.
 
 Per case: a bolus run is simulated (:mod:`dsareg_engine.simulation.bolus_run`) at the true pose, written as DICOM
 XA runs (:mod:`dsareg_engine.simulation.bolus_dicom`), read as a job reads them (:func:`load_case_files`, native
@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry.rig import Rig
-from ..mesh import TriangleMesh
-from ..simulation.bolus_run import BolusSettings
-from ..simulation.native_run import Plane
+from dsareg_engine.geometry.rig import Rig
+from dsareg_engine.mesh import TriangleMesh
+from dsareg_engine.simulation.bolus_run import BolusSettings
+from dsareg_engine.simulation.native_run import Plane
 
 RUN_SECONDS = 8.0
 FILL_OF_VIEW = 0.6
@@ -76,10 +76,10 @@ def overlap_pose(mesh: TriangleMesh, rig: Rig) -> np.ndarray:
 
 def case_files(mesh: TriangleMesh, mesh_bytes: bytes, scenario: Scenario, seed: int, size_px: int, inflow_mm):
     """``(CaseFiles, pose, truth)`` of one simulated case."""
-    from ..io.case import CaseFiles
-    from ..simulation.bolus_dicom import bolus_xa
-    from ..simulation.bolus_run import make_bolus_run
-    from ..simulation.native_run import pose_in_view
+    from dsareg_engine.io.case import CaseFiles
+    from dsareg_engine.simulation.bolus_dicom import bolus_xa
+    from dsareg_engine.simulation.bolus_run import make_bolus_run
+    from dsareg_engine.simulation.native_run import pose_in_view
 
     planes = planes_for(mesh)
     rig = Rig(views={name: plane.view(size_px) for name, plane in planes.items()})
@@ -94,7 +94,7 @@ def case_files(mesh: TriangleMesh, mesh_bytes: bytes, scenario: Scenario, seed: 
 
 def mtt_truth_s(settings: BolusSettings, truth) -> np.ndarray:
     """``(V,)`` the gamma-variate bolus's mean transit time ``(α + 1) β`` (``β = τp / α``); NaN for the ramp shape."""
-    from ..simulation.bolus_run import GAMMA_ALPHA, rise_time_s
+    from dsareg_engine.simulation.bolus_run import GAMMA_ALPHA, rise_time_s
 
     if settings.shape != "gamma":
         return np.full(len(truth.onset_s), np.nan)
@@ -138,9 +138,9 @@ def run_case(mesh, mesh_bytes, scenario: Scenario, seed: int, size_px: int, infl
 
     from scipy.spatial import cKDTree
 
-    from ..hemodynamics.model_points import vertices_as_given
-    from ..hemodynamics.run import hemodynamics_step
-    from ..io.case import load_case_files
+    from dsareg_engine.hemodynamics.model_points import vertices_as_given
+    from dsareg_engine.hemodynamics.run import hemodynamics_step
+    from dsareg_engine.io.case import load_case_files
 
     files, pose, truth = case_files(mesh, mesh_bytes, scenario, seed, size_px, inflow_mm)
     case = load_case_files(files)
@@ -160,10 +160,10 @@ def write_model_pictures(case, mesh_bytes: bytes, document: dict, pose: np.ndarr
     """``model_{ap,lat}.png``: the coloured model seen from each view (what hemodynamics.ply shows)."""
     from scipy.spatial import cKDTree
 
-    from ..hemodynamics.colours import TimeScale
-    from ..hemodynamics.model_points import vertices_as_given
-    from ..hemodynamics.picture import model_picture
-    from ..overlay import write_png
+    from dsareg_engine.hemodynamics.colours import TimeScale
+    from dsareg_engine.hemodynamics.model_points import vertices_as_given
+    from dsareg_engine.hemodynamics.picture import model_picture
+    from dsareg_engine.overlay import write_png
 
     arrival = np.array([np.nan if v is None else v for v in document["arrival_s"]], float)
     per_working = arrival[cKDTree(vertices_as_given(mesh_bytes, "obj")).query(case.mesh.vertices)[1]]
@@ -199,9 +199,9 @@ def table(rows: list[tuple[str, str, list[dict]]]) -> list[str]:
 
 
 def _model(path: str | None) -> tuple[str, TriangleMesh, bytes, np.ndarray | None]:
-    from ..io.mesh_io import read_mesh
-    from ..simulation.native_run import tree_root
-    from ..simulation.phantom import make_vessel_phantom
+    from dsareg_engine.io.mesh_io import read_mesh
+    from dsareg_engine.simulation.native_run import tree_root
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
 
     if path is None:
         mesh = make_vessel_phantom(seed=0, depth=4)
@@ -237,6 +237,6 @@ def bench_hemodynamics(args) -> int:
 
 
 def _read_as_job(data: bytes) -> TriangleMesh:
-    from ..io.mesh_io import read_mesh
+    from dsareg_engine.io.mesh_io import read_mesh
 
     return read_mesh(data, "model.obj")
