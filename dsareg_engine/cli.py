@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "dsareg_engine.commands.register",
     "dsareg_engine.commands.warmup",
     "dsareg_engine.commands.phantom_study",
+    "dsareg_engine.commands.run_benchmark",
 )
 """The engine's own sub-commands (modules with ``add_parser``). They import only what their arguments need
 (no torch, no numba: ``dsareg --help`` and argument errors take well under a second); the work loads when a
