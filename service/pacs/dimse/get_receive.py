@@ -18,7 +18,7 @@ from typing import Any
 
 from ..instance_check import InstanceLimits, InstanceRefused
 from .receive_bound import BoundedBuffer, bound_association
-from .scp import OUT_OF_RESOURCES, SUCCESS, check_received
+from .scp import OUT_OF_RESOURCES, SUCCESS, check_received, part10_prefix
 
 SPOOL_PREFIX = "cget-"
 
@@ -75,9 +75,7 @@ class GetReceiver:
         return SUCCESS
 
     def _part10(self, event: Any, buffer: Any) -> Any:
-        from pynetdicom.dsutils import encode_file_meta
-
-        prefix = b"\x00" * 128 + b"DICM" + encode_file_meta(event.file_meta)
+        prefix = part10_prefix(event)
         if not isinstance(buffer, BoundedBuffer) or buffer.received_bytes <= buffer.memory_bytes:
             return prefix + buffer.getvalue()
         spool = tempfile.TemporaryFile(dir=self.spill_dir, prefix=SPOOL_PREFIX)  # noqa: SIM115 - closed in instances()

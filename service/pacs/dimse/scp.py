@@ -89,6 +89,14 @@ def decodable_transfer_syntaxes() -> list[str]:
     return found
 
 
+def part10_prefix(event: Any) -> bytes:
+    """What precedes a received C-STORE data set in a Part 10 file: the 128-byte preamble, ``DICM`` and the file
+    meta information pynetdicom made for it."""
+    from pynetdicom.dsutils import encode_file_meta
+
+    return b"\x00" * 128 + b"DICM" + encode_file_meta(event.file_meta)
+
+
 @dataclass(frozen=True)
 class Peer:
     ae_title: str
@@ -218,10 +226,8 @@ class StoreScp:
     @staticmethod
     def _part10(event: Any) -> Any:
         """The instance as a DICOM file (our file meta, then the data set as received), as a stream."""
-        from pynetdicom.dsutils import encode_file_meta
-
         buffer = event.request.DataSet
-        prefix = b"\x00" * 128 + b"DICM" + encode_file_meta(event.file_meta)
+        prefix = part10_prefix(event)
         if isinstance(buffer, BoundedBuffer):
             return buffer.reader(prefix)
         return io.BytesIO(prefix + buffer.getvalue())
