@@ -6,9 +6,9 @@ runs subtracted), and the hemodynamics step runs at the true pose (registration 
 elsewhere). Per vertex of the model file, the measured values are compared with the truth.
 Columns: mapped (of the vertices contrast reached; in brackets those no view sees clean, mapped by unmixing),
 arrival error median / p90 and peak-time error median in s and frame intervals, the same on the unmixed vertices
-alone (frame intervals), the gamma-variate fit's mean transit time error (relative, gamma-shaped boluses only), the views' agreement median, vertices contrast never reached that got a value (a never-reached vertex inside a
-vessel contrast fills, where the phantom's tubes interpenetrate at junctions, is counted apart: "+ valued / all in a
-filled lumen"; contrast does arrive there), and the
+alone (frame intervals), the gamma-variate fit's mean transit time error (relative, gamma-shaped boluses only), the views' agreement median, vertices contrast never reached that got a value (a never-reached vertex whose
+cross-section shares space with a vessel contrast fills, where the phantom's tubes interpenetrate, is counted apart:
+"+ valued / all in a filled lumen"; contrast does arrive there, :func:`in_filled_lumen`), and the
 step's CPU seconds (user + sys, all threads) per job.
 """
 
@@ -119,22 +119,79 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     return out
 
 
+def _first_exit(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """``(P,)`` distance along each ray ``origins + t · directions`` (``(P, 3)``, unit) to its nearest triangle
+    (``(F, 3, 3)``) beyond ``t > 1e-6`` (Möller–Trumbore); ``inf`` where it meets none."""
+    a, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    p = np.cross(directions[:, None, :], e2[None])  # (P, F, 3)
+    det = np.einsum("fi,pfi->pf", e1, p)
+    inv = np.where(np.abs(det) > 1e-12, 1.0 / np.where(det == 0.0, 1.0, det), 0.0)
+    s = origins[:, None, :] - a[None]
+    u = np.einsum("pfi,pfi->pf", s, p) * inv
+    q = np.cross(s, e1[None])
+    v = np.einsum("pi,pfi->pf", directions, q) * inv
+    t = np.einsum("fi,pfi->pf", e2, q) * inv
+    hit = (inv != 0.0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-6)
+    return np.where(hit, t, np.inf).min(axis=1)
+
+
+def cross_section_centres(mesh, points: np.ndarray, chunk: int = 16) -> np.ndarray:
+    """``(P, 3)`` the centre of the vessel cross-section at each vertex ``points`` ``(P,)``: the middle of its
+    diameter, from the vertex along its inward normal (area-weighted) to where that ray meets the opposite wall of
+    its own connected part of the surface (the phantom's tubes are separate closed parts that interpenetrate; a
+    measured model is one part). The vertex itself where the ray meets nothing."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from dsareg_engine.geometry.vessel_tree import vertex_normals
+
+    n = len(mesh.vertices)
+    edges = np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]]])
+    part = connected_components(coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
+                                directed=False)[1]
+    inward = -vertex_normals(mesh)[points]
+    centres = mesh.vertices[points].astype(float)
+    face_part = part[mesh.faces[:, 0]]
+    for label in np.unique(part[points]):
+        mine = np.flatnonzero(part[points] == label)
+        triangles = mesh.vertices[mesh.faces[face_part == label]]
+        for start in range(0, len(mine), chunk):
+            rows = mine[start:start + chunk]
+            t = _first_exit(centres[rows], inward[rows], triangles)
+            centres[rows] += np.where(np.isfinite(t), 0.5 * t, 0.0)[:, None] * inward[rows]
+    return centres
+
+
+DIAMETER_SAMPLES = (0.0, 0.25, 0.5, 0.75)
+
+
 def in_filled_lumen(mesh, never: np.ndarray) -> np.ndarray:
-    """``(V,)`` the never-reached vertices that lie inside a vessel contrast does fill (tubes interpenetrate at the
-    phantom's junctions: the blocked branch's first vertices sit in the parent's lumen, where the simulated iodine
-    is): |winding number| of the filled faces > ½. Contrast does arrive at those points, so they are counted apart."""
+    """``(V,)`` the never-reached vertices whose vessel cross-section shares space with a vessel contrast fills: a
+    point of its diameter (from the wall vertex to the opposite wall, :func:`cross_section_centres`, at
+    ``DIAMETER_SAMPLES`` of it) has |winding number| of the filled faces > ½. A vertex's value is its vessel's
+    cross-section's (what the images and the measurement see), not its wall point's alone. The phantom's tubes
+    interpenetrate: at a junction the first rings of a blocked branch are centred on the bifurcation point, inside
+    the filled parent and sibling, while half their wall vertices lie just outside them; where a filled tube runs
+    through a blocked one, part of the blocked tube's cross-section is the filled tube's lumen. The simulated iodine
+    is there (a ray's stretch through both is one stretch of the filled vessel), so these vertices are counted
+    apart. Two vessels that touch without interpenetrating share no point of a diameter."""
     inside = np.zeros(len(never), bool)
     filled = ~never[mesh.faces].any(axis=1)
     if never.any() and filled.any():
         points = np.flatnonzero(never)
-        inside[points] = np.abs(winding_numbers(mesh.vertices[points], mesh.vertices, mesh.faces[filled])) > 0.5
+        wall = mesh.vertices[points]
+        across = 2.0 * (cross_section_centres(mesh, points) - wall)
+        samples = np.concatenate([wall + f * across for f in DIAMETER_SAMPLES])
+        winding = np.abs(winding_numbers(samples, mesh.vertices, mesh.faces[filled])).reshape(len(DIAMETER_SAMPLES), -1)
+        inside[points] = (winding > 0.5).any(axis=0)
     return inside
 
 
 def score(document: dict, truth, file_to_model: np.ndarray, fps: float, cpu_s: float,
           mtt_s: np.ndarray | None = None, in_lumen: np.ndarray | None = None) -> dict:
     """One case's numbers (per file vertex); ``mtt_s`` the true mean transit time per model vertex (or NaN);
-    ``in_lumen`` the never-reached model vertices inside a filled vessel (:func:`in_filled_lumen`), counted apart."""
+    ``in_lumen`` the never-reached model vertices whose cross-section lies partly in a filled vessel
+    (:func:`in_filled_lumen`), counted apart."""
     def values(name: str) -> np.ndarray:
         return np.array([np.nan if v is None else v for v in document[name]], float)
 
