@@ -1,5 +1,5 @@
 """``python -m benchmarks.engine NAME``: the engine's benchmarks (render, table1, capture, track, robustness, autoinit,
-partial, clinical, models, hemodynamics). The parser only, so that ``--help`` and argument errors never load torch
+partial, clinical, models, hemodynamics, jobcost). The parser only, so that ``--help`` and argument errors never load torch
 (the runs are in :mod:`benchmarks.engine.phantom` and its siblings, imported when a benchmark starts); errors go
 through the ``dsareg`` error path (one line, exit status 2 or 1, ``--debug`` for a traceback)."""
 
@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_clinical(which)
     _add_hemodynamics(which)
     _add_models(which)
+    _add_job_cost(which)
     return parser
 
 
@@ -223,6 +224,15 @@ def _add_hemodynamics(which) -> None:
     sub.add_argument("--rows", nargs="*", default=[], help="only the rows whose name contains one of these words")
     sub.add_argument("--pictures", metavar="DIR", help="keep the first case's outputs and model pictures per row here")
     sub.set_defaults(func=deferred("benchmarks.engine.hemodynamics:bench_hemodynamics"))
+
+
+def _add_job_cost(which) -> None:
+    """``python -m benchmarks.engine jobcost``: one job's cost per stage on fixed native-run cases."""
+    sub = which.add_parser("jobcost", help="job CPU s and iterations per stage on the nine native-run cases of "
+                                           "docs/benchmarks/clinical.md round 10 (issue 30)")
+    sub.add_argument("--only", nargs="*", default=[], metavar="CASE", help="only these cases, e.g. B1-512 A2-1024")
+    sub.add_argument("--options", default="{}", help="extra registration options as JSON")
+    sub.set_defaults(func=deferred("benchmarks.engine.job_cost:bench_job_cost"))
 
 
 def _add_mesh(parser) -> None:

@@ -98,7 +98,7 @@ CASE_KINDS += _volume_rows()
 
 
 def run_one(case: ClinicalCase, options: dict) -> dict:
-    """Load and register one case as ``dsareg register`` does; ADD, verdict, wall and CPU seconds."""
+    """Load and register one case as ``dsareg register`` does; ADD, verdict, wall and CPU seconds, iterations per stage."""
     from dsareg_engine.io.case import load_case_files
     from dsareg_engine.registration.solver import register
     from dsareg_engine.registration.options import image_reading, parse_options
@@ -112,7 +112,7 @@ def run_one(case: ClinicalCase, options: dict) -> dict:
     if verdict == "ok" and any(decision.close for decision in loaded.decisions):
         verdict = "check"  # a close call about an input, as the pipeline's result says (input_decisions)
     return {"add_mm": float(metrics["ground_truth"]["add_mm"]), "verdict": verdict,
-            "wall_s": time.perf_counter() - wall, "cpu_s": _cpu_seconds() - cpu}
+            "wall_s": time.perf_counter() - wall, "cpu_s": _cpu_seconds() - cpu, "iterations": dict(metrics["iterations"])}
 
 
 def _cpu_seconds() -> float:
