@@ -24,6 +24,8 @@ from ..mesh import TriangleMesh
 DOWNSTREAM_TOLERANCE_DIAMETERS = 2.0
 """A vertex lies downstream of a point when its shortest path from the inflow passes within this many
 local vessel diameters of the point (paths run around a tube's wall, not along its axis)."""
+DOWNSTREAM_BATCH = 32
+"""Points per Dijkstra of :meth:`VesselTree.downstream_sets` (each batch stops at its farthest point's reach)."""
 
 
 @dataclass(frozen=True)
@@ -47,14 +49,27 @@ class VesselTree:
         tolerance = DOWNSTREAM_TOLERANCE_DIAMETERS * max(float(self.thickness_mm[vertex]), 0.5)
         return (from_inflow[vertex] + from_point <= from_inflow + tolerance) & (from_inflow >= from_inflow[vertex] - tolerance)
 
-    def downstream_sets(self, vertices: np.ndarray) -> np.ndarray:
-        """``(K, V)`` bool: :meth:`downstream_of` for each of ``vertices`` ``(K,)`` (one batched Dijkstra)."""
+    def downstream_sets(self, vertices: np.ndarray, batch: int = DOWNSTREAM_BATCH) -> np.ndarray:
+        """``(K, V)`` bool: :meth:`downstream_of` for each of ``vertices`` ``(K,)`` (batched Dijkstras).
+
+        A vertex ``v`` is downstream of point ``p`` only if ``d(p, v) ≤ d(inflow, v) + tol − d(inflow, p)``, at most
+        the farthest inflow distance less ``p``'s own plus ``tol``: each Dijkstra stops there (the ``limit`` of its
+        batch, points of similar reach batched together), so a point far down the tree explores its own subtree and
+        not the whole model. Distances within the limit are the unlimited ones: the sets are the same."""
         vertices = np.asarray(vertices, dtype=np.int64)
         from_inflow = self.distances_from(self.inflow)
-        from_points = csgraph.dijkstra(self.graph, directed=False, indices=vertices)
-        start = from_inflow[vertices][:, None]
-        tolerance = DOWNSTREAM_TOLERANCE_DIAMETERS * np.maximum(self.thickness_mm[vertices], 0.5)[:, None]
-        return (start + from_points <= from_inflow[None] + tolerance) & (from_inflow[None] >= start - tolerance)
+        start = from_inflow[vertices]
+        tolerance = DOWNSTREAM_TOLERANCE_DIAMETERS * np.maximum(self.thickness_mm[vertices], 0.5)
+        reach = from_inflow.max() + tolerance - start
+        sets = np.zeros((len(vertices), len(from_inflow)), bool)
+        order = np.argsort(reach, kind="stable")
+        for first in range(0, len(order), batch):
+            rows = order[first: first + batch]
+            limit = float(reach[rows].max()) * (1.0 + 1e-9) + 1e-9  # a vertex exactly at the bound stays in
+            from_points = csgraph.dijkstra(self.graph, directed=False, indices=vertices[rows], limit=limit)
+            sets[rows] = ((start[rows, None] + from_points <= from_inflow[None] + tolerance[rows, None])
+                          & (from_inflow[None] >= start[rows, None] - tolerance[rows, None]))
+        return sets
 
 
 def vessel_tree(mesh: TriangleMesh, inflow_mm: np.ndarray | None = None) -> VesselTree:

@@ -93,23 +93,30 @@ def _splats(canvas: CoverageView, rotations: np.ndarray, centre: np.ndarray, poi
     return images
 
 
-def _correlate(images: np.ndarray, spectrum: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    """``Σ_p image(p + s) mask(p)`` for ``s`` over ``shifts`` × ``shifts`` (``(B, K, K)``, index ``[v, u]``)."""
-    workers = max(1, numba.get_num_threads())
-    size = images.shape[-1]
-    overlap = scipy.fft.irfft2(scipy.fft.rfft2(images, workers=workers) * spectrum, s=(size, size), workers=workers)
+def _spectra(images: np.ndarray) -> np.ndarray:
+    """``(B, C, C // 2 + 1)`` spectra of splat images ``(B, C, C)`` (one per image, shared by its correlations)."""
+    return scipy.fft.rfft2(images, workers=max(1, numba.get_num_threads()))
+
+
+def _correlate(spectra: np.ndarray, spectrum: np.ndarray, shifts: np.ndarray, size: int) -> np.ndarray:
+    """``Σ_p image(p + s) mask(p)`` for ``s`` over ``shifts`` × ``shifts`` (``(B, K, K)``, index ``[v, u]``), the
+    ``(size, size)`` images given by their :func:`_spectra`."""
+    overlap = scipy.fft.irfft2(spectra * spectrum, s=(size, size), workers=max(1, numba.get_num_threads()))
     return overlap[:, shifts][:, :, shifts]
 
 
 def _precision_recall(canvas: CoverageView, rotations: np.ndarray, centre: np.ndarray, points: np.ndarray,
                       past_edge_weight: float) -> np.ndarray:
     """``(B, K, K, 2)`` precision and recall of every candidate over every shift (see the module)."""
-    shifts = np.arange(-canvas.max_shift_px, canvas.max_shift_px + 1) % canvas.view.width
+    size = canvas.view.width
+    shifts = np.arange(-canvas.max_shift_px, canvas.max_shift_px + 1) % size
     hits = _splats(canvas, rotations, centre, points, 0)
-    on_detector = _correlate(hits, canvas.detector_spectrum, shifts)
+    hit_spectra = _spectra(hits)
+    on_detector = _correlate(hit_spectra, canvas.detector_spectrum, shifts, size)
     past_edge = hits.sum(axis=(1, 2))[:, None, None] - on_detector
-    precision = _correlate(hits, canvas.near_spectrum, shifts) / np.maximum(on_detector + past_edge_weight * past_edge, 1.0)
-    recall = _correlate(_splats(canvas, rotations, centre, points, 1), canvas.mask_spectrum, shifts) / max(canvas.mask_pixels, 1.0)
+    precision = _correlate(hit_spectra, canvas.near_spectrum, shifts, size) / np.maximum(on_detector + past_edge_weight * past_edge, 1.0)
+    reached = _spectra(_splats(canvas, rotations, centre, points, 1))
+    recall = _correlate(reached, canvas.mask_spectrum, shifts, size) / max(canvas.mask_pixels, 1.0)
     return np.clip(np.stack([precision, recall], axis=-1), 0.0, 1.0)
 
 

@@ -51,10 +51,11 @@ def test_downstream_of_a_branch_point_is_that_branch(phantom):
     assert downstream[np.argmax(mesh.vertices[:, 0])]  # the right branch's tip
 
 
-def test_downstream_sets_batch_equals_one_at_a_time(phantom):
+@pytest.mark.parametrize("batch", [32, 3])  # 3: several Dijkstras, each stopped at its points' reach
+def test_downstream_sets_batch_equals_one_at_a_time(phantom, batch):
     tree = vessel_tree(phantom)
     vertices = np.random.default_rng(2).choice(len(phantom.vertices), size=7, replace=False)
-    batch = tree.downstream_sets(vertices)
+    batch = tree.downstream_sets(vertices, batch=batch)
     assert batch.shape == (7, len(phantom.vertices))
     for row, vertex in zip(batch, vertices):
         assert np.array_equal(row, tree.downstream_of(int(vertex)))
