@@ -49,7 +49,8 @@ SMOOTHING_SIGMA_VOX = 0.5
 VESSEL_CONTRAST_MIN = {"cta": 100.0, "mra": 6.0}  # vessel over tissue: HU (CTA), noise spreads (MRA)
 VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast than this: a close call
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
-BONE_CONTACT_SHARE = 0.5  # CTA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
+BONE_CONTACT_SHARE = 0.5  # CTA/MRA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
+DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spreads: bone, air (CSF too)
 PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
 
@@ -159,30 +160,34 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
             return _cta(smooth, spacing, reading, field_name, not_vessels)
         return _mra(smooth, affine, spacing, reading, field_name, not_vessels)
 
+    def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`_bone_plates`)
+        return excluded if kind == "cta" else _dark_or_surface(smooth, excluded, levels, spacing)
+
     field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
-    bone = excluded if kind == "cta" else None  # cancellous bone lies between cortical plates; in MRA bone is dark
-    mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone)
+    mask, plates, plate_share = _without_plates(mask, spacing, field_name, lambda: bone_of(smooth, excluded, levels))
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside = ndimage.binary_dilation(plates, iterations=rim)
         field, mask, levels, excluded = read(set_aside)
-        mask, more, plate_share = _without_plates(mask, spacing, field_name, excluded if kind == "cta" else None)
+        mask, more, plate_share = _without_plates(mask, spacing, field_name,
+                                                  lambda: bone_of(smooth, excluded, levels))
         plates |= more
     return field, mask, levels, excluded | plates, plate_share
 
 
-def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone: np.ndarray | None = None):
+def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone_of):
     """``mask`` without its bone plates (:func:`_bone_plates`), its largest tube components kept; what was set
     aside; and the plate share of the mask returned when it is ``mask`` itself (else None: measure it again).
     Unchanged when the plate share is below the close-call band (vessels alone) or no plate part is bone.
-    ``bone``: CTA, bone and its partial-volume band beyond the kept voxels (None: MRA, where bone is dark)."""
+    ``bone_of()``: what bone plates lie against (CTA: bone and its partial-volume band beyond the kept voxels;
+    MRA: :func:`_dark_or_surface`), computed only when the pass runs."""
     from scipy import ndimage
 
     shape = medial_shape(mask, spacing, with_parts=True)
     plate = shape.plate
     if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not plate.any():  # vessels: left as read
         return mask, np.zeros(mask.shape, bool), shape.plate_share
-    large = _bone_plates(plate, spacing, bone)
+    large = _bone_plates(plate, spacing, bone_of())
     if not large.any():
         return mask, large, shape.plate_share
     rest = mask & ~ndimage.binary_dilation(large, iterations=1)
@@ -198,22 +203,36 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     return largest_components(np.isin(labels, keep), field_name=field_name), large, None
 
 
-def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone: np.ndarray | None) -> np.ndarray:
-    """The plate parts (connected) that are bone: bone-sized (at least ``PLATE_PART_MM3``) and, in a CTA,
-    bone-placed: at least ``BONE_CONTACT_SHARE`` of the part's surface voxels touch ``bone`` (bone and its
-    partial-volume band: cancellous bone in the vessels' HU window, a diploë or a skull-base core, lies between
-    cortical plates). A close-packed or bulging stretch of a vessel tree can read plate-like on the medial
+def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone: np.ndarray) -> np.ndarray:
+    """The plate parts (connected) that are not vessels: bone-sized (at least ``PLATE_PART_MM3``) and
+    bone-placed: at least ``BONE_CONTACT_SHARE`` of the part's surface voxels touch ``bone``. In a CTA, bone and
+    its partial-volume band (cancellous bone in the vessels' HU window, a diploë or a skull-base core, lies between
+    cortical plates); in a TOF-MRA, dark voxels or the scalp shell (marrow and fat lie inside dark cortical bone,
+    or under the skin). A close-packed or bulging stretch of a vessel tree can read plate-like on the medial
     measure; it lies in tissue (or against bone on one side: a vessel in a bony groove), so it stays with its tree."""
     from scipy import ndimage
 
     labels, count = ndimage.label(plate)
     sizes_mm3 = np.bincount(labels.ravel(), minlength=count + 1)[1:] * float(np.prod(spacing))
     large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
-    if bone is None or len(large) == 0:
-        return np.isin(labels, large)
+    if len(large) == 0:
+        return np.zeros(plate.shape, bool)
     boxes = ndimage.find_objects(labels)
     placed = [index for index in large if _bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE]
     return np.isin(labels, placed)
+
+
+def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray) -> np.ndarray:
+    """TOF-MRA: what fat and marrow lie against: the scalp ``shell`` and the voxels darker than the tissue by
+    ``DARK_SPREADS`` of its spreads (cortical bone, air; CSF too), with a partial-volume band of ``PV_BAND_MM`` plus
+    a voxel around them (a plate's surface voxels are a blend of it and the bone beside it)."""
+    from scipy import ndimage
+
+    dark = shell | (smooth < levels["tissue"] - DARK_SPREADS * levels["spread"])
+    if not dark.any():
+        return dark
+    band = PV_BAND_MM + float(spacing.max())
+    return ndimage.distance_transform_edt(~dark, sampling=spacing) <= band
 
 
 def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:

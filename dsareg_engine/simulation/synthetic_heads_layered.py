@@ -5,7 +5,8 @@
   (550 HU, 8 mm) between cortical plates, which the trunk crosses; noise correlated along the slice axis
   (streaks), its σ rising toward the skull base.
 * **TOF-MRA** (:func:`make_layered_mra_head`): a smooth multiplicative coil inhomogeneity (±25 %), a slab of
-  bright marrow fat in the skull base deeper than the scalp (as the clivus is), Rician noise.
+  bright marrow fat in the skull base deeper than the scalp (as the clivus is) between dark cortical plates (the
+  CTA's skull base: marrow lies inside bone), Rician noise.
 
 Any tree can be placed (``tree``: the phantom's, or the paper's mesh turned trunk-up); voxels may be
 anisotropic (``voxel_mm`` per axis). The series are written by :mod:`.synthetic_volume_dicom` (layout "a").
@@ -138,8 +139,10 @@ def make_layered_mra_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     brain = depth < 0
     volume[brain] = level["brain"] + 20.0 * _smooth_field(rng, depth.shape, 3.0 / float(spacing.mean()))[brain]
     z = axes[2]
-    marrow = brain & (z >= low[2] + 4.0) & (z < low[2] + 4.0 + BASE_MM) & (depth < -10.0)
-    volume[marrow] = level["marrow"]
+    base = (z >= low[2] + 4.0) & (z < low[2] + 4.0 + BASE_MM)
+    volume[base & (depth < -10.0 + BASE_CORTEX_MM)] = level["bone"]  # cortical plates around the marrow
+    core = (z >= low[2] + 4.0 + BASE_CORTEX_MM) & (z < low[2] + 4.0 + BASE_MM - BASE_CORTEX_MM)
+    volume[core & (depth < -10.0)] = level["marrow"]
     fraction = np.clip((z - low[2]) / max(high[2] - low[2], 1e-6), 0.0, 1.0)
     vessel = level["vessel"] + (level["vessel_distal"] - level["vessel"]) * fraction
     volume = volume * (1.0 - occupancy) + vessel * occupancy
