@@ -123,6 +123,10 @@ class JobSettings(_Group):
     max_attempts: int = Field(3, ge=1, le=20, description="Claims of one job before it fails for good.")
     poll_seconds: float = Field(0.5, gt=0.0, description="How often an idle worker looks for queued jobs.")
     progress_interval_seconds: float = Field(0.5, ge=0.0, description="Least time between two progress writes of a job.")
+    warm_up_job: bool = Field(
+        True, description="Before its first job a worker runs one tiny registration (loads what a first job would "
+                          "load on first use; its kernels are loaded either way). Off only for test servers whose "
+                          "first job is not timed: a worker is then ready that much sooner.")
     result_save_seconds: float = Field(
         120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
                                    "(exponential backoff) before giving up the attempt.")

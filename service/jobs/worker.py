@@ -313,10 +313,11 @@ def _stopped(job: JobRecord, settings: ServiceSettings, control: _JobControl, fi
     return finish.release()  # worker shutting down: hand the job back
 
 
-def warm_up() -> None:
+def warm_up(job: bool = True) -> None:
     """Load the engine, its compiled kernels and everything a job imports on first use, by running
     one tiny registration with all its outputs, before the first job (best effort): a fresh worker's
-    first job otherwise costs ~1.5 CPU-s more than the next ones."""
+    first job otherwise costs ~1.5 CPU-s more than the next ones. ``job`` False (``DSAREG_WARM_UP_JOB=0``,
+    for test servers): the kernels only."""
     import tempfile
 
     started = time.monotonic()
@@ -325,11 +326,13 @@ def warm_up() -> None:
              "`dsareg warmup` fills the cache ahead)")
     try:
         engine.warm_up_kernels()
-        with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-") as work_dir:
-            engine.warm_up_job(Path(work_dir))
+        if job:
+            with tempfile.TemporaryDirectory(prefix="dsareg-warm-up-") as work_dir:
+                engine.warm_up_job(Path(work_dir))
     except Exception:
         log.warning("warm-up incomplete; the first job will be slower", exc_info=True)
-    log.info("worker warmed up in %.1f s; ready for jobs", time.monotonic() - started)
+    log.info("worker warmed up in %.1f s%s; ready for jobs", time.monotonic() - started,
+             "" if job else " (kernels only: DSAREG_WARM_UP_JOB=0)")
     try:  # tracking's and the pose search's kernels: a low-priority helper fills the cache while jobs run
         if engine.compile_later_groups() is not None:
             log.info("compiling tracking's and the pose search's kernels in the background (lowest priority)")
@@ -363,7 +366,7 @@ def worker_main(settings: ServiceSettings, index: int, link: Any = None, parent_
         engine.set_cpu_threads(jobs.threads_per_worker or engine.default_cpu_threads(max(1, jobs.workers)))
     except Exception:  # noqa: BLE001
         log.warning("could not set the worker's CPU threads")
-    warm_up()
+    warm_up(settings.jobs.warm_up_job)
     _claim_loop(settings, index, control)
 
 

@@ -62,7 +62,7 @@ class CeleryTopology:
             "DSAREG_EXECUTOR": "celery", "DSAREG_BROKER_URL": redis.url, "DSAREG_DATABASE_URL": postgres.url,
             "DSAREG_BLOB_BACKEND": "database", "DSAREG_THREADS_PER_WORKER": "1", "DSAREG_LEASE_SECONDS": "4",
             "DSAREG_REDISPATCH_AFTER_SECONDS": "3", "DSAREG_BROKER_VISIBILITY_TIMEOUT_SECONDS": "20",
-            "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2",
+            "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2", "DSAREG_WARM_UP_JOB": "0",  # as service_testkit.Server's
         }
         self.api = Server(root / "api", workers=0, env=self.env)
         self.workers: list[CeleryWorker] = []

@@ -145,7 +145,8 @@ class Server(LoggedProcess):
     def start(self, wait_ready: bool = True, timeout: float = 90.0) -> Server:
         env = {**os.environ, "DSAREG_LEASE_SECONDS": "3", "DSAREG_POLL_SECONDS": "0.2",
                "DSAREG_PROGRESS_INTERVAL_SECONDS": "0.2", "DSAREG_VALIDATION_TIMEOUT_SECONDS": "60",
-               "PYTHONUNBUFFERED": "1", **self.env}
+               # no warm-up job (≈ 8 CPU-s a start, load 9); test_readiness starts the production default
+               "DSAREG_WARM_UP_JOB": "0", "PYTHONUNBUFFERED": "1", **self.env}
         for key in ("DSAREG_API_KEYS", "DSAREG_API_KEY_HASHES", "DSAREG_CONFIG"):
             if key not in self.env:
                 env.pop(key, None)

@@ -127,7 +127,7 @@ def run_worker(settings: ServiceSettings, *, pool: str = "threads", hostname: st
 
     from ..worker import warm_up
 
-    warm_up()
+    warm_up(settings.jobs.warm_up_job)
     app = make_celery(settings, _run_job_task)
     state = _state(settings)
 

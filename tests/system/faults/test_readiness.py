@@ -44,7 +44,7 @@ def _wait(predicate, timeout: float, what: str):
 
 
 def test_readyz_is_503_while_the_worker_warms_up_and_a_job_starts_at_once_after(tmp_path, case):
-    srv = Server(tmp_path / "data", workers=1).start(wait_ready=False)
+    srv = Server(tmp_path / "data", workers=1, env={"DSAREG_WARM_UP_JOB": "1"}).start(wait_ready=False)  # the default
     worker = None
     try:
         (worker,) = _wait(lambda: _named(srv.process.pid, "dsareg-worker0"), 60, "the worker process to start")
@@ -74,6 +74,7 @@ def test_readyz_is_503_while_the_worker_warms_up_and_a_job_starts_at_once_after(
         started_s = datetime.fromisoformat(started.replace("Z", "+00:00")).timestamp()
         assert started_s - submitted <= 5.0, f"the job waited {started_s - submitted:.1f} s after /readyz said ready"
         assert "warmed up in" in srv.logs() and "warming up" in srv.logs()
+        assert "kernels only" not in srv.logs(), "the production default warms up with a job"
     finally:
         if worker is not None:
             try:
