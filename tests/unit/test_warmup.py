@@ -105,16 +105,43 @@ def test_a_helper_compiles_a_group_that_this_process_then_loads_from_the_cache(t
     assert report == {"before": False, "after": True, "hits": 2, "misses": 0, "signatures": 2}, report
 
 
+def _cache_holding(cache_dir: Path, groups: tuple[str, ...]) -> Path:
+    """A new numba cache (for ``NUMBA_CACHE_DIR``) holding only ``groups``' kernels for the 1-thread budget, copied
+    from this checkout's cache (``dsareg warmup`` filled it; what it lacks, the test's processes compile)."""
+    import inspect
+    import shutil
+
+    import numba
+    from numba.core.caching import _CacheLocator
+
+    from dsareg_engine import warmup
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)  # the serial twins, as the test's processes (set_cpu_threads(1)) pick them
+    try:
+        dispatchers = [kernel for group in groups for kernel in warmup._group_dispatchers(group)]
+    finally:
+        numba.set_num_threads(before)
+    for kernel in dispatchers:
+        index = kernel._cache._cache_file
+        target = cache_dir / _CacheLocator.get_suitable_cache_subpath(inspect.getfile(kernel.py_func))
+        target.mkdir(parents=True, exist_ok=True)
+        for path in Path(index._cache_path).glob(index._index_name.removesuffix(".nbi") + ".*"):  # .nbi and .N.nbc
+            shutil.copy2(path, target)
+    return cache_dir
+
+
 @pytest.mark.slow
 def test_the_search_group_holds_the_coverage_searchs_splat(tmp_path):
     """A partial-visibility job's coverage and branch searches splat with ``splat_images``: after the search
     group was compiled (by the background helper, another process) it loads from the cache, not compiled in
-    the job."""
-    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    the job. The cache starts with the other groups' kernels (the search group's tiny job renders), not its own."""
+    env = {"NUMBA_CACHE_DIR": str(_cache_holding(tmp_path / "cache", ("forward", "backward", "tracking")))}
     compiled = _python("""
         from dsareg_engine.threads import set_cpu_threads
         from dsareg_engine import warmup
         set_cpu_threads(1)
+        assert not warmup.group_cached("search")
         warmup.compile_group("search")
     """, env)
     assert compiled.returncode == 0, compiled.stderr[-3000:]
