@@ -51,6 +51,7 @@ Shapes: ``K`` parts, ``V`` vertices, ``F`` faces.
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, replace
 
@@ -110,9 +111,27 @@ def proximal_parts(mesh: TriangleMesh, tree: VesselTree, shares: tuple[float, ..
                     ).reshape(-1, mesh.n_faces)
 
 
+_PARTS_CACHE: dict[tuple[str, BranchSettings], tuple[np.ndarray, np.ndarray]] = {}
+_PARTS_CACHE_SIZE = 4
+
+
 def candidate_parts(mesh: TriangleMesh, settings: BranchSettings = BranchSettings()) -> tuple[np.ndarray, np.ndarray]:
     """The model's parts to try (see the module, step 1): ``(K, F)`` bool faces, proximal parts first, then the
-    branches, then the rests; and ``(K,)`` bool, True for a proximal part."""
+    branches, then the rests; and ``(K,)`` bool, True for a proximal part. Read-only arrays, remembered per model
+    (vertices and faces) across registrations: they depend on the model alone, and one model is registered to
+    several runs (measured: 0.5–0.7 CPU s of a 22,000-face model's registration, 0.3 of the paper's mesh)."""
+    digest = hashlib.sha1(np.ascontiguousarray(mesh.vertices).tobytes() + np.ascontiguousarray(mesh.faces).tobytes()).hexdigest()
+    key = (digest, settings)
+    if key not in _PARTS_CACHE:
+        if len(_PARTS_CACHE) >= _PARTS_CACHE_SIZE:
+            _PARTS_CACHE.pop(next(iter(_PARTS_CACHE)))
+        parts, proximal = _candidate_parts(mesh, settings)
+        parts.flags.writeable = proximal.flags.writeable = False
+        _PARTS_CACHE[key] = parts, proximal
+    return _PARTS_CACHE[key]
+
+
+def _candidate_parts(mesh: TriangleMesh, settings: BranchSettings) -> tuple[np.ndarray, np.ndarray]:
     tree = vessel_tree(mesh)
     from_inflow = tree.distances_from(tree.inflow)
     eligible = np.flatnonzero(from_inflow > settings.min_distance * from_inflow.max())

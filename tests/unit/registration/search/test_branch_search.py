@@ -38,6 +38,15 @@ def test_parts_are_distinct_branches_in_the_size_range(phantom):
         assert from_inflow[part].max() <= from_inflow[~part].min()
 
 
+def test_parts_are_remembered_per_model_and_read_only(phantom):
+    settings = BranchSettings(samples=60, max_parts=4)
+    parts, proximal = candidate_parts(phantom, settings)
+    assert candidate_parts(phantom, settings)[0] is parts  # the same model: not cut again
+    assert not parts.flags.writeable and not proximal.flags.writeable
+    moved = type(phantom)(phantom.vertices * 1.5, phantom.faces)  # another model: its own parts
+    assert candidate_parts(moved, settings)[0] is not parts
+
+
 def _mean_distance_mm(mesh, pose, truth):
     return np.linalg.norm(mesh.vertices @ (pose[:3, :3] - truth[:3, :3]).T + pose[:3, 3] - truth[:3, 3], axis=1).mean()
 
