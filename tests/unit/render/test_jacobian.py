@@ -84,14 +84,16 @@ def test_pose_tangents_and_inverse_increment():
 
 def test_one_thread_budget_uses_serial_twins_that_match_the_parallel_kernels(case, monkeypatch):
     """A service worker tracks with a 1-thread budget: the Jacobian kernels run their serial twins
-    (no numba pool hand-off, see serial_kernels) and give the parallel kernels' numbers."""
+    (no numba pool hand-off, see serial_kernels) and give the parallel kernels' numbers. In float32 with the
+    argument types tracking passes (gauss_newton.normal_equations: a window of the image as the target), the
+    kernels ``dsareg warmup`` compiled for both budgets: loaded from the cache, not compiled here."""
     import numba
 
     from dsareg_engine.render import jacobian
     from dsareg_engine.render.jacobian_numba import normal_equations
 
     phantom, view, increment, tangents = case
-    vertices, faces = phantom.torch(torch.float64)
+    vertices, faces = phantom.torch(torch.float32)
     pose = _mesh_to_view(view, increment, torch.zeros((1, 6), dtype=torch.float64))
     camera = Camera.from_view(view)
 
@@ -100,19 +102,20 @@ def test_one_thread_budget_uses_serial_twins_that_match_the_parallel_kernels(cas
         numba.set_num_threads(n_threads)
         try:
             kernel, used = jacobian.jacobian_kernel("normal_equations")
-            alpha, jac = render_soft_silhouette_jacobian(vertices, faces, pose, tangents, camera, SilhouetteSettings(sigma_px=0.5))
+            log_keep, log_keep_tangents = jacobian.soft_log_keep_tangents(
+                vertices, faces, pose.float(), tangents.float(), camera, SilhouetteSettings(sigma_px=0.5))
             hessian, gradient = np.zeros((6, 6)), np.zeros(6)
-            target = np.zeros(alpha.shape[1:], dtype=np.float64)
-            log_keep = np.log(np.clip(1.0 - alpha[0].numpy(), 1e-300, None))
-            loss = kernel(log_keep, -jac[0].numpy() / np.exp(log_keep)[..., None], target, np.zeros((0, 0)), used,
-                          hessian, gradient)
-            return kernel, alpha.numpy(), jac.numpy(), loss, hessian, gradient
+            target = np.zeros((log_keep.shape[1], log_keep.shape[2] + 1), np.float32)[:, 1:]
+            target[80:120, 60:140] = 1.0
+            loss = kernel(log_keep[0], log_keep_tangents[0], target, np.zeros((0, 0), np.float32), used, hessian,
+                          gradient)
+            return kernel, log_keep, log_keep_tangents, loss, hessian, gradient
         finally:
             numba.set_num_threads(before)
 
     serial, parallel = run(1), run(2) if numba.config.NUMBA_NUM_THREADS >= 2 else run(1)
     assert serial[0] is jacobian._KERNEL_PAIRS["normal_equations"].serial
     assert serial[0] is not normal_equations and not serial[0].targetoptions.get("parallel")
-    assert np.abs(serial[2]).max() > 0
+    assert serial[1].dtype == np.float32 and np.abs(serial[2]).max() > 0 and np.abs(serial[5]).max() > 0
     for ours, theirs in zip(serial[1:], parallel[1:]):
         np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-12)
