@@ -29,6 +29,9 @@ PARTIAL_UNMATCHED = 0.1
 """Partial visibility: at least this fraction of the model's silhouette unmatched in every view..."""
 PARTIAL_UNCOVERED = 0.05
 """... while at most this fraction of the vessels is uncovered in every view."""
+PART_UNEXPLAINED = 0.01
+"""A fitted part (:mod:`.search.branch_search`) with more than this share of its faces off the vessels at its fitted
+pose is fitted once more on the faces the images explain (:func:`refit_faces`)."""
 
 
 def _near(mask: np.ndarray, tolerance_px: float) -> np.ndarray:
@@ -59,3 +62,30 @@ def trimmed_weight(level_target: np.ndarray) -> np.ndarray:
     size = 2 * NEAR_VESSEL_PX + 1
     near = cv2.dilate(support, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))) > 0
     return np.where(near, 1.0, FAR_BACKGROUND_WEIGHT).astype(np.float32)
+
+
+def explained_faces(mesh, mesh_to_world: np.ndarray, masks: dict[str, np.ndarray], rig,
+                    tolerance_px: float = MATCH_TOLERANCE_PX) -> np.ndarray:
+    """``(F,)`` bool: the faces of ``mesh`` whose centroid projects within ``tolerance_px`` of the vessels of every
+    view in ``masks`` (``(H, W)`` bool) at ``mesh_to_world`` — what of the model the images show."""
+    centroids = mesh.vertices[mesh.faces].mean(axis=1) @ mesh_to_world[:3, :3].T + mesh_to_world[:3, 3]
+    explained = np.ones(mesh.n_faces, bool)
+    for name, mask in masks.items():
+        pixel = np.floor(rig.views[name].project(centroids) + 0.5).astype(np.int64)
+        height, width = mask.shape
+        inside = (pixel[:, 0] >= 0) & (pixel[:, 0] < width) & (pixel[:, 1] >= 0) & (pixel[:, 1] < height)
+        near = _near(mask, tolerance_px)
+        explained &= inside & near[np.clip(pixel[:, 1], 0, height - 1), np.clip(pixel[:, 0], 0, width - 1)]
+    return explained
+
+
+def refit_faces(part: np.ndarray, explained: np.ndarray, min_faces: int = 50) -> np.ndarray | None:
+    """The faces to fit once more after a part ``(F,)`` bool was fitted, given the faces the images explain at its
+    pose ``(F,)`` bool: those explained faces when more than :data:`PART_UNEXPLAINED` of the part lies off the
+    vessels (the part holds something the run did not fill: on a model of two trees joined at the inflow, a stub of
+    the other tree's trunk pulled the fit 0.9° off) and at least half the part and ``min_faces`` are explained (else
+    the pose itself is in doubt, which the verdict says); None otherwise."""
+    off_vessels = (part & ~explained).sum()
+    if off_vessels <= PART_UNEXPLAINED * part.sum() or explained.sum() < max(min_faces, 0.5 * part.sum()):
+        return None
+    return explained

@@ -35,7 +35,7 @@ from .search.branch_search import with_branch_starts
 from .search.initialization import GIVEN_INITIALIZATION, Initialization, resolve_initialization, search_initial_poses
 from .mirror import with_mirror_check
 from .options import RegistrationOptions
-from .partial import looks_partial, match_fractions, trimmed_weight
+from .partial import explained_faces, looks_partial, match_fractions, refit_faces, trimmed_weight
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .progress import ProgressPlan
 from .result import RegistrationResult, ViewResult
@@ -149,6 +149,13 @@ class _Problem:
         self.fit_mesh = mesh
         """What the loss renders: the mesh, or the part of it the branch search matched to the images
         (:mod:`.branch_search`); the pose, the signals and the views are always the whole mesh's."""
+        self.fit_faces: np.ndarray | None = None
+        """``(F,)`` bool: the faces of :attr:`fit_mesh` in the mesh, when it is a part."""
+
+    def fit_part(self, faces: np.ndarray) -> None:
+        """Render the part ``faces`` ``(F,)`` bool of the mesh in the loss from now on."""
+        self.fit_faces, self.fit_mesh = faces, compact(self.mesh, faces)
+        self._mesh_tensors.clear()
 
     def _footprint(self, view, poses: np.ndarray) -> np.ndarray:
         """Pixel bounding box ``(u_min, v_min, u_max, v_max)`` of the mesh's vertices under all ``poses`` in ``view``."""
@@ -514,7 +521,7 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     problem = _Problem(mesh, targets, rig, options, device, initial)
     problem.partial = searched is not None and searched.method.startswith("search+")
     if searched is not None and searched.fit_faces is not None:
-        problem.fit_mesh = compact(mesh, searched.fit_faces)
+        problem.fit_part(searched.fit_faces)
     longest = max(max(rig.views[name].image_size) for name in used_views)
     final_scale = min(1.0, options.working_size_px / longest) if options.working_size_px else 1.0
     shortest = min(min(rig.views[name].image_size) for name in used_views)
@@ -543,7 +550,23 @@ def _run_stages(setup: _Setup, options: RegistrationOptions, reporter: _Reporter
     if not setup.tracking and _border_moved(setup.problem, options, last, setup.used_views, run.poses[0]):
         again = Stage(**{**vars(last), "name": f"{last.name}:again"})
         _run_stage(setup, run, reporter, options, len(setup.stages), again, finest_scale)
+    if _refit_explained(setup.problem, run.poses[0], setup.used_views):
+        explained = Stage(**{**vars(last), "name": f"{last.name}:explained"})
+        _run_stage(setup, run, reporter, options, len(setup.stages), explained, finest_scale)
     return run
+
+
+def _refit_explained(problem: _Problem, pose: np.ndarray, used_views) -> bool:
+    """After a part was fitted: when the part holds faces the images do not show at ``pose``, fit the faces they
+    do show from now on (:func:`.partial.refit_faces`) and return True."""
+    if problem.fit_faces is None:
+        return False
+    explained = explained_faces(problem.mesh, pose, {name: problem.masks[name] for name in used_views}, problem.rig)
+    faces = refit_faces(problem.fit_faces, explained)
+    if faces is None:
+        return False
+    problem.fit_part(faces)
+    return True
 
 
 def _run_stage(setup: _Setup, run: _Run, reporter: _Reporter, options: RegistrationOptions, index: int, stage: Stage,

@@ -7,7 +7,7 @@ from dsareg_engine.geometry.vessel_tree import vessel_tree
 from dsareg_engine.registration import RegistrationOptions
 from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.confidence import assess
-from dsareg_engine.registration.partial import looks_partial, match_fractions, trimmed_weight
+from dsareg_engine.registration.partial import explained_faces, looks_partial, match_fractions, refit_faces, trimmed_weight
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 from dsareg_engine.simulation.partial_filling import foreign_territory, selective_injection
 from dsareg_engine.simulation.phantom import make_vessel_phantom
@@ -72,6 +72,22 @@ def test_a_model_with_a_foreign_territory_registers_with_no_initial_pose(phantom
     assert result.metrics["ground_truth"]["add_mm"] < 1.0
     confidence = result.metrics["confidence"]
     assert confidence["verdict"] == "check" and confidence["reasons"][0].startswith("the model has vessels the images do not show")
+
+
+def test_the_faces_the_images_explain_and_the_refit_of_a_part_holding_more(phantom):
+    # A model of two trees joined at the inflow, the images showing the phantom: at the true pose the phantom's
+    # faces are explained and the other tree's are not (but where it crosses the phantom in both views).
+    case = foreign_territory(phantom, make_vessel_phantom(seed=3))
+    rig = clinical_biplane_rig(256)
+    truth = random_visible_pose(case.model, rig, np.random.default_rng(11), 40.0)
+    explained = explained_faces(case.model, truth, render_masks(case.visible, rig, truth), rig)
+    shown = np.arange(case.model.n_faces) < phantom.n_faces
+    assert explained[shown].mean() > 0.97 and explained[~shown].mean() < 0.1
+    # A part = the phantom and a stub of the other tree (3 % of its faces): refitted on what is explained.
+    stub = shown | (np.arange(case.model.n_faces) < phantom.n_faces + int(0.03 * phantom.n_faces))
+    assert np.array_equal(refit_faces(stub, explained), explained)
+    assert refit_faces(shown & explained, explained) is None  # nothing off the vessels: no refit
+    assert refit_faces(stub, explained & (np.arange(case.model.n_faces) < 40)) is None  # too little explained
 
 
 def test_match_fractions_and_partial_rule_by_hand():
