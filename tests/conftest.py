@@ -5,27 +5,11 @@ final garbage collections (dsareg_engine/commands/process_exit.py)."""
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
 from dsareg_engine.commands.process_exit import skip_exit_collections
 
 skip_exit_collections()
-
-
-def pytest_configure(config: pytest.Config) -> None:
-    if getattr(config.option, "dist", "no") == "loadfile":  # pass 1: our order, not by test count (below)
-        config.option.loadscopereorder = False
-
-
-@pytest.hookimpl(trylast=True)
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under xdist, the longest modules first, so that both workers end together (tests/support/xdist_order.py)."""
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        from tests.support.xdist_order import longest_first
-
-        items[:] = longest_first(items)
 
 
 @pytest.fixture(scope="session", autouse=True)
