@@ -277,8 +277,9 @@ def table(rows: list[tuple[str, str, list[dict]]]) -> list[str]:
              "| never reached: valued / all | overlap AP / LAT | MTT error median (gamma) | CPU s per job |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for model, name, cases in rows:
-        def median(key: str) -> float:
-            return float(np.nanmedian([c[key] for c in cases]))
+        def median(key: str) -> float:  # NaN where no case has the number (MTT of a ramp bolus), without a warning
+            values = np.array([c[key] for c in cases], float)
+            return float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan")
 
         interval = cases[0]["interval_s"]
         never = sum(c["never"] for c in cases)
