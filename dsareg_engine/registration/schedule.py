@@ -48,6 +48,8 @@ class Stage:
             fraction over the patience window.
         float64: render in float64 with exact transcendentals (None: for L-BFGS stages only).
         pose_tolerance: L-BFGS stop on pose change (mm units; None: the solver's LBFGS_POSE_TOLERANCE).
+        plateau_window: Adam only: > 0 stops when the mean best loss of the last this many steps is not
+            WINDOW_TOLERANCE below the mean of the window before (0: the solver's patience rule).
     """
 
     name: str
@@ -64,14 +66,34 @@ class Stage:
     float64: bool | None = None
     pose_tolerance: float | None = None
     level_of_detail: bool | None = None
+    plateau_window: int = 0
 
 
-def pyramid_scales(image_side_px: int) -> list[float]:
-    """Scales 1/2^k … 1 with the coarsest level at least COARSEST_SIDE_PX on its short side."""
+PLATEAU_WINDOW = 4
+WINDOW_TOLERANCE = 1e-2
+"""The coarsest Adam level stops when the mean of its best loss over PLATEAU_WINDOW steps falls by less than this
+fraction from the window before. At its 0.8-mm step the starts near a minimum jitter by a few % of the loss, and
+a stop on a new best of 0.1 % within 8 steps ended the level after 12–67 steps, by when the jitter happened to
+touch a new best: a draw moved by a few border pixels of the target (docs/benchmarks/clinical.md, round 10)."""
+FINER_LEVEL_RATIO = 1.5
+"""A level above a fractional coarsest one is kept when it is at least this much finer (else it nearly repeats it)."""
+
+
+def pyramid_scales(image_side_px: int, coarsest_scale: float | None = None) -> list[float]:
+    """Scales 1/2^k … 1 with the coarsest level at least COARSEST_SIDE_PX on its short side.
+
+    ``coarsest_scale`` (from the vessels' extent, see ``solver._coarsest_scale``): when it is finer than the
+    image's coarsest level and at most 0.5, it becomes the coarsest level, replacing the power-of-two levels
+    below it and a next one less than FINER_LEVEL_RATIO finer; the ladder's coarsest level then follows the
+    extent continuously instead of jumping by a factor 2 (4× the pixels of every start's renders) when the
+    extent crosses 2^k × 48 px.
+    """
     scales = [1.0]
     while image_side_px * scales[0] / 2 >= COARSEST_SIDE_PX:
         scales.insert(0, scales[0] / 2)
-    return scales
+    if coarsest_scale is None or coarsest_scale <= scales[0] or coarsest_scale > 0.5:
+        return scales
+    return [coarsest_scale] + [scale for scale in scales if scale >= FINER_LEVEL_RATIO * coarsest_scale]
 
 
 def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, final: bool) -> list[Stage]:
@@ -114,22 +136,24 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
                 # suffices (measured on the paper's mesh: the half-size level took 10–13 instead of
                 # 11–29 iterations, same L-BFGS evaluations and final accuracy).
                 plateau_tolerance=PLATEAU_TOLERANCE if index == 0 or last else INTERMEDIATE_TOLERANCE,
+                plateau_window=0 if last else PLATEAU_WINDOW,
             )
         )
     return stages
 
 
 def build_schedule(
-    configuration: str, image_side_px: int, max_iterations: int, coarse_to_fine: bool = True, refine: bool = True
+    configuration: str, image_side_px: int, max_iterations: int, coarse_to_fine: bool = True, refine: bool = True,
+    coarsest_scale: float | None = None,
 ) -> list[Stage]:
     """Stages for ``ap``, ``lat``, ``simultaneous``, ``ap_then_lat`` or ``lat_then_ap``.
 
     Sequential configurations run the whole ladder on the first view, then switch the
     second view's λ on and repeat the finer half of the ladder with both views.
     ``coarse_to_fine=False`` keeps only the full-size level; ``refine=False`` drops the
-    final L-BFGS stage (both exist to measure what each contributes).
+    final L-BFGS stage (both exist to measure what each contributes); ``coarsest_scale``: see :func:`pyramid_scales`.
     """
-    scales = pyramid_scales(image_side_px) if coarse_to_fine else [1.0]
+    scales = pyramid_scales(image_side_px, coarsest_scale) if coarse_to_fine else [1.0]
     if configuration in ("ap", "lat"):
         return _ladder((configuration,), scales, max_iterations, final=refine)
     if configuration == "simultaneous":
@@ -140,8 +164,8 @@ def build_schedule(
     # Phase 1: the first view alone up to half size. Phase 2 (λ of the second view on): both
     # views from the second level up, with the initial starts competing again with phase 1's
     # result, because one view leaves depth and out-of-plane rotation weakly determined.
-    stages = [Stage(**{**vars(stage), "plateau_tolerance": SWITCH_TOLERANCE})
+    stages = [Stage(**{**vars(stage), "plateau_tolerance": SWITCH_TOLERANCE, "plateau_window": 0})
               for stage in _ladder((first,), scales[:-1] or scales, max_iterations, final=False)]
     both = _ladder(("ap", "lat"), scales[1:] if len(scales) > 2 else scales, max_iterations, final=refine)
-    both[0] = Stage(**{**vars(both[0]), "all_starts": True, "add_initial_starts": True})
+    both[0] = Stage(**{**vars(both[0]), "all_starts": True, "add_initial_starts": True, "plateau_window": 0})
     return stages + both

@@ -39,7 +39,7 @@ from .partial import explained_faces, looks_partial, match_fractions, refit_face
 from .parameterization import PoseIncrement, mesh_radius_mm, random_start_poses
 from .progress import ProgressPlan
 from .result import RegistrationResult, ViewResult
-from .schedule import COARSEST_SIDE_PX, Stage, build_schedule
+from .schedule import COARSEST_SIDE_PX, WINDOW_TOLERANCE, Stage, build_schedule
 from .targets import ViewTarget, gaussian_blur, level_target, shifted_mask, signed_border_distance
 from .track import build_track_schedule, motion_between
 
@@ -341,7 +341,11 @@ def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
         value = float(per_start.detach().min())
         losses.append(value)
         report(stage, iteration, value)
-        if value < best * (1.0 - stage.plateau_tolerance):
+        if stage.plateau_window:
+            if _window_plateau(losses, stage.plateau_window):
+                stopped_by = "tolerance"
+                break
+        elif value < best * (1.0 - stage.plateau_tolerance):
             best, since_best = value, 0
         else:
             since_best += 1
@@ -349,6 +353,14 @@ def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
                 stopped_by = "tolerance"
                 break
     return _StageOutcome(iteration, time.perf_counter() - start, stopped_by, losses)
+
+
+def _window_plateau(losses: list[float], window: int) -> bool:
+    """True when the mean of the last ``window`` losses is less than WINDOW_TOLERANCE below the mean of the window before."""
+    if len(losses) < 2 * window:
+        return False
+    last, before = np.mean(losses[-window:]), np.mean(losses[-2 * window:-window])
+    return bool(last > before * (1.0 - WINDOW_TOLERANCE))
 
 
 def _run_lbfgs(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
@@ -529,14 +541,23 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     side_px = round(shortest * final_scale)
     schedule = (
         build_track_schedule(used_views, side_px, options.max_iterations, jacobian_available(device)) if tracking
-        else build_schedule(options.configuration, _pyramid_side_px(side_px, masks, used_views, final_scale),
-                            options.max_iterations, options.coarse_to_fine, options.refine)
+        else _ladder_schedule(options, side_px, masks, used_views, final_scale)
     )
     stages = [Stage(**{**vars(stage), "scale": stage.scale * final_scale}) for stage in schedule]
     starts = searched.poses if searched is not None else random_start_poses(
         initial, problem.centre, 1 if tracking else options.starts, options.start_spread_deg, options.start_spread_mm,
         options.seed)
     return _Setup(problem, used_views, initial, searched, stages, starts, tracking)
+
+
+def _ladder_schedule(options: RegistrationOptions, side_px: int, masks: dict[str, np.ndarray], used_views,
+                     final_scale: float) -> list[Stage]:
+    """The coarse-to-fine stages: the image's pyramid, its coarsest level set by the vessels' extent when that is
+    what limits it (:func:`_coarsest_scale`), else by :func:`_pyramid_side_px`'s power-of-two rule."""
+    coarsest = _coarsest_scale(side_px, masks, used_views, final_scale)
+    side = side_px if coarsest is not None else _pyramid_side_px(side_px, masks, used_views, final_scale)
+    return build_schedule(options.configuration, side, options.max_iterations, options.coarse_to_fine, options.refine,
+                          coarsest)
 
 
 def _run_stages(setup: _Setup, options: RegistrationOptions, reporter: _Reporter) -> _Run:
@@ -688,6 +709,15 @@ def _border_moved(problem: _Problem, options: RegistrationOptions, stage: Stage,
     return False
 
 
+def _vessel_extent_px(masks: dict[str, np.ndarray], used_views) -> int:
+    """The smallest over the views of the vessels' bounding-box side (px, full resolution)."""
+    extent = []
+    for name in used_views:
+        rows, cols = np.nonzero(masks[name])
+        extent.append(max(rows.max() - rows.min(), cols.max() - cols.min()) + 1)
+    return int(min(extent))
+
+
 def _pyramid_side_px(side_px: int, masks: dict[str, np.ndarray], used_views, final_scale: float) -> int:
     """Image side that sets the pyramid's depth: the coarsest level must still show the vessels
     (their bounding box ≥ MIN_COARSE_OBJECT_PX). A small tree at ~100 px loses its branches: after
@@ -695,13 +725,20 @@ def _pyramid_side_px(side_px: int, masks: dict[str, np.ndarray], used_views, fin
     clinical rig), and from a given pose (the synthetic DICOM study: phantom at 256 px, 6° / 5 mm
     off identity) the half-size level handed on a pose whose border correction (measured there,
     −0.6 px on AP) left the final fit at 1.03° / ADD 0.15 mm instead of 0.40° / 0.08 mm. On the
-    paper's mesh at 800 px the vessels span 630–750 px and the pyramid is the image-size one."""
-    extent = []
-    for name in used_views:
-        rows, cols = np.nonzero(masks[name])
-        extent.append(max(rows.max() - rows.min(), cols.max() - cols.min()) + 1)
-    halvings = max(0, int(np.floor(np.log2(min(extent) * final_scale / MIN_COARSE_OBJECT_PX))))
+    paper's mesh at 800 px the vessels span 630–750 px and the pyramid is the image-size one.
+    Rounded down to a power of two; :func:`_coarsest_scale` gives the unrounded coarsest level."""
+    extent = _vessel_extent_px(masks, used_views)
+    halvings = max(0, int(np.floor(np.log2(extent * final_scale / MIN_COARSE_OBJECT_PX))))
     return min(side_px, int(COARSEST_SIDE_PX * 2**halvings))
+
+
+def _coarsest_scale(side_px: int, masks: dict[str, np.ndarray], used_views, final_scale: float) -> float | None:
+    """The scale (of the working image) at which the vessels span MIN_COARSE_OBJECT_PX, when the extent rather than
+    the image size limits the pyramid (:func:`~.schedule.pyramid_scales`); else None. Not rounded to a power of two:
+    rounded, a tree spanning 190 px at 512 px started at half size instead of a quarter (4× the pixels per start and
+    step) and cost 1.5–2.5× the CPU of one spanning 192 px (docs/benchmarks/clinical.md, round 10)."""
+    scale = MIN_COARSE_OBJECT_PX / (_vessel_extent_px(masks, used_views) * final_scale)
+    return scale if scale <= 0.5 and scale * side_px > COARSEST_SIDE_PX else None
 
 
 def _initialize(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options: RegistrationOptions):
