@@ -136,7 +136,9 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
                 # suffices (measured on the paper's mesh: the half-size level took 10–13 instead of
                 # 11–29 iterations, same L-BFGS evaluations and final accuracy).
                 plateau_tolerance=PLATEAU_TOLERANCE if index == 0 or last else INTERMEDIATE_TOLERANCE,
-                plateau_window=0 if last else PLATEAU_WINDOW,
+                # A single-level ladder (small images) keeps the patience rule: its one Adam level carries the whole
+                # capture from a given or mirrored start (measured: a mirrored 160-px phantom was no longer named).
+                plateau_window=PLATEAU_WINDOW if not last and len(set(scales)) > 1 else 0,
             )
         )
     return stages
