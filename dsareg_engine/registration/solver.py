@@ -735,8 +735,8 @@ def _pyramid_side_px(side_px: int, masks: dict[str, np.ndarray], used_views, fin
 def _coarsest_scale(side_px: int, masks: dict[str, np.ndarray], used_views, final_scale: float) -> float | None:
     """The scale (of the working image) at which the vessels span MIN_COARSE_OBJECT_PX, when the extent rather than
     the image size limits the pyramid (:func:`~.schedule.pyramid_scales`); else None. Not rounded to a power of two:
-    rounded, a tree spanning 190 px at 512 px started at half size instead of a quarter (4× the pixels per start and
-    step) than one spanning 192 px (docs/benchmarks/clinical.md, rounds 10 and 11)."""
+    rounded, a tree spanning 190 px at 512 px started at half size where one spanning 192 px starts at a quarter
+    (4× the pixels per start and step; docs/benchmarks/clinical.md, rounds 10 and 11)."""
     scale = MIN_COARSE_OBJECT_PX / (_vessel_extent_px(masks, used_views) * final_scale)
     return scale if scale <= 0.5 and scale * side_px > COARSEST_SIDE_PX else None
 
