@@ -167,8 +167,10 @@ def test_the_coarsest_level_runs_on_while_the_loss_falls():
 
 
 def _tree_of_extent(side_px: int, extent_px: int) -> dict[str, np.ndarray]:
-    mask = np.zeros((side_px, side_px), bool)
-    mask[5:5 + extent_px, 20:20 + extent_px // 2] = True
+    """Masks whose vessels span ``extent_px``: only their extent sets the ladder, so they are cut to the tree's box
+    (``side_px`` is the image's side, passed to the schedule apart)."""
+    mask = np.zeros((extent_px + 10, extent_px // 2 + 30), bool)
+    mask[5, 20] = mask[4 + extent_px, 19 + extent_px // 2] = True  # the box's corners: the extent is its longer side
     return {"ap": mask, "lat": mask}
 
 
