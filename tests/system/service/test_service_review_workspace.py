@@ -71,10 +71,15 @@ def test_workspace_in_chromium(keyed_server, dicom_job, tmp_path):
     browser = Browser(tmp_path / "profile", width=1280, height=800)
     try:
         browser.open(keyed_server.url + "/ui/")
+        browser.run(SLOW_UNFILTERED_LIST)  # the list the key loads answers after the search's list
         browser.type("#api-key", ALPHA + "\ue007")
         browser.type("#search", PATIENT_ID.lower() + "\ue007")
         row = browser.wait("const r = [...document.querySelectorAll('#jobs tbody tr')]; "
                            "return r.length === 1 && r[0].innerText", what="one job found")
+        browser.wait("return window.__slowListsAnswered >= 1", what="the key's (older) list answered")
+        time.sleep(0.5)  # its body read and its page code run (a stale list would be appended now)
+        assert browser.run("return [document.querySelectorAll('#jobs').length, "
+                           "document.querySelectorAll('#jobs tbody tr').length]") == [1, 1]  # the older one dropped
         assert "Roe, Ada (RV-0042)" in row and "2026-11-30" in row and PAYLOAD in row, row
         assert PATIENT_ID not in browser.run("return location.href")
         browser.open("about:blank")
@@ -94,6 +99,12 @@ def test_workspace_in_chromium(keyed_server, dicom_job, tmp_path):
     finally:
         browser.close()
 
+
+SLOW_UNFILTERED_LIST = (
+    "const f = window.fetch; window.__slowListsAnswered = 0; window.fetch = (u, o) => "
+    "/registrations[?]/.test(String(u)) && !String(u).includes('q=') ? "
+    "new Promise((r) => setTimeout(r, 1500)).then(() => f(u, o)).finally(() => { window.__slowListsAnswered += 1; }) "
+    ": f(u, o)")
 
 PIXELS = ("const c = document.querySelector('canvas.view2d[data-view=\"ap\"]'); "
           "const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let h = 0; "

@@ -12,6 +12,7 @@ const VERDICT_WORDS = {
 let objectUrls = [];
 let blinkTimer = null;
 let keyHandler = null;
+let currentPage = 0;  // which page load is current: a response for an older one is dropped, never appended
 
 function el(tag, attrs, ...children) {
   const node = document.createElement(tag);
@@ -66,6 +67,7 @@ function reviewBadge(review) {
 }
 
 function clearView() {
+  currentPage += 1;
   objectUrls.forEach((url) => URL.revokeObjectURL(url));
   objectUrls = [];
   if (blinkTimer) clearInterval(blinkTimer);
@@ -124,6 +126,7 @@ function jobRow(job) {
 
 async function showList() {
   const view = clearView();
+  const mine = currentPage;
   document.title = "Jobs · dsareg review";
   view.append(el("h2", {}, "Registration jobs"), el("div", { class: "filters" },
     select("verdict", "Verdict", [["", "any"], ["ok", "ok"], ["check", "check"], ["failed", "failed"]]),
@@ -137,6 +140,7 @@ async function showList() {
   if (filters.q) query.set("q", filters.q);
   try {
     const page = await api("/v1/registrations?" + query);
+    if (mine !== currentPage) return;  // the key, a filter or the search changed while this list was loading
     const items = page.items.filter((job) => !filters.verdict || job.verdict === filters.verdict);
     say(`${items.length} job${items.length === 1 ? "" : "s"}` + (page.next_cursor ? " (newest 100 only)" : ""));
     view.append(el("table", { id: "jobs" },
@@ -145,6 +149,7 @@ async function showList() {
         (h) => el("th", { scope: "col" }, h)))),
       el("tbody", {}, items.map(jobRow))));
   } catch (error) {
+    if (mine !== currentPage) return;
     say("Could not load the jobs: " + error.message + (String(error.message).startsWith("401") ? " — enter an API key above." : ""), true);
   }
 }
@@ -472,12 +477,15 @@ function historySection(job) {
 
 async function showJob(id) {
   const view = clearView();
+  const mine = currentPage;
   let job;
   try { job = await api("/v1/registrations/" + encodeURIComponent(id)); } catch (error) {
+    if (mine !== currentPage) return;
     view.append(el("p", {}, el("a", { href: "#/" }, "← All jobs")));
     say("Could not load the job: " + error.message, true);
     return;
   }
+  if (mine !== currentPage) return;  // another page was asked for while this job was loading
   say("");
   document.title = `Job ${id.slice(0, 8)} · dsareg review`;
   const review = reviewSection(job);
