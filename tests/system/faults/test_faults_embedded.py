@@ -134,7 +134,8 @@ def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case,
     data = tmp_path / "data"
     first = Server(data, workers=1).start()
     with first.client() as client:
-        ids = [submit(client, slow_case, {**SLOW, "seed": n}).json()["id"] for n in range(2)]
+        ids = [submit(client, slow_case, {**SLOW, "seed": 0}).json()["id"],  # running when the server dies
+               submit(client, case, {**FAST, "seed": 1}).json()["id"]]  # queued behind it: need not be slow
         wait_for(client, ids[0], statuses=("running",), timeout=60)
     tree = descendants(first.process.pid)
     assert tree, "the server has no child processes"

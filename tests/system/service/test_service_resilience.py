@@ -7,7 +7,7 @@ import signal
 import sqlite3
 import time
 
-from tests.support.service_testkit import Server, needs_engine, submit, wait_for
+from tests.support.service_testkit import FAST_OPTIONS, Server, needs_engine, submit, wait_for
 
 # ~4 s on one quiet core (at the case's own 128 px a 2-start job ends in < 1 s, before a stop or a kill lands)
 SLOW = {"starts": 8, "max_iterations": 400, "coarse_to_fine": False, "working_size_px": 256}
@@ -28,7 +28,9 @@ def test_restart_after_server_sigkill_resumes_queued_and_orphaned(tmp_path, exam
     first = Server(data, workers=1).start()
     try:
         with first.client() as c:
-            ids = [submit(c, example_case, options={**SLOW, "seed": n}).json()["id"] for n in range(3)]
+            ids = [submit(c, example_case, options={**SLOW, "seed": 0}).json()["id"]]  # the one orphaned mid-run
+            # the queued two need not be slow: they only wait behind it (2 slow jobs less to run after the restart)
+            ids += [submit(c, example_case, options={**FAST_OPTIONS, "seed": n}).json()["id"] for n in (1, 2)]
             wait_for(c, ids[0], statuses=("running",), timeout=60)
     finally:
         os.killpg(first.process.pid, signal.SIGKILL)  # the whole service, workers included, dies at once
