@@ -82,6 +82,7 @@ def test_celery_postgres_outage(topology, case, slow_case):
         pid = _running_job_pid(topology, job_id, client)
         worker = next(w for w in topology.workers if w.pid == pid)
         topology.postgres.pause()
+        paused_at = time.monotonic()  # the job's last lease renewal was before this
         try:
             response, took = timed_post(client, case, {**FAST, "seed": 22})
             assert response.status_code == 503 and took < NEXT_POST_SECONDS, (response.status_code, took)
@@ -94,7 +95,8 @@ def test_celery_postgres_outage(topology, case, slow_case):
             while not any(m in worker.logs() for m in finished) and time.monotonic() < deadline:
                 time.sleep(0.5)
             assert any(m in worker.logs() for m in finished), worker.logs()[-3000:]
-            time.sleep(3 * 4)  # well past the 4 s lease
+            lease_s = float(topology.env["DSAREG_LEASE_SECONDS"])  # the database stays down well past the job's lease
+            time.sleep(max(0.0, paused_at + 2 * lease_s - time.monotonic()))  # (was 12 s after the job's end)
         finally:
             topology.postgres.resume()
         topology.assert_invariants([job_id])
