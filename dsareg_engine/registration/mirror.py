@@ -120,7 +120,8 @@ def with_mirror_check(result, mesh: TriangleMesh, masks: dict[str, np.ndarray], 
                       settings: MirrorSettings | None = None):
     """``result`` (a :class:`~.result.RegistrationResult`) with :func:`check_mirror` applied to its confidence; the
     mirror is registered by ``register_with(mesh, masks, rig, options)`` from a search of rotations (no given pose,
-    no ground truth), its time in ``metrics.seconds.mirror``. Tracking re-registrations are left alone."""
+    no ground truth), its time in ``metrics.seconds.mirror``. Tracking re-registrations and options with
+    ``mirror_check`` off are left alone."""
     import time
 
     from ..geometry.rig import Rig
@@ -128,7 +129,7 @@ def with_mirror_check(result, mesh: TriangleMesh, masks: dict[str, np.ndarray], 
     settings = settings or MirrorSettings()
 
     confidence = result.metrics.get("confidence")
-    if options.mode == "track" or not confidence:
+    if options.mode == "track" or not options.mirror_check or not confidence:
         return result
     search = options.model_copy(update={"initialization": "search", "initial_mesh_to_world": None, "region": None,
                                         "ground_truth_mesh_to_world": None, "animation": False,

@@ -145,6 +145,10 @@ class RegistrationOptions(BaseModel):
         "(result.hemodynamics, hemodynamics.json / .ply / .vtk, parametric_{ap,lat}.png); needs multi-frame DICOM XA "
         "runs with frame timing. The registration itself is unchanged.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available (tracking: the CPU, faster there).")
+    mirror_check: bool = Field(
+        True, description="When the kept pose fits poorly (some view's Dice below 0.7), also register the model's mirror "
+        "image to tell a mirrored model (result confidence.signals.mirror). Off: no mirror fit (its cost is a pose "
+        "search), for a caller that knows the model's handedness or a fit meant to be rough (a worker's warm-up job).")
 
 
 def image_reading(options: RegistrationOptions):

@@ -80,3 +80,32 @@ def test_a_normal_model_is_not_called_mirrored_and_pays_nothing(case):
     confidence = result.metrics["confidence"]
     assert confidence["verdict"] == "ok", confidence["reasons"]
     assert "mirror" not in confidence["signals"] and "mirror" not in result.metrics["seconds"]
+
+
+@pytest.mark.parametrize("check", [True, False])
+def test_the_mirror_check_option_decides_whether_a_poor_fit_registers_the_mirror(check):
+    """``mirror_check`` off (a worker's warm-up job, whose tiny fit is poor by design): no mirror registered, the
+    confidence as it was; on (the default): the mirror of the model is registered from a rotation search."""
+    from types import SimpleNamespace
+
+    from dsareg_engine.registration.mirror import with_mirror_check
+
+    mesh = make_vessel_phantom(depth=1)
+    poor = {"verdict": "check", "signals": {"dice": {"ap": 0.4, "lat": 0.5}}, "reasons": ["ap: poor overlap"]}
+    result = SimpleNamespace(metrics={"confidence": poor})
+    fitted = []
+
+    def register_with(model, masks, rig, options):
+        fitted.append((model, options))
+        return SimpleNamespace(mesh_to_world=np.eye(4), metrics={"confidence": {"signals": {"dice": {"ap": 0.45,
+                                                                                                      "lat": 0.5}}}})
+
+    options = parse_options({"device": "cpu", "mirror_check": check})
+    out = with_mirror_check(result, mesh, {}, clinical_biplane_rig(size_px=16), options, register_with)
+    assert parse_options({}).mirror_check  # on by default
+    if not check:
+        assert fitted == [] and out.metrics["confidence"] == poor and "seconds" not in out.metrics
+        return
+    (model, search), = fitted
+    assert np.allclose(model.vertices, mirrored(mesh).vertices) and search.initialization == "search"
+    assert out.metrics["confidence"]["signals"]["mirror"]["mirrored"] is False
