@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
+from .spawner import Spawner
 from .validator_process import largest_input, validator_main
 
 log = logging.getLogger("dsareg.service.validation")
@@ -65,10 +66,11 @@ def process_state(pid: int) -> str | None:
 
 
 class _Slot:
-    """One validator process and its pipe."""
+    """One validator process and its pipe (the process started on ``spawner``'s thread)."""
 
-    def __init__(self, ctx: Any, memory_mb: int, threads: int):
+    def __init__(self, ctx: Any, memory_mb: int, threads: int, spawner: Spawner):
         self.ctx = ctx
+        self.spawner = spawner
         self.memory_mb = memory_mb
         self.threads = threads
         self.process: Any = None
@@ -82,7 +84,7 @@ class _Slot:
             target=validator_main, args=(child, self.memory_mb, self.threads, os.getpid()), name="dsareg-validator",
             daemon=True
         )
-        self.process.start()
+        self.spawner.run(self.process.start)
         child.close()
         self.conn = parent
         self.ready = False
@@ -166,6 +168,9 @@ class _Slot:
             why = "timeout"
         except (EOFError, OSError, BrokenPipeError):
             why = "dead"
+        if why == "dead" and self.process is not None:  # what ended it: a negative code is the signal's number
+            self.process.join(1)
+            log.warning("validator pid %s found dead (exit code %s)", self.process.pid, self.process.exitcode)
         self.kill()
         return None, why
 
@@ -195,8 +200,9 @@ class ValidatorPool:
     def __init__(self, processes: int, timeout_seconds: float, memory_mb: int, threads: int = 1):
         self.ctx = mp.get_context("spawn")
         self.timeout = timeout_seconds
-        self.slots = [_Slot(self.ctx, memory_mb, threads) for _ in range(processes)]
-        self.spare = _Slot(self.ctx, memory_mb, threads)
+        self.spawner = Spawner()  # a validator dies with the thread that started it (PR_SET_PDEATHSIG)
+        self.slots = [_Slot(self.ctx, memory_mb, threads, self.spawner) for _ in range(processes)]
+        self.spare = _Slot(self.ctx, memory_mb, threads, self.spawner)
         self.replaced = 0
         self._spare_lock = threading.Lock()
         self._halt = threading.Event()
@@ -354,3 +360,4 @@ class ValidatorPool:
             if slot.process is not None:
                 slot.process.join(2)
             slot.kill()
+        self.spawner.stop()

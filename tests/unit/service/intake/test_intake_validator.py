@@ -1,0 +1,48 @@
+"""The validator pool (service/intake/validator.py, service/intake/spawner.py): a validator process lives as long
+as the server, whichever thread started it."""
+
+from __future__ import annotations
+
+import threading
+
+from service.intake.validator import ValidatorPool
+from service.storage.blobs import BlobStore
+from service.storage.store import InputFile
+from tests.support.service_testkit import make_example_case
+
+
+def _stored_request(tmp_path) -> dict:
+    """A validation request for the example case, its inputs in a blob store under ``tmp_path``."""
+    case = make_example_case(tmp_path, 64)
+    blobs = BlobStore(tmp_path / "data")
+    inputs = []
+    for role, data, suffix in (("mesh", case.mesh_obj, ".obj"), ("ap", case.ap_png, ".png"), ("lat", case.lat_png, ".png")):
+        digest, size = blobs.put_bytes(data)
+        inputs.append(vars(InputFile(role, digest, size, suffix)))
+    return {"inputs": inputs, "geometry": "paper", "segmentation": "auto", "blob_root": str(blobs.root), "limits": {}}
+
+
+def test_a_spare_outlives_the_request_thread_that_started_it(tmp_path):
+    """A request's thread starts the next spare (after its validator died) and ends later, as a thread pool retires
+    an idle thread. The spare must still parse: a validator asks the kernel for SIGKILL when its parent dies
+    (PR_SET_PDEATHSIG), and the kernel sends it when the *thread* that started the process ends, so a spare started
+    on the request's own thread was killed with that thread and the next crash's retry found it dead too."""
+    request = _stored_request(tmp_path)
+    pool = ValidatorPool(1, timeout_seconds=120, memory_mb=0)
+    try:
+        def start_the_spare_then_end() -> None:
+            pool._ensure_spare()  # what a request's thread does once answered
+            pool.spare.wait_ready(120)  # warm: it has asked for its signal by now
+
+        starter = threading.Thread(target=start_the_spare_then_end)
+        starter.start()
+        starter.join(180)
+        assert not starter.is_alive()
+        slot = pool.slots[0]
+        slot.adopt(pool.spare)  # what the next crash does: the spare takes the request
+        reply, why = slot.call(request, 120)
+        assert why is None, why
+        assert reply is not None and reply.get("ok"), reply
+        assert slot.health() == "ok"
+    finally:
+        pool.stop()
