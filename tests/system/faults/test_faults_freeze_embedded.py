@@ -91,6 +91,23 @@ class Embedded:
         assert wait_gone(tree, 15) == set(), "processes left after the server stopped"
 
 
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory):
+    """One server (1 worker, 3 s leases) for the validator and write-lock tests: each asserts on the jobs it submitted,
+    and the server replaces the validators and the worker they kill itself. After the last of them: no process left
+    once it stops (one start instead of three: each start warms two validators and a worker)."""
+    root = tmp_path_factory.mktemp("freeze-embedded")
+    db = root / "jobs.sqlite3"
+    srv = Server(root / "data", workers=1, env={"DSAREG_DATABASE_URL": f"sqlite:///{db}", "DSAREG_LEASE_SECONDS": "3"})
+    try:
+        topo = Embedded(srv.start(timeout=240), db)
+        yield topo
+        topo.stop_and_check()
+    finally:
+        if srv.alive():
+            srv.stop()
+
+
 @pytest.fixture
 def embedded(tmp_path):
     made = []
@@ -108,9 +125,9 @@ def embedded(tmp_path):
             srv.stop()
 
 
-def test_frozen_validator_is_replaced_and_the_request_answered(embedded, case):
+def test_frozen_validator_is_replaced_and_the_request_answered(shared, case):
     """SIGSTOP of the validator in use: the POST is answered by the warm spare within 2 s (was 20-60 s)."""
-    topo = embedded()
+    topo = shared
     with topo.srv.client() as client:
         ids = [submit(client, case, FAST).json()["id"]]
         topo.wait_spare(client)
@@ -125,7 +142,6 @@ def test_frozen_validator_is_replaced_and_the_request_answered(embedded, case):
         assert_answered(response, took, ok=(202,), what="the next POST")
         ids.append(response.json()["id"])
         topo.assert_invariants(ids)
-    topo.stop_and_check()
 
 
 def _post_killing_the_parser(client, topo: Embedded, case, n: int) -> tuple[object, float, bool]:
@@ -146,9 +162,10 @@ def _post_killing_the_parser(client, topo: Embedded, case, n: int) -> tuple[obje
     return response, took, killed
 
 
-def test_validator_killed_mid_parse_is_retried_on_a_fresh_one(embedded, case):
+def test_validator_killed_mid_parse_is_retried_on_a_fresh_one(shared, case):
     """SIGKILL mid-parse: the upload is parsed again by the spare (202), never a 422 without a field."""
-    topo = embedded()
+    topo = shared
+    logged_before = len(topo.srv.logs())
     with topo.srv.client() as client:
         ids = [submit(client, case, FAST).json()["id"]]
         kills = 0
@@ -168,8 +185,7 @@ def test_validator_killed_mid_parse_is_retried_on_a_fresh_one(embedded, case):
         assert_answered(response, took, ok=(202,), what="the next POST")
         ids.append(response.json()["id"])
         topo.assert_invariants(ids)
-    assert "validator replaced (dead)" in topo.srv.logs()
-    topo.stop_and_check()
+    assert "validator replaced (dead)" in topo.srv.logs()[logged_before:]
 
 
 def _locked(db) -> bool:
@@ -219,10 +235,10 @@ def _requests_during_lock(client, case, seed: int) -> None:
 
 
 
-def test_worker_frozen_holding_the_sqlite_write_lock(embedded, case, slow_case):
+def test_worker_frozen_holding_the_sqlite_write_lock(shared, case, slow_case):
     """POST and /readyz answer 503 + Retry-After within 2 s (was 30 s); the job finishes once the
     worker resumes, and once more after a worker frozen the same way is SIGKILLed."""
-    topo = embedded(env={"DSAREG_LEASE_SECONDS": "3"})
+    topo = shared  # 3 s leases
     with topo.srv.client() as client:
         ids = [submit(client, case, FAST).json()["id"]]
         wait_for(client, ids[0], timeout=120)
@@ -244,7 +260,6 @@ def test_worker_frozen_holding_the_sqlite_write_lock(embedded, case, slow_case):
         topo.assert_invariants(ids)
     assert topo.events_of(resumed).count("claimed") == 1
     assert topo.events_of(killed).count("claimed") == 2
-    topo.stop_and_check()
 
 
 def test_disk_full_in_the_data_dir(embedded, tmp_path, case, slow_case):
