@@ -30,12 +30,20 @@ from .submit import DimseIntake
 log = logging.getLogger("dsareg.dimse")
 
 
+UNNAMED_FILE_AGE_S = 3600.0
+"""A stored file that no row names is removed once this old: a store in flight (its row not written yet) is never
+that old, and the files of an index write that failed are (the API's sweeper uses the same age)."""
+
+
 class DicomListener:
-    def __init__(self, intake: IntakeContext, loop: asyncio.AbstractEventLoop):
-        """``loop``: the event loop the jobs are submitted on (running in another thread)."""
+    def __init__(self, intake: IntakeContext, loop: asyncio.AbstractEventLoop, *, collects_garbage: bool = False):
+        """``loop``: the event loop the jobs are submitted on (running in another thread); ``collects_garbage``:
+        the housekeeping also removes stored files no row names (the standalone listener; in ``dsareg serve`` the
+        API's sweeper does)."""
         settings, store = intake.settings, intake.store
         dicom_job_options(settings)  # a SettingError now, not a failure of every study later
-        self.settings, self.blobs = settings, intake.blobs
+        self.settings, self.blobs, self.store = settings, intake.blobs, store
+        self.collects_garbage = collects_garbage
         self.inbox = Inbox(store.engine, getattr(store, "writer", None))
         tick = min(0.25, settings.dimse.dicom_stable_seconds / 4)
         self.dispatcher = StudyDispatcher(settings, self.blobs, self.inbox, DimseIntake(intake), loop,
@@ -45,7 +53,8 @@ class DicomListener:
         self._last_purge = float("-inf")  # the first housekeeping purges
 
     def housekeeping(self) -> None:
-        """On the dispatcher's thread: dead associations (often), the inbox retention (every sweep interval)."""
+        """On the dispatcher's thread: dead associations (often), the inbox retention and, when ``collects_garbage``,
+        the files no row names (at start, then every sweep interval)."""
         self.scp.sweep()
         if time.monotonic() - self._last_purge < self.settings.retention.sweep_interval_seconds:
             return
@@ -55,6 +64,10 @@ class DicomListener:
         if done.rows:
             log.info("inbox retention: removed %d instance(s) of %d settled stud(ies), %d file(s)", done.rows,
                      done.studies, done.files)
+        if self.collects_garbage:  # e.g. a C-STORE whose index write failed after its file was stored (answered A700)
+            removed = self.blobs.collect_garbage(self.store.referenced_blobs(), min_age_seconds=UNNAMED_FILE_AGE_S)
+            if removed:
+                log.warning("removed %d stored file(s) that no instance or job names", removed)
 
     def start(self) -> None:
         # pydicom and pynetdicom are imported here, in the starting thread, before the dispatcher thread runs:

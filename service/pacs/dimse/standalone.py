@@ -46,7 +46,7 @@ def run_dicom_listener(settings: ServiceSettings) -> int:
     loop = asyncio.new_event_loop()
     loop_thread = threading.Thread(target=loop.run_forever, name="dimse-submit-loop", daemon=True)
     loop_thread.start()
-    listener = DicomListener(intake, loop)
+    listener = DicomListener(intake, loop, collects_garbage=True)  # no API sweeper runs in this process
     stopping = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stopping.set())

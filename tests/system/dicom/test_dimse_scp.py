@@ -197,3 +197,45 @@ def test_a_full_disk_mid_association_keeps_what_was_answered_success(node, study
         assert scp.inbox.counts() == {"committed": len(sent)}
         rows = _rows(scp)
         assert all(scp.blobs.exists(row.sha256) for row in rows) and len({row.sop_instance_uid for row in rows}) == len(sent)
+
+
+def test_a_file_whose_index_write_failed_is_removed_by_the_standalone_listener(tmp_path, study):
+    """The database refuses the index row of a C-STORE whose file is already stored: answered A700 (the sender
+    retries), the file left with no row naming it. The standalone listener's housekeeping (at its start, then every
+    sweep interval) removes such a file once it is an hour old — a store in flight never is — and keeps the rest."""
+    import asyncio
+    import os
+    import sqlite3
+
+    from service.intake.context import IntakeContext, close_intake
+    from service.jobs.executor import NoExecutor
+    from service.pacs.dimse.listener import UNNAMED_FILE_AGE_S, DicomListener
+
+    config = ServiceSettings(data_dir=tmp_path, dicom_port=free_port(), min_free_bytes=0,
+                             dicom_peers=[{"ae_title": "SCU", "host": "127.0.0.1", "port": 1}])
+    intake = IntakeContext.open(config, lambda s, store: NoExecutor(), validate=False)
+    loop = asyncio.new_event_loop()
+    listener = DicomListener(intake, loop, collects_garbage=True)
+    server = start_server(config, listener.scp)
+    try:
+        first, second = (pydicom.dcmread(io.BytesIO(data)) for data in study.instances()[:2])
+        assoc = _ae(study).associate("127.0.0.1", config.dimse.dicom_port, ae_title="DSAREG")
+        assert assoc.send_c_store(first).Status == 0x0000
+        with sqlite3.connect(intake.store.engine.url.database) as conn:  # the database itself refuses the row
+            conn.execute("CREATE TRIGGER refuse BEFORE INSERT ON dimse_instances BEGIN SELECT RAISE(ABORT, 'no'); END")
+        assert assoc.send_c_store(second).Status == 0xA700
+        assoc.release()
+        named = {row.sha256 for row in _rows(listener.scp)}
+        assert len(named) == 1 and len(set(listener.blobs.all_digests()) - named) == 1  # stored, no row names it
+        listener.housekeeping()  # at start: a fresh file is kept (it could be a store whose row is coming)
+        assert len(listener.blobs.all_digests()) == 2
+        old = time.time() - UNNAMED_FILE_AGE_S - 60
+        for digest in listener.blobs.all_digests():
+            os.utime(listener.blobs.path(digest), (old, old))
+        listener._last_purge = float("-inf")  # the next sweep interval
+        listener.housekeeping()
+        assert set(listener.blobs.all_digests()) == named  # the unnamed file went, the named one stayed
+    finally:
+        server.shutdown()
+        loop.close()
+        close_intake(intake)

@@ -24,6 +24,7 @@ def test_housekeeping_purges_settled_studies_once_per_sweep_interval(node, tmp_p
     listener.settings = ServiceSettings(data_dir=tmp_path, dicom_inbox_retention_hours=1.0,
                                         sweep_interval_seconds=3600.0)
     listener.inbox, listener.blobs, listener.scp, listener._last_purge = inbox, blobs, _Scp(), float("-inf")
+    listener.collects_garbage = False
     _receive(inbox, blobs, "4.1", 2)  # dispatched ten hours ago, no job: settled
     _receive(inbox, blobs, "4.2", 1, state="interrupted")  # not dispatched: kept
     listener.housekeeping()
