@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from tests.support.scaleout_kit import CeleryTopology, RedisServer, pid_of_worker_id
+from tests.support.scaleout_kit import CeleryTopology, CeleryWorker, RedisServer, pid_of_worker_id
 from tests.support.service_testkit import Server, make_example_case, needs_engine, submit, wait_for
 
 pytestmark = [needs_engine, pytest.mark.slow]
@@ -23,6 +23,8 @@ OPTIONS = {"starts": 4, "max_iterations": 300, "coarse_to_fine": False, "working
 # ~15 s on one core (the engine's stop rules end small cases early): long enough to act on it mid-run
 LONG_OPTIONS = {"starts": 64, "max_iterations": 5000, "seed": 1, "start_spread_deg": 30, "coarse_to_fine": False,
                 "working_size_px": 256}
+# the same search on 16 starts (~2.4 CPU-s, ~10.6 for LONG): runs through several of the event stream's 0.5 s polls
+EVENTS_OPTIONS = {**LONG_OPTIONS, "starts": 16}
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +72,20 @@ def _submit_many(client, case, n, options=OPTIONS) -> list[str]:
 def _wait_all(client, ids, timeout) -> dict[str, dict]:
     deadline = time.monotonic() + timeout
     return {job_id: wait_for(client, job_id, timeout=max(1.0, deadline - time.monotonic())) for job_id in ids}
+
+
+def _two_idle_workers(topology: CeleryTopology) -> tuple[CeleryWorker, CeleryWorker]:
+    """Exactly two live, idle workers: those left alive by the tests before (their jobs are over; each start costs
+    a worker's warm start) and new ones for the rest; dead ones are closed, live ones beyond two stopped."""
+    alive = [worker for worker in topology.workers if worker.alive()]
+    for worker in topology.workers:
+        if worker not in alive[:2]:
+            worker.stop()
+    topology.workers = alive[:2]
+    while len(topology.workers) < 2:
+        topology.add_worker()
+    topology.wait_workers(2)
+    return topology.workers[0], topology.workers[1]
 
 
 def test_kill_a_worker_mid_job_every_job_once(topology, case, reference):
@@ -160,9 +176,7 @@ def test_cancel_running_job_on_celery_worker(topology, case):
 
 def test_sigterm_releases_running_job_to_another_worker(topology, case):
     """Warm shutdown (docker stop): the running job goes back to the queue and another worker takes it."""
-    topology.stop_workers()
-    first, second = topology.add_worker(), topology.add_worker()
-    topology.wait_workers(2)
+    first, second = _two_idle_workers(topology)
     with topology.api.client() as client:
         job_id = _submit_many(client, case, 1, LONG_OPTIONS)[0]
         wait_for(client, job_id, statuses=("running",), timeout=60,
@@ -194,7 +208,7 @@ def test_progress_events_from_a_celery_worker(topology, case):
         topology.add_worker()
     topology.wait_workers(1)
     with topology.api.client() as client:
-        job_id = _submit_many(client, case, 1, LONG_OPTIONS)[0]  # runs long enough for several progress writes
+        job_id = _submit_many(client, case, 1, EVENTS_OPTIONS)[0]  # runs long enough for several progress writes
         with client.stream("GET", f"/v1/registrations/{job_id}/events", timeout=120) as response:
             assert response.status_code == 200 and response.headers["content-type"].startswith("text/event-stream")
             frames = list(parse_event_stream(response.iter_lines()))
