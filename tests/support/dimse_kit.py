@@ -117,15 +117,24 @@ def large_xa(size_mb: float, study: str, series: str, number: int = 1) -> bytes:
     return buffer.getvalue()
 
 
+_STUDY_OF_JOB: dict[tuple[str, str], str | None] = {}
+"""(server URL, job link) → the job's ``source.dimse.study_uid``: set at submission, never changed, so a job of
+another study is fetched once, not at every poll of every wait (the polls fetched every job of the server)."""
+
+
 def jobs_of_study(client, study_uid: str) -> list[dict]:
-    """Every job of the service made from ``study_uid`` (by its ``source.dimse``)."""
+    """Every job of the service made from ``study_uid`` (by its ``source.dimse``), each as fetched now."""
     found = []
     cursor = None
     while True:
         page = client.get("/v1/registrations", params={"limit": 100, **({"cursor": cursor} if cursor else {})}).json()
         for item in page["items"]:
+            key = (str(client.base_url), item["links"]["self"])
+            if key in _STUDY_OF_JOB and _STUDY_OF_JOB[key] != study_uid:
+                continue
             job = client.get(item["links"]["self"]).json()
-            if ((job.get("source") or {}).get("dimse") or {}).get("study_uid") == study_uid:
+            _STUDY_OF_JOB[key] = ((job.get("source") or {}).get("dimse") or {}).get("study_uid")
+            if _STUDY_OF_JOB[key] == study_uid:
                 found.append(job)
         cursor = page.get("next_cursor")
         if not cursor:

@@ -108,6 +108,12 @@ def wait_log(server, text: str, timeout: float, count: int = 1) -> float:
     return time.monotonic() - started
 
 
+def drop(client, job: dict) -> None:
+    """Cancel a job whose run the test does not look at: the module's one worker is then free for the next test's
+    job at once (a run costs seconds of CPU beside the other tests). 200 queued, 202 running, 409 already over."""
+    assert client.post(f"/v1/registrations/{job['id']}/cancel").status_code in (200, 202, 409)
+
+
 def test_echo_and_the_association_policy(node):
     assert echoscu(node.dicom_port).returncode == 0
     unknown = echoscu(node.dicom_port, calling="STRANGER")
@@ -207,6 +213,7 @@ def test_aborted_association_keeps_what_was_answered_and_the_rest_completes_the_
             time.sleep(0.2)
         time.sleep(STABLE_S + 1.0)
         jobs = jobs_of_study(client, study_uid)
+        drop(client, jobs[0])
     assert len(jobs) == 1, jobs  # 0 lost, 0 duplicated
     assert jobs[0]["source"]["dimse"]["volume"]["instances"] == len(paths) - 2
 
@@ -358,7 +365,8 @@ def test_a_frozen_query_peer_is_a_bounded_clear_error_and_holds_nothing(node, or
                            count=failures + 1)
         assert set(scu_send(node.dicom_port, whole, "STORESCU")) == {0}
         with node.client() as client:
-            assert len(wait_jobs(client, whole_uid, timeout=STABLE_S + 30)) == 1  # the dispatcher goes on
+            (whole_job,) = wait_jobs(client, whole_uid, timeout=STABLE_S + 30)  # the dispatcher goes on
+            drop(client, whole_job)
             assert jobs_of_study(client, study_uid) == []
     finally:
         os.kill(orthanc.process.pid, signal.SIGCONT)
