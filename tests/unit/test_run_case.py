@@ -10,7 +10,7 @@ from dsareg_engine.io.case import CaseFiles
 from dsareg_engine.pipeline import RegistrationCanceled, run_case
 from dsareg_engine.simulation.phantom import make_vessel_phantom
 
-QUICK = {"starts": 1, "max_iterations": 5}
+QUICK = {"starts": 1, "max_iterations": 5, "mirror_check": False}  # the images are not of the mesh: no mirror fit
 
 
 @pytest.fixture(scope="module")

@@ -83,7 +83,8 @@ def test_no_initial_pose_registers_from_any_rotation(phantom, seed):
 
 def test_given_pose_skips_the_search(phantom, synthetic_case):
     rig, masks = synthetic_case(phantom, 200, 3.0, 3.0)
-    result = register(phantom, masks, rig, RegistrationOptions(starts=1, max_iterations=5))
+    # 5 iterations leave a poor fit (Dice < 0.7), which would fit the mirror by a rotation search (3.5 CPU-s): off
+    result = register(phantom, masks, rig, RegistrationOptions(starts=1, max_iterations=5, mirror_check=False))
     assert result.metrics["initialization"]["method"] == "given"
     assert np.allclose(result.initial_mesh_to_world, rig.initial_mesh_to_world)
 
