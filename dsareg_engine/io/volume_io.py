@@ -479,34 +479,51 @@ def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05,
     largest, at most ``max_components`` of them."""
     from scipy import ndimage
 
-    labels, count = ndimage.label(inside)
+    box = bounding_box(inside)
+    labels, count = ndimage.label(inside[box]) if box is not None else (None, 0)
     if count == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    sizes = np.bincount(labels.ravel())[1:]
+    sizes = np.bincount(labels[labels > 0], minlength=count + 1)[1:]
     ranked = np.argsort(sizes)[::-1][:max_components]
     kept = [int(r) + 1 for r in ranked if sizes[r] >= min_component_fraction * sizes.max()]
-    mask = np.isin(labels, kept)
+    chosen = np.zeros(count + 1, bool)
+    chosen[kept] = True
+    mask = np.zeros(inside.shape, bool)
+    mask[box] = chosen[labels]
     if mask.sum() < 8:
         raise DsaregInputError("only a few isolated voxels lie above the threshold", field=field_name)
     return mask
 
 
+def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
+    """The slices of ``mask``'s bounding box grown by ``margin`` voxels (clipped to the grid); None if empty.
+    Found from the projections of the mask on each axis (no index list of its voxels)."""
+    hits = [np.flatnonzero(mask.any(axis=tuple(b for b in range(mask.ndim) if b != a))) for a in range(mask.ndim)]
+    if any(len(h) == 0 for h in hits):
+        return None
+    return tuple(slice(max(int(h[0]) - margin, 0), min(int(h[-1]) + margin + 1, size))
+                 for h, size in zip(hits, mask.shape))
+
+
 def surface_from_mask(smooth: np.ndarray, mask: np.ndarray, level: float, affine: np.ndarray, *,
                       field_name: str = "volume") -> TriangleMesh:
-    """Marching cubes of ``smooth`` at ``level`` around the kept voxels ``mask`` (elsewhere: the field's floor),
-    enclosed cavities filled; vertices mapped through ``affine`` to world mm, normals outward."""
+    """Marching cubes of ``smooth`` at ``level`` around the kept voxels ``mask`` (elsewhere: the field's floor; only
+    the mask's box is marched), enclosed cavities filled; vertices mapped through ``affine`` to world mm, normals outward."""
     from scipy import ndimage
     from skimage.measure import marching_cubes
 
     floor = float(smooth.min())
-    field = np.where(ndimage.binary_dilation(mask, iterations=2), smooth, floor)
-    cavities = ndimage.binary_fill_holes(mask) & ~mask  # a vessel lumen has no enclosed voids
+    hits = np.argwhere(mask) if mask.any() else np.zeros((1, 3), int)
+    low = np.maximum(hits.min(0) - 3, 0)  # the field is the floor beyond 2 voxels of the mask: its box + 3
+    box = tuple(slice(a, b) for a, b in zip(low, np.minimum(hits.max(0) + 4, mask.shape)))
+    field = np.where(ndimage.binary_dilation(mask[box], iterations=2), smooth[box], floor)
+    cavities = ndimage.binary_fill_holes(mask[box]) & ~mask[box]  # a vessel lumen has no enclosed voids
     field[cavities] = max(float(smooth.max()), level + 1.0)
     field = np.pad(field, 1, constant_values=floor)
     vertices, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
     if len(faces) == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    vertices = vertices - 1.0  # undo the padding
+    vertices = vertices.astype(np.float64) + (low - 1.0)  # undo the padding and the box
     world = vertices @ affine[:3, :3].T + affine[:3, 3]
     faces = faces.astype(np.int64)
     if np.linalg.det(affine[:3, :3]) < 0:

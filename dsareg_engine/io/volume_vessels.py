@@ -35,8 +35,9 @@ from ..mesh import TriangleMesh
 from .input_decisions import InputDecision
 from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
-from .volume_io import Volume, largest_components, surface_from_mask
+from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
+from .voxel_band import within_mm
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -155,22 +156,26 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     voxels): the reading is done again with the plates and their rim left out of the estimate."""
     from scipy import ndimage
 
-    def read(not_vessels):
-        if kind == "cta":
-            return _cta(smooth, spacing, reading, field_name, not_vessels)
-        return _mra(smooth, affine, spacing, reading, field_name, not_vessels)
+    ground = (_cta_ground if kind == "cta" else _mra_ground)(smooth, affine, spacing, reading, field_name)
 
-    def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`_bone_plates`)
-        return excluded if kind == "cta" else _dark_or_surface(smooth, excluded, levels, spacing)
+    def read(not_vessels):  # the ground (bone and its band; the head's interior) is the same in both readings
+        if kind == "cta":
+            return _cta(smooth, spacing, reading, field_name, ground, not_vessels)
+        return _mra(smooth, spacing, reading, field_name, ground, not_vessels)
+
+    def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`_bone_plates`), in a box
+        if kind == "cta":
+            return lambda box: excluded[box]
+        return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box)
 
     field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
-    mask, plates, plate_share = _without_plates(mask, spacing, field_name, lambda: bone_of(smooth, excluded, levels))
+    mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
-        set_aside = ndimage.binary_dilation(plates, iterations=rim)
+        set_aside, box = np.zeros(plates.shape, bool), bounding_box(plates, margin=rim)
+        set_aside[box] = ndimage.binary_dilation(plates[box], iterations=rim)
         field, mask, levels, excluded = read(set_aside)
-        mask, more, plate_share = _without_plates(mask, spacing, field_name,
-                                                  lambda: bone_of(smooth, excluded, levels))
+        mask, more, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
         plates |= more
     return field, mask, levels, excluded | plates, plate_share
 
@@ -179,31 +184,36 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     """``mask`` without its bone plates (:func:`_bone_plates`), its largest tube components kept; what was set
     aside; and the plate share of the mask returned when it is ``mask`` itself (else None: measure it again).
     Unchanged when the plate share is below the close-call band (vessels alone) or no plate part is bone.
-    ``bone_of()``: what bone plates lie against (CTA: bone and its partial-volume band beyond the kept voxels;
-    MRA: :func:`_dark_or_surface`), computed only when the pass runs."""
+    ``bone_of(box)``: what bone plates lie against, within ``box`` (CTA: bone and its partial-volume band
+    beyond the kept voxels; MRA: :func:`_dark_or_surface`), computed only when the pass runs. Worked in the mask's
+    box (the plates, their rim and the rest lie in it)."""
     from scipy import ndimage
 
     shape = medial_shape(mask, spacing, with_parts=True)
     plate = shape.plate
     if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not plate.any():  # vessels: left as read
         return mask, np.zeros(mask.shape, bool), shape.plate_share
-    large = _bone_plates(plate, spacing, bone_of())
+    large = _bone_plates(plate, spacing, bone_of)
     if not large.any():
         return mask, large, shape.plate_share
-    rest = mask & ~ndimage.binary_dilation(large, iterations=1)
+    box = bounding_box(mask, margin=1)
+    rest = mask[box] & ~ndimage.binary_dilation(large[box], iterations=1)
     if rest.sum() < 8:
         return mask, np.zeros(mask.shape, bool), shape.plate_share  # nothing tube-like remains: refused
     # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
     labels, count = ndimage.label(rest)
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    sizes[0] = 0
-    near = ndimage.binary_dilation(large, iterations=max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
+    sizes = np.bincount(labels[labels > 0], minlength=count + 1)
+    near = ndimage.binary_dilation(large[box], iterations=max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
     touching = np.unique(labels[near & (labels > 0)])
-    keep = np.setdiff1d(np.arange(1, count + 1), touching[touching != int(np.argmax(sizes))])
-    return largest_components(np.isin(labels, keep), field_name=field_name), large, None
+    keep = np.ones(count + 1, bool)
+    keep[0] = False
+    keep[touching[touching != int(np.argmax(sizes))]] = False
+    kept = np.zeros(mask.shape, bool)
+    kept[box] = keep[labels]
+    return largest_components(kept, field_name=field_name), large, None
 
 
-def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone: np.ndarray) -> np.ndarray:
+def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
     """The plate parts (connected) that are not vessels: bone-sized (at least ``PLATE_PART_MM3``) and
     bone-placed: at least ``BONE_CONTACT_SHARE`` of the part's surface voxels touch ``bone``. In a CTA, bone and
     its partial-volume band (cancellous bone in the vessels' HU window, a diploë or a skull-base core, lies between
@@ -212,27 +222,33 @@ def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone: np.ndarray) -> np
     measure; it lies in tissue (or against bone on one side: a vessel in a bony groove), so it stays with its tree."""
     from scipy import ndimage
 
-    labels, count = ndimage.label(plate)
-    sizes_mm3 = np.bincount(labels.ravel(), minlength=count + 1)[1:] * float(np.prod(spacing))
+    out = np.zeros(plate.shape, bool)
+    box = bounding_box(plate, margin=1)  # a part's surface voxels' neighbours lie in it
+    labels, count = ndimage.label(plate[box])
+    sizes_mm3 = np.bincount(labels[labels > 0], minlength=count + 1)[1:] * float(np.prod(spacing))
     large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
     if len(large) == 0:
-        return np.zeros(plate.shape, bool)
+        return out
+    bone = bone_of(box)
     boxes = ndimage.find_objects(labels)
-    placed = [index for index in large if _bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE]
-    return np.isin(labels, placed)
+    placed = np.zeros(count + 1, bool)
+    for index in large:
+        placed[index] = _bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE
+    out[box] = placed[labels]
+    return out
 
 
-def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray) -> np.ndarray:
+def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
+                     box: tuple[slice, ...]) -> np.ndarray:
     """TOF-MRA: what fat and marrow lie against: the scalp ``shell`` and the voxels darker than the tissue by
     ``DARK_SPREADS`` of its spreads (cortical bone, air; CSF too), with a partial-volume band of ``PV_BAND_MM`` plus
-    a voxel around them (a plate's surface voxels are a blend of it and the bone beside it)."""
-    from scipy import ndimage
-
-    dark = shell | (smooth < levels["tissue"] - DARK_SPREADS * levels["spread"])
-    if not dark.any():
-        return dark
+    a voxel around them (a plate's surface voxels are a blend of it and the bone beside it); within ``box``."""
     band = PV_BAND_MM + float(spacing.max())
-    return ndimage.distance_transform_edt(~dark, sampling=spacing) <= band
+    reach = np.ceil(band / spacing).astype(int) + 1
+    grown = tuple(slice(max(b.start - r, 0), min(b.stop + r, n)) for b, r, n in zip(box, reach, smooth.shape))
+    dark = shell[grown] | (smooth[grown] < levels["tissue"] - DARK_SPREADS * levels["spread"])
+    inner = tuple(slice(b.start - g.start, b.stop - g.start) for b, g in zip(box, grown))
+    return within_mm(dark, spacing, band)[inner]
 
 
 def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
@@ -316,11 +332,19 @@ def _dsa3d(smooth: np.ndarray, reading: VolumeReading, field_name: str):
     return smooth, mask, {"min": level}
 
 
-def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str,
-         not_vessels: np.ndarray | None = None):
-    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
-    from scipy import ndimage
+@dataclass(frozen=True)
+class _CtaGround:
+    """What a CTA reading stands on, whatever the vessels' level: bone (above ``bone_hu``), the voxels within
+    its partial-volume band (``PV_BAND_MM`` plus a voxel; bone included) and the soft tissue's level (HU)."""
 
+    bone_hu: float
+    tissue: float
+    bone: np.ndarray
+    near_bone: np.ndarray
+
+
+def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
+                field_name: str) -> _CtaGround:
     bone_hu = float(reading.vessel_max) if reading.vessel_max is not None else DEFAULT_BONE_HU
     bone = smooth > bone_hu
     soft = (smooth > SOFT_TISSUE_HU[0]) & (smooth < SOFT_TISSUE_HU[1])
@@ -328,9 +352,14 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
         raise _no_vessels(f"no soft tissue between {SOFT_TISSUE_HU[0]:.0f} and {SOFT_TISSUE_HU[1]:.0f} HU "
                           "(is this a CT in HU?)", field_name, "CTA")
     tissue = float(np.median(smooth[soft]))
-    distance_to_bone = ndimage.distance_transform_edt(~bone, sampling=spacing) if bone.any() else np.full(smooth.shape, np.inf)
-    band = PV_BAND_MM + float(spacing.max())
-    near_bone = distance_to_bone <= band
+    near_bone = within_mm(bone, spacing, PV_BAND_MM + float(spacing.max()))
+    return _CtaGround(bone_hu, tissue, bone, near_bone)
+
+
+def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _CtaGround,
+         not_vessels: np.ndarray | None = None):
+    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
+    bone_hu, tissue, bone, near_bone = ground.bone_hu, ground.tissue, ground.bone, ground.near_bone
     candidates = (smooth > tissue + 100.0) & (smooth < bone_hu) & ~near_bone
     if not_vessels is not None:
         candidates &= ~not_vessels
@@ -354,12 +383,29 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     core = largest_components(seeds, field_name=field_name)
     # regrow into the band only through voxels with no tissue-level voxel near: the lumen and wall of a vessel
     # in a bony canal (vessel and bone around), not the partial-volume layer of a bone surface (tissue beside)
-    enclosed = ndimage.minimum_filter(smooth, size=5) > level  # no tissue within 2 voxels
     steps = int(np.ceil(PV_BAND_MM / float(spacing.min()))) + 1  # the wall beside bone: the lumen is seeded
-    mask = ndimage.binary_dilation(core, iterations=steps, mask=core | (window & enclosed))
+    mask = _regrown(core, window, smooth, level, steps)
     field = _partial_volume_field(smooth, near_bone | bone, tissue, peak, bone, bone_hu)
     field[(near_bone | bone) & ~mask] = np.minimum(field[(near_bone | bone) & ~mask], tissue)  # no surface there
     return field, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
+
+
+def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: float, steps: int) -> np.ndarray:
+    """``core`` grown by ``steps`` voxels through ``window`` voxels with no tissue-level voxel within two (the
+    minimum of their 5³ neighbourhood above ``level``), within ``core``'s box grown by ``steps`` (the growth cannot
+    leave it; the minimum is taken with a 2-voxel halo, so it is the full grid's)."""
+    from scipy import ndimage
+
+    hits = np.argwhere(core)
+    low, high = np.maximum(hits.min(0) - steps, 0), np.minimum(hits.max(0) + steps + 1, core.shape)
+    outer_low, outer_high = np.maximum(low - 2, 0), np.minimum(high + 2, core.shape)
+    inner = tuple(slice(a - b, c - b) for a, b, c in zip(low, outer_low, high))
+    box, outer = (tuple(slice(a, b) for a, b in zip(lo, hi)) for lo, hi in ((low, high), (outer_low, outer_high)))
+    enclosed = ndimage.minimum_filter(smooth[outer], size=5)[inner] > level  # no tissue within 2 voxels
+    grown = ndimage.binary_dilation(core[box], iterations=steps, mask=core[box] | (window[box] & enclosed))
+    mask = np.zeros(core.shape, bool)
+    mask[box] = grown
+    return mask
 
 
 def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gradient_per_mm: float) -> np.ndarray:
@@ -403,18 +449,33 @@ def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
     return filled
 
 
-def _mra(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str,
+@dataclass(frozen=True)
+class _MraGround:
+    """What a TOF-MRA reading stands on, whatever the vessels' level: the head's interior (deeper than
+    ``MRA_SHELL_MM`` under its surface) and the tissue's level and noise spread there."""
+
+    interior: np.ndarray
+    tissue: float
+    spread: float
+
+
+def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
+                field_name: str) -> _MraGround:
+    head = _head_mask(smooth, affine)
+    interior = head & ~within_mm(~head, spacing, MRA_SHELL_MM)  # deeper than the shell under the surface
+    if interior.sum() < 1000:
+        raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
+    tissue, spread = _mode_and_upper_spread(smooth[interior])
+    return _MraGround(interior, tissue, spread)
+
+
+def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _MraGround,
          not_vessels: np.ndarray | None = None):
     """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
     from scipy import ndimage
 
-    head = _head_mask(smooth, affine)
-    depth = ndimage.distance_transform_edt(head, sampling=spacing)
-    interior = depth > MRA_SHELL_MM
-    if interior.sum() < 1000:
-        raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
+    interior, tissue, spread = ground.interior, ground.tissue, ground.spread
     values = smooth[interior]
-    tissue, spread = _mode_and_upper_spread(values)
     if not_vessels is not None:
         values = smooth[interior & ~not_vessels]
     bright = values[values > tissue + 6.0 * spread]

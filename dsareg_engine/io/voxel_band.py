@@ -1,0 +1,73 @@
+"""Which voxels lie within a distance (mm) of a mask: the band test of the volume readers, at a bounded memory.
+
+``within_mm(mask, spacing_mm, band_mm)`` is the set ``distance_transform_edt(~mask, sampling=spacing_mm) <=
+band_mm`` (voxel centres, Euclidean, per-axis spacing), computed without the full-grid transform: a full
+``scipy.ndimage.distance_transform_edt`` holds ~60 bytes per voxel at its peak (an int32 feature transform, an
+int32 index grid, their float64 difference), 5 GB for a 0.3 mm head. Here:
+
+* only the mask's bounding box grown by the band is transformed (a voxel outside it is farther than the band
+  along one axis);
+* the box is cut into slabs along the first axis, each transformed with a halo of ``ceil(band / spacing[0])``
+  slices (and one more) on both sides. A voxel within the band of the mask has its nearest mask voxel within the halo, so its
+  slab's distance is the true one; a voxel beyond the band is at least as far from the slab's mask voxels. The
+  set is therefore identical to the full transform's;
+* the distance is formed from the feature transform axis by axis, with the same float64 operations in the same
+  order as scipy's (``(feature - index) × spacing``, squared, summed over the axes, square root), so ties at the
+  band's edge fall the same way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SLAB_VOXELS = 2_000_000  # voxels of a slab's core (its halo comes on top): ~30 bytes each at the peak
+
+
+def within_mm(mask: np.ndarray, spacing_mm, band_mm: float) -> np.ndarray:
+    """bool, ``mask``'s shape: the voxels whose centre lies within ``band_mm`` of a voxel of ``mask`` (bool)."""
+    spacing = np.asarray(spacing_mm, np.float64)
+    out = np.zeros(mask.shape, bool)
+    box = _grown_box(mask, spacing, band_mm)
+    if box is None:
+        return out
+    (low, high), halo = box, int(np.ceil(band_mm / spacing[0])) + 1
+    area = int(np.prod(high[1:] - low[1:]))
+    core = max(1, SLAB_VOXELS // max(area, 1))
+    for start in range(low[0], high[0], core):
+        stop = min(start + core, high[0])
+        first, last = max(start - halo, 0), min(stop + halo, mask.shape[0])
+        part = mask[first:last, low[1]:high[1], low[2]:high[2]]
+        if not part.any():
+            continue
+        near = _slab_within(part, spacing, band_mm)
+        out[start:stop, low[1]:high[1], low[2]:high[2]] = near[start - first:stop - first]
+    return out
+
+
+def _grown_box(mask: np.ndarray, spacing: np.ndarray, band_mm: float):
+    """``(low, high)`` voxel bounds of ``mask``'s voxels grown by ``band_mm``, clipped to the grid; None if empty."""
+    hits = [np.flatnonzero(mask.any(axis=tuple(b for b in range(3) if b != a))) for a in range(3)]
+    if any(len(h) == 0 for h in hits):
+        return None
+    reach = np.ceil(band_mm / spacing).astype(int) + 1
+    low = np.maximum(np.array([h[0] for h in hits]) - reach, 0)
+    high = np.minimum(np.array([h[-1] for h in hits]) + reach + 1, mask.shape)
+    return low, high
+
+
+def _slab_within(part: np.ndarray, spacing: np.ndarray, band_mm: float) -> np.ndarray:
+    """``distance_transform_edt(~part, sampling=spacing) <= band_mm``, one axis of the feature transform at a time."""
+    from scipy import ndimage
+
+    features = ndimage.distance_transform_edt(~part, sampling=spacing, return_distances=False, return_indices=True)
+    squared = None
+    for axis in range(3):
+        index = np.arange(part.shape[axis], dtype=np.int32).reshape([-1 if b == axis else 1 for b in range(3)])
+        step = (features[axis] - index).astype(np.float64)
+        step *= spacing[axis]
+        np.multiply(step, step, step)
+        squared = step if squared is None else np.add(squared, step, out=squared)
+    return np.sqrt(squared, out=squared) <= band_mm
+
+
+__all__ = ["within_mm"]

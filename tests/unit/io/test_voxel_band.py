@@ -1,0 +1,40 @@
+"""The band test "within d mm of a mask" equals the full distance transform's, slab by slab and in a box."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from dsareg_engine.io import voxel_band
+from dsareg_engine.io.voxel_band import within_mm
+
+CASES = [  # shape, voxel mm per axis, band mm, share of mask voxels
+    ((40, 46, 34), (0.3, 0.3, 0.3), 1.3, 0.001),
+    ((30, 34, 40), (0.4, 0.4, 0.8), 1.8, 0.004),
+    ((36, 30, 30), (0.5, 0.5, 0.5), 1.5, 0.0005),  # ties: 1.5 mm is 3 voxels exactly
+    ((34, 30, 24), (0.3, 0.35, 0.6), 7.0, 0.0003),
+    ((24, 24, 24), (1.0, 1.0, 1.0), 2.0, 0.3),
+]
+
+
+@pytest.mark.parametrize("shape, spacing, band, share", CASES)
+@pytest.mark.parametrize("slab_voxels", [300, 4000, 10**7])
+def test_the_band_is_the_distance_transforms(monkeypatch, shape, spacing, band, share, slab_voxels):
+    rng = np.random.default_rng(len(shape) + int(10 * band))
+    mask = rng.random(shape) < share
+    mask[:, :2] |= rng.random((shape[0], 2, shape[2])) < 0.5  # a plate along one face, as a skull
+    monkeypatch.setattr(voxel_band, "SLAB_VOXELS", slab_voxels)
+    expected = ndimage.distance_transform_edt(~mask, sampling=spacing) <= band
+    assert np.array_equal(within_mm(mask, spacing, band), expected)
+
+
+def test_an_empty_mask_has_an_empty_band():
+    assert not within_mm(np.zeros((5, 6, 7), bool), (0.5, 0.5, 0.5), 2.0).any()
+
+
+def test_a_single_voxels_band_is_its_ellipsoid():
+    mask = np.zeros((21, 21, 11), bool)
+    mask[10, 10, 5] = True
+    band = within_mm(mask, (0.5, 0.5, 1.0), 2.0)
+    i, j, k = np.indices(mask.shape)
+    ellipsoid = ((i - 10) * 0.5) ** 2 + ((j - 10) * 0.5) ** 2 + ((k - 5) * 1.0) ** 2 <= 4.0
+    assert np.array_equal(band, ellipsoid) and band.sum() == ellipsoid.sum() > 50
