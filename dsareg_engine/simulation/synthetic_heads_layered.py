@@ -7,6 +7,8 @@
 * **TOF-MRA** (:func:`make_layered_mra_head`): a smooth multiplicative coil inhomogeneity (±25 %), a slab of
   bright marrow fat in the skull base deeper than the scalp (as the clivus is) between dark cortical plates (the
   CTA's skull base: marrow lies inside bone), Rician noise.
+* **Cisterns** (``cisterns``, off by default; :mod:`.cisterns`): CSF around the proximal tree above the skull base,
+  8 HU in the CTA, 100 in the TOF-MRA (0.43 of the brain's 230; bone 50, air 0: CSF has a signal, bone none).
 
 Any tree can be placed (``tree``: the phantom's, or the paper's mesh turned trunk-up); voxels may be
 anisotropic (``voxel_mm`` per axis). The series are written by :mod:`.synthetic_volume_dicom` (layout "a").
@@ -17,12 +19,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import TriangleMesh
+from .cisterns import CSF_HU, Cisterns, cistern_mask
 from .synthetic_volumes import SyntheticVolume, _smooth_field, vessel_tree
 
 CTA_LEVELS = {"air": -1000.0, "scalp": 30.0, "table": 1600.0, "diploe": 450.0, "brain": 38.0, "vessel": 380.0,
-              "base_core": 550.0, "base_cortex": 1400.0}
+              "base_core": 550.0, "base_cortex": 1400.0, "csf": CSF_HU}
 MRA_LEVELS = {"air": 0.0, "scalp": 200.0, "fat": 480.0, "bone": 50.0, "brain": 230.0, "vessel": 600.0,
-              "vessel_distal": 470.0, "marrow": 520.0}
+              "vessel_distal": 470.0, "marrow": 520.0, "csf": 100.0}
 TABLE_MM, DIPLOE_MM, SCALP_MM = 1.5, 3.0, 5.0
 BASE_MM, BASE_CORTEX_MM = 8.0, 1.5
 FINE_MM = 0.15  # the finest grid the tree is filled on
@@ -91,9 +94,16 @@ def _finish(volume, noise_sigma, rng, *, streak_axis: int | None, rician: bool, 
     return (blurred + noise()).astype(np.float32)
 
 
+def _fill_cisterns(volume, brain, occupancy, spacing, z, floor_z_mm: float, cisterns: Cisterns | None, csf: float):
+    """Set the cisterns' voxels (in the brain, above the skull base's top ``floor_z_mm``) to ``csf``, in place."""
+    if cisterns is not None:
+        volume[cistern_mask(occupancy, spacing, z, floor_z_mm, cisterns) & brain] = csf
+
+
 def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, seed: int = 3,
-                          min_head_mm=(45.0, 55.0, 45.0)) -> SyntheticVolume:
-    """A CTA series of ``tree`` (default: the phantom's) in a skull with diploë and a cancellous skull base."""
+                          min_head_mm=(45.0, 55.0, 45.0), cisterns: Cisterns | None = None) -> SyntheticVolume:
+    """A CTA series of ``tree`` (default: the phantom's) in a skull with diploë and a cancellous skull base; CSF
+    cisterns around its proximal part when ``cisterns`` is given."""
     from .synthetic_volume_dicom import cta_series
 
     rng = np.random.default_rng(seed + 303)
@@ -114,6 +124,7 @@ def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     volume[base] = level["base_cortex"]
     core = brain & (z >= low[2] + 4.0 + BASE_CORTEX_MM) & (z < low[2] + 4.0 + BASE_MM - BASE_CORTEX_MM)
     volume[core] = level["base_core"] + 80.0 * texture[core]
+    _fill_cisterns(volume, brain, occupancy, spacing, z, low[2] + 4.0 + BASE_MM, cisterns, level["csf"])
     volume = volume * (1.0 - occupancy) + level["vessel"] * occupancy
     sigma = 9.0 + 10.0 * np.clip(1.0 - (z - low[2]) / 40.0, 0.0, 1.0)  # noisier toward the skull base
     data = _finish(volume, sigma.astype(np.float32), rng, streak_axis=2, rician=False)
@@ -122,8 +133,9 @@ def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
 
 
 def make_layered_mra_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, seed: int = 3,
-                          min_head_mm=(45.0, 55.0, 45.0)) -> SyntheticVolume:
-    """A TOF-MRA series of ``tree`` with a coil inhomogeneity and bright marrow fat in the skull base."""
+                          min_head_mm=(45.0, 55.0, 45.0), cisterns: Cisterns | None = None) -> SyntheticVolume:
+    """A TOF-MRA series of ``tree`` with a coil inhomogeneity and bright marrow fat in the skull base; CSF cisterns
+    around its proximal part when ``cisterns`` is given."""
     from .synthetic_volume_dicom import mra_series
 
     rng = np.random.default_rng(seed + 404)
@@ -143,6 +155,7 @@ def make_layered_mra_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     volume[base & (depth < -10.0 + BASE_CORTEX_MM)] = level["bone"]  # cortical plates around the marrow
     core = (z >= low[2] + 4.0 + BASE_CORTEX_MM) & (z < low[2] + 4.0 + BASE_MM - BASE_CORTEX_MM)
     volume[core & (depth < -10.0)] = level["marrow"]
+    _fill_cisterns(volume, brain, occupancy, spacing, z, low[2] + 4.0 + BASE_MM, cisterns, level["csf"])
     fraction = np.clip((z - low[2]) / max(high[2] - low[2], 1e-6), 0.0, 1.0)
     vessel = level["vessel"] + (level["vessel_distal"] - level["vessel"]) * fraction
     volume = volume * (1.0 - occupancy) + vessel * occupancy

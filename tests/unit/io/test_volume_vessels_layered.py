@@ -69,20 +69,20 @@ def _tube(start, end, radius_mm, end_radius_mm=None):
     return swept(line, np.linspace(radius_mm, end_radius_mm or radius_mm, 8), 12)
 
 
-def _tree_with_a_folded_loop(rungs: int = 3, radius_mm: float = 1.8):
-    """A trunk (+z) into a loop folded flat (``rungs`` 16 mm rungs 5 mm apart in one plane, r ``radius_mm``:
+def _tree_with_a_folded_loop(rungs: int = 3, radius_mm: float = 1.8, apart_mm: float = 5.0):
+    """A trunk (+z) into a loop folded flat (``rungs`` 16 mm rungs ``apart_mm`` apart in one plane, r ``radius_mm``:
     close-packed vessels that read plate-like on the medial measure at 1 mm, as the paper's carotid bulge does), then
     two branches with two children each."""
     from dsareg_engine.mesh import TriangleMesh
 
     parts = [_tube((0, 0, -40), (0, 0, 0), 2.4, 2.2)]
-    top = 5.0 * (rungs - 1)
+    top = apart_mm * (rungs - 1)
     for rung in range(rungs):
-        z = 5.0 * rung
+        z = apart_mm * rung
         x0, x1 = (0.0, 16.0) if rung % 2 == 0 else (16.0, 0.0)
         parts.append(_tube((x0, 0, z), (x1, 0, z), radius_mm))
         if z < top:
-            parts.append(_tube((x1, 0, z), (x1, 0, z + 5.0), radius_mm))
+            parts.append(_tube((x1, 0, z), (x1, 0, z + apart_mm), radius_mm))
     end = np.array([16.0 if rungs % 2 else 0.0, 0.0, top])
     for dx, dy in ((-20.0, 12.0), (18.0, -14.0)):
         middle = end + (dx, dy, 22.0)
