@@ -121,7 +121,9 @@ def test_registration_tolerates_simulated_segmentation_errors(phantom, synthetic
     rng = np.random.default_rng(0)
     noisy = {view: corrupt(mask, "all", rng) for view, mask in masks.items()}
     assert all((noisy[view] != masks[view]).sum() > 0.3 * masks[view].sum() for view in masks)
-    result = register(phantom, noisy, rig, RegistrationOptions(ground_truth_mesh_to_world=np.eye(4).tolist()))
+    # the pose only: no mirror fit (the corrupted masks' Dice is below its trigger; it would not move the pose)
+    result = register(phantom, noisy, rig, RegistrationOptions(ground_truth_mesh_to_world=np.eye(4).tolist(),
+                                                               mirror_check=False))
     assert result.metrics["ground_truth"]["add_mm"] < 1.0
 
 
