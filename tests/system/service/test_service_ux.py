@@ -255,7 +255,9 @@ def test_generated_client_talks_to_the_server(ux_server, finished_jobs, example_
         assert status.result.verdict in list(models.Verdict) and status.verdict == status.result.verdict
         assert isinstance(status.result.metrics.confidence, models.Confidence)
         with ux_server.client() as c:
-            swapped = submit(c, example_case, options=QUICK, names=("m.obj", "lat.png", "ap.png"),
+            # failed on its Dice (< 0.1) whether or not the mirror is fitted (2.3 CPU-s at 128 px): not fitted
+            swapped = submit(c, example_case, options={**QUICK, "mirror_check": False},
+                             names=("m.obj", "lat.png", "ap.png"),
                              files_override={"ap": example_case.lat_png, "lat": example_case.ap_png}).json()
         wait_for_typed = time.monotonic() + 180
         while (job := get_job.sync(client=client, job_id=swapped["id"])).status.value in ("queued", "running"):

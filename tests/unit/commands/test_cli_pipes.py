@@ -46,8 +46,13 @@ def register_args(case: Path, out: Path, *, swapped: bool = False) -> list[str]:
     ap, lat = (case / "masks" / "lat.png", case / "masks" / "ap.png") if swapped else (
         case / "masks" / "ap.png", case / "masks" / "lat.png")
     return ["register", "--mesh", str(case / "mesh.ply"), "--ap", str(ap), "--lat", str(lat),
-            "--geometry", str(case / "geometry.json"), "--options", '{"starts": 1, "max_iterations": 40}',
+            "--geometry", str(case / "geometry.json"), "--options", SWAPPED_OPTIONS if swapped else OPTIONS,
             "--out", str(out)]
+
+
+OPTIONS = '{"starts": 1, "max_iterations": 40}'
+# a swapped pair fails on its Dice (< 0.1) whether or not the mirror is fitted (3 CPU-s at 160 px): not fitted
+SWAPPED_OPTIONS = '{"starts": 1, "max_iterations": 40, "mirror_check": false}'
 
 
 def test_register_in_a_pipe_writes_lines_and_the_summary_alone_on_stdout(case, tmp_path):
