@@ -12,9 +12,13 @@ import pytest
 
 from dsareg_engine.render import compile_lock
 
+# The lock module alone, from its file (so the same install key and lock path): the package's __init__ loads torch and
+# the renderer, which holding a lock does not need (1.2 -> 0.35 CPU-s a holder, load 7).
 HOLDER = textwrap.dedent("""
-    import sys, time
-    from dsareg_engine.render import compile_lock
+    import importlib.util, sys, time
+    spec = importlib.util.spec_from_file_location("dsareg_engine.render.compile_lock", sys.argv[3])
+    compile_lock = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compile_lock)
     with compile_lock.compiling_group(sys.argv[1]):
         print("held", flush=True)
         time.sleep(float(sys.argv[2]))
@@ -31,7 +35,8 @@ def group(request):
 
 def _holder(group: str, seconds: float) -> subprocess.Popen:
     """A real process holding the group's lock (as the background compile helper does) for ``seconds``."""
-    process = subprocess.Popen([sys.executable, "-c", HOLDER, group, str(seconds)], stdout=subprocess.PIPE, text=True,
+    process = subprocess.Popen([sys.executable, "-c", HOLDER, group, str(seconds), compile_lock.__file__],
+                               stdout=subprocess.PIPE, text=True,
                                env={**os.environ, "NUMBA_NUM_THREADS": str(compile_lock._threads())})
     assert process.stdout.readline().strip() == "held"
     return process
