@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import ctypes.util
 import logging
 import os
 import signal
@@ -35,6 +34,13 @@ PR_SET_PDEATHSIG = 1
 PR_SET_NAME = 15
 
 
+def _libc() -> ctypes.CDLL:
+    """The C library this process has loaded (``dlopen(NULL)``). Not ``ctypes.util.find_library("c")``: that forks
+    ``ldconfig -p``, a child that carries this process's name until it execs (a test looking for the one
+    ``dsareg-worker0`` found two) and costs a process start for one path."""
+    return ctypes.CDLL(None, use_errno=True)
+
+
 def die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> bool:
     """Ask the kernel to send ``sig`` to this process when its parent dies (Linux only).
 
@@ -44,8 +50,7 @@ def die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        if libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
+        if _libc().prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
             return False
     except OSError:
         return False
@@ -60,8 +65,7 @@ def set_process_name(name: str) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        return libc.prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0) == 0
+        return _libc().prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0) == 0
     except OSError:
         return False
 

@@ -22,11 +22,13 @@ FAST = {"starts": 1, "max_iterations": 10}
 
 
 def _named(root_pid: int, name: str) -> list[int]:
-    """Live descendants of ``root_pid`` whose kernel name (``/proc/<pid>/comm``) is ``name``."""
+    """Live children of ``root_pid`` whose kernel name (``/proc/<pid>/comm``) is ``name`` (not grandchildren: a child
+    a worker forks carries the worker's name until it execs)."""
     found = []
     for pid in descendants(root_pid):
         try:
-            if Path(f"/proc/{pid}/comm").read_text().strip() == name:
+            parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            if parent == root_pid and Path(f"/proc/{pid}/comm").read_text().strip() == name:
                 found.append(pid)
         except OSError:
             pass
