@@ -507,23 +507,23 @@ def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
 
 def surface_from_mask(smooth: np.ndarray, mask: np.ndarray, level: float, affine: np.ndarray, *,
                       field_name: str = "volume") -> TriangleMesh:
-    """Marching cubes of ``smooth`` at ``level`` around the kept voxels ``mask`` (elsewhere: the field's floor; only
-    the mask's box is marched), enclosed cavities filled; vertices mapped through ``affine`` to world mm, normals outward."""
+    """Marching cubes of ``smooth`` at ``level`` around the kept voxels ``mask`` (elsewhere: the field's floor),
+    enclosed cavities filled; vertices mapped through ``affine`` to world mm, normals outward. The field is built
+    in the mask's box; the whole padded grid is marched (the vertices' float32 indices are the whole grid's)."""
     from scipy import ndimage
     from skimage.measure import marching_cubes
 
     floor = float(smooth.min())
-    hits = np.argwhere(mask) if mask.any() else np.zeros((1, 3), int)
-    low = np.maximum(hits.min(0) - 3, 0)  # the field is the floor beyond 2 voxels of the mask: its box + 3
-    box = tuple(slice(a, b) for a, b in zip(low, np.minimum(hits.max(0) + 4, mask.shape)))
-    field = np.where(ndimage.binary_dilation(mask[box], iterations=2), smooth[box], floor)
+    box = bounding_box(mask, margin=3) or tuple(slice(0, n) for n in mask.shape)  # the floor beyond 2 voxels
+    padded = tuple(slice(b.start + 1, b.stop + 1) for b in box)
+    field = np.full([n + 2 for n in mask.shape], floor, np.result_type(smooth, floor))  # padded by one voxel
+    field[padded] = np.where(ndimage.binary_dilation(mask[box], iterations=2), smooth[box], floor)
     cavities = ndimage.binary_fill_holes(mask[box]) & ~mask[box]  # a vessel lumen has no enclosed voids
-    field[cavities] = max(float(smooth.max()), level + 1.0)
-    field = np.pad(field, 1, constant_values=floor)
+    field[padded][cavities] = max(float(smooth.max()), level + 1.0)
     vertices, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
     if len(faces) == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    vertices = vertices.astype(np.float64) + (low - 1.0)  # undo the padding and the box
+    vertices = vertices - 1.0  # undo the padding
     world = vertices @ affine[:3, :3].T + affine[:3, 3]
     faces = faces.astype(np.int64)
     if np.linalg.det(affine[:3, :3]) < 0:
