@@ -88,45 +88,79 @@ def _assert_invariants(srv: Server, ids: list[str], timeout: float = 240) -> Non
                                                                                     srv.logs()[-4000:])
 
 
-def test_sigkill_idle_worker_then_busy_worker(tmp_path, case, slow_case):
-    """Killing an idle worker used to leave the shared wake-up lock held: every later POST hung. A killed busy
-    worker's job is requeued as soon as the supervisor sees the death, not when its (30 s) lease ends."""
-    srv = Server(tmp_path / "data", workers=2, env={"DSAREG_LEASE_SECONDS": "30"}).start()
+@pytest.fixture(scope="module")
+def two_workers(tmp_path_factory):
+    """A 2-worker server with 30 s leases for the worker-kill and slow-loris tests (each asserts on its own jobs and
+    its own part of the log; the server replaces the workers the kill test kills); SIGTERMed after the last of them,
+    nothing of it left running."""
+    srv = Server(tmp_path_factory.mktemp("two-workers") / "data", workers=2, env={"DSAREG_LEASE_SECONDS": "30"})
     try:
-        with srv.client() as client:
-            ids = [submit(client, case, FAST).json()["id"]]  # also warms the validator's cache
-            _wait_idle(srv, 2)
-            idle = _worker_pids(srv)
-            time.sleep(1.0)  # both idle inside their wait
-            os.kill(idle[0], signal.SIGKILL)
-            time.sleep(0.3)
-            response, took = timed_post(client, case, {**FAST, "seed": 1})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
-            ids.append(response.json()["id"])
-            deadline = time.monotonic() + 120
-            while len(_worker_pids(srv)) < 2 and time.monotonic() < deadline:  # the replaced idle one warmed up
-                time.sleep(0.2)  # (before the slow job starts: waiting while it ran let it finish before the kill)
-            busy = submit(client, slow_case, {**SLOW, "seed": 2}).json()["id"]
-            ids.append(busy)
-            body = wait_for(client, busy, statuses=("running",), timeout=60,
-                            predicate=lambda b: (b.get("progress") or {}).get("iteration", 0) > 0)
-            (worker_id,) = _rows(srv.data_dir, "SELECT worker_id FROM jobs WHERE id=?", (busy,))[0]
-            os.kill(int(worker_id.split("-")[-3]), signal.SIGKILL)
-            killed_at = time.time()
-            response, took = timed_post(client, case, {**FAST, "seed": 3})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
-            ids.append(response.json()["id"])
-            _assert_invariants(srv, ids)
-            assert body["status"] == "running" and _events(srv.data_dir)(busy).count("claimed") == 2
-            at = dict(_rows(srv.data_dir, "SELECT event, max(at) FROM job_events WHERE job_id=? GROUP BY event", (busy,)))
-            requeue_s, claim_s = at["lease_expired"] - killed_at, at["claimed"] - killed_at
-            print(f"\nbusy worker SIGKILLed: its job requeued after {requeue_s:.2f} s, claimed again after "
-                  f"{claim_s:.2f} s (lease 30 s)")
-            assert requeue_s <= 5.0 and claim_s <= 15.0, (requeue_s, claim_s)
-            assert len(_wait_idle(srv, 2)) == 2  # the supervisor replaced both
+        yield srv.start()
     finally:
         if srv.alive():
             assert _terminate(srv) == set(), "processes left after SIGTERM"
+
+
+def test_sigkill_idle_worker_then_busy_worker(two_workers, case, slow_case):
+    """Killing an idle worker used to leave the shared wake-up lock held: every later POST hung. A killed busy
+    worker's job is requeued as soon as the supervisor sees the death, not when its (30 s) lease ends."""
+    srv = two_workers
+    with srv.client() as client:
+        ids = [submit(client, case, FAST).json()["id"]]  # also warms the validator's cache
+        _wait_idle(srv, 2)
+        idle = _worker_pids(srv)
+        time.sleep(1.0)  # both idle inside their wait
+        os.kill(idle[0], signal.SIGKILL)
+        time.sleep(0.3)
+        response, took = timed_post(client, case, {**FAST, "seed": 1})
+        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        ids.append(response.json()["id"])
+        deadline = time.monotonic() + 120
+        while len(_worker_pids(srv)) < 2 and time.monotonic() < deadline:  # the replaced idle one warmed up
+            time.sleep(0.2)  # (before the slow job starts: waiting while it ran let it finish before the kill)
+        busy = submit(client, slow_case, {**SLOW, "seed": 2}).json()["id"]
+        ids.append(busy)
+        body = wait_for(client, busy, statuses=("running",), timeout=60,
+                        predicate=lambda b: (b.get("progress") or {}).get("iteration", 0) > 0)
+        (worker_id,) = _rows(srv.data_dir, "SELECT worker_id FROM jobs WHERE id=?", (busy,))[0]
+        os.kill(int(worker_id.split("-")[-3]), signal.SIGKILL)
+        killed_at = time.time()
+        response, took = timed_post(client, case, {**FAST, "seed": 3})
+        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        ids.append(response.json()["id"])
+        _assert_invariants(srv, ids)
+        assert body["status"] == "running" and _events(srv.data_dir)(busy).count("claimed") == 2
+        at = dict(_rows(srv.data_dir, "SELECT event, max(at) FROM job_events WHERE job_id=? GROUP BY event", (busy,)))
+        requeue_s, claim_s = at["lease_expired"] - killed_at, at["claimed"] - killed_at
+        print(f"\nbusy worker SIGKILLed: its job requeued after {requeue_s:.2f} s, claimed again after "
+              f"{claim_s:.2f} s (lease 30 s)")
+        assert requeue_s <= 5.0 and claim_s <= 15.0, (requeue_s, claim_s)
+        assert len(_wait_idle(srv, 2)) == 2  # the supervisor replaced both
+
+
+def test_slow_loris_and_client_disconnect_do_not_hurt(two_workers, case):
+    """Uploads that stall or vanish mid-body: other requests are served, nothing is logged as an error."""
+    srv = two_workers
+    logged_before = len(srv.logs())
+    with srv.client() as client:
+        ids = [submit(client, case, FAST).json()["id"]]  # warms the validator's cache
+        slow = [partial_multipart(srv.port, 10_000_000, MULTIPART_START + b"v 0 0 0\n") for _ in range(8)]
+        for sock in slow[:4]:
+            sock.sendall(b"v 1 0 0\n")  # trickle
+        response, took = timed_post(client, case, {**FAST, "seed": 1})
+        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        ids.append(response.json()["id"])
+        assert client.get("/healthz", timeout=1).status_code == 200
+        for sock in slow:  # the clients give up mid-upload
+            sock.close()
+        time.sleep(1.0)
+        response, took = timed_post(client, case, {**FAST, "seed": 2})
+        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        ids.append(response.json()["id"])
+        _assert_invariants(srv, ids)
+        metrics = client.get("/metrics").text
+    assert 'status="500"' not in metrics, [line for line in metrics.splitlines() if 'status="5' in line]
+    assert " ERROR " not in srv.logs()[logged_before:], srv.logs()[-3000:]
 
 
 def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case, slow_case):
@@ -153,30 +187,3 @@ def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case,
         _assert_invariants(second, ids)
     finally:
         assert _terminate(second) == set()
-
-
-def test_slow_loris_and_client_disconnect_do_not_hurt(tmp_path, case):
-    """Uploads that stall or vanish mid-body: other requests are served, nothing is logged as an error."""
-    srv = Server(tmp_path / "data", workers=1).start()
-    try:
-        with srv.client() as client:
-            ids = [submit(client, case, FAST).json()["id"]]  # warms the validator's cache
-            slow = [partial_multipart(srv.port, 10_000_000, MULTIPART_START + b"v 0 0 0\n") for _ in range(8)]
-            for sock in slow[:4]:
-                sock.sendall(b"v 1 0 0\n")  # trickle
-            response, took = timed_post(client, case, {**FAST, "seed": 1})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
-            ids.append(response.json()["id"])
-            assert client.get("/healthz", timeout=1).status_code == 200
-            for sock in slow:  # the clients give up mid-upload
-                sock.close()
-            time.sleep(1.0)
-            response, took = timed_post(client, case, {**FAST, "seed": 2})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
-            ids.append(response.json()["id"])
-            _assert_invariants(srv, ids)
-            metrics = client.get("/metrics").text
-        assert 'status="500"' not in metrics, [line for line in metrics.splitlines() if 'status="5' in line]
-        assert " ERROR " not in srv.logs(), srv.logs()[-3000:]
-    finally:
-        assert _terminate(srv) == set()
