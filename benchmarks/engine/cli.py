@@ -196,6 +196,8 @@ def _add_clinical(which) -> None:
     sub.add_argument("--trees", nargs="*", default=[], choices=["phantom", "mesh"],
                      help="--sweep volumes: only these vessel trees")
     sub.add_argument("--cells-out", metavar="FILE.jsonl", help="--sweep volumes: also append one JSON line per cell")
+    sub.add_argument("--cisterns", action="store_true", help="--sweep volumes: generator B's heads with CSF cisterns "
+                     "around the proximal tree (dsareg_engine.simulation.cisterns.Cisterns(); generator A has none)")
     sub.set_defaults(func=deferred("benchmarks.engine.clinical:bench_clinical"))
 
 

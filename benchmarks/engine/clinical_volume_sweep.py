@@ -59,9 +59,11 @@ def cells(*, mesh: bool, kinds=KINDS, generators=GENERATORS, trees=("phantom", "
     return [VolumeCell(k, g, t, tuple(v)) for t in trees for v in voxels for k in kinds for g in generators]
 
 
-def build_cell(cell: VolumeCell, tree_mesh=None, seed: int = 0):
+def build_cell(cell: VolumeCell, tree_mesh=None, seed: int = 0, cisterns: bool = False):
     """The :class:`~benchmarks.engine.clinical_volumes.VolumeCaseFiles` of ``cell`` (``tree_mesh``:
-    the mesh tree, already turned trunk-up, for ``cell.tree == "mesh"``)."""
+    the mesh tree, already turned trunk-up, for ``cell.tree == "mesh"``; ``cisterns``: generator B's head with CSF
+    cisterns, :class:`~dsareg_engine.simulation.cisterns.Cisterns`)."""
+    from dsareg_engine.simulation.cisterns import Cisterns
     from dsareg_engine.io.case import CaseFiles
     from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
     from dsareg_engine.simulation.synthetic_volumes import (fitting_pixel_spacing_mm, make_cta_head, make_tof_mra_head,
@@ -74,7 +76,7 @@ def build_cell(cell: VolumeCell, tree_mesh=None, seed: int = 0):
         volume = maker("a", voxel_mm=cell.voxel_mm, seed=3 + seed, tree=tree)
     else:
         maker = make_layered_cta_head if cell.kind == "cta" else make_layered_mra_head
-        volume = maker(voxel_mm=cell.voxel_mm, tree=tree, seed=3 + seed)
+        volume = maker(voxel_mm=cell.voxel_mm, tree=tree, seed=3 + seed, cisterns=Cisterns() if cisterns else None)
     case = volume_case_of(volume, image_px=IMAGE_PX, pixel_spacing_mm=fitting_pixel_spacing_mm(tree, IMAGE_PX))
     files = CaseFiles(ap=case.ap, ap_name="ap.dcm", lat=case.lat, lat_name="lat.dcm", volume=volume.parts,
                       volume_name="series.dcm")
@@ -102,13 +104,14 @@ def bench_volumes(args) -> int:
     chosen = cells(mesh=args.mesh is not None, kinds=kinds, generators=args.generators or GENERATORS,
                    trees=args.trees or ("phantom", "mesh"), voxels=voxels)
     tree_mesh = _mesh_tree(args.mesh)
-    print(f"{len(chosen)} cell(s), one case each (seed {args.seed}); {IMAGE_PX} px; no geometry file, no initial pose")
+    print(f"{len(chosen)} cell(s), one case each (seed {args.seed}); {IMAGE_PX} px; no geometry file, no initial pose"
+          + ("; generator B with CSF cisterns" if getattr(args, "cisterns", False) else ""))
     print("| kind | gen | tree | voxel mm | voxels kept | plate share | faces | ADD mm | verdict | read CPU s | "
           "job CPU s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     for cell in chosen:
-        row = _run_cell(cell, tree_mesh, args.seed, run_row)
+        row = _run_cell(cell, tree_mesh, args.seed, run_row, getattr(args, "cisterns", False))
         rows.append(row)
         print(f"| {cell.kind.upper() if cell.kind == 'cta' else 'TOF-MRA'} | {cell.generator} | {cell.tree} | "
               f"{voxel_text(cell.voxel_mm)} | {row.get('voxels_kept', '')} | {_num(row.get('plate_share'), 2)} | "
@@ -121,10 +124,10 @@ def bench_volumes(args) -> int:
     return 0
 
 
-def _run_cell(cell: VolumeCell, tree_mesh, seed: int, run_row) -> dict:
+def _run_cell(cell: VolumeCell, tree_mesh, seed: int, run_row, cisterns: bool = False) -> dict:
     from dsareg_engine.errors import DsaregInputError
 
-    case = build_cell(cell, tree_mesh, seed)
+    case = build_cell(cell, tree_mesh, seed, cisterns)
     try:
         return run_row(lambda *_: case)
     except DsaregInputError as error:  # a refusal is a cell's result too

@@ -52,6 +52,7 @@ VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
 BONE_CONTACT_SHARE = 0.5  # CTA/MRA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
 DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spreads: bone, air (CSF too)
+VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the way from the noise floor to the tissue
 PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
 
@@ -166,7 +167,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`_bone_plates`), in a box
         if kind == "cta":
             return lambda box: excluded[box]
-        return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box)
+        return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
 
     field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
     mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
@@ -239,14 +240,18 @@ def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
-                     box: tuple[slice, ...]) -> np.ndarray:
-    """TOF-MRA: what fat and marrow lie against: the scalp ``shell`` and the voxels darker than the tissue by
-    ``DARK_SPREADS`` of its spreads (cortical bone, air; CSF too), with a partial-volume band of ``PV_BAND_MM`` plus
-    a voxel around them (a plate's surface voxels are a blend of it and the bone beside it); within ``box``."""
+                     box: tuple[slice, ...], air: float) -> np.ndarray:
+    """TOF-MRA: what fat and marrow lie against: the scalp ``shell`` and the signal voids (cortical bone, air: no
+    signal, at the noise floor ``air``), with a partial-volume band of ``PV_BAND_MM`` plus a voxel around them (a
+    plate's surface voxels are a blend of it and the bone beside it); within ``box``. A void is darker than the
+    tissue by ``DARK_SPREADS`` of its spreads and within ``VOID_SHARE`` of the way from the floor to the tissue: CSF
+    is dark too, but it has a signal (~0.4 of the brain's), and vessels run through CSF cisterns."""
     band = PV_BAND_MM + float(spacing.max())
     reach = np.ceil(band / spacing).astype(int) + 1
     grown = tuple(slice(max(b.start - r, 0), min(b.stop + r, n)) for b, r, n in zip(box, reach, smooth.shape))
-    dark = shell[grown] | (smooth[grown] < levels["tissue"] - DARK_SPREADS * levels["spread"])
+    tissue = levels["tissue"]
+    void = min(tissue - DARK_SPREADS * levels["spread"], air + VOID_SHARE * (tissue - air))
+    dark = shell[grown] | (smooth[grown] < void)
     inner = tuple(slice(b.start - g.start, b.stop - g.start) for b, g in zip(box, grown))
     return within_mm(dark, spacing, band)[inner]
 
@@ -452,11 +457,13 @@ def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class _MraGround:
     """What a TOF-MRA reading stands on, whatever the vessels' level: the head's interior (deeper than
-    ``MRA_SHELL_MM`` under its surface) and the tissue's level and noise spread there."""
+    ``MRA_SHELL_MM`` under its surface) and the tissue's level and noise spread there; ``air``: the noise floor
+    (the median outside the head; else the volume's 1st percentile)."""
 
     interior: np.ndarray
     tissue: float
     spread: float
+    air: float
 
 
 def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
@@ -466,7 +473,9 @@ def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
     if interior.sum() < 1000:
         raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
     tissue, spread = _mode_and_upper_spread(smooth[interior])
-    return _MraGround(interior, tissue, spread)
+    outside = smooth[::2, ::2, ::2][~head[::2, ::2, ::2]]
+    air = float(np.median(outside)) if outside.size >= 1000 else float(np.percentile(smooth[::2, ::2, ::2], 1.0))
+    return _MraGround(interior, tissue, spread, air)
 
 
 def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _MraGround,
