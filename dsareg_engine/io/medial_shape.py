@@ -65,7 +65,7 @@ def medial_ratio(work: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    depth = ndimage.distance_transform_edt(np.pad(work, 1))[1:-1, 1:-1, 1:-1] * WORK_MM
+    depth = _depth_vox(work) * WORK_MM
     slope = np.sqrt(sum(g ** 2 for g in np.gradient(depth, WORK_MM)))
     top = ndimage.maximum_filter(depth, size=5)
     thin = ndimage.maximum_filter(depth, size=3) <= WORK_MM  # a structure two voxels across: all medial
@@ -113,6 +113,22 @@ def medial_shape(mask: np.ndarray, spacing_mm, *, with_parts: bool = False) -> M
             : part[0], : part[1], : part[2]]
         plate[region] = (back >= 0.5) & mask[region]
     return MedialShape(share, len(points), plate)
+
+
+def _depth_vox(work: np.ndarray) -> np.ndarray:
+    """The distance (voxels) of each voxel of ``work`` to the nearest voxel outside it (the grid's border is
+    outside), 0 outside: the Euclidean distance transform, as nearest-point queries of the inside voxels against
+    the outside voxels that touch them (the nearest outside voxel always does), not a transform of the whole box."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    padded = np.pad(work, 1)
+    edge = ndimage.binary_dilation(padded) & ~padded
+    inside = np.argwhere(padded)
+    depth = np.zeros(padded.shape)
+    if len(inside):
+        depth[tuple(inside.T)] = cKDTree(np.argwhere(edge)).query(inside)[0]
+    return depth[1:-1, 1:-1, 1:-1]
 
 
 def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) -> np.ndarray:
