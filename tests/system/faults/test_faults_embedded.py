@@ -88,6 +88,32 @@ def _assert_invariants(srv: Server, ids: list[str], timeout: float = 240) -> Non
                                                                                     srv.logs()[-4000:])
 
 
+def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case, slow_case):
+    """A SIGKILLed server (only its own pid) takes its workers with it; the next server runs every job once."""
+    data = tmp_path / "data"
+    first = Server(data, workers=1).start()
+    with first.client() as client:
+        ids = [submit(client, slow_case, {**SLOW, "seed": 0}).json()["id"],  # running when the server dies
+               submit(client, case, {**FAST, "seed": 1}).json()["id"]]  # queued behind it: need not be slow
+        wait_for(client, ids[0], statuses=("running",), timeout=60)
+    tree = descendants(first.process.pid)
+    assert tree, "the server has no child processes"
+    os.kill(first.process.pid, signal.SIGKILL)
+    first.process.wait(10)
+    first.log.close()
+    first.process = None
+    assert wait_gone(tree, 15) == set(), "worker/validator processes outlived the SIGKILLed server"
+    second = Server(data, workers=2).start()
+    try:
+        with second.client() as client:
+            response, took = timed_post(client, case, {**FAST, "seed": 7})
+            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+            ids.append(response.json()["id"])
+        _assert_invariants(second, ids)
+    finally:
+        assert _terminate(second) == set()
+
+
 @pytest.fixture(scope="module")
 def two_workers(tmp_path_factory):
     """A 2-worker server with 30 s leases for the worker-kill and slow-loris tests (each asserts on its own jobs and
@@ -161,29 +187,3 @@ def test_slow_loris_and_client_disconnect_do_not_hurt(two_workers, case):
         metrics = client.get("/metrics").text
     assert 'status="500"' not in metrics, [line for line in metrics.splitlines() if 'status="5' in line]
     assert " ERROR " not in srv.logs()[logged_before:], srv.logs()[-3000:]
-
-
-def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case, slow_case):
-    """A SIGKILLed server (only its own pid) takes its workers with it; the next server runs every job once."""
-    data = tmp_path / "data"
-    first = Server(data, workers=1).start()
-    with first.client() as client:
-        ids = [submit(client, slow_case, {**SLOW, "seed": 0}).json()["id"],  # running when the server dies
-               submit(client, case, {**FAST, "seed": 1}).json()["id"]]  # queued behind it: need not be slow
-        wait_for(client, ids[0], statuses=("running",), timeout=60)
-    tree = descendants(first.process.pid)
-    assert tree, "the server has no child processes"
-    os.kill(first.process.pid, signal.SIGKILL)
-    first.process.wait(10)
-    first.log.close()
-    first.process = None
-    assert wait_gone(tree, 15) == set(), "worker/validator processes outlived the SIGKILLed server"
-    second = Server(data, workers=2).start()
-    try:
-        with second.client() as client:
-            response, took = timed_post(client, case, {**FAST, "seed": 7})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
-            ids.append(response.json()["id"])
-        _assert_invariants(second, ids)
-    finally:
-        assert _terminate(second) == set()

@@ -125,6 +125,44 @@ def embedded(tmp_path):
             srv.stop()
 
 
+def test_disk_full_in_the_data_dir(embedded, tmp_path, case, slow_case):
+    """A small real tmpfs as the data dir: below DSAREG_MIN_FREE_BYTES a POST is 507 + Retry-After before
+    anything is written; a job whose outputs hit ENOSPC is released (no attempt used), and finishes once
+    there is room. Nothing at ERROR, no traceback."""
+    with tmpfs(tmp_path / "data", 96 * MiB) as disk:  # the data dir itself (the server log stays outside)
+        topo = embedded(data_dir=disk, env={"DSAREG_MIN_FREE_BYTES": str(24 * MiB)})
+        with topo.srv.client() as client:
+            ids = [submit(client, case, FAST).json()["id"]]
+            wait_for(client, ids[0], timeout=120)
+            fill_disk(disk, leave_bytes=16 * MiB)  # below the floor, with room left
+            blobs_before = sorted(p.name for p in (disk / "blobs").rglob("*"))
+            response, took = timed(lambda: submit(client, variant(case, 1), FAST))
+            assert_answered(response, took, ok=(), refusals=(507,), what="POST below the floor")
+            assert sorted(p.name for p in (disk / "blobs").rglob("*")) == blobs_before
+            assert list((disk / "tmp").iterdir()) == []
+            empty_disk(disk)
+            job_id, _ = _running_worker(topo, client, slow_case, 2)
+            ids.append(job_id)
+            fill_disk(disk)  # to ENOSPC while the registration runs: its outputs cannot be written
+            deadline = time.monotonic() + 240
+            while "released:disk_full" not in topo.events_of(job_id) and time.monotonic() < deadline:
+                response, took = timed(lambda: client.get(f"/v1/registrations/{job_id}"))
+                assert_answered(response, took, ok=(200,), what="GET while the disk is full")
+                time.sleep(0.5)
+            assert "released:disk_full" in topo.events_of(job_id), (topo.events_of(job_id), topo.srv.logs()[-3000:])
+            response, took = timed(lambda: submit(client, variant(case, 3), FAST))
+            assert_answered(response, took, ok=(), refusals=(507,), what="POST on a full disk")
+            time.sleep(2.0)  # below the floor the worker claims nothing
+            assert topo.status_of(job_id) == "queued"
+            empty_disk(disk)
+            topo.assert_invariants(ids)
+            assert _rows(topo.db, "SELECT attempts FROM jobs WHERE id=?", (job_id,))[0][0] == 1
+        logs = topo.srv.logs()
+        assert " ERROR " not in logs and "Traceback" not in logs, logs[-4000:]
+        assert "no space left on the data disk" in logs
+        topo.stop_and_check()
+
+
 def test_frozen_validator_is_replaced_and_the_request_answered(shared, case):
     """SIGSTOP of the validator in use: the POST is answered by the warm spare within 2 s (was 20-60 s)."""
     topo = shared
@@ -260,41 +298,3 @@ def test_worker_frozen_holding_the_sqlite_write_lock(shared, case, slow_case):
         topo.assert_invariants(ids)
     assert topo.events_of(resumed).count("claimed") == 1
     assert topo.events_of(killed).count("claimed") == 2
-
-
-def test_disk_full_in_the_data_dir(embedded, tmp_path, case, slow_case):
-    """A small real tmpfs as the data dir: below DSAREG_MIN_FREE_BYTES a POST is 507 + Retry-After before
-    anything is written; a job whose outputs hit ENOSPC is released (no attempt used), and finishes once
-    there is room. Nothing at ERROR, no traceback."""
-    with tmpfs(tmp_path / "data", 96 * MiB) as disk:  # the data dir itself (the server log stays outside)
-        topo = embedded(data_dir=disk, env={"DSAREG_MIN_FREE_BYTES": str(24 * MiB)})
-        with topo.srv.client() as client:
-            ids = [submit(client, case, FAST).json()["id"]]
-            wait_for(client, ids[0], timeout=120)
-            fill_disk(disk, leave_bytes=16 * MiB)  # below the floor, with room left
-            blobs_before = sorted(p.name for p in (disk / "blobs").rglob("*"))
-            response, took = timed(lambda: submit(client, variant(case, 1), FAST))
-            assert_answered(response, took, ok=(), refusals=(507,), what="POST below the floor")
-            assert sorted(p.name for p in (disk / "blobs").rglob("*")) == blobs_before
-            assert list((disk / "tmp").iterdir()) == []
-            empty_disk(disk)
-            job_id, _ = _running_worker(topo, client, slow_case, 2)
-            ids.append(job_id)
-            fill_disk(disk)  # to ENOSPC while the registration runs: its outputs cannot be written
-            deadline = time.monotonic() + 240
-            while "released:disk_full" not in topo.events_of(job_id) and time.monotonic() < deadline:
-                response, took = timed(lambda: client.get(f"/v1/registrations/{job_id}"))
-                assert_answered(response, took, ok=(200,), what="GET while the disk is full")
-                time.sleep(0.5)
-            assert "released:disk_full" in topo.events_of(job_id), (topo.events_of(job_id), topo.srv.logs()[-3000:])
-            response, took = timed(lambda: submit(client, variant(case, 3), FAST))
-            assert_answered(response, took, ok=(), refusals=(507,), what="POST on a full disk")
-            time.sleep(2.0)  # below the floor the worker claims nothing
-            assert topo.status_of(job_id) == "queued"
-            empty_disk(disk)
-            topo.assert_invariants(ids)
-            assert _rows(topo.db, "SELECT attempts FROM jobs WHERE id=?", (job_id,))[0][0] == 1
-        logs = topo.srv.logs()
-        assert " ERROR " not in logs and "Traceback" not in logs, logs[-4000:]
-        assert "no space left on the data disk" in logs
-        topo.stop_and_check()
