@@ -119,6 +119,14 @@ def test_a_plate_like_stretch_of_the_tree_is_not_set_aside_as_bone():
     assert core.sum() < 4.0 * np.pi * 3.0**2, core.sum()  # the trunk's cross-section (r ≤ 3 mm) over 4 mm
 
 
+def _covered_within_1_5_mm(tree, extraction, centre) -> tuple[np.ndarray, np.ndarray]:
+    """20,000 points sampled on the tree's surface: whether the extracted surface lies within 1.5 mm of each, and
+    each point's height as the tree was built (z + the centre it was moved by)."""
+    samples, _ = trimesh.sample.sample_surface(trimesh.Trimesh(tree.vertices, tree.faces, process=False), 20_000,
+                                               seed=1)
+    return cKDTree(extraction.mesh.vertices).query(samples)[0] < 1.5, samples[:, 2] + centre[2]
+
+
 def test_a_plate_like_stretch_of_the_tree_is_not_set_aside_as_marrow_in_a_tof_mra():
     """TOF-MRA: the plate pass went by size alone (bone is dark there, so no bone contact): a loop folded flat (five
     rungs, r 2 mm: 870 mm³ read plate-like, as the paper's bulge is a 1,264 mm³ plate part at 1 mm) was set aside
@@ -128,10 +136,7 @@ def test_a_plate_like_stretch_of_the_tree_is_not_set_aside_as_marrow_in_a_tof_mr
     head = make_layered_mra_head(voxel_mm=1.0, tree=tree)  # the default head: the plate pass runs (share 0.36)
     volume = read_volume(head.parts)
     extraction = extract_vessels(volume)
-    samples, _ = trimesh.sample.sample_surface(trimesh.Trimesh(tree.vertices, tree.faces, process=False), 20_000,
-                                               seed=1)
-    covered = cKDTree(extraction.mesh.vertices).query(samples)[0] < 1.5
-    height = samples[:, 2] + centre[2]  # as built: the loop from z 0 to 20 mm
+    covered, height = _covered_within_1_5_mm(tree, extraction, centre)  # as built: the loop from z 0 to 20 mm
     assert covered.mean() > 0.9, covered.mean()
     assert covered[(height > -1.0) & (height < 22.0)].mean() > 0.9
     # the skull base's marrow (bright, between dark cortical plates) is not kept: in its slice range only the trunk
@@ -157,10 +162,7 @@ def test_a_plate_like_stretch_of_the_tree_in_a_csf_cistern_is_not_set_aside_in_a
                                                       )[:3]).astype(int))]
     assert loop < 0.6 * MRA_LEVELS["brain"], loop  # beside the loop's middle rung (1.5 mm off its wall): CSF, not brain
     extraction = extract_vessels(volume)
-    samples, _ = trimesh.sample.sample_surface(trimesh.Trimesh(tree.vertices, tree.faces, process=False), 20_000,
-                                               seed=1)
-    covered = cKDTree(extraction.mesh.vertices).query(samples)[0] < 1.5
-    height = samples[:, 2] + centre[2]  # as built: the loop from z 0 to 17.2 mm
+    covered, height = _covered_within_1_5_mm(tree, extraction, centre)  # as built: the loop from z 0 to 17.2 mm
     assert covered.mean() > 0.9, covered.mean()
     assert covered[(height > -1.0) & (height < 19.0)].mean() > 0.9
     assert covered[height > 19.0].mean() > 0.9  # the branches beyond it
