@@ -82,5 +82,5 @@ class Sweeper:
             blobs.remove_job_work(job_id)
         if expired:
             log.info("retention: removed %d jobs", len(expired))
-        blobs.collect_garbage(store.referenced_blobs(), min_age_seconds=3600.0)
+        blobs.collect_garbage(store.referenced_blobs())  # UNNAMED_FILE_AGE_S old
         blobs.clean_tmp()

@@ -43,6 +43,11 @@ def safe_suffix(filename: str | None, max_parts: int = 2) -> str:
     return "".join("." + p for p in kept)
 
 
+UNNAMED_FILE_AGE_S = 3600.0
+"""A stored file that no row names is removed once this old (by the API's sweeper and the standalone DICOM
+listener): a store in flight, its row not yet written, is never that old; the file of an index write that failed is."""
+
+
 class BlobStore:
     def __init__(self, root: Path):
         self.root = Path(root)
@@ -142,7 +147,7 @@ class BlobStore:
     def all_digests(self) -> list[str]:
         return [p.name for p in self.blob_dir.glob("??/*") if _HEX64.match(p.name)]
 
-    def collect_garbage(self, referenced: set[str], *, min_age_seconds: float = 3600.0) -> int:
+    def collect_garbage(self, referenced: set[str], *, min_age_seconds: float = UNNAMED_FILE_AGE_S) -> int:
         return self.delete([d for d in self.all_digests() if d not in referenced], min_age_seconds=min_age_seconds)
 
     def job_work_dir(self, job_id: str) -> Path:

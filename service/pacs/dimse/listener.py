@@ -30,11 +30,6 @@ from .submit import DimseIntake
 log = logging.getLogger("dsareg.dimse")
 
 
-UNNAMED_FILE_AGE_S = 3600.0
-"""A stored file that no row names is removed once this old: a store in flight (its row not written yet) is never
-that old, and the files of an index write that failed are (the API's sweeper uses the same age)."""
-
-
 class DicomListener:
     def __init__(self, intake: IntakeContext, loop: asyncio.AbstractEventLoop, *, collects_garbage: bool = False):
         """``loop``: the event loop the jobs are submitted on (running in another thread); ``collects_garbage``:
@@ -65,7 +60,7 @@ class DicomListener:
             log.info("inbox retention: removed %d instance(s) of %d settled stud(ies), %d file(s)", done.rows,
                      done.studies, done.files)
         if self.collects_garbage:  # e.g. a C-STORE whose index write failed after its file was stored (answered A700)
-            removed = self.blobs.collect_garbage(self.store.referenced_blobs(), min_age_seconds=UNNAMED_FILE_AGE_S)
+            removed = self.blobs.collect_garbage(self.store.referenced_blobs())  # UNNAMED_FILE_AGE_S old
             if removed:
                 log.warning("removed %d stored file(s) that no instance or job names", removed)
 

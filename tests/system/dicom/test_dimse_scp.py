@@ -209,7 +209,8 @@ def test_a_file_whose_index_write_failed_is_removed_by_the_standalone_listener(t
 
     from service.intake.context import IntakeContext, close_intake
     from service.jobs.executor import NoExecutor
-    from service.pacs.dimse.listener import UNNAMED_FILE_AGE_S, DicomListener
+    from service.pacs.dimse.listener import DicomListener
+    from service.storage.blobs import UNNAMED_FILE_AGE_S
 
     config = ServiceSettings(data_dir=tmp_path, dicom_port=free_port(), min_free_bytes=0,
                              dicom_peers=[{"ae_title": "SCU", "host": "127.0.0.1", "port": 1}])
