@@ -131,7 +131,8 @@ def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         404: "No registration job with id '0b5a…'.",
         408: "No request body bytes arrived for 30 s (DSAREG_HTTP_BODY_IDLE_TIMEOUT_SECONDS).",
         409: "Idempotency-Key 'k1' was already used with a different request body.",
-        413: "The request body exceeds the upload limit of 536870912 bytes.",
+        413: "The request body exceeds the upload limit of 512 MiB (536870912 bytes); send smaller files, or raise "
+             "the server's setting DSAREG_MAX_UPLOAD_BYTES.",
         415: "Send multipart/form-data with the files mesh (or volume), ap and lat.",
         422: "ap: cannot read the image (accepted: PNG, JPEG, TIFF, DICOM)",
         429: "This API key already has 200 queued jobs; retry later.",

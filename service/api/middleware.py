@@ -26,6 +26,12 @@ async def _send_problem(send: Any, status: int, detail: str, instance: str, head
     await send({"type": "http.response.body", "body": body})
 
 
+def upload_limit_detail(limit: int) -> str:
+    """The 413's detail: the limit in MiB and the setting that raises it."""
+    return (f"the request body exceeds the upload limit of {limit / 2**20:.4g} MiB ({limit} bytes); send smaller "
+            "files, or raise the server's setting DSAREG_MAX_UPLOAD_BYTES")
+
+
 class BodyLimitMiddleware:
     """413 as soon as more than ``limit`` body bytes arrive (chunked or not, whatever
     Content-Length claims); a too-large Content-Length is refused before reading."""
@@ -38,7 +44,7 @@ class BodyLimitMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        detail = f"the request body exceeds the upload limit of {self.limit} bytes; send smaller files"
+        detail = upload_limit_detail(self.limit)
         for name, value in scope.get("headers", []):
             if name == b"content-length":
                 try:
