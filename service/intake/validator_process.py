@@ -29,7 +29,12 @@ def _set_memory_limit(extra_mb: int) -> None:
 
 
 def _become_validator(parent_pid: int | None) -> None:
-    """Name the process (``dsareg-validate``), exit quickly, ignore Ctrl-C (the server stops it), die with the server."""
+    """Name the process (``dsareg-validate``), exit quickly, ignore Ctrl-C and SIGTERM (the server stops it), die
+    with the server.
+
+    A stop signal sent to the whole process group (Ctrl-C, systemd's stop, ``kill -TERM -- -PGID``) reaches the
+    validators too; ended by it, they were found dead by the pool's watchdog before the server stopped the pool,
+    and a normal stop logged ``validator replaced (dead while idle)``. The server stops them itself."""
     import signal
 
     from ..engine_adapter import engine
@@ -38,6 +43,7 @@ def _become_validator(parent_pid: int | None) -> None:
     set_process_name("dsareg-validate")
     engine.skip_exit_collections()  # a server's stop waits for its validators' exit
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
         die_with_parent(parent_pid, signal.SIGKILL)
 

@@ -46,3 +46,27 @@ def test_a_spare_outlives_the_request_thread_that_started_it(tmp_path):
         assert slot.health() == "ok"
     finally:
         pool.stop()
+
+
+def test_a_validator_outlives_a_stop_signal_to_its_process_group():
+    """``dsareg serve`` stopped by a signal to its whole process group (systemd, Ctrl-C, ``kill -- -PGID``): the
+    validators must not die of it before the server stops the pool, or its watchdog finds them dead and a normal
+    stop logs ``WARNING validator replaced (dead while idle)``. A process that became a validator ignores SIGTERM."""
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import sys, time\nfrom service.intake.validator_process import _become_validator\n"
+            "_become_validator(None)\nprint('ready', flush=True)\ntime.sleep(30)\n")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        child.send_signal(signal.SIGTERM)
+        try:
+            child.wait(0.5)
+        except subprocess.TimeoutExpired:
+            pass
+        assert child.poll() is None, f"the validator died of SIGTERM (exit code {child.returncode})"
+    finally:
+        child.kill()
+        child.wait()
