@@ -22,7 +22,7 @@ if TYPE_CHECKING:  # torch is imported where it is used: parsing inputs (the API
 
 log = logging.getLogger(__name__)
 
-MESH_FILES_ACCEPTED = "OBJ, STL (ASCII or binary), PLY, OFF or GLB"
+MESH_FILES_ACCEPTED = "OBJ, STL (ASCII or binary), PLY, OFF, GLB, VTP or legacy VTK polydata"
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
-"""Surface meshes from bytes: OBJ, STL (ASCII and binary), PLY, OFF, GLB.
+"""Surface meshes from bytes: OBJ, STL (ASCII and binary), PLY, OFF, GLB, VTP and legacy VTK polydata.
 
 Nothing here touches the filesystem: the bytes are parsed by trimesh from memory with
-no resolver, so ``mtllib`` and texture references are never followed. The format is
+no resolver, so ``mtllib`` and texture references are never followed; ``.vtp`` and legacy ``.vtk`` surfaces (VMTK,
+SimVascular, CFD models) by VTK's own readers, from memory too (:mod:`.vtk_polydata`). The format is
 detected from the content; the file name's extension is only a hint (a warning says
 when it disagrees). Coordinates are scaled to millimetres from the file's unit: glTF/GLB's metre,
 millimetres for the formats that state none, or the unit the caller gives (:mod:`.mesh_units`).
@@ -34,10 +35,11 @@ from ..mesh import (  # noqa: F401 - decimate and _cluster_decimate re-exported 
 )
 from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_units import MeshUnit, mesh_unit
+from .vtk_polydata import VTK_MESH_FORMATS, declared_triangles, detect_vtk_polydata, legacy_dataset, parse_vtk_polydata
 
 log = logging.getLogger(__name__)
 
-MESH_FORMATS = ("obj", "stl", "ply", "off", "glb")
+MESH_FORMATS = ("obj", "stl", "ply", "off", "glb") + VTK_MESH_FORMATS
 _ACCEPTED = MESH_FILES_ACCEPTED
 
 
@@ -60,6 +62,9 @@ def detect_mesh_format(data: bytes) -> str | None:
         return "glb"
     if head[:3].lower() == b"ply":
         return "ply"
+    vtk = detect_vtk_polydata(data)
+    if vtk is not None:
+        return vtk
     if len(data) >= 84:
         (n_faces,) = struct.unpack_from("<I", data, 80)
         if len(data) == 84 + 50 * n_faces and n_faces > 0:
@@ -110,6 +115,8 @@ def _declared_faces(data: bytes, fmt: str) -> int | None:
             return None
     if fmt == "obj":
         return len(re.findall(rb"(?m)^\s*f\s", data))
+    if fmt in VTK_MESH_FORMATS:
+        return declared_triangles(data, fmt)
     return None
 
 
@@ -135,6 +142,9 @@ def read_mesh_detailed(
     warnings: list[str] = []
     extension = filename.rsplit(".", 1)[-1].lower() if filename and "." in filename else None
     fmt = detect_mesh_format(data)
+    if fmt is None and legacy_dataset(data):
+        raise DsaregInputError(f"is a legacy VTK {legacy_dataset(data)} file, not a surface", field=field_name,
+                               accepted=f"{_ACCEPTED}; a VTK image volume goes in as the volume, not the mesh")
     if fmt is None:
         if extension in MESH_FORMATS:
             fmt = extension  # let the parser say what is wrong with it
@@ -171,6 +181,8 @@ _OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f(?:[ \t]+\S+)*?[ \t]+[+]?0+(?:/\S*)?
 def _parse(data: bytes, fmt: str, field_name: str) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
+    if fmt in VTK_MESH_FORMATS:
+        return parse_vtk_polydata(data, fmt, field_name)
     if fmt == "stl" and _is_binary_stl(data):
         (n_faces,) = struct.unpack_from("<I", data, 80) if len(data) >= 84 else (None,)
         if n_faces is None or len(data) < 84 + 50 * n_faces:
