@@ -13,7 +13,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .closed import CLOSED
 
-TEXT = "Untrusted text from the inputs' DICOM headers (plain text, at most 128 characters); null when absent."
+TEXT = ("Untrusted text from the inputs' DICOM headers (plain text, at most 128 characters); a list of such texts "
+        "(at most 8) when the header holds several values; null when absent.")
+Text = str | list[str] | None
+"""A header value: one text, a list of texts for a multi-valued attribute (never one run-together string)."""
 
 
 class CaseInput(BaseModel):
@@ -25,9 +28,9 @@ class CaseInput(BaseModel):
                                                                      "volume or the mesh.")
     file_names: list[str] = Field(default_factory=list, description="The file names given with an upload "
                                                                     "(untrusted text); empty for PACS inputs.")
-    modality: str | None = Field(None, description="Modality (0008,0060), e.g. XA, CT, MR. " + TEXT)
-    series_number: str | None = Field(None, description="Series Number (0020,0011). " + TEXT)
-    series_description: str | None = Field(None, description="Series Description (0008,103E). " + TEXT)
+    modality: Text = Field(None, description="Modality (0008,0060), e.g. XA, CT, MR. " + TEXT)
+    series_number: Text = Field(None, description="Series Number (0020,0011). " + TEXT)
+    series_description: Text = Field(None, description="Series Description (0008,103E). " + TEXT)
     instances: int = Field(0, ge=0, description="DICOM instances of this input (0: not DICOM).")
 
 
@@ -42,11 +45,12 @@ class CaseIdentity(BaseModel):
 
     source: Literal["upload", "dicomweb", "dimse"] = Field(
         description="How the inputs came: uploaded, fetched from a DICOMweb server, or received over DIMSE.")
-    patient_name: str | None = Field(None, description="Patient's Name (0010,0010) as 'Family, Given'. " + TEXT)
-    patient_id: str | None = Field(None, description="Patient ID (0010,0020). " + TEXT)
-    study_date: str | None = Field(None, description="Study Date (0008,0020) as YYYY-MM-DD. " + TEXT)
-    study_description: str | None = Field(None, description="Study Description (0008,1030). " + TEXT)
-    accession_number: str | None = Field(None, description="Accession Number (0008,0050). " + TEXT)
+    patient_name: Text = Field(None, description="Patient's Name (0010,0010) as 'Family, Given'; its "
+                                         "alphabetic, ideographic and phonetic groups joined by ' = '. " + TEXT)
+    patient_id: Text = Field(None, description="Patient ID (0010,0020). " + TEXT)
+    study_date: Text = Field(None, description="Study Date (0008,0020) as YYYY-MM-DD. " + TEXT)
+    study_description: Text = Field(None, description="Study Description (0008,1030). " + TEXT)
+    accession_number: Text = Field(None, description="Accession Number (0008,0050). " + TEXT)
     study_uid: str | None = Field(None, description="Study Instance UID (0020,000D).")
     inputs: list[CaseInput] = Field(default_factory=list, description="Per input: file names, modality, series.")
     mismatch: list[Literal["patient_id", "patient_name", "study_uid"]] = Field(

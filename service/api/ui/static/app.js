@@ -100,15 +100,18 @@ function searchBox() {
   return form;
 }
 
+// a header value: one text, or a list of texts when the header holds several values (shown "A; B", never raw)
+const shown = (value) => (Array.isArray(value) ? value.join("; ") : value);
+
 function casePatient(c) {
   if (!c) return el("span", { class: "muted" }, "—");
-  const who = [c.patient_name, c.patient_id ? `(${c.patient_id})` : null].filter(Boolean).join(" ");
+  const who = [shown(c.patient_name), c.patient_id ? `(${shown(c.patient_id)})` : null].filter(Boolean).join(" ");
   return who || el("span", { class: "muted" }, c.source === "upload" ? "upload, no DICOM patient" : "—");
 }
 
 function caseStudy(c) {
   if (!c) return el("span", { class: "muted" }, "—");
-  return [c.study_date, c.study_description].filter(Boolean).join(" · ") || el("span", { class: "muted" }, "—");
+  return [shown(c.study_date), shown(c.study_description)].filter(Boolean).join(" · ") || el("span", { class: "muted" }, "—");
 }
 
 function jobRow(job) {
@@ -162,10 +165,10 @@ function caseSection(job) {
   // whose case: every value is untrusted header text, so only ever text nodes (el() never parses markup)
   const c = job.case;
   if (!c) return el("section", { id: "case", class: "case" }, el("p", { class: "muted" }, "Case: not known yet (the inputs have not been read)."));
-  const rows = [["Patient", casePatient(c)], ["Study", caseStudy(c)], ["Accession", c.accession_number],
+  const rows = [["Patient", casePatient(c)], ["Study", caseStudy(c)], ["Accession", shown(c.accession_number)],
     ["Source", SOURCE_WORDS[c.source] || c.source]].filter(([, v]) => v);
   const inputs = (c.inputs || []).map((i) => el("li", {}, el("strong", {}, i.role.toUpperCase()), ": ",
-    [i.modality, i.series_number ? `series ${i.series_number}` : null, i.series_description,
+    [shown(i.modality), i.series_number ? `series ${shown(i.series_number)}` : null, shown(i.series_description),
       i.instances > 1 ? `${i.instances} instances` : null, i.file_names.length ? i.file_names.join(", ") : null]
       .filter(Boolean).join(" · ") || "—"));
   return el("section", { id: "case", class: "case", "aria-label": "Case" },
