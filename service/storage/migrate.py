@@ -20,11 +20,16 @@ table is not a 1 s statement).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
 import sqlalchemy as sa
+
+if logging.getLogger("alembic").level == logging.NOTSET:  # not set by the operator: Alembic's INFO lines at import
+    logging.getLogger("alembic").setLevel(logging.WARNING)  # and per migration ("setup plugin", "Context impl") say
+    # nothing an operator acts on; its warnings still show, and `dsareg db upgrade` prints what it did
 
 HEAD = "0002"
 """The newest revision (migrations/versions; ``tests/unit/service/test_service_migrations.py`` checks it): a

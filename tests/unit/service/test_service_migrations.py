@@ -138,3 +138,15 @@ def test_a_start_at_head_does_not_load_alembic(tmp_path):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True,
                           cwd=Path(__file__).resolve().parents[3])
     assert done.stdout.strip() == "[]", done.stderr[-2000:]
+
+
+def test_a_fresh_database_is_made_without_alembic_info_lines(tmp_path):
+    """``dsareg serve`` on a fresh data dir logged ten Alembic INFO lines (plugins set up at import, "Context
+    impl …") that tell an operator nothing; a fresh interpreter, as a start has, with INFO logging on."""
+    code = ("import logging, sys\nlogging.basicConfig(level=logging.INFO)\n"
+            "from service.storage.migrate import upgrade_database\n"
+            "assert upgrade_database(sys.argv[1]).created\n")
+    done = subprocess.run([sys.executable, "-c", code, f"sqlite:///{tmp_path / 'jobs.db'}"], capture_output=True,
+                          text=True, timeout=60, cwd=Path(__file__).resolve().parents[3])
+    assert done.returncode == 0, done.stderr
+    assert "alembic" not in done.stderr, done.stderr
