@@ -160,7 +160,7 @@ def _series(ds, modality: str, series_uid: str, number: int, description: str) -
     ds.SeriesNumber = number
     ds.SeriesDescription = description
     ds.SeriesDate, ds.SeriesTime = date, time
-    ds.Laterality = ""
+    # no Laterality (Type 2C): head arteries are an unpaired body part, for which it must be absent, not empty
     ds.ContentDate, ds.ContentTime = date, time
 
 

@@ -168,3 +168,19 @@ def test_cli_register_volume_with_dicom_out(study, tmp_path, capsys):
     np.testing.assert_allclose(matrix, np.asarray(result["mesh_to_world"]), rtol=0, atol=1e-9)
     rotation = np.degrees(np.arccos(np.clip((np.trace(matrix[:3, :3].T @ study.mesh_to_world[:3, :3]) - 1) / 2, -1, 1)))
     assert rotation < 1.0
+
+
+def test_no_object_sent_back_carries_an_empty_laterality(tmp_path):
+    """dciodvfy warned on every returned object: "Laterality … should be absent (not empty) if an unpaired body
+    part" (head arteries are unpaired). dciodvfy's own word on it when installed."""
+    import shutil
+    import subprocess
+
+    _pngs(tmp_path)
+    written = write_dicom_outputs(tmp_path, _random_rigid(4), DicomSources(), tmp_path / "dicom")
+    for name in written:
+        assert "Laterality" not in pydicom.dcmread(tmp_path / "dicom" / name), name
+    if (tool := shutil.which("dciodvfy")) is not None:
+        for name in written:
+            done = subprocess.run([tool, str(tmp_path / "dicom" / name)], capture_output=True, text=True, timeout=60)
+            assert "Laterality" not in done.stdout + done.stderr, (name, done.stderr)
