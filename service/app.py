@@ -23,6 +23,7 @@ from .api.docs_offline import install_docs
 from .jobs.executor import Executor
 from .jobs.factory import make_executor
 from .api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from .api.secure_headers import SecureHeadersMiddleware
 from .problems import problem_responses
 from .settings import ServiceSettings
 
@@ -54,6 +55,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(BodyLimitMiddleware, limit=settings.limits.max_upload_bytes)
     app.add_middleware(BodyDeadlineMiddleware, idle_seconds=settings.server.http_body_idle_timeout_seconds)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
+    app.add_middleware(SecureHeadersMiddleware)  # outermost: no-store + nosniff on every answer, 413s included
     install_handlers(app)
     mount(app, registrations.router, events.router, tracking.router, review.router, artifacts.router, hemodynamics.router, operations.router, ui.router)
     install_docs(app)

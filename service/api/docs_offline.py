@@ -18,6 +18,8 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagge
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
+from .secure_headers import docs_csp
+
 log = logging.getLogger("dsareg.service")
 
 STATIC_URL = "/docs-static"
@@ -51,6 +53,7 @@ def install_docs(app: FastAPI) -> bool:
     ``docs_url=None, redoc_url=None``; True when the pages are served offline."""
     folder = asset_dir()
     openapi_url = app.openapi_url or "/openapi.json"
+    csp = docs_csp if folder is not None else (lambda page, **_: page)  # CDN pages: no same-origin-only CSP
     title = app.title
     if folder is None:
         log.warning("fastapi-offline is not installed: /docs and /redoc load their scripts from a public CDN")
@@ -76,22 +79,22 @@ def install_docs(app: FastAPI) -> bool:
     @app.get(DOCS_URL, include_in_schema=False)
     async def swagger_ui(request: Request) -> HTMLResponse:
         root = request.scope.get("root_path", "")
-        return get_swagger_ui_html(
+        return csp(get_swagger_ui_html(
             openapi_url=f"{root}{openapi_url}", title=f"{title} - API docs",
             swagger_js_url=_rooted(root, js), swagger_css_url=_rooted(root, css), swagger_favicon_url=_rooted(root, favicon),
             oauth2_redirect_url=f"{root}{OAUTH2_REDIRECT_URL}", swagger_ui_parameters=SWAGGER_PARAMETERS,
-        )
+        ))
 
     @app.get(OAUTH2_REDIRECT_URL, include_in_schema=False)
     async def swagger_ui_redirect() -> HTMLResponse:
-        return get_swagger_ui_oauth2_redirect_html()
+        return csp(get_swagger_ui_oauth2_redirect_html())
 
     @app.get(REDOC_URL, include_in_schema=False)
     async def redoc(request: Request) -> HTMLResponse:
         root = request.scope.get("root_path", "")
-        return get_redoc_html(openapi_url=f"{root}{openapi_url}", title=f"{title} - ReDoc",
-                              redoc_js_url=_rooted(root, redoc_js), redoc_favicon_url=_rooted(root, favicon),
-                              with_google_fonts=False)
+        return csp(get_redoc_html(openapi_url=f"{root}{openapi_url}", title=f"{title} - ReDoc",
+                                       redoc_js_url=_rooted(root, redoc_js), redoc_favicon_url=_rooted(root, favicon),
+                                       with_google_fonts=False), allow_eval=True)
 
     return folder is not None
 

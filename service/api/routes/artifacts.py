@@ -26,7 +26,7 @@ DicomName = Literal[tuple(engine.DICOM_FILES)]  # reg.dcm, overlay_ap.dcm, overl
 
 PNG_RESPONSE = {200: {"content": {"image/png": {"schema": {"type": "string", "format": "binary"}}},
                       "description": "The image."}}
-CACHE = {"Cache-Control": "private, max-age=86400"}
+CACHE = {"Cache-Control": "no-store"}  # PHI: never kept by a browser or proxy (secure_headers.py enforces it)
 
 
 def artifact_file(ctx: ServiceContext, job: JobRecord, name: str, media: str, filename: str | None = None) -> Response:
