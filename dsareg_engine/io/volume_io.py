@@ -8,6 +8,8 @@ as DICOM defines it (+x toward the patient's Left, +y Posterior, +z Superior).
 * NIfTI: the sform/qform affine is RAS; it is converted with ``diag(-1, -1, 1, 1) · A``.
 * NRRD: ``space`` ``left-posterior-superior`` is used as is; ``right-anterior-superior``
   is converted like NIfTI; files without a space use their directions as given.
+* MetaImage (``.mha``, ``.mhd`` + data), detached NRRD (``.nhdr`` + data), legacy VTK structured points: read by
+  SimpleITK (:mod:`.volume_formats`), whose physical space is LPS (a VTK image has none: used as LPS, with a warning).
 * 3D-2D-GS-CA ``.rad`` + ``.raw``: the data set's own world frame (``TPosition``),
   which its 2D ``.rad`` headers share, so mesh and views agree without conversion.
 
@@ -32,12 +34,20 @@ from . import rad as rad_format
 from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
 from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
+from .volume_formats import ACCEPTED as _ACCEPTED
+from .volume_formats import (
+    RAS_TO_LPS,
+    detached_data_file,
+    detect_itk_format,
+    nifti_arrays,
+    nrrd_arrays,
+    read_itk_volume,
+)
+from .volume_formats import check_affine as _check_affine
+from .volume_formats import check_bytes as _check_bytes
 from .volume_series import pick_volume_series
 
-RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
-_ACCEPTED = (
-    "NIfTI (.nii/.nii.gz), NRRD (.nrrd, attached data), a DICOM series, enhanced multi-frame DICOM, or .rad + .raw"
-)
+__all__ = ["RAS_TO_LPS", "Volume", "read_volume", "volume_to_mesh"]
 
 
 @dataclass
@@ -55,26 +65,6 @@ class Volume:
     @property
     def spacing_mm(self) -> tuple[float, float, float]:
         return tuple(float(x) for x in np.linalg.norm(self.affine[:3, :3], axis=0))
-
-
-def _check_bytes(shape, itemsize: int, limits: InputLimits, field_name: str) -> None:
-    shape = [int(s) for s in shape]
-    if any(s < 1 for s in shape):
-        raise DsaregInputError(f"declares an empty shape {shape}", field=field_name)
-    total = int(np.prod(shape, dtype=np.int64)) * int(itemsize)
-    if total > limits.max_volume_bytes:
-        raise DsaregInputError(
-            f"declares {'x'.join(map(str, shape))} samples of {itemsize} bytes ({total / 2**20:.0f} MiB), "
-            f"above the limit of {limits.max_volume_bytes / 2**20:.0f} MiB",
-            field=field_name,
-        )
-
-
-def _check_affine(affine: np.ndarray, field_name: str) -> np.ndarray:
-    affine = np.asarray(affine, dtype=np.float64)
-    if affine.shape != (4, 4) or not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
-        raise DsaregInputError("has a singular or non-finite voxel-to-world matrix", field=field_name)
-    return affine
 
 
 # ---- detection ------------------------------------------------------------------------
@@ -95,6 +85,9 @@ def detect_volume_format(data: bytes) -> str | None:
         return "nifti"
     if head[128:132] == b"DICM":
         return "dicom"
+    itk = detect_itk_format(data[:4096])
+    if itk is not None:
+        return itk
     if rad_format.looks_like_rad(head):
         return "rad"
     return None
@@ -114,6 +107,11 @@ def read_volume(
             raise DsaregInputError("no files were given", field=field_name, accepted=_ACCEPTED)
         if len(parts) == 1:
             return read_volume(parts[0], name, limits, field_name=field_name)
+        detached = [p for p in parts if _detached_format(p) is not None]
+        if len(parts) == 2 and len(detached) == 1:  # .mhd / .nhdr + its data file, in either order
+            header = detached[0]
+            return _itk_volume(header, parts[1] if parts[0] is header else parts[0], _detached_format(header),
+                               limits, field_name)
         rad_parts = [p for p in parts if rad_format.looks_like_rad(p[:4096])]
         if len(parts) == 2 and len(rad_parts) == 1:
             header = rad_parts[0]
@@ -129,6 +127,8 @@ def read_volume(
             fmt = "dicom"
     if fmt == "nifti":
         return read_nifti(data, limits, field_name=field_name)
+    if fmt in ("metaimage", "vtk-image") or _detached_format(data) is not None:
+        return _itk_volume(data, None, fmt, limits, field_name)
     if fmt == "nrrd":
         return read_nrrd(data, limits, field_name=field_name)
     if fmt == "dicom":
@@ -138,106 +138,30 @@ def read_volume(
     raise DsaregInputError("content is not a recognised volume format", field=field_name, accepted=_ACCEPTED)
 
 
-# ---- NIfTI ------------------------------------------------------------------------------
+def _detached_format(data: bytes) -> str | None:
+    """``"metaimage"`` / ``"nrrd"`` when ``data`` is a detached header (``.mhd``, ``.nhdr``) naming a data file."""
+    fmt = detect_volume_format(data[:4096]) if data[:2] != b"\x1f\x8b" else None
+    return fmt if fmt in ("metaimage", "nrrd") and detached_data_file(data, fmt) is not None else None
 
 
-def _gunzip_limited(data: bytes, max_bytes: int, field_name: str) -> bytes:
-    decompressor = zlib.decompressobj(16 + zlib.MAX_WBITS)
-    try:
-        out = decompressor.decompress(data, max_bytes + 1)
-    except zlib.error as exc:
-        raise DsaregInputError(f"gzip data is corrupt ({exc})", field=field_name) from None
-    if len(out) > max_bytes:
-        raise DsaregInputError("decompresses beyond the volume size limit", field=field_name)
-    if not decompressor.eof:
-        raise DsaregInputError("gzip data is truncated", field=field_name)
-    return out
+def _itk_volume(header: bytes, data: bytes | None, fmt: str, limits: InputLimits, field_name: str) -> Volume:
+    voxels, affine, warnings = read_itk_volume(header, data, fmt, limits, field_name=field_name)
+    return Volume(voxels, affine, fmt, warnings)
+
+
+# ---- NIfTI, NRRD (:mod:`.volume_formats`) -------------------------------------------------
 
 
 def read_nifti(data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume") -> Volume:
-    import nibabel as nib
-
-    head = data
-    compressed = data[:2] == b"\x1f\x8b"
-    if compressed:
-        try:
-            head = gzip.GzipFile(fileobj=io.BytesIO(data)).read(544)
-        except (OSError, EOFError, zlib.error) as exc:
-            raise DsaregInputError(f"gzip data is corrupt ({exc})", field=field_name) from None
-    version2 = len(head) >= 8 and head[4:8] in (b"n+2\x00", b"ni2\x00")
-    header_class, image_class = (nib.Nifti2Header, nib.Nifti2Image) if version2 else (nib.Nifti1Header, nib.Nifti1Image)
-    try:
-        header = header_class.from_fileobj(io.BytesIO(head[:540] if version2 else head[:348]))
-        shape = header.get_data_shape()
-        itemsize = header.get_data_dtype().itemsize
-    except Exception as exc:
-        raise DsaregInputError(f"NIfTI header is unreadable ({str(exc)[:200]})", field=field_name) from None
-    if len(shape) < 3 or any(s != 1 for s in shape[3:]):
-        raise DsaregInputError(f"has shape {list(shape)}; a 3D volume is needed", field=field_name)
-    _check_bytes(shape[:3], itemsize, limits, field_name)
-    raw = _gunzip_limited(data, limits.max_volume_bytes + 65536, field_name) if compressed else data
-    try:
-        image = image_class.from_bytes(raw)
-        voxels = np.asarray(image.dataobj, dtype=np.float32)
-    except Exception as exc:
-        raise DsaregInputError(f"NIfTI data is unreadable or truncated ({str(exc)[:200]})", field=field_name) from None
-    voxels = voxels.reshape(voxels.shape[:3])
-    affine = _check_affine(RAS_TO_LPS @ image.affine, field_name)
-    return Volume(voxels, affine, "nifti")
-
-
-# ---- NRRD -------------------------------------------------------------------------------
-
-_NRRD_SPACES = {
-    "left-posterior-superior": np.eye(4),
-    "lps": np.eye(4),
-    "right-anterior-superior": RAS_TO_LPS,
-    "ras": RAS_TO_LPS,
-}
+    voxels, affine, warnings = nifti_arrays(data, limits, field_name=field_name)
+    return Volume(voxels, affine, "nifti", warnings)
 
 
 def read_nrrd(data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume") -> Volume:
-    import nrrd
-
-    stream = io.BytesIO(data)
-    try:
-        header = nrrd.read_header(stream)
-    except Exception as exc:
-        raise DsaregInputError(f"NRRD header is unreadable ({str(exc)[:200]})", field=field_name) from None
-    if "data file" in header or "datafile" in header:
-        raise DsaregInputError(
-            "detached NRRD data files are not accepted", field=field_name, accepted="a .nrrd with attached data"
-        )
-    sizes = [int(s) for s in np.atleast_1d(header.get("sizes", []))]
-    if int(header.get("dimension", len(sizes))) != 3 or len(sizes) != 3:
-        raise DsaregInputError(f"has sizes {sizes}; a 3D volume is needed", field=field_name)
-    try:
-        itemsize = nrrd.reader._determine_datatype(header).itemsize
-    except Exception as exc:
-        raise DsaregInputError(f"NRRD type is unsupported ({str(exc)[:100]})", field=field_name) from None
-    _check_bytes(sizes, itemsize, limits, field_name)
-    try:
-        voxels = nrrd.read_data(header, stream, index_order="F")
-    except Exception as exc:
-        raise DsaregInputError(f"NRRD data is unreadable or truncated ({str(exc)[:200]})", field=field_name) from None
-    if voxels.size != int(np.prod(sizes)):
-        raise DsaregInputError("NRRD data is truncated", field=field_name)
-    directions = header.get("space directions")
-    affine = np.eye(4)
-    if directions is not None:
-        directions = np.asarray(directions, dtype=np.float64)
-        affine[:3, :3] = directions.T
-    elif "spacings" in header:
-        affine[:3, :3] = np.diag(np.asarray(header["spacings"], dtype=np.float64))
-    if "space origin" in header:
-        affine[:3, 3] = np.asarray(header["space origin"], dtype=np.float64)
-    space = str(header.get("space", "")).lower()
-    warnings = []
-    if space in _NRRD_SPACES:
-        affine = _NRRD_SPACES[space] @ affine
-    else:
-        warnings.append(f"{field_name}: NRRD has no patient space; its coordinates are used as LPS mm")
-    return Volume(np.asarray(voxels, dtype=np.float32), _check_affine(affine, field_name), "nrrd", warnings)
+    if _detached_format(data) is not None:  # a .nhdr alone: says it needs its data file
+        return _itk_volume(data, None, "nrrd", limits, field_name)
+    voxels, affine, warnings = nrrd_arrays(data, limits, field_name=field_name)
+    return Volume(voxels, affine, "nrrd", warnings)
 
 
 # ---- DICOM ------------------------------------------------------------------------------
