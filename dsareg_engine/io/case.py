@@ -19,6 +19,7 @@ from .mesh_io import decimate, read_mesh_detailed
 from .mesh_units import MeshUnit, unit_decision
 from ..vision.segmentation import SEGMENTATION_METHODS
 from ..vision.segmentation_scale import SegmentationScale, coverage_at_scale
+from .view_roles import Acquisition, named_views
 from .xa_run import ImageReading
 from .volume_io import read_volume
 from .volume_kind import VolumeReading
@@ -51,6 +52,9 @@ class Case:
         sources: the identity of the DICOM inputs (SOP, study, series, frame of reference, patient and
             study attributes), taken when they were read: what the DICOM outputs refer to, so that
             nothing parses the inputs again (:mod:`.dicom_identity`).
+        acquisition: whether the two runs were acquired together, from their DICOM headers (:mod:`.view_roles`);
+            None without that evidence. The views are named by their headers' beam angles (a swapped pair is
+            swapped back, ``decisions`` says so).
     """
 
     mesh: TriangleMesh
@@ -64,6 +68,7 @@ class Case:
     volume: VolumeReadout | None = None
     sources: DicomSources = field(default_factory=DicomSources)
     decisions: list[InputDecision] = field(default_factory=list)
+    acquisition: Acquisition | None = None
 
     @property
     def fitted(self) -> dict[str, np.ndarray]:
@@ -171,8 +176,7 @@ def load_case(
         if data is None or len(data) == 0:
             raise DsaregInputError("the image is missing or empty", field=name, accepted="a DSA image or a mask")
         images[name] = read_image(data, filename, limits, field_name=name, reading=reading.for_view(name))
-        kinds[name] = images[name].kind
-        warnings.extend(images[name].warnings)
+    images, acquisition = named_views(images, (ap, lat), geometry is not None, decisions, kinds, warnings)
 
     rig = _resolve_rig(geometry, images, warnings, kinds)
 
@@ -194,7 +198,7 @@ def load_case(
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
                 readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
-                volume=volume_readout, sources=_sources(images, volume_sources),
+                volume=volume_readout, sources=_sources(images, volume_sources), acquisition=acquisition,
                 decisions=decisions + [decision for name in VIEW_NAMES for decision in images[name].decisions] + pitches)
 
 
