@@ -17,6 +17,7 @@ from ..intake.context import close_intake
 from ..pacs.dimse.listener import DicomListener
 from ..jobs.executor import Executor
 from ..settings import ServiceSettings
+from ..storage.owners import ANONYMOUS, count_by_owner
 from ..jobs.sweeper import Sweeper
 from .schemas.jobs import summary_body
 from .deps import ServiceContext
@@ -54,6 +55,15 @@ def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
     return listener
 
 
+def warn_hidden_jobs(ctx: ServiceContext) -> None:
+    """With API keys on, the jobs made while they were off (owner ``anonymous``) answer 404 to every key: say so
+    at start, and how to hand them to a key (service/cli/jobs.py)."""
+    hidden = count_by_owner(ctx.store.engine).get(ANONYMOUS, 0)
+    if hidden:
+        log.warning("%d job(s) made while no API keys were configured are hidden from every key (each key sees only "
+                    "its own jobs); `dsareg jobs assign --to-key-hash DIGEST` gives them to one key", hidden)
+
+
 def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: dict[str, ServiceContext | None], *,
                   executor: Executor | None, make_executor: Callable[[ServiceSettings, Any], Executor],
                   start_background: bool):
@@ -66,6 +76,8 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
         app.state.ctx = ctx
         if not settings.auth.auth_enabled:
             log.warning("no API keys configured: authentication is off and the service listens on 127.0.0.1 only")
+        else:
+            warn_hidden_jobs(ctx)
         if start_background:
             # the DICOM packages are imported whole here, before the background threads: a thread importing
             # pydicom while another imports it (or pynetdicom) can be handed a half-initialised module

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from .db import add_db_parser, migrate_at_start
+from .jobs import add_jobs_parser
 
 
 def add_parser(subparsers: Any) -> None:
@@ -20,6 +21,7 @@ def add_parser(subparsers: Any) -> None:
     _add_dicom_listener(subparsers)
     _add_submit(subparsers)
     add_db_parser(subparsers)
+    add_jobs_parser(subparsers)
 
 
 def _add_serve(subparsers: Any) -> None:

@@ -17,11 +17,9 @@ from ..settings import ServiceSettings
 from ..storage.blobs import BlobStore
 from ..storage.dbblobs import make_blob_store
 from ..storage.interfaces import Jobs, JobStore
+from ..storage.owners import ANONYMOUS  # noqa: F401 - the owner of jobs submitted while authentication is off
 from ..storage.store import store_for
 from .validator import ValidatorPool
-
-ANONYMOUS = "anonymous"
-"""The owner of jobs submitted while authentication is off."""
 
 
 @dataclass
