@@ -61,5 +61,5 @@ def options_help(extra: str = "") -> str:
         default = default.model_dump() if hasattr(default, "model_dump") else default
         parts.append(f"{name} (default {json.dumps(default)})")
     return ("registration options as JSON text or a JSON file, e.g. '{\"starts\": 2}'" + extra
-            + ". Fields: " + "; ".join(parts) + ". Field details: GET /openapi.json (RegistrationOptions) "
-            "or the README")
+            + ". Fields: " + "; ".join(parts) + ". What each field does: the RegistrationOptions schema (a "
+            "description per field) at /openapi.json or /docs of a running `dsareg serve`")

@@ -112,7 +112,8 @@ def test_options_help_lists_the_fields(capsys):
     text = " ".join(capsys.readouterr().out.split())
     for field in ("starts", "max_iterations", "working_size_px", "segmentation", "border_correction"):
         assert field in text
-    assert "RegistrationOptions)" in text  # where the details live, not a bare class name
+    assert "RegistrationOptions schema" in text and "/openapi.json" in text  # where the details live
+    assert "README" not in text  # the README has no option details (issue 44)
     assert "serve --config" in text  # --configuration is not the settings file
 
 
