@@ -34,6 +34,7 @@ from ..mesh import (  # noqa: F401 - decimate and _cluster_decimate re-exported 
     mesh_from_arrays,
 )
 from .limits import DEFAULT_LIMITS, InputLimits
+from .mesh_limits import check_mesh_bytes
 from .mesh_units import MeshUnit, mesh_unit
 from .vtk_polydata import VTK_MESH_FORMATS, declared_triangles, detect_vtk_polydata, legacy_dataset, parse_vtk_polydata
 
@@ -154,6 +155,7 @@ def read_mesh_detailed(
         warnings.append(
             f"{field_name}: the file is named '.{extension}' but its content is {fmt.upper()}; read as {fmt.upper()}"
         )
+    check_mesh_bytes(data, fmt, limits, field_name)  # vertices, faces, a GLB's structure: before parsing
     declared = _declared_faces(data, fmt)
     if declared is not None and declared > limits.max_faces:
         raise DsaregInputError(

@@ -34,6 +34,7 @@ from ..geometry.pose import invert_rigid
 from ..geometry.rig import ViewGeometry
 
 from ..artifacts import MODEL_JSON, image_png, layers_png  # noqa: F401 - the names, spelled once
+from .mesh_limits import review_bytes
 
 INITIAL, REGISTERED, MASK_BIT, UNFILLED_BIT = 255, 255, 128, 64
 _OBJ_LINE = re.compile(rb"(?m)^[ \t]*(v|f)[ \t]+([^\r\n#]*)")
@@ -126,7 +127,7 @@ def model_document(vertices: np.ndarray, faces: np.ndarray, vertex_order: str, d
 
 
 def write_model_json(out_dir: Path, mesh_bytes: bytes | None, mesh_name: str | None, mesh, data: dict) -> None:
-    vertices, faces, order = model_as_given(mesh_bytes, mesh_name, mesh)
+    vertices, faces, order = model_as_given(review_bytes(mesh_bytes), mesh_name, mesh)  # size bounded
     (Path(out_dir) / MODEL_JSON).write_text(json.dumps(model_document(vertices, faces, order, data),
                                                        separators=(",", ":")))
 
