@@ -133,8 +133,9 @@ def image_reading_json(options: Any) -> dict[str, Any]:
 
 def volume_reading(options: Any) -> dict[str, Any]:
     """The options that decide how a volume is read (kind, vessel window), as the validator request carries them."""
+    labels = getattr(options, "volume_labels", None)
     return {"kind": options.volume_kind, "vessel_min": options.volume_vessel_min,
-            "vessel_max": options.volume_vessel_max}
+            "vessel_max": options.volume_vessel_max, "labels": list(labels) if labels is not None else None}
 
 
 def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:

@@ -105,7 +105,9 @@ def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = 
     what = readout.text() if readout is not None else "the kept voxels"
     kind = getattr(readout, "kind", "3d-dsa")
     accepted = ("a vessel model: set options.volume_kind (cta, mra, 3d-dsa) or the vessel window "
-                "(options.volume_vessel_min / volume_vessel_max) to what the volume is")
+                "(options.volume_vessel_min / options.volume_vessel_max) to what the volume is")
+    if kind == "labels":
+        accepted = "a label map of vessels: choose its vessel labels with options.volume_labels"
     if int(mask.sum()) < MIN_KEPT_VOXELS:
         raise DsaregInputError(f"no vessels in the window: {what}", field=field_name, accepted=accepted)
     limit = MAX_KEPT_FRACTION.get(kind, 0.5)

@@ -9,7 +9,8 @@ The kind decides how vessels are told from everything else (:mod:`dsareg_engine.
 :func:`detect_volume_kind` decides from the DICOM tags (Modality, SOP Class, Image Type, Series
 Description, Contrast/Bolus Agent, Angio Flag) and, where tags are absent or ambiguous (NIfTI, NRRD,
 a CT series), from whether the values look like HU with air around a head. :class:`VolumeReading`
-(``options.volume_kind``, ``options.volume_vessel_min``, ``options.volume_vessel_max``) overrides it.
+(``options.volume_kind``, ``options.volume_vessel_min``, ``options.volume_vessel_max``) overrides it. A label
+map or a 0/1 mask is read as its labels (:mod:`.volume_labels`; ``options.volume_labels`` chooses them).
 """
 
 from __future__ import annotations
@@ -36,11 +37,13 @@ class VolumeReading:
         vessel_min: the vessel surface level (HU for CTA; the volume's intensity for MRA / 3D-DSA);
             ``None``: halfway between the tissue and the vessels, estimated from the volume.
         vessel_max: CTA only: HU from which a voxel is bone (default :data:`DEFAULT_BONE_HU`).
+        labels: a label map's labels that are vessels (:mod:`.volume_labels`); ``None``: every label above 0.
     """
 
     kind: str = "auto"
     vessel_min: float | None = None
     vessel_max: float | None = None
+    labels: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in VOLUME_KINDS:
@@ -49,12 +52,20 @@ class VolumeReading:
         if self.vessel_min is not None and self.vessel_max is not None and self.vessel_min >= self.vessel_max:
             raise DsaregInputError(f"vessel_min {self.vessel_min} is not below vessel_max {self.vessel_max}",
                                    field="options.volume_vessel_min", accepted="vessel_min < vessel_max")
+        if self.labels is not None:
+            labels = tuple(self.labels)
+            if not labels or any(isinstance(x, bool) or int(x) != x or x < 1 for x in labels):
+                raise DsaregInputError(f"labels {list(labels)} are not whole numbers above 0",
+                                       field="options.volume_labels", accepted="a list of labels, each 1 or more")
+            object.__setattr__(self, "labels", tuple(sorted({int(x) for x in labels})))
 
     @classmethod
     def from_options(cls, options) -> VolumeReading:
-        """From registration options (``volume_kind``, ``volume_vessel_min``, ``volume_vessel_max``)."""
+        """From registration options (``volume_kind``, ``volume_vessel_min``, ``volume_vessel_max``,
+        ``volume_labels``)."""
+        labels = getattr(options, "volume_labels", None)
         return cls(getattr(options, "volume_kind", "auto"), getattr(options, "volume_vessel_min", None),
-                   getattr(options, "volume_vessel_max", None))
+                   getattr(options, "volume_vessel_max", None), tuple(labels) if labels is not None else None)
 
 
 def _upper(tags: dict[str, str], key: str) -> str:
@@ -87,4 +98,18 @@ def detect_volume_kind(tags: dict[str, str], data: np.ndarray) -> tuple[str, str
     return "3d-dsa", "no DICOM tags: read as already subtracted (set options.volume_kind for a CTA or MRA)"
 
 
-__all__ = ["VOLUME_KINDS", "VolumeReading", "detect_volume_kind"]
+CLI_FLAGS = {"options.volume_kind": "--volume-kind", "options.volume_vessel_min": "--vessel-min",
+             "options.volume_vessel_max": "--vessel-max", "options.volume_labels": "--labels"}
+"""The command line's flags (``dsareg inspect``, ``dsareg mesh``) for the options a volume's reading takes."""
+
+
+def on_command_line(text: str | None) -> str | None:
+    """``text`` (an error's message or accepted) naming the command line's flags instead of the server's options."""
+    if text is None:
+        return None
+    for option, flag in CLI_FLAGS.items():
+        text = text.replace(option, flag)
+    return text.replace("volume_vessel_min / volume_vessel_max", "--vessel-min / --vessel-max")
+
+
+__all__ = ["CLI_FLAGS", "VOLUME_KINDS", "VolumeReading", "detect_volume_kind", "on_command_line"]

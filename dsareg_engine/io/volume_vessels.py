@@ -22,6 +22,9 @@ CTA and MRA: when the kept voxels are largely plate-shaped (:mod:`.medial_shape`
 cancellous skull base inside the HU window, skull-base marrow fat in a TOF-MRA), the plate parts and what
 touches them are set aside before the shape check; the shape check refuses only when nothing tube-like remains.
 The decisions (kind, vessel window, bone threshold, vessel shape) go to ``VolumeReadout.decisions``.
+
+A label map or 0/1 mask (:mod:`.volume_labels`) is read as its labels, not by intensity: kind ``labels``, every
+piece but specks kept, the decisions the labels read as vessels and the pieces kept.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
+from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
 
 DEFAULT_BONE_HU = 700.0
@@ -62,8 +66,9 @@ class VolumeReadout:
     """What was read from a volume (reported by ``dsareg inspect``, ``dsareg mesh`` and the result).
 
     Attributes:
-        kind: ``"cta"``, ``"mra"`` or ``"3d-dsa"``; ``kind_source``: why (the tags, or ``options``).
-        unit: ``"HU"`` (CTA) or ``"intensity"``.
+        kind: ``"cta"``, ``"mra"``, ``"3d-dsa"`` or ``"labels"`` (a label map or mask); ``kind_source``: why (the
+            tags, or ``options``).
+        unit: ``"HU"`` (CTA), ``"intensity"`` or ``"label"``.
         vessel_min: the lowest vessel level kept; ``vessel_max``: CTA's bone level (else None).
         surface: where the surface lies: ``"level"`` (at ``vessel_min``) or ``"local half maximum"``
             (MRA: each vessel's own half maximum over the tissue).
@@ -71,6 +76,7 @@ class VolumeReadout:
         voxels_kept, voxels_total: vessel voxels kept, voxels in the volume; components kept.
         faces: faces of the extracted surface (before any decimation).
         plate_share: the plate share of the kept voxels' medial axis (:mod:`.medial_shape`; vessels ~0-0.2).
+        labels: a label map's labels read as vessels (else None).
         decisions: the decisions taken (kind, vessel window, bone threshold, shape), for ``Case.decisions``;
             not part of :meth:`to_dict`.
     """
@@ -88,6 +94,7 @@ class VolumeReadout:
     surface: str = "level"
     faces: int = 0
     plate_share: float | None = None
+    labels: list[int] | None = None
     decisions: list[InputDecision] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
@@ -100,10 +107,16 @@ class VolumeReadout:
                 out[key] = round(float(out[key]), 1)
         return out
 
+    def window(self) -> str:
+        """The vessel window in words: ``300 to 700 HU``, ``120 and up intensity``, ``labels 1, 2, 3``."""
+        if self.labels is not None:
+            return "labels " + ", ".join(str(v) for v in self.labels)
+        return (f"{self.vessel_min:.0f}" + (f" to {self.vessel_max:.0f}" if self.vessel_max is not None else " and up")
+                + f" {self.unit}")
+
     def text(self) -> str:
-        window = f"{self.vessel_min:.0f}" + (f" to {self.vessel_max:.0f}" if self.vessel_max is not None else " and up")
         surface = "" if self.surface == "level" else f", surface at each vessel's {self.surface}"
-        return (f"{self.kind} ({self.kind_source}); vessel window {window} {self.unit}{surface}; "
+        return (f"{self.kind} ({self.kind_source}); vessel window {self.window()}{surface}; "
                 f"{self.voxels_kept} of {self.voxels_total} voxels kept in {self.components} component(s)")
 
 
@@ -125,6 +138,9 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
 
     reading = reading or VolumeReading()
     voxels = _finite(volume.data, field_name)
+    labels = label_map(voxels, reading, field_name)
+    if labels is not None:
+        return _labelled(volume, voxels, labels, field_name)
     if reading.kind == "auto":
         kind, source = detect_volume_kind(volume.tags, voxels)
     else:
@@ -146,6 +162,23 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
     readout.faces = mesh.n_faces
     return VesselExtraction(mesh, readout, mask, excluded)
+
+
+def _labelled(volume: Volume, voxels: np.ndarray, labels: LabelMap, field_name: str) -> VesselExtraction:
+    """A label map's or mask's vessels (:mod:`.volume_labels`), shape-checked like any other reading."""
+    spacing = np.asarray(volume.spacing_mm)
+    pieces = label_pieces(voxels, labels, spacing, field_name)
+    source = "given: volume_labels" if labels.source == "option" else (
+        f"a label map: whole values, {len(labels.present)} label(s) above 0 on a background of 0")
+    readout = VolumeReadout("labels", source, "label", float(min(labels.chosen)), None, None, None,
+                            pieces.voxels_kept, int(voxels.size), pieces.pieces_kept, labels=list(labels.chosen))
+    readout.plate_share = check_vessel_shape(pieces.mask, spacing, readout, field_name=field_name)["plate_fraction"]
+    readout.decisions = pieces.decisions + [InputDecision(
+        "volume", "vessel shape", "tubes", "plate share of the kept voxels' medial axis", readout.plate_share,
+        MAX_PLATE_FRACTION, PLATE_BAND)]
+    mesh = surface_from_mask(pieces.field, pieces.mask, SURFACE_LEVEL, volume.affine, field_name=field_name)
+    readout.faces = mesh.n_faces
+    return VesselExtraction(mesh, readout, pieces.mask, None)
 
 
 def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,

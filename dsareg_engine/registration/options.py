@@ -135,6 +135,11 @@ class RegistrationOptions(BaseModel):
         "estimated halfway between tissue and vessels.")
     volume_vessel_max: float | None = Field(
         None, description="CTA: HU from which a voxel is bone (default 700); ignored for other kinds.")
+    volume_labels: list[Annotated[int, Field(ge=1)]] | None = Field(
+        None, min_length=1, description="A label map's labels that are vessels (e.g. [1, 2, 3]); null = every label "
+        "above 0. A volume whose values are a few whole numbers with a background of 0 (a label map, a 0/1 mask) is "
+        "read as labels, all its pieces but specks kept; with this option the volume must be one. Reported as "
+        "result volume.labels and input_decisions (vessel labels, vessel pieces).")
     mesh_units: Literal["mm", "cm", "m"] | None = Field(
         None, description="The mesh file's length unit; null = the format's own (glTF/GLB: metres) or else "
         "millimetres. A model whose size is implausible for head arteries in that unit is refused at submission. "

@@ -397,9 +397,10 @@ class VolumeRead(BaseModel):
 
     model_config = CLOSED
 
-    kind: Literal["cta", "mra", "3d-dsa"] = Field(description="How the volume was read.")
+    kind: Literal["cta", "mra", "3d-dsa", "labels"] = Field(description="How the volume was read (labels: a label "
+                                                                     "map or 0/1 mask, read as its labels).")
     kind_source: str = Field(description="Why: the DICOM tags / values that decided, or `options.volume_kind`.")
-    unit: Literal["HU", "intensity"]
+    unit: Literal["HU", "intensity", "label"]
     vessel_min: float = Field(description="Lowest vessel value kept (HU or intensity).")
     vessel_max: float | None = Field(None, description="CTA: the bone level (HU); voxels above it are bone.")
     tissue_level: float | None = Field(None, description="Estimated background tissue level.")
@@ -411,6 +412,8 @@ class VolumeRead(BaseModel):
     faces: int = Field(description="Faces of the extracted surface, before decimation to the working budget.")
     plate_share: float | None = Field(None, description="Plate share of the kept voxels' medial axis, measured in mm "
                                       "(vessels about 0-0.25, bone plates 0.6-1; refused above 0.5, a close call from 0.35).")
+    labels: list[int] | None = Field(None, description="A label map: the labels read as vessels (options.volume_labels, "
+                                     "else every label above 0).")
 
 
 class InputDecisionRecord(BaseModel):
@@ -490,10 +493,13 @@ def multipart_schema(presets: list[str]) -> dict[str, Any]:
         "description": "Give `mesh` or `volume`, both images, and optionally `geometry` and `options`.",
         "properties": {
             "mesh": {"type": "string", "format": "binary",
-                     "description": "Vessel surface mesh in mm: OBJ, STL (ASCII/binary), PLY, OFF or GLB."},
+                     "description": "Vessel surface mesh in mm: OBJ, STL (ASCII/binary), PLY, OFF, GLB, VTP or legacy "
+                                    "VTK polydata."},
             "volume": {"type": "array", "items": {"type": "string", "format": "binary"},
-                       "description": "Vessel volume instead of a mesh: NIfTI, NRRD, a DICOM series (one part per "
-                                      "file) or `.rad` + `.raw`; segmented (Otsu) and meshed (marching cubes)."},
+                       "description": "Vessel volume instead of a mesh: NIfTI, NRRD (`.nhdr` + its data file as two "
+                                      "parts), MetaImage (`.mha`, or `.mhd` + its data file), legacy VTK structured "
+                                      "points, a DICOM series (one part per file) or `.rad` + `.raw`; its vessels read "
+                                      "by kind (CTA, TOF-MRA, 3D-DSA) or as a label map, and meshed (marching cubes)."},
             "ap": {"type": "string", "format": "binary",
                    "description": "AP view: DSA image or binary vessel mask (PNG, TIFF, JPEG, DICOM XA single/"
                                   "multi-frame); a `.rad` + `.raw` pair as two parts."},
