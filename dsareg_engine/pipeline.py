@@ -13,6 +13,7 @@ frame's stage and iteration.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from collections.abc import Callable
@@ -30,12 +31,14 @@ from .io.dicom_identity import DicomSources
 from .io.limits import DEFAULT_LIMITS, InputLimits
 from .io.input_decisions import InputDecision, with_close_calls
 from .io.review_files import write_model_json, write_view_files
+from .io.view_roles import views_swapped
 from .io.volume_kind import VolumeReading
 from .metrics import dice
 from .overlay import Caption, crop_box, overlay_image, write_png
 from .plots import loss_figure
 from .registration import RegistrationOptions
 from .registration.result import RegistrationResult
+from .registration.motion import sequential_runs
 from .registration.solver import RegistrationCanceled, register
 from .registration.options import image_reading, parse_options
 from .registration.partial import PARTIAL_UNMATCHED, unmatched_pixels
@@ -75,6 +78,8 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     options = options if isinstance(options, RegistrationOptions) else parse_options(options)
     case = load_case_files(files, options.segmentation, limits, reading=image_reading(options),
                            volume_reading=VolumeReading.from_options(options), mesh_units=options.mesh_units)
+    if views_swapped(case.decisions):  # the files follow the views they are (hemodynamics reads them again)
+        files = dataclasses.replace(files, ap=files.lat, lat=files.ap, ap_name=files.lat_name, lat_name=files.ap_name)
     if options.hemodynamics:
         from .hemodynamics.intake import check_timed_runs
 
@@ -148,10 +153,13 @@ def run_registration_case(
         RegistrationCanceled: ``should_stop()`` returned True.
     """
     result = register(case.mesh, case.fitted, case.rig, options, progress=progress, should_stop=should_stop)
+    acquisition = case.acquisition.to_dict() if case.acquisition is not None else None
+    if acquisition is not None and acquisition["sequential"]:  # a pose per run, the motion between them
+        acquisition = sequential_runs(case.mesh, case.fitted, case.rig, result, acquisition, options.device)
     return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
                          images=case.images, label=label, progress=progress, warnings=case.warnings,
                          readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None,
-                         decisions=case.decisions)
+                         decisions=case.decisions, acquisition=acquisition)
 
 
 def verdict_of(data: dict) -> tuple[str, bool | None]:
@@ -184,15 +192,18 @@ def write_outputs(result: RegistrationResult, masks: dict[str, np.ndarray], out_
                   animation: bool = False, *, images: dict[str, np.ndarray] | None = None, label: str | None = None,
                   progress: Callable[[dict], None] | None = None, warnings: list[str] | None = None,
                   readings: dict[str, dict] | None = None, volume: dict | None = None,
-                  decisions: list[InputDecision] | None = None) -> dict:
+                  decisions: list[InputDecision] | None = None, acquisition: dict | None = None) -> dict:
     """Write result.json (with ``warnings`` when any, ``image_reading``: what was read from each multi-frame XA
     run, ``volume``: what was read from a volume input, and ``input_decisions``: the decisions about the inputs,
-    close calls lowering the verdict to ``check``), overlays, masks and the loss plot (and the
+    close calls lowering the verdict to ``check``; ``acquisition``: whether the runs were acquired together and, when
+    not, each run's pose, :mod:`.registration.motion`), overlays, masks and the loss plot (and the
     animation) for a finished registration."""
     out_dir.mkdir(parents=True, exist_ok=True)
     data = result.to_dict()
     if volume:
         data["volume"] = volume
+    if acquisition:
+        data["acquisition"] = acquisition
     if warnings:
         data["warnings"] = [str(warning) for warning in warnings]
     if readings:

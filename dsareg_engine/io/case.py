@@ -176,7 +176,7 @@ def load_case(
         if data is None or len(data) == 0:
             raise DsaregInputError("the image is missing or empty", field=name, accepted="a DSA image or a mask")
         images[name] = read_image(data, filename, limits, field_name=name, reading=reading.for_view(name))
-    images, acquisition = named_views(images, (ap, lat), geometry is not None, decisions, kinds, warnings)
+    images, acquisition = named_views(images, geometry is not None, decisions, kinds, warnings)
 
     rig = _resolve_rig(geometry, images, warnings, kinds)
 

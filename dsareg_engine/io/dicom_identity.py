@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import io
 from dataclasses import dataclass
+from datetime import datetime
 from typing import Any
 
 # Patient module (and the Patient Study / clinical trial bits that travel with it), copied when present.
@@ -43,6 +44,9 @@ class DicomIdentity:
             (values as pydicom converts them; copied, never shared with the parsed dataset).
         study: the same for :data:`STUDY_KEYWORDS`.
         series: the same for :data:`SERIES_KEYWORDS` (modality, series number and description).
+        image_type: the Image Type values, upper case (``SINGLE PLANE``, ``BIPLANE A`` ...): which plane took a run.
+        start: when the run started (Acquisition DateTime, else Acquisition or Content Date + Time), or ``None``:
+            two runs minutes apart were not acquired together (:mod:`.view_roles`).
     """
 
     sop_class_uid: str
@@ -53,6 +57,8 @@ class DicomIdentity:
     patient: tuple[tuple[str, Any], ...] = ()
     study: tuple[tuple[str, Any], ...] = ()
     series: tuple[tuple[str, Any], ...] = ()
+    image_type: tuple[str, ...] = ()
+    start: datetime | None = None
 
 
 @dataclass(frozen=True)
@@ -123,9 +129,22 @@ def identity_of(dataset) -> DicomIdentity | None:
             study_instance_uid=_top(dataset, "StudyInstanceUID"), series_instance_uid=_top(dataset, "SeriesInstanceUID"),
             frame_of_reference_uid=_top(dataset, "FrameOfReferenceUID"),
             patient=_present(dataset, PATIENT_KEYWORDS), study=_present(dataset, STUDY_KEYWORDS),
-            series=_present(dataset, SERIES_KEYWORDS))
+            series=_present(dataset, SERIES_KEYWORDS), **_acquired(dataset))
     except Exception as exc:  # noqa: BLE001 - a malformed value: no identity, said so
         raise UnreadableIdentity(str(exc)[:200]) from None
+
+
+def _acquired(dataset) -> dict:
+    """``image_type`` and ``start`` of :class:`DicomIdentity`; a value that does not convert is left out."""
+    from ..hemodynamics.timing import run_start
+
+    found: dict = {}
+    try:
+        found["image_type"] = tuple(str(v).strip().upper() for v in (dataset.get("ImageType") or []))
+        found["start"] = run_start(dataset)
+    except Exception:  # noqa: BLE001 - an odd time or image type is no evidence either way
+        pass
+    return found
 
 
 DEFER_BYTES = 64 * 1024

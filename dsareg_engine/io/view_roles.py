@@ -26,7 +26,6 @@ evidence: synthetic and some vendor biplane pairs say ``SINGLE PLANE`` on both p
 from __future__ import annotations
 
 import dataclasses
-import io
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -62,24 +61,15 @@ class RunHeader:
     frame_uid: str | None = None
 
 
-def run_header(data) -> RunHeader | None:
-    """The :class:`RunHeader` of an image file's bytes, or None when it is not DICOM."""
-    import pydicom
-
-    from ..hemodynamics.timing import run_start
-
-    if data is None or isinstance(data, (list, tuple)) or len(data) < 132:
+def run_header(identity) -> RunHeader | None:
+    """The :class:`RunHeader` of an image's :class:`~.dicom_identity.DicomIdentity` (taken when it was read: no
+    parse again), or None when it is not DICOM."""
+    if identity is None:
         return None
-    data = bytes(data)
-    try:
-        dataset = pydicom.dcmread(io.BytesIO(data), stop_before_pixels=True, force=data[128:132] != b"DICM")
-        values = [str(v).strip().upper() for v in (dataset.get("ImageType") or [])]
-        plane = "A" if "BIPLANE A" in values else "B" if "BIPLANE B" in values else (
-            "single" if "SINGLE PLANE" in values else None)
-        frame = str(dataset.get("FrameOfReferenceUID") or "") or None
-        return RunHeader(plane=plane, start=run_start(dataset), frame_uid=frame)
-    except Exception:  # noqa: BLE001 - the readers said what was wrong with the file; here: no evidence
-        return None
+    values = identity.image_type
+    plane = "A" if "BIPLANE A" in values else "B" if "BIPLANE B" in values else (
+        "single" if "SINGLE PLANE" in values else None)
+    return RunHeader(plane=plane, start=identity.start, frame_uid=identity.frame_of_reference_uid)
 
 
 def _relabelled(image, role: str, given: str):
@@ -162,12 +152,12 @@ def acquisition_of(headers: dict[str, RunHeader | None]) -> tuple[Acquisition | 
     return None, []
 
 
-def named_views(images: dict, files: tuple, explicit_geometry: bool, decisions: list[InputDecision],
+def named_views(images: dict, explicit_geometry: bool, decisions: list[InputDecision],
                 kinds: dict[str, str], warnings: list[str]) -> tuple[dict, Acquisition | None]:
     """The case reader's step: ``images`` (LoadedImage by the role given) by their true roles (:func:`views_by_role`)
-    and the runs' :class:`Acquisition`, given ``files`` (the AP and LAT bytes as given); appends the decisions to
+    and the runs' :class:`Acquisition` (from the identities the readers took); appends the decisions to
     ``decisions``, each view's kind to ``kinds`` and its warnings to ``warnings``."""
-    headers = {"ap": run_header(files[0]), "lat": run_header(files[1])}
+    headers = {name: run_header(images[name].dicom) for name in ("ap", "lat")}
     images, roles = views_by_role(images, headers, explicit_geometry)
     if roles and roles[0].chosen == "swapped":
         headers = {"ap": headers["lat"], "lat": headers["ap"]}
@@ -177,3 +167,8 @@ def named_views(images: dict, files: tuple, explicit_geometry: bool, decisions: 
         kinds[name] = images[name].kind
         warnings.extend(images[name].warnings)
     return images, acquisition
+
+
+def views_swapped(decisions: list[InputDecision]) -> bool:
+    """Whether the case's views were swapped back (:func:`views_by_role`): the AP view is the file given as LAT."""
+    return any(d.what == "view roles" and d.chosen == "swapped" for d in decisions)

@@ -434,6 +434,27 @@ class InputDecisionRecord(BaseModel):
     source: Literal["measured", "tag", "option"] = Field(description="Measured, read from a tag, or given.")
 
 
+class Acquisition(BaseModel):
+    """Whether the AP and LAT runs were acquired together, from their DICOM headers (start times, single-plane
+    runs' frames of reference). Sequential runs (a monoplane C-arm: two injections minutes apart) get a pose per
+    run and the motion between them; their verdict is never `ok` (motion along each beam cannot be measured)."""
+
+    model_config = CLOSED
+
+    sequential: bool = Field(description="True: two runs at different times, the head may have moved between them.")
+    basis: str = Field(description="What says so, in words (the runs' start times, or their frames of reference).")
+    interval_s: float | None = Field(None, description="LAT run start − AP run start, seconds; null without both times.")
+    run_poses: dict[str, Matrix4] | None = Field(
+        None, description="Sequential runs: per view (`ap`, `lat`), 4x4 mesh mm → world mm of the model at that run: "
+                          "the joint pose refined on that view alone, its depth along the view's beam held at the "
+                          "joint pose's (one view cannot measure it).")
+    run_dice: dict[str, float] | None = Field(None, description="Per view: Dice (0–1) of the silhouette at that "
+                                                                "run's pose with the vessel mask.")
+    motion: Motion | None = Field(None, description="Sequential runs: the model's motion from the AP run to the LAT "
+                                                    "run (across the beams; along them it is not measured).")
+    seconds: float | None = Field(None, description="Time spent on the per-run poses, seconds.")
+
+
 class RegistrationResult(BaseModel):
     """The registration result (`result.json`). `verdict` says whether to trust `mesh_to_world`; a job that
     `succeeded` only ran to the end. Every field is declared (none undeclared is written); a later version may
@@ -465,6 +486,9 @@ class RegistrationResult(BaseModel):
     hemodynamics: HemodynamicsSummary | None = Field(
         None, description="With options.hemodynamics: contrast arrival and time to peak on the model from both runs "
                           "(per-vertex values: links.hemodynamics).")
+    acquisition: Acquisition | None = Field(
+        None, description="DICOM XA runs: whether they were acquired together; sequential runs add a pose per run and "
+                          "the motion between them (null without DICOM headers saying either).")
 
 
 # ---- putting them into the OpenAPI document -----------------------------------------------

@@ -82,7 +82,7 @@ def test_runs_minutes_apart_are_sequential(build, mesh_bytes):
                      lat=_xa(build, 91.0, image_type=single, time="101705"))
     assert case.acquisition.sequential and case.acquisition.interval_s == pytest.approx(125.0)
     assert "10:15:00" in case.acquisition.basis and _decision(case, "acquisition").chosen == "sequential runs"
-    header = run_header(_xa(build, 2.0, image_type=single, time="101500", frame="1.2.3"))
+    header = run_header(read_image(_xa(build, 2.0, image_type=single, time="101500", frame="1.2.3"), "ap.dcm").dicom)
     assert header.plane == "single" and header.frame_uid == "1.2.3"
 
 
