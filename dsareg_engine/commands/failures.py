@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import traceback
 from collections.abc import Callable
 
 from ..errors import DsaregInputError
@@ -87,7 +88,8 @@ def explain(exc: BaseException) -> tuple[int, str]:
 
 
 def run_guarded(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace) -> int:
-    """Run a sub-command: one line on stderr and exit 2/1 on errors; ``--debug`` re-raises."""
+    """Run a sub-command: one line on stderr and exit 2/1 on errors; ``--debug`` prints the traceback first (the exit
+    status is the same: a script that tells input errors from failures can run with it)."""
     try:
         return int(func(args) or 0)
     except KeyboardInterrupt:
@@ -96,8 +98,8 @@ def run_guarded(func: Callable[[argparse.Namespace], int | None], args: argparse
     except SystemExit:
         raise
     except BaseException as exc:
-        if getattr(args, "debug", False):
-            raise
+        if getattr(args, "debug", False):  # the traceback too, and the same exit status (2 stays 2)
+            traceback.print_exc()
         code, message = explain(exc)
         print(f"dsareg: error: {message}", file=sys.stderr)
         return code

@@ -131,3 +131,17 @@ def test_register_one_line_summary(tmp_path):
                    "--out", str(out), timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "dice" in proc.stdout and "ADD" in proc.stdout and "Traceback" not in proc.stderr
+
+
+def test_debug_keeps_the_exit_status_of_an_input_error(capsys):
+    from dsareg_engine.cli import run_parsed
+    from dsareg_engine.errors import DsaregInputError
+
+    def refuse(args):
+        raise DsaregInputError("no vessels found", field="volume")
+
+    args = build_parser().parse_args(["--debug", "register", *CASE, "--out", "x"])
+    args.func = refuse
+    assert run_parsed(args) == 2  # an input error stays 2 with --debug (it was 1: the traceback's exit)
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "dsareg: error: volume: no vessels found" in err
