@@ -24,6 +24,7 @@ from .jobs.executor import Executor
 from .jobs.factory import make_executor
 from .api.middleware import BodyLimitMiddleware, MetricsMiddleware
 from .api.secure_headers import SecureHeadersMiddleware
+from .api.auth_throttle import FailureThrottle
 from .problems import problem_responses
 from .settings import ServiceSettings
 
@@ -56,6 +57,7 @@ def create_app(settings: ServiceSettings, *, executor: Executor | None = None, s
     app.add_middleware(BodyDeadlineMiddleware, idle_seconds=settings.server.http_body_idle_timeout_seconds)
     app.add_middleware(MetricsMiddleware, histogram=metrics.http_latency, routes_getter=lambda: app.router.routes)
     app.add_middleware(SecureHeadersMiddleware)  # outermost: no-store + nosniff on every answer, 413s included
+    app.state.auth_throttle = FailureThrottle()  # wrong API keys per client address: 429 after 10 in 60 s
     install_handlers(app)
     mount(app, registrations.router, events.router, tracking.router, review.router, artifacts.router, hemodynamics.router, operations.router, ui.router)
     install_docs(app)

@@ -16,6 +16,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CollectorRegistry, Counter
 
 from ..intake.context import ANONYMOUS, IntakeContext
+from .auth_throttle import client_of, refuse_if_blocked
 from ..problems import Problem
 from ..settings import hash_api_key
 from ..storage.interfaces import JobReader, Jobs, Reviews
@@ -53,13 +54,19 @@ def principal(request: Request, credentials: HTTPAuthorizationCredentials | None
         return ANONYMOUS
     if credentials is None or not credentials.credentials:
         raise Problem(401, "send 'Authorization: Bearer <API key>'", headers={"WWW-Authenticate": "Bearer"})
+    throttle, client = getattr(request.app.state, "auth_throttle", None), client_of(request)
+    refuse_if_blocked(throttle, client)  # 429 + Retry-After after too many wrong keys (auth_throttle.py)
     digest = hash_api_key(credentials.credentials)
     match = None
     for known in ctx.settings.auth.api_key_hashes:  # compare against all, in constant time each
         if hmac.compare_digest(digest, known):
             match = known
     if match is None:
+        if throttle is not None:
+            throttle.failed(client)
         raise Problem(401, "the API key is not valid", headers={"WWW-Authenticate": 'Bearer error="invalid_token"'})
+    if throttle is not None:
+        throttle.forget(client)
     return "key:" + match[:16]
 
 
