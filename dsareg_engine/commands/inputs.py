@@ -17,7 +17,8 @@ def add_parser(subparsers) -> None:
         "files",
         nargs="+",
         metavar="FILE",
-        help="mesh, volume (a DICOM series folder, or a .rad with its .raw), image, or geometry JSON",
+        help="mesh, volume (a DICOM series folder, a .rad with its .raw, a .mhd / .nhdr with its data file), image, "
+             "or geometry JSON",
     )
     _add_volume_reading(inspect)
     inspect.set_defaults(func=_inspect)
@@ -32,7 +33,8 @@ def add_parser(subparsers) -> None:
     segment.set_defaults(func=_segment)
 
     mesh = subparsers.add_parser("mesh", help="extract the vessel surface of a 3D volume")
-    mesh.add_argument("volume", metavar="VOLUME", help="NIfTI, NRRD, DICOM (file or series folder), or .rad (+ .raw)")
+    mesh.add_argument("volume", metavar="VOLUME", help="NIfTI, NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd), legacy VTK "
+                      "structured points, DICOM (file or series folder), or .rad (+ .raw); a label map or mask too")
     mesh.add_argument("--out", required=True, metavar="MESH.obj", help="output mesh (OBJ, STL, PLY by suffix)")
     mesh.add_argument("--faces", type=int, default=None, help="face budget (default: the working budget)")
     _add_volume_reading(mesh)
@@ -51,13 +53,23 @@ def _add_volume_reading(parser) -> None:
                         help="lowest vessel value (HU for CTA, intensity otherwise; default: estimated)")
     parser.add_argument("--vessel-max", type=float, default=None, metavar="HU",
                         help="CTA: HU from which a voxel is bone (default 700)")
+    parser.add_argument("--labels", type=int, nargs="+", default=None, metavar="LABEL",
+                        help="a label map's vessel labels (default: every label above 0)")
 
 
 def _volume_reading(args: argparse.Namespace):
     from ..io.volume_kind import VolumeReading
 
+    labels = getattr(args, "labels", None)
     return VolumeReading(getattr(args, "volume_kind", "auto"), getattr(args, "vessel_min", None),
-                         getattr(args, "vessel_max", None))
+                         getattr(args, "vessel_max", None), tuple(labels) if labels else None)
+
+
+def _cli_error(exc: DsaregInputError) -> DsaregInputError:
+    """``exc`` naming the command line's flags (``--vessel-min``) instead of the server's options."""
+    from ..io.volume_kind import on_command_line
+
+    return DsaregInputError(on_command_line(exc.message), field=exc.field, accepted=on_command_line(exc.accepted))
 
 
 # ---- reading files from disk (the readers themselves only see bytes) -------------------
@@ -76,6 +88,9 @@ def _file_parts(path: Path, field_name: str) -> bytes | list[bytes]:
         if not files:
             raise DsaregInputError(f"folder '{path}' is empty", field=field_name)
         return [p.read_bytes() for p in files]
+    detached = _detached_data(path, field_name)
+    if detached is not None:
+        return detached
     if path.suffix.lower() == ".rad":
         raw = path.with_suffix(".raw")
         if not raw.exists():
@@ -84,6 +99,23 @@ def _file_parts(path: Path, field_name: str) -> bytes | list[bytes]:
     if path.suffix.lower() == ".raw" and path.with_suffix(".rad").exists():
         return [path.with_suffix(".rad").read_bytes(), _read(path, field_name)]
     return _read(path, field_name)
+
+
+def _detached_data(path: Path, field_name: str) -> list[bytes] | None:
+    """A ``.mhd`` / ``.nhdr`` header and the data file it names (beside it), or None for other files."""
+    from ..io.volume_formats import detached_data_file
+
+    fmt = {".mhd": "metaimage", ".nhdr": "nrrd"}.get(path.suffix.lower())
+    if fmt is None:
+        return None
+    header = _read(path, field_name)
+    name = detached_data_file(header, fmt)
+    if name is None:
+        return None
+    data = path.parent / name
+    if not data.is_file():
+        raise DsaregInputError(f"'{name}' (the data file its header names) is missing beside it", field=field_name)
+    return [header, data.read_bytes()]
 
 
 def _frame(value: str | None):
@@ -119,7 +151,7 @@ def describe(path: Path, reading=None) -> list[str]:
         kind = "volume"
     elif first.lstrip()[:1] == b"{":
         kind = "geometry"
-    elif detect_volume_format(first) in ("nifti", "nrrd"):
+    elif detect_volume_format(first) in ("nifti", "nrrd", "metaimage", "vtk-image"):
         kind = "volume"
     elif detect_image_format(first) in ("png", "jpeg", "tiff"):
         kind = "image"
@@ -131,6 +163,7 @@ def describe(path: Path, reading=None) -> list[str]:
         "ply",
         "off",
         "glb",
+        "vtp",
     ):
         kind = "mesh"
     else:
@@ -204,12 +237,11 @@ def _vessel_lines(volume, reading, field_name: str) -> list[str]:
     try:
         readout = extract_vessels(volume, reading, field_name=field_name).readout
     except DsaregInputError as exc:
-        return [f"  vessels: refused: {exc.message}"]
-    window = f"{readout.vessel_min:.0f}" + (f" to {readout.vessel_max:.0f}" if readout.vessel_max is not None else " and up")
+        return [f"  vessels: refused: {_cli_error(exc).message}"]
     levels = ", ".join(f"{name} {value:.0f}" for name, value in (("tissue", readout.tissue_level),
                                                                  ("vessels", readout.vessel_level)) if value is not None)
     return [f"  volume kind: {readout.kind} ({readout.kind_source})",
-            f"  vessel window: {window} {readout.unit}" + (f" (estimated {levels})" if levels else "")
+            f"  vessel window: {readout.window()}" + (f" (estimated {levels})" if levels else "")
             + ("" if readout.surface == "level" else f"; surface at each vessel's {readout.surface}"),
             f"  voxels kept: {readout.voxels_kept} of {readout.voxels_total} in {readout.components} component(s); "
             f"{readout.faces} faces"]
@@ -285,7 +317,10 @@ def _mesh(args: argparse.Namespace) -> int:
 
     path = Path(args.volume)
     volume = read_volume(_file_parts(path, "volume"), path.name)
-    extraction = extract_vessels(volume, _volume_reading(args))
+    try:
+        extraction = extract_vessels(volume, _volume_reading(args))
+    except DsaregInputError as exc:
+        raise _cli_error(exc) from None
     mesh = extraction.mesh
     budget = args.faces or DEFAULT_LIMITS.working_faces
     extracted = mesh.n_faces
