@@ -8,7 +8,7 @@ Cheap to import (argparse, numpy for :func:`load_pose`): ``dsareg --help`` build
 * argument types: :func:`input_file`, :func:`geometry_argument`, :func:`json_argument`, :func:`options_help`,
   :func:`load_pose` (a 4 × 4 rigid pose from a file)
 * waiting on a job: :class:`ProgressPrinter`, :func:`verdict_meets`, :data:`REQUIRE_CHOICES`,
-  :data:`VERDICT_NOT_MET_EXIT`
+  :data:`VERDICT_NOT_MET_EXIT`, :func:`ground_truth_text` (the summary's ground-truth errors, named)
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from ..cli import run_parsed
 from ..geometry.pose_file import load_pose
 from .arguments import geometry_argument, input_file, json_argument, options_help
 from .failures import CommandFailed
-from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
+from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, ground_truth_text, verdict_meets
 
 __all__ = [
     "REQUIRE_CHOICES",
@@ -25,6 +25,7 @@ __all__ = [
     "CommandFailed",
     "ProgressPrinter",
     "geometry_argument",
+    "ground_truth_text",
     "input_file",
     "json_argument",
     "load_pose",

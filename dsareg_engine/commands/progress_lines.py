@@ -25,6 +25,20 @@ def verdict_meets(verdict: str | None, required: str | None) -> bool:
     return VERDICT_RANK.get(verdict or "", -1) >= VERDICT_RANK[required]
 
 
+def ground_truth_text(errors: dict[str, Any]) -> str:
+    """The errors against a ground-truth pose, each saying what it measures (``metrics.ground_truth``).
+
+    ADD is the figure to judge a pose by; the translation error is the paper's (where the X-ray source lies in
+    the model's frame), about a metre from the vessels, so a rotation of a tenth of a degree moves it ~2 mm."""
+    def number(key: str) -> float:
+        value = errors.get(key)
+        return float(value) if isinstance(value, (int, float)) else float("nan")
+
+    return (f"vs ground truth: ADD {number('add_mm'):.4f} mm (mean distance of the model's points), rotation "
+            f"{number('rotation_error_deg'):.4f} deg, source translation {number('translation_error_mm'):.4f} mm "
+            "(the X-ray source in the model's frame, ~1 m away: grows with the rotation)")
+
+
 class ProgressPrinter:
     """Show progress events ``{stage, iteration, loss, fraction}`` on ``stream`` (default stderr)."""
 

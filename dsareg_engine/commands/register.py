@@ -10,7 +10,7 @@ from pathlib import Path
 from ..errors import DsaregInputError
 from ..registration.options import CONFIGURATIONS
 from .arguments import geometry_argument, input_file, json_argument, options_help
-from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, verdict_meets
+from .progress_lines import REQUIRE_CHOICES, VERDICT_NOT_MET_EXIT, ProgressPrinter, ground_truth_text, verdict_meets
 
 
 def add_parser(subparsers) -> None:
@@ -205,7 +205,5 @@ def summary_lines(result, out: Path) -> list[str]:
         lines.append(f"motion since --initial: {metrics['motion']['rotation_deg']:.3f} deg, "
                      f"{metrics['motion']['translation_mm']:.3f} mm")
     if "ground_truth" in metrics:
-        gt = metrics["ground_truth"]
-        lines.append(f"rotation {gt['rotation_error_deg']:.4f} deg, translation {gt['translation_error_mm']:.4f} mm, "
-                     f"ADD {gt['add_mm']:.4f} mm")
+        lines.append(ground_truth_text(metrics["ground_truth"]))
     return lines

@@ -119,10 +119,10 @@ def assess(signals: dict, thresholds: ConfidenceThresholds = ConfidenceThreshold
         if partial is not None:
             break  # the low overlap is the unfilled model's, explained above
         if value < thresholds.failed_dice:
-            failed.append(f"{name}: the model's silhouette overlaps the vessels poorly (dice {value:.2f}); "
+            failed.append(f"{name}: the model's silhouette overlaps the vessels poorly (fitted dice {value:.2f}); "
                           f"{_why_low(signals, name, thresholds)}")
         elif value < thresholds.check_dice:
-            check.append(f"{name}: partial overlap (dice {value:.2f}); {_why_low(signals, name, thresholds)}")
+            check.append(f"{name}: partial overlap (fitted dice {value:.2f}); {_why_low(signals, name, thresholds)}")
     other = signals.get("runner_up")
     if other is not None and other["best_fit"] - other["fit"] < thresholds.ambiguous_fit_gap:
         check.append(f"ambiguous: a different pose {other['distance_mm']:.0f} mm away fits almost as well "

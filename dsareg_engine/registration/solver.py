@@ -864,7 +864,7 @@ def _view_results(problem: _Problem, initial: np.ndarray, estimate: np.ndarray) 
 
 
 def _convergence(outcome: _StageOutcome | None, views: dict[str, ViewResult]) -> tuple[bool, str]:
-    low = {name: round(result.dice, 3) for name, result in views.items() if result.dice < MIN_CONVERGED_DICE}
+    low = ", ".join(f"{name} {result.dice:.3f}" for name, result in views.items() if result.dice < MIN_CONVERGED_DICE)
     if low:
         return False, f"silhouettes overlap poorly after optimization (dice {low}); the pose is likely wrong"
     if outcome is None or outcome.stopped_by != "tolerance":

@@ -40,6 +40,9 @@ def _add_serve(subparsers: Any) -> None:
                        help="service settings file (JSON or TOML, keys as the DSAREG_* variables without the prefix); "
                             "not the registration configuration, which is an option of each job")
     serve.add_argument("--log-level", help="debug, info, warning, error")
+    serve.add_argument("--ssl-certfile", metavar="PEM", help="serve HTTPS with this certificate (chain), with "
+                       "--ssl-keyfile: uvicorn's own TLS (docs/deployment/security.md; or TLS at a reverse proxy)")
+    serve.add_argument("--ssl-keyfile", metavar="PEM", help="the certificate's private key (PEM, not encrypted)")
     serve.set_defaults(func=run_serve)
 
 
@@ -145,7 +148,7 @@ def _add_submit(subparsers: Any) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from ..app import create_app, http_protocol, uvicorn_options
+    from ..app import create_app, http_protocol, tls_options, uvicorn_options
     from ..settings import load_settings
 
     settings = load_settings(
@@ -154,6 +157,7 @@ def run_serve(args: argparse.Namespace) -> int:
     )
     logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log = logging.getLogger("dsareg.service")
+    tls = tls_options(args.ssl_certfile, args.ssl_keyfile)  # a wrong file: one line, exit 2, nothing started
     if settings.dimse.dicom_port:  # the DICOM node's settings, before anything starts (a SettingError, exit 2)
         from ..pacs.dimse.job_options import dicom_job_options
 
@@ -167,7 +171,7 @@ def run_serve(args: argparse.Namespace) -> int:
     app = create_app(settings)
     uvicorn.run(app, host=host, port=settings.server.port, log_level=settings.server.log_level.lower(), access_log=False,
                 timeout_graceful_shutdown=10, http=http_protocol(settings),  # bad Content-Length → problem+json
-                **uvicorn_options(settings))  # at most http_max_connections
+                **uvicorn_options(settings), **tls)  # at most http_max_connections; HTTPS when given
     return 0
 
 
@@ -212,8 +216,9 @@ def summary_line(final: dict[str, Any]) -> str:
         parts.append(f"{seconds:.1f} s")
     gt = metrics.get("ground_truth")
     if isinstance(gt, dict) and "add_mm" in gt:
-        parts.append(f"rotation {gt.get('rotation_error_deg', float('nan')):.4f} deg, "
-                     f"translation {gt.get('translation_error_mm', float('nan')):.4f} mm, ADD {gt['add_mm']:.4f} mm")
+        from ..engine_adapter import commands
+
+        parts.append(commands.ground_truth_text(gt))
     if verdict in ("check", "failed") and confidence.get("reasons"):
         parts.append("why: " + " / ".join(str(reason) for reason in confidence["reasons"]))
     return "; ".join(parts)

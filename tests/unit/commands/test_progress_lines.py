@@ -48,3 +48,31 @@ def test_verdict_requirements():
     assert verdict_meets("ok", "ok") and verdict_meets("check", "check") and verdict_meets("ok", "check")
     assert not verdict_meets("check", "ok") and not verdict_meets("failed", "check") and not verdict_meets(None, "check")
     assert verdict_meets("failed", None)
+
+
+def test_the_ground_truth_figures_say_what_each_is():
+    """"translation 6.3758 mm, ADD 0.1971 mm" beside `ok` alarmed: each figure is named, ADD first."""
+    from dsareg_engine.commands.progress_lines import ground_truth_text
+
+    text = ground_truth_text({"rotation_error_deg": 0.36, "translation_error_mm": 6.3758, "add_mm": 0.1971})
+    assert text.startswith("vs ground truth: ADD 0.1971 mm (mean distance of the model's points)")
+    assert "source translation 6.3758 mm (the X-ray source in the model's frame" in text
+
+
+def test_a_failed_summary_prints_no_python_dict_and_names_both_dice():
+    """`dsareg submit`'s summary of a failed verdict: per-view Dice as numbers, the reasons' fitted Dice named as
+    such (they are measured against the border-corrected mask), no ``{'ap': …}``."""
+    from types import SimpleNamespace
+
+    from dsareg_engine.registration.confidence import assess
+    from dsareg_engine.registration.solver import _convergence
+    from service.cli.subcommands import summary_line
+
+    converged, reason = _convergence(None, {"ap": SimpleNamespace(dice=0.245), "lat": SimpleNamespace(dice=0.9)})
+    confidence = assess({"dice": {"ap": 0.26, "lat": 0.91}, "runner_up": None, "border_shift_px": {},
+                         "outside_fraction": {}, "stopped_on_tolerance": True})
+    final = {"id": "j1", "result": {"views": {"ap": {"dice": 0.245}, "lat": {"dice": 0.9}}, "metrics": {
+        "converged": converged, "reason": reason, "confidence": confidence, "seconds": {"total": 3.0}}}}
+    line = summary_line(final)
+    assert "{" not in line and "'" not in line.replace("model's", ""), line
+    assert "dice ap 0.245" in line and "ap dice 0.245" in line and "(fitted dice 0.26)" in line, line
