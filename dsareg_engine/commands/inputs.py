@@ -133,10 +133,20 @@ def _frame(value: str | None):
 
 
 def describe(path: Path, reading=None) -> list[str]:
-    """Lines describing one input file (what ``dsareg inspect`` prints); ``reading``: how to read a volume's vessels."""
+    """Lines describing one input file (what ``dsareg inspect`` prints); ``reading``: how to read a volume's vessels.
+    The warnings the readers' libraries raise (pydicom, Pillow) become ``warning:`` lines, not stderr."""
+    from ..io.xa_pixels import caught_warnings
+
+    caught: list[str] = []
+    with caught_warnings(caught, path.name):
+        lines = _describe(path, reading)
+    return lines + [line for line in (f"  warning: {w}" for w in caught) if line not in lines]
+
+
+def _describe(path: Path, reading=None) -> list[str]:
     from ..geometry.spec import parse_geometry
     from ..io import rad
-    from ..io.image_io import detect_image_format, read_image
+    from ..io.image_io import detect_image_format
     from ..io.mesh_io import detect_mesh_format, read_mesh_detailed
     from ..io.volume_io import detect_volume_format, read_volume
 
@@ -204,13 +214,70 @@ def describe(path: Path, reading=None) -> list[str]:
         lines += _vessel_lines(volume, reading, field_name)
         lines += [f"  warning: {w}" for w in volume.warnings]
     else:
-        image = read_image(data, path.name, field_name=field_name)
-        height, width = image.pixels.shape
-        lines += [f"  kind: image ({image.kind}{', mask' if image.is_mask else ''})", f"  size: {width}x{height}"]
-        lines.append(f"  geometry: {_view_text(image.geometry) if image.geometry else 'none in the file'}")
-        lines += reading_lines(image.reading)
-        lines += [f"  warning: {w}" for w in image.warnings]
+        lines += _image_or_refusal(data, path.name, field_name)
     return lines
+
+
+class RefusedInput(Exception):
+    """A file that reads, but not as registration would use it: ``lines`` describe it, ``error`` says why."""
+
+    def __init__(self, lines: list[str], error: DsaregInputError):
+        super().__init__(str(error))
+        self.lines, self.error = lines, error
+
+
+def _image_or_refusal(data, name: str, field_name: str) -> list[str]:
+    """The image's lines; a run that registration refuses (no contrast, a recipe it cannot apply) is still
+    described as stored, and :class:`RefusedInput` carries the lines and the reason."""
+    from ..io.image_io import read_image
+    from ..io.xa_run import RunReading
+
+    try:
+        return image_lines(read_image(data, name, field_name=field_name))
+    except DsaregInputError as exc:
+        try:
+            stored = read_image(data, name, field_name=field_name, reading=RunReading(subtraction="off"))
+        except DsaregInputError:
+            raise exc from None
+        if stored.reading.get("frames", 1) <= 1:
+            raise
+        raise RefusedInput(image_lines(stored), exc) from None
+
+
+def image_lines(image) -> list[str]:
+    """What ``inspect`` says about a 2D image: kind, size, geometry (or the part of it the file holds), field of
+    view, the run's reading, warnings."""
+    height, width = image.pixels.shape
+    lines = [f"  kind: image ({image.kind}{', mask' if image.is_mask else ''})", f"  size: {width}x{height}"]
+    lines += geometry_lines(image.geometry, image.geometry_tags)
+    for decision in image.decisions:
+        if decision.what == "field of view":
+            lines.append(f"  field of view: {decision.chosen} ({decision.basis})")
+    if image.annotation_mask is not None:
+        lines.append(f"  overlay graphics: {int(image.annotation_mask.sum())} px drawn over the image (masked)")
+    lines += reading_lines(image.reading)
+    lines += [f"  warning: {w}" for w in image.warnings]
+    return lines
+
+
+def geometry_lines(view, found: dict) -> list[str]:
+    """The geometry, or what the file holds of it (angles) and which tags are missing."""
+    from ..io.dicom_xa import GEOMETRY_TAGS
+
+    angles = [f"{name} {found[key]:.1f} deg" for name, key in (("primary", "PositionerPrimaryAngle"),
+                                                               ("secondary", "PositionerSecondaryAngle"))
+              if isinstance(found.get(key), float)]
+    angle_text = f"C-arm angles {', '.join(angles)} (primary: LAO+, secondary: CRA+)" if angles else ""
+    if view is not None:
+        return [f"  geometry: {_view_text(view)}"] + ([f"  {angle_text}"] if angle_text else [])
+    if not found:
+        return ["  geometry: none in the file"]
+    alternatives = {"DistanceSourceToPatient": "DistanceSourceToIsocenter", "ImagerPixelSpacing": "PixelSpacing"}
+    missing = [k for k in GEOMETRY_TAGS if k not in found and alternatives.get(k) not in found]
+    present = [k for k in found if not k.startswith("Positioner")]
+    text = "; ".join(part for part in (angle_text, f"found {', '.join(present)}" if present else "",
+                                       f"missing {', '.join(missing)}" if missing else "") if part)
+    return [f"  geometry: incomplete in the file: {text} (a geometry file is needed to register)"]
 
 
 def _unit_text(unit) -> str:
@@ -282,9 +349,29 @@ def _view_text(view) -> str:
 
 
 def _inspect(args: argparse.Namespace) -> int:
+    """Every file described on stdout; one that cannot be read says why on stderr, and the others are still read
+    (a run registration refuses is described as stored, with the reason). Exit status: the worst file's
+    (:func:`.failures.explain`: 2 for an input that cannot be used), 0 when all read."""
+    import sys
+
+    from .failures import explain
+
+    status, failed = 0, 0
     for name in args.files:
-        print("\n".join(describe(Path(name), _volume_reading(args))))
-    return 0
+        try:
+            print("\n".join(describe(Path(name), _volume_reading(args))))
+        except RefusedInput as refused:
+            status, failed = max(status, 2), failed + 1
+            print("\n".join([f"{name}: (frames as stored)", *refused.lines, f"  refused: {refused.error}"]))
+        except Exception as exc:  # reported per file; the others are still read
+            if getattr(args, "debug", False):
+                raise
+            code, message = explain(exc)
+            status, failed = max(status, code), failed + 1
+            print(f"dsareg: error: {name}: {message}", file=sys.stderr)
+    if failed:
+        print(f"inspect: {failed} of {len(args.files)} file(s) could not be read or are refused", file=sys.stderr)
+    return status
 
 
 # ---- segment / mesh ----------------------------------------------------------------------

@@ -171,6 +171,26 @@ def view_from_angles(
     )
 
 
+def geometry_found(dataset, frame: int | None = None) -> dict:
+    """The C-arm geometry tags present (the frame's, else the file's), as numbers: ``{keyword: value}`` (a pixel
+    spacing as a list); a value that is not a number is kept as text. What ``inspect`` shows of a geometry that
+    is incomplete."""
+    found: dict = {}
+    for keyword in (*GEOMETRY_TAGS, "PixelSpacing", "DistanceSourceToIsocenter"):
+        try:
+            value = find_tag(dataset, keyword, frame)
+        except Exception:  # noqa: BLE001 - pydicom converts lazily: a malformed value reads as text below
+            value = None
+        if value is None:
+            continue
+        try:
+            found[keyword] = ([float(v) for v in value] if hasattr(value, "__iter__") and not isinstance(value, str)
+                              else float(value))
+        except (TypeError, ValueError):
+            found[keyword] = str(value)[:40]
+    return found
+
+
 def view_from_xa(
     dataset, frame: int | None = None, *, field_name: str = "image"
 ) -> tuple[ViewGeometry | None, list[str]]:

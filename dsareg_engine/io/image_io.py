@@ -47,6 +47,10 @@ class LoadedImage:
     dicom: DicomIdentity | None = None  # DICOM: what the DICOM outputs refer to (taken from the one parse)
     dicom_unreadable: bool = False  # DICOM whose identity attributes could not be converted
     decisions: list[InputDecision] = field(default_factory=list)  # what was decided about the input (input_decisions)
+    # DICOM: True where the detector sees the patient (Shutter / Collimator modules, io/xa_shutter), or None
+    field_of_view: np.ndarray | None = None
+    annotation_mask: np.ndarray | None = None  # DICOM: graphics overlay planes drawn over the image, or None
+    geometry_tags: dict = field(default_factory=dict)  # DICOM: the C-arm geometry tags found (dicom_xa.geometry_found)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -59,10 +63,10 @@ def detect_image_format(data: bytes) -> str | None:
         return "png"
     if head[:3] == b"\xff\xd8\xff":
         return "jpeg"
+    if data[128:132] == b"DICM":  # before TIFF: a dual-personality file (PS3.10) has a TIFF header in its preamble
+        return "dicom"
     if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
         return "tiff"
-    if data[128:132] == b"DICM":
-        return "dicom"
     if rad_format.looks_like_rad(data[:4096]):
         return "rad"
     return None
@@ -259,17 +263,10 @@ def dicom_number(dataset, keyword: str, default, field_name: str, *, kind: type 
     return kind(number)
 
 
-def read_dicom_image(
-    data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, frame: int | str | None = None, field_name: str = "image",
-    reading: RunReading | None = None,
-) -> LoadedImage:
-    """A 2D image (and its C-arm geometry when the tags are there) from DICOM XA.
-
-    A multi-frame run is read by :func:`.xa_run.read_run` (``reading``; default: ``frame`` with
-    automatic subtraction of native runs); the geometry comes from the frame used.
-    """
-    from .dicom_xa import view_from_xa
-    from .xa_run import read_run, subtracted_record
+def _dicom_stack(data: bytes, limits: InputLimits, field_name: str):
+    """``(dataset, frames (N, H, W) after the rescale)``: header checked before anything is decoded, the modality
+    checked (:func:`.xa_pixels.check_modality`), the pixels decoded in any transfer syntax (:mod:`.xa_pixels`)."""
+    from .xa_pixels import check_modality, decode_pixels
 
     header, failure = parse_dicom(data, field_name)
     rows, cols = dicom_number(header, "Rows", 0, field_name), dicom_number(header, "Columns", 0, field_name)
@@ -283,15 +280,13 @@ def read_dicom_image(
                                accepted="NumberOfFrames and SamplesPerPixel of at least 1")
     if n_frames * rows * cols * samples * 4 > limits.max_volume_bytes:
         raise DsaregInputError(f"declares {n_frames} frames of {cols}x{rows}, above the size limit", field=field_name)
+    check_modality(header, field_name)
     if failure is not None:
         raise DsaregInputError(f"DICOM is unreadable or truncated ({failure})", field=field_name)
     dataset = header
     if "PixelData" not in dataset:
         raise DsaregInputError("DICOM file has no pixel data", field=field_name)
-    try:
-        stack = np.asarray(dataset.pixel_array, dtype=np.float32)
-    except Exception as exc:
-        raise DsaregInputError(f"DICOM pixel data is unreadable ({str(exc)[:200]})", field=field_name) from None
+    stack = np.asarray(decode_pixels(dataset, field_name), dtype=np.float32)
     if samples > 1:
         stack = stack @ np.array([0.299, 0.587, 0.114], dtype=np.float32)[: stack.shape[-1]]
     if stack.ndim == 2:
@@ -300,23 +295,69 @@ def read_dicom_image(
         raise DsaregInputError(f"DICOM pixel data has shape {list(stack.shape)}", field=field_name)
     slope = dicom_number(dataset, "RescaleSlope", 1.0, field_name, kind=float)
     intercept = dicom_number(dataset, "RescaleIntercept", 0.0, field_name, kind=float)
-    stack = stack * slope + intercept
-    reading = reading if reading is not None else RunReading(frame=frame)
-    native, call = read_run(stack, dataset, reading, field_name)
-    if native is not None:
-        pixels, chosen, record, warnings = native.pixels, native.geometry_frame, native.record, native.warnings
-        decisions = native.decisions
-    else:
-        pixels, chosen, warnings = _stored_frame(stack, dataset, reading.frame, field_name)
-        record = subtracted_record(len(stack), chosen, reading.frame, call.why)
-        decisions = [call.decision] if call.decision is not None else []
-    geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
-    warnings.extend(geometry_warnings)
+    return dataset, stack * slope + intercept
+
+
+def _field_of_view(dataset, shape_rc, frame, field_name: str):
+    """``(field of view, annotation mask, decisions, warnings)`` from the Shutter / Collimator modules and the
+    overlay planes (:mod:`.xa_shutter`)."""
+    from .xa_shutter import field_of_view_details, overlay_annotation_mask
+
+    fov, applied, notes = field_of_view_details(dataset, shape_rc, frame)
+    warnings = [f"{field_name}: {note}" for note in notes]
+    decisions = []
+    if fov is not None:
+        share = float(fov.mean())
+        decisions.append(InputDecision(field_name, "field of view", " and ".join(applied),
+                                       f"the file's Shutter / Collimator modules ({share:.0%} of the image)",
+                                       source="tag"))
+    annotation = overlay_annotation_mask(dataset, shape_rc)
+    burned = str(getattr(dataset, "BurnedInAnnotation", "") or "").strip().upper()
+    if burned == "YES":
+        warnings.append(f"{field_name}: Burned In Annotation is YES: text or marks are drawn into the pixels")
+    return fov, annotation, decisions, warnings
+
+
+def read_dicom_image(
+    data: bytes, limits: InputLimits = DEFAULT_LIMITS, *, frame: int | str | None = None, field_name: str = "image",
+    reading: RunReading | None = None,
+) -> LoadedImage:
+    """A 2D image (and its C-arm geometry when the tags are there) from DICOM XA.
+
+    A multi-frame run is read by :func:`.xa_run.read_run` (``reading``; default: ``frame`` with
+    automatic subtraction of native runs); the geometry comes from the frame used. The warnings pydicom
+    raises while reading become the image's warnings; the Shutter / Collimator modules give its field
+    of view (:mod:`.xa_shutter`).
+    """
+    from .dicom_xa import geometry_found, view_from_xa
+    from .xa_pixels import caught_warnings
+    from .xa_run import read_run, subtracted_record
+
+    library_warnings: list[str] = []
+    with caught_warnings(library_warnings, field_name):
+        dataset, stack = _dicom_stack(data, limits, field_name)
+        reading = reading if reading is not None else RunReading(frame=frame)
+        native, call = read_run(stack, dataset, reading, field_name)
+        if native is not None:
+            pixels, chosen, record, warnings = native.pixels, native.geometry_frame, native.record, native.warnings
+            decisions = native.decisions
+        else:
+            pixels, chosen, warnings = _stored_frame(stack, dataset, reading.frame, field_name)
+            record = subtracted_record(len(stack), chosen, reading.frame, call.why, call.kind)
+            decisions = [call.decision] if call.decision is not None else []
+        relationship = str(getattr(dataset, "PixelIntensityRelationship", "") or "").strip().upper()
+        if relationship:
+            record.setdefault("pixel_intensity_relationship", relationship)
+        geometry, geometry_warnings = view_from_xa(dataset, chosen, field_name=field_name)
+        found = geometry_found(dataset, chosen)
+        fov, annotation, fov_decisions, fov_warnings = _field_of_view(dataset, stack.shape[1:], chosen, field_name)
+        identity, unreadable = identity_or_none(dataset)
+    warnings.extend(geometry_warnings + fov_warnings + library_warnings)
     pixels = np.ascontiguousarray(pixels, dtype=np.float32)
-    identity, unreadable = identity_or_none(dataset)
     return LoadedImage(
         pixels, _is_binary(pixels), geometry, "dicom-xa" if len(stack) == 1 else "dicom-xa-multiframe", warnings,
-        reading=record, dicom=identity, dicom_unreadable=unreadable, decisions=decisions,
+        reading=record, dicom=identity, dicom_unreadable=unreadable, decisions=decisions + fov_decisions,
+        field_of_view=fov, annotation_mask=annotation, geometry_tags=found,
     )
 
 

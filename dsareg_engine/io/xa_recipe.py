@@ -15,7 +15,8 @@ are 1-based; here every index is 0-based (``frame_number - 1``) once parsed.
   left-hand columns. Kept here as ``mask_shift_px = (down, right) = (row, −column)``.
 * Contrast Frame Averaging (0028,6112): that many frames, from the current one on, are averaged
   before the subtraction.
-* ``NONE``: no subtraction for the item's frames.
+* ``NONE``: no subtraction for the item's frames. A sequence whose every item is ``NONE`` (cardiac cines carry
+  one) makes the run *unsubtracted*: its frames are read as stored (:mod:`.xa_run_kind`).
 
 Anything that cannot be applied (an unknown operation, a frame number outside the run, an
 AVG_SUB without mask frames, a TID without an offset) raises :class:`DsaregInputError` naming

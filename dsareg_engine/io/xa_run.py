@@ -284,6 +284,16 @@ def _corrected(logs: np.ndarray, pair: Pair, reading: RunReading, warnings: list
     return (contrast - mask).astype(np.float32), move, found
 
 
+def _check_run_contrast(scores: dict[int, float], field_name: str) -> None:
+    """A run none of whose frames darkens beyond the noise once its mask is subtracted (the motion corrected) shows
+    no contrast, whatever frame is asked for: refused for every frame choice alike."""
+    if not scores or max(scores.values()) <= 0.0:
+        raise DsaregInputError(
+            f"no contrast found: no frame of the run darkens beyond {SCORE_SIGMAS:g} sigma of the noise once its "
+            "mask is subtracted (what changes is brightness or motion, not contrast filling vessels)",
+            field=field_name, accepted="a run with contrast-filled vessels in its contrast frames")
+
+
 def _check_contrast(image: np.ndarray, field_name: str, frames: list[int]) -> None:
     sigma = _robust_std(image)
     smooth = cv2.GaussianBlur(image, (0, 0), 1.0)
@@ -317,17 +327,19 @@ def read_native(stack: np.ndarray, dataset, reading: RunReading, why: str, field
     factor, _ = grid_factor(dataset, stack.shape[1:])
     pairs, record["recipe"], found = subtraction_pairs(logs, dataset, field_name)
     decisions: list[InputDecision] = [found] if found is not None else []
-    choice = choose_frames(_frame_scores(logs, pairs, factor, reading.motion_correction), reading.frame, len(stack), field_name)
+    scores = _frame_scores(logs, pairs, factor, reading.motion_correction)
+    _check_run_contrast(scores, field_name)
+    choice = choose_frames(scores, reading.frame, len(stack), field_name)
     decisions.append(choice.decision)
     geometry_frame, used = choice.geometry_frame, choice.frames
     moves: dict[int, dict] = {}
     image, moves[geometry_frame], peak_motion = _corrected(logs, pairs[geometry_frame], reading, warnings, field_name)
+    _check_contrast(image, field_name, [geometry_frame])  # the peak (or the frame given), not a MinIP of noise
     images = [(geometry_frame, image)]
     for frame in [f for f in used if f != geometry_frame]:  # each from the peak's move, refined coarsely
         image, moves[frame], _ = _corrected(logs, pairs[frame], reading, warnings, field_name, peak_motion)
         images.append((frame, image))
     pixels = combine([image for _, image in sorted(images, key=lambda item: item[0])], choice.combined)
-    _check_contrast(pixels, field_name, used)
     pair = pairs[geometry_frame]
     record.update({
         "frame_index": geometry_frame, "frame_number": geometry_frame + 1,
@@ -388,9 +400,10 @@ def read_run(stack: np.ndarray, dataset, reading: RunReading, field_name: str) -
     return image, call
 
 
-def subtracted_record(n_frames: int, chosen: int | None, frame, why: str) -> dict:
-    """The record of a run read as stored."""
-    record: dict = {"frames": n_frames, "run": "subtracted" if n_frames > 1 else "single frame", "why": why}
+def subtracted_record(n_frames: int, chosen: int | None, frame, why: str, kind: str = "subtracted") -> dict:
+    """The record of a run read as stored (``kind`` ``"unsubtracted"``: a native run whose recipe says NONE)."""
+    run = ("unsubtracted" if kind == "unsubtracted" else "subtracted") if n_frames > 1 else "single frame"
+    record: dict = {"frames": n_frames, "run": run, "why": why}
     if frame == "minip":
         record.update({"combined": "minip", "frame_indices": list(range(n_frames))})
     elif chosen is not None:

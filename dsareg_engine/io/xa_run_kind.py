@@ -1,7 +1,9 @@
 """Native or subtracted: how a multi-frame XA run is stored, decided once, with its margin.
 
 **Tags first.** A Mask Subtraction Sequence or Recommended Viewing Mode (0028,1090) ``SUB``: native
-(the viewer subtracts). Image Type or Derivation Description naming a subtraction: subtracted.
+(the viewer subtracts); a Mask Subtraction Sequence whose every item says ``MaskOperation NONE`` (legal:
+"no subtraction", as cardiac cines carry it): *unsubtracted*, the frames read as stored. Image Type or
+Derivation Description naming a subtraction: subtracted.
 
 **Otherwise the content.** A native run shows the same anatomy (bone, soft tissue, a catheter) in
 every frame; a subtracted run's frames before contrast are noise. The measure is the structure of an
@@ -100,8 +102,18 @@ def static_ratio(stack: np.ndarray, spacing_mm: float, settings: RunKindSettings
     return structure / max(noise, 1e-6 * float(np.abs(early[first]).mean()) + 1e-12)
 
 
+def _operations(dataset) -> list[str]:
+    try:
+        return [str(getattr(item, "MaskOperation", "") or "").strip().upper() for item in dataset.MaskSubtractionSequence]
+    except Exception:  # noqa: BLE001 - a malformed sequence is told by the recipe's own checks (xa_recipe)
+        return []
+
+
 def _tagged(dataset) -> tuple[str, str] | None:
     if "MaskSubtractionSequence" in dataset:
+        operations = _operations(dataset)
+        if operations and all(operation == "NONE" for operation in operations):
+            return "unsubtracted", "its Mask Subtraction Sequence says NONE (no subtraction): frames read as stored"
         return "native", "it carries a Mask Subtraction Sequence"
     mode = str(getattr(dataset, "RecommendedViewingMode", "") or "").strip().upper()
     if mode == "SUB":
@@ -115,7 +127,8 @@ def _tagged(dataset) -> tuple[str, str] | None:
 
 def decide_run_kind(dataset, stack: np.ndarray, field_name: str,
                     settings: RunKindSettings = RunKindSettings()) -> tuple[str, str, InputDecision]:
-    """``("native" | "subtracted", why, decision)`` for a multi-frame run (``stack`` ``(N, H, W)``, N ≥ 2)."""
+    """``("native" | "subtracted" | "unsubtracted", why, decision)`` for a multi-frame run (``stack`` ``(N, H, W)``,
+    N ≥ 2)."""
     tagged = _tagged(dataset)
     if tagged is not None:
         kind, why = tagged

@@ -367,8 +367,9 @@ class ImageReadingRecord(BaseModel):
         "mask_shift_px": {"recipe_px": [0, 0], "found_px": [0.45, -0.41], "total_px": [0.45, -0.41]}}]})
 
     frames: int = Field(description="Frames in the run.")
-    run: Literal["native", "subtracted", "single frame"] = Field(
-        description="native: stored unsubtracted and subtracted here; subtracted: read as stored.")
+    run: Literal["native", "subtracted", "unsubtracted", "single frame"] = Field(
+        description="native: stored unsubtracted and subtracted here; subtracted: read as stored; unsubtracted: its "
+                    "Mask Subtraction Sequence says NONE (no subtraction), read as stored.")
     why: str = Field(description="What told native from subtracted (tags, or the content).")
     frame_index: int | None = Field(None, description="The frame used (a MinIP: the peak frame, whose geometry applies).")
     frame_number: int | None = Field(None, description="The same, 1-based.")

@@ -120,3 +120,63 @@ def test_inspect_and_mesh_say_what_was_read_from_a_cta(cta_folder, tmp_path, cap
     assert main(["mesh", str(cta_folder), "--out", str(tmp_path / "bad.obj"), "--volume-kind", "3d-dsa"]) == 2
     error = capsys.readouterr().err
     assert "far more than vessels" in error and "volume_kind" in error and "Traceback" not in error
+
+
+def test_inspect_reports_every_file_and_fails_at_the_end(files, capsys):
+    """A file that cannot be read says why (stderr, naming it); the next ones are still described; exit 2 at the end."""
+    assert main(["inspect", str(files / "noise.bin"), str(files / "ap.dcm"), str(files / "missing.dcm")]) == 2
+    captured = capsys.readouterr()
+    assert "kind: image (dicom-xa)" in captured.out
+    errors = captured.err.splitlines()
+    assert "noise.bin: " in errors[0] and "not a recognised" in errors[0]
+    assert "missing.dcm: " in errors[1] and "does not exist" in errors[1]
+    assert "2 of 3 file(s) could not be read" in errors[2]
+
+
+def test_inspect_shows_the_angles_when_distances_are_missing(build, tmp_path, capsys):
+    image, _ = build.dsa()
+    path = tmp_path / "angles.dcm"
+    path.write_bytes(build.xa(image.astype(np.uint16), primary=77.0, secondary=-45.0, sid=None, sod=None, spacing=None))
+    assert main(["inspect", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "geometry: incomplete in the file: C-arm angles primary 77.0 deg, secondary -45.0 deg" in out
+    assert "missing DistanceSourceToDetector, DistanceSourceToPatient, ImagerPixelSpacing" in out
+    assert "none in the file" not in out
+
+
+def test_inspect_keeps_library_warnings_in_its_report(build, tmp_path, capsys):
+    import io
+    import warnings
+
+    import pydicom
+
+    image, _ = build.dsa()
+    dataset = pydicom.dcmread(io.BytesIO(build.xa(image.astype(np.uint16))))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dataset.SeriesInstanceUID = "1.2.3.abc"  # not a UID: pydicom warns each time it reads it
+        dataset.save_as(str(tmp_path / "bad_uid.dcm"))
+    with warnings.catch_warnings(record=True) as leaked:
+        warnings.simplefilter("always")
+        assert main(["inspect", str(tmp_path / "bad_uid.dcm")]) == 0
+    assert not leaked
+    assert "warning: bad_uid.dcm: Invalid value for VR UI: '1.2.3.abc'" in capsys.readouterr().out
+
+
+def test_inspect_describes_a_refused_run_as_stored(tmp_path, capsys):
+    """A run registration refuses (here: the same frame 6 times, no contrast) is still described, with the reason."""
+    import io
+
+    import pydicom
+
+    from dsareg_engine.simulation.native_run_skull import SkullRunSettings, make_skull_run
+
+    dataset = pydicom.dcmread(io.BytesIO(make_skull_run(0, SkullRunSettings(size_px=64)).files["ap"]))
+    frames = dataset.pixel_array.copy()
+    frames[:] = frames[0]
+    dataset.PixelData = frames.tobytes()
+    dataset.save_as(str(tmp_path / "still.dcm"))
+    assert main(["inspect", str(tmp_path / "still.dcm")]) == 2
+    out = capsys.readouterr().out
+    assert "still.dcm: (frames as stored)" in out and "kind: image (dicom-xa-multiframe)" in out
+    assert "refused: " in out and "contrast" in out

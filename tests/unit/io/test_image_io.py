@@ -194,3 +194,44 @@ def test_tiff_page_count_is_read_from_the_header_before_decoding():
     assert read_image(many_page_tiff(5), "a.tif", limits=InputLimits(max_image_pages=5)).kind == "tiff"
     with pytest.raises(DsaregInputError, match="more than 4 pages"):
         read_image(many_page_tiff(5), "a.tif", limits=InputLimits(max_image_pages=4))
+
+
+def _tiff_preamble() -> bytes:
+    """A little-endian TIFF header with one empty IFD, padded to the 128-byte DICOM preamble (PS3.10 7.5: a file
+    may be TIFF and DICOM at once, as the NEMA WG04 XA samples are)."""
+    return (b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 0) + b"\x00" * 4).ljust(128, b"\x00")
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_dual_personality_dicom_is_read_as_dicom(build, compressed):
+    from pydicom import dcmread
+    from pydicom.uid import RLELossless
+
+    image, _ = build.dsa()
+    dataset = dcmread(io.BytesIO(build.xa(image.astype(np.uint16) * 16, primary=30.0)))
+    if compressed:
+        dataset.compress(RLELossless, encoding_plugin="pydicom")
+    dataset.preamble = _tiff_preamble()
+    buffer = io.BytesIO()
+    dataset.save_as(buffer, enforce_file_format=True)
+    data = buffer.getvalue()
+    assert data[:4] == b"II*\x00" and data[128:132] == b"DICM"
+    loaded = read_image(data, "ap.dcm")
+    assert loaded.kind == "dicom-xa" and loaded.geometry is not None and loaded.dicom is not None
+    np.testing.assert_allclose(loaded.pixels, image * 16.0)
+
+
+def test_dicom_monochrome1_12_bit_and_the_intensity_relationship_recorded(build):
+    """12 bits stored in 16, MONOCHROME1 (higher = darker): read with vessels dark, LOG recorded."""
+    from pydicom import dcmread
+
+    image, truth = build.dsa()
+    stored = (4095 - image.astype(np.float64) / image.max() * 4000).astype(np.uint16)  # vessels stored bright
+    dataset = dcmread(io.BytesIO(build.xa(stored, monochrome1=True)))
+    dataset.BitsStored, dataset.HighBit, dataset.PixelIntensityRelationship = 12, 11, "LOG"
+    buffer = io.BytesIO()
+    dataset.save_as(buffer, enforce_file_format=True)
+    loaded = read_image(buffer.getvalue(), "ap.dcm")
+    vessels = truth > 0
+    assert loaded.pixels[vessels].mean() < loaded.pixels[~vessels].mean()
+    assert loaded.reading["pixel_intensity_relationship"] == "LOG"

@@ -171,3 +171,41 @@ def test_encodings_without_recipe_read_native(bits, relationship, photometric):
     assert image.reading["run"] == "native" and image.reading["pixel_intensity_relationship"] == relationship
     assert image.reading["mask_frame_indices"] == list(run.mask_frames)
     assert _vessel_correlation(image.pixels, run.vessels["ap"]) > 0.9
+
+
+def test_run_without_contrast_is_refused_for_every_frame_choice(skull):
+    """Exposure settling and a catheter drifting 2 px a frame, no contrast (as a real 12-frame catheter cine):
+    refused whatever frame is asked for, not only for some."""
+    def drifting_catheter(dataset):
+        first = dataset.pixel_array[0].astype(np.float64)
+        rows, columns = np.mgrid[: first.shape[0], : first.shape[1]]
+        noise = np.random.default_rng(1)
+        frames = []
+        for k in range(len(dataset.pixel_array)):
+            frame = first * min(1.0, 0.85 + 0.05 * k) + noise.normal(0, 0.01 * first.mean(), first.shape)
+            frame[np.abs(columns - (30 + 0.3 * rows + 2.0 * k)) < 1.5] *= 0.6
+            frames.append(np.clip(frame, 0, 4095))
+        dataset.PixelData = np.asarray(frames, np.uint16).tobytes()
+        del dataset.MaskSubtractionSequence
+
+    data = _edited(skull.files["ap"], drifting_catheter)
+    for frame in (None, "minip", 5, 9):
+        with pytest.raises(DsaregInputError, match="no contrast found") as info:
+            read_image(data, "ap.dcm", frame=frame, field_name="ap")
+        assert info.value.field == "ap"
+
+
+def test_recipe_none_reads_the_frames_as_stored(skull):
+    """A Mask Subtraction Sequence of one item MaskOperation NONE (legal: no subtraction, as cardiac cines carry it)."""
+    def no_subtraction(dataset):
+        item = dataset.MaskSubtractionSequence[0]
+        item.MaskOperation = "NONE"
+        del item.MaskFrameNumbers
+
+    data = _edited(skull.files["ap"], no_subtraction)
+    stored = pydicom.dcmread(io.BytesIO(data)).pixel_array
+    image = read_image(data, "ap.dcm", frame=6, field_name="ap")
+    assert image.reading["run"] == "unsubtracted" and "NONE" in image.reading["why"]
+    np.testing.assert_array_equal(image.pixels, stored[6])
+    assert image.decisions[0].chosen == "unsubtracted" and image.decisions[0].source == "tag"
+    assert read_image(data, "ap.dcm").reading["frame_index"] is not None

@@ -55,3 +55,19 @@ def test_measure_does_not_depend_on_pixel_size(lateral):
     _, _, half = decide_run_kind(coarse, binned, "lat")
     assert half.measure == pytest.approx(fine.measure, rel=0.25)
     assert RunKindSettings().threshold < half.measure
+
+
+@pytest.mark.parametrize("operations, kind", [(["NONE"], "unsubtracted"), (["NONE", "NONE"], "unsubtracted"),
+                                              (["NONE", "AVG_SUB"], "native"), (["TID"], "native"),
+                                              (["REV_TID"], "native")])
+def test_a_recipe_of_none_only_is_unsubtracted(operations, kind):
+    """MaskOperation NONE (no subtraction) in every item: the frames are read as stored, told by the tag."""
+    from pydicom.dataset import Dataset
+
+    dataset = Dataset()
+    dataset.MaskSubtractionSequence = [Dataset() for _ in operations]
+    for item, operation in zip(dataset.MaskSubtractionSequence, operations):
+        item.MaskOperation = operation
+    chosen, why, decision = decide_run_kind(dataset, np.zeros((3, 8, 8), np.float32), "ap")
+    assert chosen == kind and decision.chosen == kind and decision.source == "tag"
+    assert ("NONE" in why) == (kind == "unsubtracted")
