@@ -109,9 +109,12 @@ def _add_submit(subparsers: Any) -> None:
                f"{not_met} the job succeeded but its verdict is below --require.")
     submit.add_argument("--server", required=True, metavar="URL", help="base URL, e.g. http://127.0.0.1:8000")
     model = submit.add_mutually_exclusive_group(required=True)
-    model.add_argument("--mesh", type=input_file, metavar="FILE", help="vessel mesh in mm (OBJ, STL, PLY, OFF, GLB)")
+    model.add_argument("--mesh", type=input_file, metavar="FILE",
+                       help="vessel mesh in mm (OBJ, STL, PLY, OFF, GLB, VTP, legacy VTK polydata)")
     model.add_argument("--volume", type=input_file, nargs="+", metavar="FILE",
-                       help="vessel volume file(s): NIfTI, NRRD, .rad + .raw, or a DICOM series as several files")
+                       help="vessel volume file(s): NIfTI, NRRD (.nrrd, or .nhdr + its data file), MetaImage (.mha, "
+                            "or .mhd + its data file), legacy VTK structured points, .rad + .raw, or a DICOM series "
+                            "as several files")
     submit.add_argument("--ap", type=input_file, required=True, metavar="FILE",
                         help="AP DSA image or vessel mask (PNG, TIFF, JPEG, DICOM XA)")
     submit.add_argument("--lat", type=input_file, required=True, metavar="FILE", help="LAT image or mask (as --ap)")
