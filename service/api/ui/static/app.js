@@ -33,8 +33,14 @@ function headers(extra) {
   return Object.assign(key ? { Authorization: "Bearer " + key } : {}, extra || {});
 }
 
+function showKeyForm(needed) {
+  // a request without a key answered other than 401: the server has no API keys and the key box nothing to do
+  document.getElementById("key-form").hidden = !needed && !sessionStorage.getItem(KEY);
+}
+
 async function api(path, options) {
   const response = await fetch(path, Object.assign({}, options, { headers: headers((options || {}).headers) }));
+  if (!sessionStorage.getItem(KEY)) showKeyForm(response.status === 401);
   const body = (response.headers.get("content-type") || "").includes("json") ? await response.json() : null;
   if (!response.ok) {
     const detail = body && (body.detail || body.title) ? body.detail || body.title : response.statusText;
@@ -192,8 +198,11 @@ function metricsList(job) {
   }
   const pose = result.mesh_to_world;
   if (pose) {
-    rows.push(["Pose translation (mm)", [pose[0][3], pose[1][3], pose[2][3]].map((x) => x.toFixed(1)).join(", ")]);
-    rows.push(["Pose rotation (deg)", rotationDeg(pose).toFixed(2)]);
+    // the registered pose itself (model frame → C-arm frame), not an error: a model in scanner coordinates turns
+    // by any angle to face the C-arm
+    rows.push(["Pose translation, model → C-arm (mm; the pose, not an error)",
+      [pose[0][3], pose[1][3], pose[2][3]].map((x) => x.toFixed(1)).join(", ")]);
+    rows.push(["Pose rotation, model → C-arm (deg; the pose, not an error)", rotationDeg(pose).toFixed(2)]);
   }
   if (typeof metrics.loss === "number") rows.push(["Final loss", metrics.loss.toPrecision(3)]);
   if (metrics.reason) rows.push(["Optimizer stopped", metrics.reason]);
