@@ -66,7 +66,8 @@ class ProgressPrinter:
         parts = [f"{fraction * 100:5.1f}%"]
         if status:
             parts.append(f"{status:9s}")
-        parts.append(f"{stage} it {int(event.get('iteration') or 0)}")
+        if stage:  # a job not started yet has no stage: its status alone (was "queued     it 0")
+            parts.append(f"{stage} it {int(event.get('iteration') or 0)}")
         if isinstance(loss, (int, float)):
             parts.append(f"loss {loss:.5f}")
         return stage, " ".join(parts)

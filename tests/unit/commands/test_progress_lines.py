@@ -76,3 +76,14 @@ def test_a_failed_summary_prints_no_python_dict_and_names_both_dice():
     line = summary_line(final)
     assert "{" not in line and "'" not in line.replace("model's", ""), line
     assert "dice ap 0.245" in line and "ap dice 0.245" in line and "(fitted dice 0.26)" in line, line
+
+
+def test_a_job_without_a_stage_shows_its_status_alone():
+    """`dsareg submit` printed "progress   0.0% queued     it 0" for a job no worker had started (empty stage)."""
+    import io
+
+    from dsareg_engine.commands.progress_lines import ProgressPrinter
+
+    out = io.StringIO()
+    ProgressPrinter(out, tty=False).update({}, "queued")
+    assert out.getvalue().split() == ["progress", "0.0%", "queued"], out.getvalue()
