@@ -75,3 +75,27 @@ def http_protocol(settings: ServiceSettings) -> type:
 def uvicorn_options(settings: ServiceSettings) -> dict:
     """The connection bound of ``dsareg serve`` (``uvicorn.run`` keyword arguments)."""
     return HttpDeadlines.of(settings).uvicorn_options()
+
+
+class TlsOptionError(ValueError):
+    """``--ssl-certfile`` / ``--ssl-keyfile`` that cannot serve HTTPS (one line at start, exit 2)."""
+
+    def cli_explanation(self) -> tuple[bool, str]:
+        return True, str(self)
+
+
+def tls_options(certfile: str | None, keyfile: str | None) -> dict:
+    """uvicorn's own TLS for ``dsareg serve --ssl-certfile PEM --ssl-keyfile PEM`` (``uvicorn.run`` keyword
+    arguments; empty without them): both or neither, loaded once here so a wrong file stops the start with one
+    line instead of failing every handshake (docs/deployment/security.md)."""
+    if not certfile and not keyfile:
+        return {}
+    if not (certfile and keyfile):
+        raise TlsOptionError("--ssl-certfile and --ssl-keyfile go together (the certificate and its private key)")
+    import ssl
+
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(certfile, keyfile)
+    except (OSError, ssl.SSLError) as exc:
+        raise TlsOptionError(f"cannot serve HTTPS with certificate {certfile} and key {keyfile}: {exc}") from None
+    return {"ssl_certfile": certfile, "ssl_keyfile": keyfile}
