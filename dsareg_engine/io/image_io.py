@@ -122,6 +122,10 @@ def read_image(
     fmt = detect_image_format(data)
     if fmt is None and name and name.lower().endswith((".dcm", ".dicom", ".ima")):
         fmt = "dicom"
+    elif fmt in ("png", "jpeg", "tiff") and name and name.lower().endswith((".dcm", ".dicom", ".ima")):
+        shown = name.replace("\\", "/").rsplit("/", 1)[-1]  # a renamed picture: say so, not "no geometry" later
+        raise DsaregInputError(f"{shown} is a {fmt.upper()} image, not DICOM", field=field_name,
+                               accepted="the DICOM file itself, or the picture under its own extension with a geometry")
     if fmt in ("png", "jpeg", "tiff"):
         return _read_raster(data, fmt, name, limits, frame, field_name)
     if fmt == "dicom":
