@@ -145,3 +145,24 @@ def test_debug_keeps_the_exit_status_of_an_input_error(capsys):
     assert run_parsed(args) == 2  # an input error stays 2 with --debug (it was 1: the traceback's exit)
     err = capsys.readouterr().err
     assert "Traceback" in err and "dsareg: error: volume: no vessels found" in err
+
+
+def test_render_refuses_a_mesh_that_projects_nowhere_and_checks_its_unit(tmp_path, capsys):
+    import trimesh
+
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
+
+    phantom = make_vessel_phantom(depth=1)
+    far = tmp_path / "far.ply"  # 2 m from the isocentre, as a model in scanner coordinates far off can be
+    trimesh.Trimesh(phantom.vertices + [2000.0, 0.0, 0.0], phantom.faces, process=False).export(str(far))
+    out = tmp_path / "masks"
+    assert main(["render", "--mesh", str(far), "--geometry", "paper", "--out", str(out)]) == 2
+    assert "no part of the mesh projects onto the" in capsys.readouterr().err and not out.exists()
+    assert main(["render", "--mesh", str(far), "--geometry", "paper", "--center", "--out", str(out)]) == 0
+    assert (out / "ap.png").is_file()
+    capsys.readouterr()
+    near = tmp_path / "near.ply"
+    trimesh.Trimesh(phantom.vertices, phantom.faces, process=False).export(str(near))
+    assert main(["render", "--mesh", str(near), "--geometry", "paper", "--mesh-units", "m", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "too large for head arteries" in err and "--mesh-units" in err and "options." not in err
