@@ -38,7 +38,7 @@ CROSS_SECTIONAL_CLASSES = {  # SOP class UID prefixes (Image Storage, Enhanced, 
     "1.2.840.10008.5.1.4.1.1.3.1": "US",
 }
 ACCEPTED_MODALITIES = ("an X-ray projection run or image: Modality XA or RF (X-Ray Angiographic / Radiofluoroscopic "
-                       "Image Storage, enhanced or not), DX, CR, or a secondary capture (OT, SC); a CT or MR series "
+                       "Image Storage, enhanced or not), DX, CR, MG, or a secondary capture (OT, SC); a CT or MR series "
                        "is given as the volume")
 
 
@@ -76,8 +76,9 @@ def check_modality(dataset, field_name: str) -> str:
             class_name = UID(sop_class).name if sop_class else "no SOP class"
         except Exception:  # noqa: BLE001 - a malformed UID is still named as written
             class_name = sop_class
+        article = "an" if kind in ("MR", "NM", "OCT", "ultrasound") else "a"
         raise DsaregInputError(
-            f"is a {kind} file (Modality {modality or 'missing'}, {class_name}): its frames are cross-sectional "
+            f"is {article} {kind} file (Modality {modality or 'missing'}, {class_name}): its frames are cross-sectional "
             "slices, not an X-ray angiography run", field=field_name, accepted=ACCEPTED_MODALITIES)
     return modality
 

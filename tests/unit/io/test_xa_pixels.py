@@ -135,7 +135,7 @@ def test_jpeg_extended_12_bit_encoded_by_dcmtk(tmp_path):
                                                          (CT, "", "CT"), (XA, "CT", "CT")])
 def test_cross_sectional_frames_are_not_an_xa_run(sop_class, modality, named):
     data = _bytes(_dataset(_frames(12, n_frames=3), 12, sop_class, modality))
-    with pytest.raises(DsaregInputError, match=f"is a {named} file") as info:
+    with pytest.raises(DsaregInputError, match=f"is an? {named} file") as info:
         read_image(data, "series.dcm", field_name="ap")
     assert info.value.field == "ap" and "XA or RF" in info.value.accepted
 
