@@ -313,7 +313,7 @@ def _field_of_view(dataset, shape_rc, frame, field_name: str):
     if fov is not None:
         share = float(fov.mean())
         decisions.append(InputDecision(field_name, "field of view", " and ".join(applied),
-                                       f"the file's Shutter / Collimator modules ({share:.0%} of the image)",
+                                       f"the file's Shutter / Collimator modules; {share:.0%} of the image inside",
                                        source="tag"))
     annotation = overlay_annotation_mask(dataset, shape_rc)
     burned = str(getattr(dataset, "BurnedInAnnotation", "") or "").strip().upper()

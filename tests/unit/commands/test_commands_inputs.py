@@ -180,3 +180,21 @@ def test_inspect_describes_a_refused_run_as_stored(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "still.dcm: (frames as stored)" in out and "kind: image (dicom-xa-multiframe)" in out
     assert "refused: " in out and "contrast" in out
+
+
+def test_inspect_a_dual_personality_file_with_a_round_shutter(build, tmp_path, capsys):
+    """A TIFF header in the preamble, DICM at 128: inspected as DICOM XA, its shutter named."""
+    import io
+    import struct
+
+    import pydicom
+
+    image, _ = build.dsa()
+    dataset = pydicom.dcmread(io.BytesIO(build.xa(image.astype(np.uint16), primary=30.0)))
+    dataset.preamble = (b"II*\x00" + struct.pack("<I", 8)).ljust(128, b"\x00")
+    dataset.ShutterShape, dataset.CenterOfCircularShutter, dataset.RadiusOfCircularShutter = "CIRCULAR", [32, 40], 28
+    dataset.save_as(str(tmp_path / "dual.dcm"), enforce_file_format=True)
+    assert main(["inspect", str(tmp_path / "dual.dcm")]) == 0
+    out = capsys.readouterr().out
+    assert "kind: image (dicom-xa)" in out and "C-arm angles primary 30.0 deg" in out
+    assert "field of view: shutter CIRCULAR" in out
