@@ -38,12 +38,17 @@ class ExtentRange:
     Attributes:
         low_mm: below this the model is smaller than a trimmed carotid segment (a model in cm or m read as mm).
         high_mm: above this it is larger than a head (a model in mm read as cm or m).
-        band_fraction: a measured unit whose extent lies within this fraction of a limit is a close call.
+        band_fraction: a measured unit whose extent lies within this fraction of the upper limit is a close call.
+        low_close_mm: a measured unit whose extent lies below this is a close call: a body model in cm read as mm
+            lands here (SimVascular's 34.5-cm aorto-iliac tree reads 34.5 mm), and so does a small head crop in
+            mm; size alone cannot tell them apart (nor can the vessels' calibre), so the verdict is at most
+            ``check`` until the unit is stated.
     """
 
     low_mm: float = 15.0
     high_mm: float = 400.0
     band_fraction: float = 0.2
+    low_close_mm: float = 37.5
 
 
 PLAUSIBLE_EXTENT_MM = ExtentRange()
@@ -101,10 +106,13 @@ def unit_decision(mesh: TriangleMesh, unit: MeshUnit, field_name: str = "mesh",
     if not limits.low_mm <= extent <= limits.high_mm:
         raise DsaregInputError(_implausible_message(extent, unit, field_name, limits), field=field_name,
                                accepted=_accepted(extent, unit, field_name, limits))
-    nearest = limits.low_mm if extent < np.sqrt(limits.low_mm * limits.high_mm) else limits.high_mm
+    low = extent < np.sqrt(limits.low_mm * limits.high_mm)
+    nearest = limits.low_mm if low else limits.high_mm
+    band = limits.low_close_mm - limits.low_mm if low else limits.band_fraction * nearest
     return InputDecision(input=field_name, what="units", chosen=unit.unit,
-                         basis="the model's largest extent in mm", measure=round(extent, 3), threshold=nearest,
-                         band=limits.band_fraction * nearest, source=unit.source)
+                         basis="the model's largest extent in mm (small: a body model in cm read as mm?)" if low
+                         else "the model's largest extent in mm", measure=round(extent, 3), threshold=nearest,
+                         band=band, source=unit.source)
 
 
 def _how_read(unit: MeshUnit, field_name: str) -> str:

@@ -91,3 +91,25 @@ def test_load_case_reads_a_glb_in_metres_and_refuses_an_stl_in_metres(phantom, b
         load_case(mesh=metres, mesh_name="tree.stl", **common)
     assert info.value.field == "mesh" and "too small" in info.value.message and "probably m" in info.value.accepted
     assert load_case(mesh=metres, mesh_name="tree.stl", mesh_units="m", **common).mesh.n_faces == phantom.n_faces
+
+
+def test_a_small_model_in_an_assumed_unit_is_a_close_call():
+    """A body model in cm read as mm (SimVascular's 34.5-cm aorto-iliac tree: 34.5 "mm") passed as a plain mm model."""
+    decision = unit_decision(_box(34.5), MeshUnit("mm", "measured"), "mesh")
+    assert decision.close and "cm" in decision.basis and "close call" in decision.reason()
+    assert not unit_decision(_box(34.5), MeshUnit("mm", "option"), "mesh").close  # stated: no doubt left
+    assert not unit_decision(_box(40.0), MeshUnit("mm", "measured"), "mesh").close  # a circle-of-Willis crop
+
+
+def test_the_simvascular_demo_model_in_cm_is_a_close_call():
+    from pathlib import Path
+
+    from dsareg_engine.io.mesh_io import read_mesh_detailed
+
+    path = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "real-vessels" / "DemoProject_demo.vtp"
+    if not path.is_file():
+        pytest.skip("../shared/data is not here")
+    result = read_mesh_detailed(path.read_bytes(), path.name)
+    assert unit_decision(result.mesh, result.unit, "mesh").close
+    stated = read_mesh_detailed(path.read_bytes(), path.name, units="cm")
+    assert not unit_decision(stated.mesh, stated.unit, "mesh").close  # 345 mm in cm, as stated
