@@ -127,7 +127,13 @@ def read_image(
         raise DsaregInputError(f"{shown} is a {fmt.upper()} image, not DICOM", field=field_name,
                                accepted="the DICOM file itself, or the picture under its own extension with a geometry")
     if fmt in ("png", "jpeg", "tiff"):
-        return _read_raster(data, fmt, name, limits, frame, field_name)
+        from .xa_pixels import caught_warnings
+
+        caught: list[str] = []
+        with caught_warnings(caught, field_name):  # Pillow's warnings (corrupt EXIF, ...) are the image's, not stderr
+            loaded = _read_raster(data, fmt, name, limits, frame, field_name)
+        loaded.warnings.extend(caught)
+        return loaded
     if fmt == "dicom":
         return read_dicom_image(data, limits, frame=frame, field_name=field_name, reading=reading)
     if fmt == "rad":

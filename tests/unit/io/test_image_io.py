@@ -235,3 +235,23 @@ def test_dicom_monochrome1_12_bit_and_the_intensity_relationship_recorded(build)
     vessels = truth > 0
     assert loaded.pixels[vessels].mean() < loaded.pixels[~vessels].mean()
     assert loaded.reading["pixel_intensity_relationship"] == "LOG"
+
+
+def test_pillow_warnings_become_the_image_s_warnings(build, monkeypatch):
+    """A warning Pillow raises while decoding (corrupt EXIF, a truncated tag) is the image's, not stderr's."""
+    import warnings
+
+    from PIL import ImageFile
+
+    original = ImageFile.ImageFile.load
+
+    def load(self):
+        warnings.warn("Possibly corrupt EXIF data", UserWarning, stacklevel=2)
+        return original(self)
+
+    monkeypatch.setattr(ImageFile.ImageFile, "load", load)
+    image, _ = build.dsa()
+    with warnings.catch_warnings(record=True) as leaked:
+        warnings.simplefilter("always")
+        loaded = read_image(_encode(image, "PNG"), "ap.png", field_name="ap")
+    assert "ap: Possibly corrupt EXIF data" in loaded.warnings and not leaked
