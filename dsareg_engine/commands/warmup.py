@@ -27,18 +27,29 @@ def run(args: argparse.Namespace) -> int:
     from ..warmup import JOB_GROUPS, LATER_GROUPS, compile_group, start_helper, warm_up_job, warm_up_renderer
 
     started = time.monotonic()
-    for threads in sorted({1, default_cpu_threads()}):  # 1 thread: the serial twins; more: the parallel kernels
+    counts = sorted({1, default_cpu_threads()})  # 1 thread: the serial twins; more: the parallel kernels
+    _say(f"warmup: compiling the numba kernels for {' and '.join(map(str, counts))} thread(s) into the cache, then "
+         "a tiny job (about a minute per thread count on 2 cores on a fresh install; seconds once cached). Without "
+         "it, each worker's first start pays this before /readyz answers 200")
+    for threads in counts:
         set_cpu_threads(threads)
         step = time.monotonic()
-        for first, *others in (JOB_GROUPS, LATER_GROUPS):  # the groups of a stage compile in parallel processes
+        for number, (first, *others) in enumerate((JOB_GROUPS, LATER_GROUPS), 1):  # a stage's groups in parallel
+            _say(f"warmup: {threads} thread(s): kernel groups {', '.join((first, *others))} ({number}/2) …")
             helpers = [helper for group in others if (helper := start_helper([group])) is not None]
             compile_group(first)
             for helper in helpers:
                 helper.communicate()
+        _say(f"warmup: {threads} thread(s): the renderer, then a tiny job with and without a pose search …")
         warm_up_renderer()
         for pose_search in (False, True):
             with tempfile.TemporaryDirectory(prefix="dsareg-warmup-") as work_dir:
                 warm_up_job(Path(work_dir), pose_search=pose_search)
-        print(f"warmup: kernels for {threads} thread(s) ready in {time.monotonic() - step:.1f} s", file=sys.stderr)
+        _say(f"warmup: kernels for {threads} thread(s) ready in {time.monotonic() - step:.1f} s")
     print(f"warmup: done in {time.monotonic() - started:.1f} s")
     return 0
+
+
+def _say(text: str) -> None:
+    """A progress line on stderr, at once (stderr may be a pipe: a CI log shows it as it happens)."""
+    print(text, file=sys.stderr, flush=True)

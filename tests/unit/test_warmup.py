@@ -231,3 +231,29 @@ def test_a_kernel_helper_dies_with_the_process_that_started_it(tmp_path):
     while Path(f"/proc/{helper_pid}").exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not Path(f"/proc/{helper_pid}").exists(), "the helper outlived its parent"
+
+
+def test_dsareg_warmup_says_what_it_does_before_the_first_compile(monkeypatch, capsys):
+    """`dsareg warmup` printed nothing for its first 69 s: it says what it compiles, and how long that takes, before
+    anything is compiled, and one line per step (the compile steps faked here)."""
+    import argparse
+
+    from dsareg_engine import warmup
+    from dsareg_engine.commands import warmup as command
+
+    seen: list[str] = []
+
+    def step(name):
+        def record(*args, **kwargs):
+            seen.append((name, capsys.readouterr().err))
+        return record
+
+    monkeypatch.setattr(warmup, "compile_group", step("compile"))
+    monkeypatch.setattr(warmup, "start_helper", lambda groups: None)
+    monkeypatch.setattr(warmup, "warm_up_renderer", step("renderer"))
+    monkeypatch.setattr(warmup, "warm_up_job", step("job"))
+    assert command.run(argparse.Namespace()) == 0
+    first_name, before_first = seen[0]
+    assert first_name == "compile" and "warmup: compiling the numba kernels" in before_first
+    assert "about a minute" in before_first and "kernel groups forward, backward (1/2)" in before_first
+    assert all(text.strip() for name, text in seen if name != "job"), seen  # a line before each compile step
