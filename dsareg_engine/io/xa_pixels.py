@@ -115,12 +115,36 @@ def _gdcm_frame(frame: bytes, dataset, syntax: str) -> np.ndarray:
     return values[: int(np.prod(shape))].reshape(shape)
 
 
+@contextlib.contextmanager
+def _native_stderr_as_warning():
+    """What C code writes to the process's stderr inside (GDCM's IJG codec: "Unsupported JPEG data precision 12",
+    then it decodes) becomes one Python warning, kept with the reading's warnings."""
+    import os
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = " ".join(sink.read(2000).decode("utf-8", "replace").split())
+            if text:
+                _warnings.warn(f"GDCM decoded the pixel data and said: {text}", UserWarning, stacklevel=3)
+
+
 def _gdcm_stack(dataset, syntax: str) -> np.ndarray:
     from pydicom.encaps import generate_frames
 
     n_frames = int(getattr(dataset, "NumberOfFrames", 1) or 1)
-    frames = [_gdcm_frame(frame, dataset, syntax)
-              for frame in generate_frames(dataset.PixelData, number_of_frames=n_frames)]
+    with _native_stderr_as_warning():
+        frames = [_gdcm_frame(frame, dataset, syntax)
+                  for frame in generate_frames(dataset.PixelData, number_of_frames=n_frames)]
     if len(frames) != n_frames:
         raise ValueError(f"{len(frames)} frames found, {n_frames} declared")
     return frames[0] if n_frames == 1 else np.stack(frames)

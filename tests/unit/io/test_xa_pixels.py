@@ -157,3 +157,22 @@ def test_pydicom_warnings_become_the_reading_s_warnings():
         image = read_image(data, "ap.dcm", field_name="ap")
     assert any(w.startswith("ap: Invalid value for VR UI: '1.2.3.abc'") for w in image.warnings)
     assert not leaked
+
+
+@pytest.mark.skipif(shutil.which("dcmcjpeg") is None, reason="DCMTK's dcmcjpeg is not installed")
+def test_gdcm_fallback_keeps_its_native_stderr_in_the_warnings(tmp_path, monkeypatch, capfd):
+    """When every pydicom plugin fails, GDCM decodes a true 12-bit JPEG extended stream; what its codec prints on
+    the process's stderr ("Unsupported JPEG data precision 12") becomes a warning of the reading."""
+    frames = _frames(12, n_frames=1)
+    source, target = tmp_path / "in.dcm", tmp_path / "extended.dcm"
+    source.write_bytes(_bytes(_dataset(frames, 12)))
+    subprocess.run(["dcmcjpeg", "--encode-extended", str(source), str(target)], check=True, timeout=30)
+
+    def no_plugin(self):
+        raise RuntimeError("Unable to decode as exceptions were raised by all available plugins")
+
+    monkeypatch.setattr(Dataset, "pixel_array", property(no_plugin))
+    image = read_image(target.read_bytes(), "run.dcm", field_name="ap")
+    assert np.corrcoef(image.pixels.ravel(), frames[0].ravel())[0, 1] > 0.99
+    assert any(w.startswith("ap: GDCM decoded the pixel data and said: ") for w in image.warnings)
+    assert "precision" not in capfd.readouterr().err
