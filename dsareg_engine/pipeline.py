@@ -40,6 +40,7 @@ from .registration import RegistrationOptions
 from .registration.result import RegistrationResult
 from .registration.motion import sequential_runs
 from .registration.solver import RegistrationCanceled, register
+from .registration.view_swap import swap_hint
 from .registration.options import image_reading, parse_options
 from .registration.partial import PARTIAL_UNMATCHED, unmatched_pixels
 from .registration.progress import REGISTRATION_SHARE
@@ -153,6 +154,8 @@ def run_registration_case(
         RegistrationCanceled: ``should_stop()`` returned True.
     """
     result = register(case.mesh, case.fitted, case.rig, options, progress=progress, should_stop=should_stop)
+    if not any(decision.what == "view roles" for decision in case.decisions):  # no header named the views
+        swap_hint(case.mesh, case.fitted, case.rig, result, options)
     acquisition = case.acquisition.to_dict() if case.acquisition is not None else None
     if acquisition is not None and acquisition["sequential"]:  # a pose per run, the motion between them
         acquisition = sequential_runs(case.mesh, case.fitted, case.rig, result, acquisition, options.device)

@@ -47,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_hemodynamics(which)
     _add_models(which)
     _add_job_cost(which)
+    _add_views(which)
     return parser
 
 
@@ -235,6 +236,13 @@ def _add_job_cost(which) -> None:
     sub.add_argument("--only", nargs="*", default=[], metavar="CASE", help="only these cases, e.g. B1-512 A2-1024")
     sub.add_argument("--options", default="{}", help="extra registration options as JSON")
     sub.set_defaults(func=deferred("benchmarks.engine.job_cost:bench_job_cost"))
+
+
+def _add_views(which) -> None:
+    """``python -m benchmarks.engine views``: biplane angles, monoplane runs with head motion, swapped files (issue 42)."""
+    from .views import add_parser
+
+    add_parser(which)
 
 
 def _add_mesh(parser) -> None:

@@ -152,8 +152,9 @@ class RegistrationOptions(BaseModel):
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Where to run; auto = CUDA when available (tracking: the CPU, faster there).")
     mirror_check: bool = Field(
         True, description="When the kept pose fits poorly (some view's Dice below 0.7), also register the model's mirror "
-        "image to tell a mirrored model (result confidence.signals.mirror). Off: no mirror fit (its cost is a pose "
-        "search), for a caller that knows the model's handedness or a fit meant to be rough (a worker's warm-up job).")
+        "image to tell a mirrored model (result confidence.signals.mirror), and, on a failed fit of images no header names "
+        "(PNG, TIFF, masks), the two images exchanged (a reason then says they look swapped). Off: neither fit (the "
+        "mirror's cost is a pose search), for a caller that knows the model's handedness or a fit meant to be rough (a worker's warm-up job).")
 
 
 def image_reading(options: RegistrationOptions):
