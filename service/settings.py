@@ -207,10 +207,22 @@ class AuthSettings(_Group):
                           "otherwise it needs a valid key (any). The metrics are service-wide aggregates (jobs by "
                           "state, queue depth, latency by route template): no key, job id or path appears in them.")
 
+    pacs_access: Annotated[dict[str, Any], NoDecode] = Field(
+        default_factory=dict, description='With API keys: which PACS studies each key may have fetched by reference, '
+        'JSON {"<key SHA-256 hex>" or "*": {"peers": [URL or AE title, or "*"], "studies": [UID or UID root "1.2."]}}; '
+        'a key without an entry (nor "*") may fetch none (service/intake/pacs_access.py).')
+
     @field_validator("api_keys", "api_key_hashes", mode="before")
     @classmethod
     def _lists(cls, value: Any) -> Any:
         return _split_list(value)
+
+    @field_validator("pacs_access", mode="before")
+    @classmethod
+    def _pacs_access(cls, value: Any) -> Any:
+        from .intake.pacs_access import parse_pacs_access
+
+        return parse_pacs_access(value)
 
     @field_validator("api_key_hashes")
     @classmethod

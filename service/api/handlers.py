@@ -12,6 +12,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from ..engine_adapter import engine
+from ..intake.pacs_access import AccessDenied
 from ..intake.refusals import IdempotencyConflict, InvalidInput, Overloaded, QuotaExceeded, Refusal
 from ..problems import PROBLEM_MEDIA_TYPE, Problem, problem_body
 from ..storage.diskspace import RETRY_AFTER_SECONDS as DISK_RETRY_AFTER
@@ -23,7 +24,7 @@ log = logging.getLogger("dsareg.service")
 
 STORE_RETRY_AFTER = "5"
 REFUSAL_STATUS: dict[type[Refusal], int] = {InvalidInput: 422, IdempotencyConflict: 409, QuotaExceeded: 429,
-                                            Overloaded: 503}
+                                            Overloaded: 503, AccessDenied: 403}
 """The HTTP status of each intake refusal (:mod:`service.intake.refusals`); the most specific class wins."""
 
 

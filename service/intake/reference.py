@@ -23,6 +23,7 @@ from ..pacs.dimse.pull import DimseRegistrationRequest
 from ..pacs.dimse.scp import configured_peers
 from ..storage.store import InputFile
 from .context import IntakeContext
+from .pacs_access import check_access
 from .refusals import InvalidInput
 from .submission import (
     Submitted,
@@ -85,10 +86,22 @@ def stored_reference(ctx: IntakeContext, reference: Reference) -> tuple[str, byt
     return "dicomweb", stored.model_dump_json(exclude={"callback_url"}).encode()
 
 
+def checked_access(ctx: IntakeContext, reference: Reference, who: str) -> None:
+    """:class:`~.pacs_access.AccessDenied` unless ``who`` may have this study fetched (keys on only)."""
+    if not ctx.settings.auth.auth_enabled:
+        return
+    dimse = isinstance(reference, DimseRegistrationRequest)
+    source, name = (reference.source.dimse, "dimse") if dimse else (reference.source.dicomweb, "dicomweb")
+    peer, peer_field = (source.peer, "source.dimse.peer") if dimse else (source.url, "source.dicomweb.url")
+    check_access(ctx.settings.auth.pacs_access, who, peer=peer, peer_field=peer_field, study_uid=source.study_uid,
+                 study_field=f"source.{name}.study_uid")
+
+
 async def submit_reference(ctx: IntakeContext, reference: Reference, who: str, key: str | None) -> Submitted:
     """A checked reference → the new job, queued (or the replay of an equal request with the same key)."""
     callback_url = checked_callback_url(ctx, getattr(reference, "callback_url", None))
     role, text = stored_reference(ctx, reference)
+    checked_access(ctx, reference, who)  # with API keys: the key's DSAREG_PACS_ACCESS grants this study (403)
     options = parse_options_json(json.dumps(reference.options) if reference.options else None)
     options_json: dict[str, Any] = options.model_dump(mode="json")
     digest, size = await asyncio.to_thread(ctx.blobs.put_bytes, text)

@@ -49,7 +49,7 @@ SUBMIT_DOC = {
         202: {"description": "Accepted; poll the Location.", "headers": {
             "Location": {"description": "The job's URL.", "schema": {"type": "string"}},
             "Retry-After": {"description": "Seconds before the first poll.", "schema": {"type": "integer"}}}},
-        **problem_responses(400, 401, 408, 409, 413, 415, 422, 429, 503, 507),
+        **problem_responses(400, 401, 403, 408, 409, 413, 415, 422, 429, 503, 507),
     },
 }
 
