@@ -7,7 +7,7 @@ points and ``radii_mm`` ``(N,)`` the local radius (:func:`local_radii_mm`: half 
 time–density curve is taken over the vessel's projected cross-section around the centre.
 
 **The file's vertex order.** Outputs are per vertex of the model file *as given*: OBJ ``v`` lines in order,
-duplicates included; PLY / OFF vertices in order; STL three vertices per triangle. The working mesh merged
+duplicates included; PLY / OFF / VTP / legacy VTK vertices in order; STL three vertices per triangle. The working mesh merged
 duplicates and may be decimated, so each file vertex takes the values of its nearest working vertex
 (``transfer``; the distance is reported).
 """
@@ -71,6 +71,10 @@ def vertices_as_given(data: bytes, fmt: str) -> np.ndarray:
     if fmt == "obj":
         rows = _OBJ_VERTEX.findall(data)
         return np.array([[float(x) for x in row] for row in rows], dtype=np.float64).reshape(-1, 3)
+    if fmt in ("vtp", "vtk"):  # VTK's points in file order (the triangulation keeps them)
+        from ..io.vtk_polydata import parse_vtk_polydata
+
+        return parse_vtk_polydata(data, fmt)[0]
     import trimesh
 
     loaded = trimesh.load(file_obj=io.BytesIO(data), file_type=fmt, force="mesh", process=False, resolver=None)

@@ -100,3 +100,10 @@ def test_broken_or_surface_less_files_are_refused(data, match):
 def test_face_ceiling_checked_from_the_header(phantom):
     with pytest.raises(DsaregInputError, match="declares"):
         read_mesh_detailed(_vtp(phantom), "model.vtp", limits=InputLimits(max_faces=100, working_faces=50))
+
+
+def test_hemodynamics_follows_the_vtk_files_own_vertices():
+    from dsareg_engine.hemodynamics.model_points import vertices_as_given
+
+    vertices = vertices_as_given(LEGACY, "vtk")  # per-vertex outputs follow the file's points, in order
+    assert vertices.shape == (8, 3) and np.allclose(vertices[6], [20.0, 20.0, 20.0])
