@@ -150,19 +150,26 @@ def test_debug_keeps_the_exit_status_of_an_input_error(capsys):
 def test_render_refuses_a_mesh_that_projects_nowhere_and_checks_its_unit(tmp_path, capsys):
     import trimesh
 
+    from dsareg_engine.geometry.file import paper_rig
     from dsareg_engine.simulation.phantom import make_vessel_phantom
 
+    rig = paper_rig().to_dict()
+    for view in rig["views"].values():  # the paper's views on a coarse 100 px detector: cheap to render
+        view.update(image_size=[100, 100], pixel_spacing_mm=[8.0, 8.0], principal_point_px=[49.5, 49.5])
+    geometry = tmp_path / "rig.json"
+    geometry.write_text(json.dumps(rig))
     phantom = make_vessel_phantom(depth=1)
     far = tmp_path / "far.ply"  # 2 m from the isocentre, as a model in scanner coordinates far off can be
     trimesh.Trimesh(phantom.vertices + [2000.0, 0.0, 0.0], phantom.faces, process=False).export(str(far))
     out = tmp_path / "masks"
-    assert main(["render", "--mesh", str(far), "--geometry", "paper", "--out", str(out)]) == 2
+    assert main(["render", "--mesh", str(far), "--geometry", str(geometry), "--out", str(out)]) == 2
     assert "no part of the mesh projects onto the" in capsys.readouterr().err and not out.exists()
-    assert main(["render", "--mesh", str(far), "--geometry", "paper", "--center", "--out", str(out)]) == 0
+    assert main(["render", "--mesh", str(far), "--geometry", str(geometry), "--center", "--out", str(out)]) == 0
     assert (out / "ap.png").is_file()
     capsys.readouterr()
     near = tmp_path / "near.ply"
     trimesh.Trimesh(phantom.vertices, phantom.faces, process=False).export(str(near))
-    assert main(["render", "--mesh", str(near), "--geometry", "paper", "--mesh-units", "m", "--out", str(out)]) == 2
+    assert main(["render", "--mesh", str(near), "--geometry", str(geometry), "--mesh-units", "m",
+                 "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "too large for head arteries" in err and "--mesh-units" in err and "options." not in err
