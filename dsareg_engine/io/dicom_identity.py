@@ -109,8 +109,12 @@ def _present(dataset, keywords: tuple[str, ...]) -> tuple[tuple[str, Any], ...]:
 
 
 def _top(dataset, keyword: str) -> str | None:
+    """A UID attribute's one value (None when absent or empty); several values are malformed (a UID has VM 1):
+    :class:`UnreadableIdentity`, never their list's repr written into an output."""
     if keyword in dataset:
         value = dataset.data_element(keyword).value
+        if isinstance(value, (list, tuple)) or type(value).__name__ == "MultiValue":
+            raise UnreadableIdentity(f"{keyword} holds {len(value)} values; a UID has one")
         return str(value) if value else None
     return None
 
@@ -125,11 +129,13 @@ def identity_of(dataset) -> DicomIdentity | None:
         return None
     try:
         return DicomIdentity(
-            sop_class_uid=str(dataset.SOPClassUID), sop_instance_uid=str(dataset.SOPInstanceUID),
+            sop_class_uid=_top(dataset, "SOPClassUID") or "", sop_instance_uid=_top(dataset, "SOPInstanceUID") or "",
             study_instance_uid=_top(dataset, "StudyInstanceUID"), series_instance_uid=_top(dataset, "SeriesInstanceUID"),
             frame_of_reference_uid=_top(dataset, "FrameOfReferenceUID"),
             patient=_present(dataset, PATIENT_KEYWORDS), study=_present(dataset, STUDY_KEYWORDS),
             series=_present(dataset, SERIES_KEYWORDS), **_acquired(dataset))
+    except UnreadableIdentity:
+        raise
     except Exception as exc:  # noqa: BLE001 - a malformed value: no identity, said so
         raise UnreadableIdentity(str(exc)[:200]) from None
 

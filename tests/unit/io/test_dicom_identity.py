@@ -70,3 +70,13 @@ def test_no_sop_uids_no_identity():
 def test_non_dicom_images_have_no_identity(build):
     png = build.png(build.dsa(height=64, width=64)[0])
     assert read_sources(png, png, None) == DicomSources()
+
+
+def test_a_uid_with_several_values_is_unreadable_not_a_list_repr():
+    from dsareg_engine.io.dicom_identity import identity_or_none
+
+    ds = pydicom.Dataset()
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.StudyInstanceUID = "1.2.840.10008.5.1.4.1.1.12.1", "1.2.9", ["1.2.3", "1.2.4"]
+    assert identity_or_none(ds) == (None, True)  # the outputs start a new study instead of writing "['1.2.3', …]"
+    ds.StudyInstanceUID = "1.2.3"
+    assert identity_or_none(ds)[0].study_instance_uid == "1.2.3"
