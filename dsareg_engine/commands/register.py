@@ -168,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
         result = register(case.mesh, case.fitted, case.rig, parsed, progress=printer.update)
         data = write_outputs(result, case.masks, out, case.mesh, case.rig, animation=parsed.animation,
                              images=case.images, progress=printer.update, warnings=case.warnings,
-                             readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None)
+                             readings=case.readings, volume=case.volume.to_dict() if case.volume is not None else None,
+                             decisions=case.decisions)  # input_decisions; a close call lowers ok to check
         if timed is not None:
             attach(timed, case, data, out)
     finally:

@@ -52,6 +52,7 @@ def test_register_end_to_end(case):
     assert set(result["views"]) == {"ap", "lat"}
     assert result["metrics"]["ground_truth"]["add_mm"] < 1.0
     assert np.asarray(result["views"]["lat"]["projection_matrix"]).shape == (3, 4)
+    assert "units" in {d["what"] for d in result["input_decisions"]}  # as the service's result says (was missing)
     overlay = cv2.imread(str(out / "overlay_ap.png"))
     assert overlay.ndim == 3 and min(overlay.shape[:2]) >= 256  # the vessels' region, enlarged, with a caption
     assert (out / "animation.gif").stat().st_size > 0
