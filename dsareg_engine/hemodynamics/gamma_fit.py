@@ -10,7 +10,10 @@ fit leaves the least squared residual (then ``ONSET_CANDIDATES`` more within one
 * ``mtt_s``: the fitted first pass's mean time after its onset, ``(α + 1) β`` (its first moment about ``t0``);
 * ``area``: its area, ``K β^(α+1) Γ(α + 1)`` (opacity × s).
 
-NaN where the curve is not filled, the fit has fewer than ``MIN_SAMPLES`` samples, or α or β is not positive.
+NaN where the curve is not filled, the fit has fewer than ``MIN_SAMPLES`` samples, or α or β is not positive,
+and where the fitted first pass starts before the run's first frame or reaches its mean time (onset + ``mtt_s``)
+after its last: the run did not see the bolus from its start to half its passage, so the fit's ends, and with
+them both values, would be a guess beyond the data (a 2.25 s run gave ``mtt_s`` 6.08 s).
 """
 
 from __future__ import annotations
@@ -83,9 +86,11 @@ def gamma_variate(times_s: np.ndarray, curves: np.ndarray, arrival_s: np.ndarray
     coarse = best[4].copy()
     for offset in np.linspace(-step, step, ONSET_CANDIDATES):  # refined around the best coarse onset
         best = _better(best, times, c, coarse + offset * rise, use)
-    _, ln_k, alpha, inverse_beta, _ = best
+    _, ln_k, alpha, inverse_beta, onset = best
     good = np.isfinite(alpha) & (alpha > 0) & (inverse_beta > 0)
     beta = np.where(good, 1.0 / np.where(good, inverse_beta, 1.0), np.nan)
+    seen = (onset >= times[0]) & (onset + (alpha + 1.0) * np.where(good, beta, 0.0) <= times[-1])
+    good &= seen  # the fitted bolus starts and reaches its mean time within the run: its values are not guesses
     mtt[rows] = np.where(good, (alpha + 1.0) * beta, np.nan)
     with np.errstate(over="ignore", invalid="ignore"):
         area[rows] = np.where(good, np.exp(ln_k + (alpha + 1.0) * np.log(np.where(good, beta, 1.0))

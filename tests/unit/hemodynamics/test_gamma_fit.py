@@ -36,3 +36,28 @@ def test_no_values_where_the_curve_never_filled():
     times = np.arange(20) / 4.0
     mtt, area = gamma_variate(times, np.zeros((2, 20)), np.full(2, np.nan), np.full(2, np.nan), np.full(2, np.nan))
     assert np.isnan(mtt).all() and np.isnan(area).all()
+
+
+def test_no_values_where_the_run_ends_before_the_bolus_has_half_passed():
+    """A 2.25 s run gave mtt_s 6.08 s: the fit's tail beyond the last frame is a guess. The same bolus seen
+    long enough gives its values; cut before its mean time (onset + MTT), none."""
+    onset, alpha, beta, k = 0.5, 3.0, 0.9, 1.0  # MTT 3.6 s: mean time 4.1 s
+    values = []
+    for frames in (40, 10):  # 10 s, then 2.25 s at 4 fps
+        times = np.arange(frames) / 4.0
+        curves = _gamma(times, onset, alpha, beta, k)[None]
+        found = curve_parameters(curves, times, np.full(1, 0.001), np.ones(1), np.ones(1, bool))
+        values.append(gamma_variate(times, curves, found.arrival_s, found.peak_s, found.peak_opacity))
+    (long_mtt, long_area), (short_mtt, short_area) = values
+    assert abs(long_mtt[0] - (alpha + 1) * beta) < 0.1 * (alpha + 1) * beta
+    assert np.isnan(short_mtt[0]) and np.isnan(short_area[0]), (short_mtt, short_area)
+
+
+def test_no_values_where_the_fitted_bolus_starts_before_the_run():
+    """A run that began after the contrast did: the fit's onset lies before the first frame, its values a guess."""
+    times = np.arange(24) / 4.0
+    curves = _gamma(times, -0.3, 3.0, 0.5, 1.0)[None]  # 9 % of its peak at the first frame
+    found = curve_parameters(curves, times, np.full(1, 0.001), np.ones(1), np.ones(1, bool))
+    assert np.isfinite(found.arrival_s[0])
+    mtt, area = gamma_variate(times, curves, found.arrival_s, found.peak_s, found.peak_opacity)
+    assert np.isnan(mtt[0]) and np.isnan(area[0]), (mtt, area)
