@@ -69,7 +69,7 @@ def detached_data_file(header: bytes, fmt: str) -> str | None:
 def _named_data(header: bytes, fmt: str, field_name: str) -> bytes:
     """``header`` with its data-file line naming ``volume.data`` (the file written beside it)."""
     value = detached_data_file(header, fmt) or ""
-    if value.upper().startswith("LIST") or "%" in value or len(value.split()) != 1:
+    if not value or value.upper().startswith("LIST") or "%" in value:  # a name may hold spaces; a pattern has a %
         raise DsaregInputError(f"the header's data is split over several files ('{value[:80]}')", field=field_name,
                                accepted="a header with one data file")
     pattern = {"metaimage": _META_DATA_FILE, "nrrd": _NRRD_DATA_FILE}[fmt]

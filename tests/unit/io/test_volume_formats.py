@@ -80,6 +80,8 @@ def test_detached_headers_need_their_one_data_file(tmp_path):
     header, data = _written(tmp_path, "v.mhd")
     with pytest.raises(DsaregInputError, match="needs its data file 'v.raw'"):
         read_volume(header, "v.mhd")
+    spaced = header.replace(b"ElementDataFile = v.raw", b"ElementDataFile = scan 1 of 2.raw")
+    assert np.array_equal(read_volume([spaced, data]).data, VOXELS.astype(np.float32))  # any one name is rewritten
     listed = header.replace(b"ElementDataFile = v.raw", b"ElementDataFile = LIST")
     with pytest.raises(DsaregInputError, match="several files"):
         read_volume([listed, data])
