@@ -1,7 +1,7 @@
 """Regenerate the volume example in examples/volume/ with the project's own generator (no patient data).
 
 The vessel tree of the study's CT series as a vessels-only volume (0.5 mm isotropic, as NIfTI; no HU, no skull:
-dsareg reads it as a label map) and the AP and LAT native XA runs
+dsareg reads it by intensity, as an already subtracted 3D-DSA) and the AP and LAT native XA runs
 of the same tree (multi-frame, 256 px, a skull, Poisson noise, mask frames before the contrast and the
 subtraction recipe), geometry in their headers, and the true pose. They are one study of
 ``dsareg phantom-study`` (:func:`dsareg_engine.simulation.native_study.make_native_study`, seed 3); the

@@ -3,7 +3,10 @@
 A segmentation is not an image: an expert's label map (TopCoW: 1 basilar, 2/3 PCA, 4/6 ICA, ...) or a 0/1 vessel
 mask has a few whole values, 0 the background. Read by intensity it loses labels (Otsu's window "3 and up" drops
 the basilar and a PCA) and all pieces but the largest. A volume is read as labels when its values are
-whole numbers, at most :data:`MAX_LABELS` of them above 0, with 0 the background (at least half the voxels);
+whole numbers, at most :data:`MAX_LABELS` of them above 0, with 0 the background (at least half the voxels),
+and either one value above 0 (a mask: 1, 255, ...) or label ids up to :data:`MAX_LABEL` (a volume of vessels'
+partial-volume levels quantized to 100, 200, ... 800 is an image: read as labels, its outer, 1/8-filled voxels
+would make the vessels 22 % too large);
 ``options.volume_labels`` reads it so whatever it looks like (and refuses a volume that is no label map);
 ``options.volume_kind`` (or a vessel window) reads it by intensity instead.
 
@@ -25,6 +28,7 @@ from .input_decisions import InputDecision
 from .volume_kind import VolumeReading
 
 MAX_LABELS = 64
+MAX_LABEL = 64  # label ids are small; a volume with larger whole values is an image unless it holds one value
 MIN_BACKGROUND_SHARE = 0.5
 MIN_PIECE_VOXELS = 8
 MIN_PIECE_MM3 = 1.0
@@ -102,6 +106,8 @@ def label_map(voxels: np.ndarray, reading: VolumeReading, field_name: str = "vol
         return None
     present = tuple(int(v) for v in np.flatnonzero(counts) if v > 0)
     if not given and (not present or counts[0] < MIN_BACKGROUND_SHARE * counts.sum()):
+        return None
+    if not given and len(present) > 1 and present[-1] > MAX_LABEL:  # 100, 200, ... 800: a quantized image
         return None
     chosen = tuple(v for v in present if v in reading.labels) if given else present
     if not chosen:

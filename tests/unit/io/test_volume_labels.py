@@ -91,3 +91,6 @@ def test_images_are_not_label_maps(grid):
     two_levels = np.where(_tube(grid, 0, (24, 24), 4.0, (2, 58)), 300.0, 40.0)  # no background of 0
     assert label_map(two_levels, VolumeReading()) is None
     assert label_map(np.where(two_levels > 100, 1.0, 0.0), VolumeReading(kind="cta")) is None  # a kind given
+    quantized = np.round(8.0 * np.clip(4.5 - np.hypot(grid[1] - 24.0, grid[2] - 24.0), 0, 1)) * 100.0
+    assert len(np.unique(quantized)) > 3 and label_map(quantized, VolumeReading()) is None  # partial volume, 100-800
+    assert label_map(np.where(two_levels > 100, 255.0, 0.0), VolumeReading()).present == (255,)  # a 0/255 mask
