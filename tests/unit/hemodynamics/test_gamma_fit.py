@@ -48,7 +48,7 @@ def test_no_values_where_the_run_ends_before_the_bolus_has_half_passed():
         curves = _gamma(times, onset, alpha, beta, k)[None]
         found = curve_parameters(curves, times, np.full(1, 0.001), np.ones(1), np.ones(1, bool))
         values.append(gamma_variate(times, curves, found.arrival_s, found.peak_s, found.peak_opacity))
-    (long_mtt, long_area), (short_mtt, short_area) = values
+    (long_mtt, _), (short_mtt, short_area) = values
     assert abs(long_mtt[0] - (alpha + 1) * beta) < 0.1 * (alpha + 1) * beta
     assert np.isnan(short_mtt[0]) and np.isnan(short_area[0]), (short_mtt, short_area)
 

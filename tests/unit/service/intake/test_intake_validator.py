@@ -81,8 +81,8 @@ def test_a_request_that_waits_for_a_starting_validator_says_so(caplog):
     import time
     from types import SimpleNamespace
 
-    from service.intake.validator import _Slot, log_validation_time
     from service.intake.spawner import Spawner
+    from service.intake.validator import _Slot, log_validation_time
 
     ours, theirs = mp.Pipe(duplex=True)
 
