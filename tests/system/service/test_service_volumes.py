@@ -55,3 +55,35 @@ def test_no_vessels_in_the_window_is_refused_at_submission(server, cta):
         assert response.json()["field"] == "volume" and "far more than vessels" in response.json()["detail"], response.text
         response = _post(client, cta, {"volume_kind": "pet"})
         assert response.status_code == 422 and response.json()["field"] == "options.volume_kind", response.text
+
+
+def test_a_detached_metaimage_label_map_is_paired_and_its_labels_checked(server, tmp_path):
+    """A .mhd and its .raw as two volume parts (either order): paired by content; options.volume_labels reaches the
+    reader (a label the map lacks is refused at submission, naming those it holds)."""
+    import SimpleITK as sitk
+
+    labels = np.zeros((40, 32, 32), np.uint8)
+    labels[4:36, 14:18, 14:18] = 2
+    sitk.WriteImage(sitk.GetImageFromArray(labels), str(tmp_path / "tree.mhd"))
+    header, raw = (tmp_path / "tree.mhd").read_bytes(), (tmp_path / "tree.raw").read_bytes()
+    files = [("ap", ("ap.png", _png(), "image/png")), ("lat", ("lat.png", _png(), "image/png")),
+             ("volume", ("tree.raw", raw, "application/octet-stream")),
+             ("volume", ("tree.mhd", header, "application/octet-stream"))]
+    with server.client() as client:
+        response = client.post("/v1/registrations", files=files,
+                               data={"geometry": "paper", "options": json.dumps({"volume_labels": [9]})})
+    assert response.status_code == 422, response.text
+    problem = response.json()
+    assert problem["field"] == "volume" and "holds none of the labels [9]; it holds 2" in problem["detail"], problem
+
+
+def _png() -> bytes:
+    import io
+
+    from PIL import Image
+
+    image = np.zeros((64, 64), np.uint8)
+    image[20:44, 30:34] = 255
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    return buffer.getvalue()
