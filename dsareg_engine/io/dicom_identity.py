@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import io
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
 # Patient module (and the Patient Study / clinical trial bits that travel with it), copied when present.
@@ -45,7 +45,8 @@ class DicomIdentity:
         study: the same for :data:`STUDY_KEYWORDS`.
         series: the same for :data:`SERIES_KEYWORDS` (modality, series number and description).
         image_type: the Image Type values, upper case (``SINGLE PLANE``, ``BIPLANE A`` ...): which plane took a run.
-        start: when the run started (Acquisition DateTime, else Acquisition or Content Date + Time), or ``None``:
+        start: when the run started (Acquisition DateTime, else Acquisition or Content Date + Time; a time without
+            its date on :data:`TIME_ONLY_DAY`), or ``None``:
             two runs minutes apart were not acquired together (:mod:`.view_roles`).
     """
 
@@ -140,14 +141,21 @@ def identity_of(dataset) -> DicomIdentity | None:
         raise UnreadableIdentity(str(exc)[:200]) from None
 
 
+TIME_ONLY_DAY = datetime(1900, 1, 1)
+"""The day of a :attr:`DicomIdentity.start` read from a time whose date is missing (only its time of day counts)."""
+
+
 def _acquired(dataset) -> dict:
     """``image_type`` and ``start`` of :class:`DicomIdentity`; a value that does not convert is left out."""
-    from ..hemodynamics.timing import run_start
+    from ..hemodynamics.timing import parse_time_s, run_start
 
     found: dict = {}
     try:
         found["image_type"] = tuple(str(v).strip().upper() for v in (dataset.get("ImageType") or []))
         found["start"] = run_start(dataset)
+        seconds = parse_time_s(dataset.get("AcquisitionTime") or dataset.get("ContentTime") or "")
+        if found["start"] is None and seconds is not None:  # a time without its date: TIME_ONLY_DAY
+            found["start"] = TIME_ONLY_DAY + timedelta(seconds=seconds)
     except Exception:  # noqa: BLE001 - an odd time or image type is no evidence either way
         pass
     return found

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..geometry.rig import ViewGeometry
+from .dicom_identity import TIME_ONLY_DAY
 from .input_decisions import InputDecision
 
 SWAP_MARGIN_DEG = 20.0
@@ -132,13 +133,20 @@ class Acquisition:
                 "interval_s": None if self.interval_s is None else round(self.interval_s, 3)}
 
 
+def _seconds_between(first: datetime, second: datetime) -> float:
+    """``second − first`` in seconds; by time of day alone when either lacks its date (:data:`TIME_ONLY_DAY`)."""
+    if TIME_ONLY_DAY.date() in (first.date(), second.date()):
+        first, second = (datetime.combine(TIME_ONLY_DAY.date(), t.time()) for t in (first, second))
+    return (second - first).total_seconds()
+
+
 def acquisition_of(headers: dict[str, RunHeader | None]) -> tuple[Acquisition | None, list[InputDecision]]:
     """The :class:`Acquisition` of the two runs and its decision, or ``(None, [])`` without DICOM headers on both."""
     ap, lat = headers.get("ap"), headers.get("lat")
     if ap is None or lat is None:
         return None, []
     if ap.start is not None and lat.start is not None:
-        interval = (lat.start - ap.start).total_seconds()
+        interval = _seconds_between(ap.start, lat.start)
         times = f"{ap.start:%H:%M:%S} and {lat.start:%H:%M:%S}"
         sequential = abs(interval) > SEQUENTIAL_S
         basis = f"the runs started at {times} ({abs(interval):.0f} s apart)"

@@ -93,3 +93,18 @@ def test_biplane_planes_firing_together_are_not_sequential_and_frames_of_referen
     apart, decisions = acquisition_of({"ap": RunHeader("single", None, "1.2.3"), "lat": RunHeader("single", None, "1.2.4")})
     assert apart.sequential and decisions[0].chosen == "sequential runs"
     assert acquisition_of({"ap": RunHeader("single"), "lat": RunHeader("single")}) == (None, [])
+
+
+def test_times_without_their_dates_count_by_time_of_day(build):
+    single = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
+    files = []
+    for primary, time in ((2.0, "101500"), (91.0, "102500.5")):
+        dataset = pydicom.dcmread(io.BytesIO(_xa(build, primary, image_type=single)))
+        dataset.ContentTime = time  # no date anywhere
+        buffer = io.BytesIO()
+        dataset.save_as(buffer, enforce_file_format=True)
+        files.append(read_image(buffer.getvalue(), "run.dcm").dicom)
+    dated = RunHeader("single", pydicom.valuerep.DT("20260102101600").replace(tzinfo=None))
+    acquisition, _ = acquisition_of({"ap": run_header(files[0]), "lat": run_header(files[1])})
+    assert acquisition.sequential and acquisition.interval_s == pytest.approx(600.5)
+    assert acquisition_of({"ap": run_header(files[0]), "lat": dated})[0].interval_s == pytest.approx(60.0)
