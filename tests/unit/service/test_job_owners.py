@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import pytest
 from fastapi.security import HTTPAuthorizationCredentials
+from starlette.requests import Request
 
 from dsareg_engine.cli import main
 from service.api.deps import principal
@@ -36,8 +37,9 @@ def _store_with(tmp_path, owners: list[tuple[str, str | None]]) -> SqlJobStore:
 
 def _owner_of_key() -> str:
     """What the API calls the owner of a request made with ``KEY``."""
-    request = SimpleNamespace(app=SimpleNamespace(state=SimpleNamespace(ctx=SimpleNamespace(
-        settings=ServiceSettings(api_keys=[KEY])))))
+    app = SimpleNamespace(state=SimpleNamespace(ctx=SimpleNamespace(settings=ServiceSettings(api_keys=[KEY]))))
+    request = Request({"type": "http", "method": "GET", "path": "/v1/registrations", "headers": [], "query_string": b"",
+                       "client": ("127.0.0.1", 50000), "app": app})
     return principal(request, HTTPAuthorizationCredentials(scheme="Bearer", credentials=KEY))
 
 
