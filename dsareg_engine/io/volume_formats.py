@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import gzip
 import io
+import locale
 import re
 import tempfile
 import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +43,18 @@ _DETACHED_SUFFIX = {"metaimage": ".mhd", "nrrd": ".nhdr"}
 ACCEPTED = ("MetaImage (.mha, or .mhd with its data file), NRRD (.nrrd, or .nhdr with its data file), "
             "NIfTI (.nii/.nii.gz), legacy VTK structured points (.vtk), a DICOM series, enhanced multi-frame DICOM, "
             "or .rad + .raw")
+
+
+@contextmanager
+def kept_locale() -> Iterator[None]:
+    """The process's locale as it was before the block: ITK's VTK image reader sets it to "C" for its numbers and
+    leaves it so (every later ``open()`` without an encoding would then read ASCII)."""
+    saved = locale.setlocale(locale.LC_ALL, None)
+    try:
+        yield
+    finally:
+        if locale.setlocale(locale.LC_ALL, None) != saved:
+            locale.setlocale(locale.LC_ALL, saved)
 
 
 def detect_itk_format(head: bytes) -> str | None:
@@ -123,13 +138,15 @@ def read_itk_volume(header: bytes, data: bytes | None, fmt: str, limits: InputLi
         reader = sitk.ImageFileReader()
         reader.SetFileName(str(path))
         try:
-            reader.ReadImageInformation()
+            with kept_locale():
+                reader.ReadImageInformation()
         except RuntimeError as exc:
             raise DsaregInputError(f"{_name(fmt)} header is unreadable ({_itk_message(exc)})", field=field_name,
                                    accepted=ACCEPTED) from None
         _check_information(reader, limits, field_name)
         try:
-            image = reader.Execute()
+            with kept_locale():
+                image = reader.Execute()
         except RuntimeError as exc:
             raise DsaregInputError(f"{_name(fmt)} data is unreadable or truncated ({_itk_message(exc)})",
                                    field=field_name) from None
@@ -280,4 +297,4 @@ def nrrd_arrays(data: bytes, limits: InputLimits = DEFAULT_LIMITS, *,
 
 
 __all__ = ["ACCEPTED", "ITK_FORMATS", "RAS_TO_LPS", "check_affine", "check_bytes", "detached_data_file",
-           "detect_itk_format", "nifti_arrays", "nrrd_arrays", "read_itk_volume"]
+           "detect_itk_format", "kept_locale", "nifti_arrays", "nrrd_arrays", "read_itk_volume"]

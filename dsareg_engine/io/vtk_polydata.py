@@ -16,6 +16,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from ..errors import DsaregInputError
+from .volume_formats import kept_locale
 
 VTK_MESH_FORMATS = ("vtp", "vtk")
 LEGACY_MAGIC = b"# vtk DataFile Version"
@@ -99,7 +100,7 @@ def parse_vtk_polydata(data: bytes, fmt: str, field_name: str = "mesh") -> tuple
     triangles.SetInputConnection(reader.GetOutputPort())
     triangles.PassVertsOff()
     triangles.PassLinesOff()
-    with _vtk_errors(reader) as messages, _vtk_errors(triangles) as more:
+    with _vtk_errors(reader) as messages, _vtk_errors(triangles) as more, kept_locale():
         triangles.Update()
     failure = reader.GetErrorCode() != 0 or messages or more
     output = triangles.GetOutput()

@@ -1,5 +1,7 @@
 """MetaImage, detached NRRD and legacy VTK image volumes (SimpleITK), on volumes the tests write."""
 
+import locale
+
 import numpy as np
 import pytest
 
@@ -70,10 +72,12 @@ def test_legacy_vtk_structured_points():
             f"SPACING 0.4 0.5 0.6\nORIGIN -10 20 5\nPOINT_DATA 120\nSCALARS speed short\nLOOKUP_TABLE default\n"
             f"{values}\n").encode()
     assert detect_volume_format(data) == "vtk-image" and detect_itk_format(data) == "vtk-image"
+    before = locale.setlocale(locale.LC_ALL, None)
     volume = read_volume(data, "carotid.vtk")
     assert np.array_equal(volume.data, VOXELS.astype(np.float32))
     assert np.allclose(volume.affine[:3, :3], np.diag(SPACING)) and np.allclose(volume.affine[:3, 3], ORIGIN)
     assert "no patient space" in volume.warnings[0]
+    assert locale.setlocale(locale.LC_ALL, None) == before  # ITK's VTK reader left "C" behind: open() read ASCII
 
 
 def test_detached_headers_need_their_one_data_file(tmp_path):
