@@ -48,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_models(which)
     _add_job_cost(which)
     _add_views(which)
+    _add_segmentation(which)
     return parser
 
 
@@ -236,6 +237,15 @@ def _add_job_cost(which) -> None:
     sub.add_argument("--only", nargs="*", default=[], metavar="CASE", help="only these cases, e.g. B1-512 A2-1024")
     sub.add_argument("--options", default="{}", help="extra registration options as JSON")
     sub.set_defaults(func=deferred("benchmarks.engine.job_cost:bench_job_cost"))
+
+
+def _add_segmentation(which) -> None:
+    """``python -m benchmarks.engine segmentation`` and ``segmentation-train``: real angiograms with expert labels."""
+    from .segmentation_bench import add_parser as add_bench
+    from .segmentation_training import add_parser as add_training
+
+    add_bench(which)
+    add_training(which)
 
 
 def _add_views(which) -> None:

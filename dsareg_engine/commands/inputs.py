@@ -27,8 +27,10 @@ def add_parser(subparsers) -> None:
     segment.add_argument("image", metavar="IMAGE", help="DSA image (PNG, TIFF, JPEG, DICOM XA, .rad with its .raw)")
     segment.add_argument("--out", required=True, metavar="MASK.png", help="where to write the 0/255 mask")
     segment.add_argument("--method", choices=SEGMENTATION_METHODS, default="auto",
-                         help="auto: masks as they are, images by otsu; otsu: blur + Otsu threshold; "
-                              "vesselness: Sato/Frangi filter (default auto)")
+                         help="auto: masks as they are; grey images by the dsa border model where it agrees with "
+                              "the network, else by the network; network: the U-Net trained on real X-ray "
+                              "angiograms; frangi: its classical fallback; dsa, otsu, vesselness: the older "
+                              "methods (default auto)")
     segment.add_argument("--frame", default=None, help="multi-frame DICOM: a frame number or 'minip'")
     segment.set_defaults(func=_segment)
 
@@ -381,16 +383,20 @@ def _segment(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from ..io.image_io import read_image
-    from ..vision.segmentation import segment_vessels
+    from ..vision.segmentation import segment_vessels_and_choice
 
     path = Path(args.image)
     image = read_image(_file_parts(path, "image"), path.name, frame=_frame(args.frame), field_name="image")
     method = "mask" if args.method == "auto" and image.is_mask else args.method
-    mask = segment_vessels(image.pixels, method, field_name="image")
+    mask, choice = segment_vessels_and_choice(image.pixels, method, field_name="image",
+                                              field_of_view=image.field_of_view)
     Image.fromarray(mask.astype(np.uint8) * 255).save(args.out, format="PNG")
     for warning in image.warnings:
         print(f"warning: {warning}")
-    print(f"{args.out}: {mask.shape[1]}x{mask.shape[0]} mask, {int(mask.sum())} vessel pixels ({method})")
+    how = method if choice is None else (f"auto: {choice.method}" + (
+        "" if choice.agreement is None else f", dsa / network masks agree at Dice {choice.agreement:.2f}"))
+    print(f"{args.out}: {mask.shape[1]}x{mask.shape[0]} mask, {int(mask.sum())} vessel pixels "
+          f"({100 * mask.mean():.1f} % of the image; {how})")
     return 0
 
 

@@ -18,6 +18,7 @@ from .limits import DEFAULT_LIMITS, InputLimits
 from .mesh_io import decimate, read_mesh_detailed
 from .mesh_units import MeshUnit, unit_decision
 from ..vision.segmentation import SEGMENTATION_METHODS
+from ..vision.segmentation_choice import segmentation_decision
 from ..vision.segmentation_scale import SegmentationScale, coverage_at_scale
 from .view_roles import Acquisition, named_views
 from .xa_run import ImageReading
@@ -148,7 +149,8 @@ def load_case(
         geometry: the parsed geometry (:func:`dsareg_engine.geometry.spec.parse_geometry`, or
             :meth:`GeometrySpec.from_json` for a stored one), or ``None`` to take it from the
             images (DICOM XA tags or ``.rad`` headers).
-        segmentation: ``"auto"``, ``"otsu"``, ``"vesselness"`` or ``"mask"``.
+        segmentation: one of :data:`~dsareg_engine.vision.segmentation.SEGMENTATION_METHODS` (``"auto"``:
+            masks as they are, grey images by the DSA border model or the angiogram network).
         frame: for multi-frame DICOM: a frame number, ``"minip"``, or ``None``
             (maximum opacification), both views.
         reading: per-view frames and the subtraction of native runs (:class:`.xa_run.ImageReading`);
@@ -185,21 +187,30 @@ def load_case(
     views: dict[str, ViewGeometry] = {}
     pitches: list[InputDecision] = []
     for name in VIEW_NAMES:
-        image = images[name]
-        view = _view_for_image(rig, name, image, warnings)
-        method = "mask" if image.is_mask and segmentation == "auto" else segmentation
-        spacing_mm = min(view.pixel_spacing_mm)
-        targets[name], factor = coverage_at_scale(image.pixels, method, spacing_mm, field_name=name)
-        if factor > 1:
-            pitches.append(_pitch_decision(name, spacing_mm, factor))
+        views[name] = _view_for_image(rig, name, images[name], warnings)
+        targets[name] = _segmented(name, images[name], views[name], segmentation, pitches)
         masks[name] = binary_mask(targets[name])
-        views[name] = view
     rig = Rig(views=views, initial_mesh_to_world=rig.initial_mesh_to_world if rig.initial_pose_given else None)
     return Case(mesh=surface, masks=masks, rig=rig, warnings=warnings, kinds=kinds,
                 images={name: images[name].pixels for name in VIEW_NAMES}, targets=targets,
                 readings={name: images[name].reading for name in VIEW_NAMES if images[name].reading},
                 volume=volume_readout, sources=_sources(images, volume_sources), acquisition=acquisition,
                 decisions=decisions + [decision for name in VIEW_NAMES for decision in images[name].decisions] + pitches)
+
+
+def _segmented(name: str, image: LoadedImage, view: ViewGeometry, segmentation: str,
+               decisions: list[InputDecision]) -> np.ndarray:
+    """The registration target of one view (:func:`~dsareg_engine.vision.segmentation_scale.coverage_at_scale`),
+    its pitch and ``auto``'s choice appended to ``decisions``."""
+    method = "mask" if image.is_mask and segmentation == "auto" else segmentation
+    spacing_mm = min(view.pixel_spacing_mm)
+    target, factor, choice = coverage_at_scale(image.pixels, method, spacing_mm, field_name=name,
+                                               field_of_view=image.field_of_view)
+    if factor > 1:
+        decisions.append(_pitch_decision(name, spacing_mm, factor))
+    if choice is not None and choice.agreement is not None:
+        decisions.append(segmentation_decision(name, choice))
+    return target
 
 
 def _pitch_decision(name: str, spacing_mm: float, factor: int) -> InputDecision:

@@ -10,7 +10,10 @@ Methods:
 * ``"dsa"``: background flattening, hysteresis, and the border at a fixed fraction of the
   local centreline contrast (:mod:`.dsa_border`): borders land where the vessel's outline
   projects, for thin and thick vessels alike.
-* ``"auto"``: ``"mask"`` when the image has at most two values, else ``"dsa"``.
+* ``"network"``: the U-Net trained on real X-ray angiograms (:mod:`.angiogram`): field of view, vessels dark by
+  physics, background anatomy and the field's edge left out. ``"frangi"``: its classical fallback.
+* ``"auto"``: ``"mask"`` when the image has at most two values, else ``"dsa"`` where the ``dsa`` and
+  ``network`` masks agree and ``"network"`` where they do not (:mod:`.segmentation_choice`).
 
 :func:`vessel_coverage` is what registration fits: for ``"dsa"`` a per-pixel vessel coverage in
 [0, 1] with sub-pixel borders (:mod:`.dsa_coverage`), for every other method the binary mask.
@@ -25,8 +28,10 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..geometry.rig import ViewGeometry
+from .angiogram import ANGIOGRAM_METHODS, segment_angiogram
+from .segmentation_choice import AutoChoice, choose, collimated_inside, network_coverage
 
-SEGMENTATION_METHODS = ("auto", "dsa", "otsu", "vesselness", "mask")
+SEGMENTATION_METHODS = ("auto", "network", "frangi", "dsa", "otsu", "vesselness", "mask")
 
 
 def vessels_are_dark(pixels: np.ndarray) -> bool:
@@ -64,8 +69,10 @@ def segment_vessels(
     blur_sigma_px: float = 1.5,
     min_object_fraction: float = 2e-4,
     field_name: str = "image",
+    field_of_view: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Binary vessel mask (``bool``, same shape as ``pixels``).
+    """Binary vessel mask (``bool``, same shape as ``pixels``). ``field_of_view``: the file's shutter (True
+    inside), used by the ``network`` / ``frangi`` / ``auto`` methods.
 
     Raises:
         DsaregInputError: unknown method, constant image, or no vessel found.
@@ -82,10 +89,16 @@ def segment_vessels(
     if float(pixels.max()) <= float(pixels.min()):
         raise DsaregInputError("is constant: no vessels to segment", field=field_name)
     n_values = len(np.unique(pixels[:: max(1, pixels.shape[0] // 256), :: max(1, pixels.shape[1] // 256)]))
-    if method == "auto":
+    auto = method == "auto"
+    if auto:
         method = "mask" if n_values <= 2 and len(np.unique(pixels)) <= 2 else "dsa"
     bright = _bright_vessels(pixels)
     min_size = max(16, int(min_object_fraction * pixels.size))
+    if method in ANGIOGRAM_METHODS:
+        return _non_empty(segment_angiogram(pixels, field_of_view, method=method).mask, field_name)
+    if method == "dsa" and auto:
+        choice = choose(pixels, bright, min_size, field_of_view)
+        return _non_empty(choice.dsa_mask if choice.method == "dsa" else choice.angiogram.mask, field_name)
     if method == "mask":
         mask = bright > 0.5
     elif method == "dsa":
@@ -104,6 +117,17 @@ def segment_vessels(
     return _non_empty(mask, field_name)
 
 
+def segment_vessels_and_choice(pixels: np.ndarray, method: str = "auto", *, field_name: str = "image",
+                               field_of_view: np.ndarray | None = None) -> tuple[np.ndarray, AutoChoice | None]:
+    """:func:`segment_vessels` and, where ``auto`` chose between ``dsa`` and the network, its choice."""
+    pixels = _checked(pixels, method, field_name)
+    if method != "auto" or resolved_method(pixels, method) != "dsa" or float(pixels.max()) <= float(pixels.min()):
+        return segment_vessels(pixels, method, field_name=field_name, field_of_view=field_of_view), None
+    choice = choose(pixels, _bright_vessels(pixels), max(16, int(2e-4 * pixels.size)), field_of_view)
+    mask = choice.dsa_mask if choice.method == "dsa" else choice.angiogram.mask
+    return _non_empty(mask, field_name), choice
+
+
 def resolved_method(pixels: np.ndarray, method: str) -> str:
     """The method ``segment_vessels`` applies: ``"auto"`` → ``"mask"`` for at most two values, else ``"dsa"``."""
     if method != "auto":
@@ -117,22 +141,46 @@ def resolved_method(pixels: np.ndarray, method: str) -> str:
 
 def vessel_coverage(
     pixels: np.ndarray, method: str = "auto", *, min_object_fraction: float = 2e-4, field_name: str = "image",
+    field_of_view: np.ndarray | None = None,
 ) -> np.ndarray:
     """The registration target ``(H, W)``: float32 vessel coverage in [0, 1] where the method resolves
     to ``"dsa"`` (sub-pixel borders, :func:`~.dsa_coverage.dsa_vessel_coverage`), else the bool mask
-    of :func:`segment_vessels`, unchanged.
+    of :func:`segment_vessels`, unchanged; for ``"network"`` (and ``"auto"`` where it picks the network) the
+    network's probability near its mask (:func:`~.segmentation_choice.network_coverage`).
 
     Raises:
         DsaregInputError: as :func:`segment_vessels`.
     """
+    return vessel_coverage_and_choice(pixels, method, min_object_fraction=min_object_fraction,
+                                      field_name=field_name, field_of_view=field_of_view)[0]
+
+
+def vessel_coverage_and_choice(
+    pixels: np.ndarray, method: str = "auto", *, min_object_fraction: float = 2e-4, field_name: str = "image",
+    field_of_view: np.ndarray | None = None,
+) -> tuple[np.ndarray, AutoChoice | None]:
+    """:func:`vessel_coverage` and, where ``auto`` chose between ``dsa`` and the network, its choice."""
     pixels = _checked(pixels, method, field_name)
-    if pixels.dtype == bool or resolved_method(pixels, method) != "dsa" or float(pixels.max()) <= float(pixels.min()):
-        return segment_vessels(pixels, method, min_object_fraction=min_object_fraction, field_name=field_name)
+    constant = pixels.dtype != bool and float(pixels.max()) <= float(pixels.min())
+    if method == "network" and not constant:
+        angiogram = segment_angiogram(pixels, field_of_view, method="network")
+        _non_empty(angiogram.mask, field_name)
+        return network_coverage(angiogram), None
+    if pixels.dtype == bool or resolved_method(pixels, method) != "dsa" or constant:
+        return segment_vessels(pixels, method, min_object_fraction=min_object_fraction, field_name=field_name,
+                               field_of_view=field_of_view), None
     from .dsa_coverage import dsa_vessel_coverage
 
-    coverage = dsa_vessel_coverage(_bright_vessels(pixels), max(16, int(min_object_fraction * pixels.size)))
+    bright, min_size = _bright_vessels(pixels), max(16, int(min_object_fraction * pixels.size))
+    choice = choose(pixels, bright, min_size, field_of_view) if method == "auto" else None
+    if choice is not None and choice.method != "dsa":
+        _non_empty(choice.angiogram.mask, field_name)
+        return network_coverage(choice.angiogram), choice
+    coverage = dsa_vessel_coverage(bright, min_size)
+    if choice is not None and choice.angiogram is not None:
+        coverage = np.where(collimated_inside(choice.angiogram.field), coverage, 0.0).astype(np.float32)
     _non_empty(coverage >= 0.5, field_name)
-    return coverage
+    return coverage, choice
 
 
 def _non_empty(mask: np.ndarray, field_name: str) -> np.ndarray:

@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .segmentation import resolved_method, vessel_coverage
+from .segmentation import resolved_method, vessel_coverage_and_choice
+from .segmentation_choice import AutoChoice
 
 
 @dataclass(frozen=True)
@@ -65,15 +66,20 @@ def back_on_pixels(coverage: np.ndarray, factor: int, shape: tuple[int, int]) ->
 
 
 def coverage_at_scale(pixels: np.ndarray, method: str, spacing_mm: float | None, *, field_name: str = "image",
-                      settings: SegmentationScale = SegmentationScale()) -> tuple[np.ndarray, int]:
-    """``(the registration target (H, W) as :func:`~.segmentation.vessel_coverage` gives it, factor)``, segmented
-    at the physical pitch (module docstring) when the method resolves to ``"dsa"``; other methods, masks and
-    pixels at or above ``pitch_mm`` unchanged (factor 1)."""
+                      settings: SegmentationScale = SegmentationScale(), field_of_view: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, int, AutoChoice | None]:
+    """``(the registration target (H, W) as :func:`~.segmentation.vessel_coverage` gives it, factor, auto's
+    choice or None)``, segmented at the physical pitch (module docstring) when the method resolves to ``"dsa"``;
+    other methods, masks and pixels at or above ``pitch_mm`` unchanged (factor 1). ``field_of_view``: the
+    file's shutter (True inside), averaged with the pixels."""
     factor = averaging_factor(spacing_mm, settings)
     pixels = np.asarray(pixels)
     if factor <= 1 or pixels.ndim != 2 or pixels.dtype == bool or resolved_method(pixels, method) != "dsa" \
             or min(pixels.shape) < 32 * factor:
-        return vessel_coverage(pixels, method, field_name=field_name), 1
+        coverage, choice = vessel_coverage_and_choice(pixels, method, field_name=field_name,
+                                                      field_of_view=field_of_view)
+        return coverage, 1, choice
     small = area_averaged(pixels, factor)
-    coverage = vessel_coverage(small, method, field_name=field_name)
-    return back_on_pixels(np.asarray(coverage, np.float32), factor, pixels.shape), factor
+    small_field = None if field_of_view is None else area_averaged(field_of_view.astype(np.float32), factor) >= 0.5
+    coverage, choice = vessel_coverage_and_choice(small, method, field_name=field_name, field_of_view=small_field)
+    return back_on_pixels(np.asarray(coverage, np.float32), factor, pixels.shape), factor, choice

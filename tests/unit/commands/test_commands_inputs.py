@@ -78,6 +78,21 @@ def test_segment(files, tmp_path, capsys):
     assert main(["segment", str(files / "ap.dcm"), "--out", str(tmp_path / "x.png"), "--frame", "two"]) == 2
 
 
+def test_segment_a_real_like_angiogram_by_default(tmp_path, capsys):
+    """An unsubtracted angiogram with a round field (issue 40, item 7): the default finds the vessels, not the
+    field's edge ring (the old default's mask was the ring plus the background)."""
+    from dsareg_engine.vision.angiogram.field_of_view import inner_field
+    from tests.support.angiogram_images import unsubtracted_angiogram
+
+    pixels, vessels, field = unsubtracted_angiogram(size=320, seed=11)
+    Image.fromarray(pixels.astype(np.uint8)).save(tmp_path / "angio.png")
+    assert main(["segment", str(tmp_path / "angio.png"), "--out", str(tmp_path / "mask.png")]) == 0
+    mask = np.asarray(Image.open(tmp_path / "mask.png")) > 0
+    assert "auto: network" in capsys.readouterr().out
+    assert 2 * (mask & vessels).sum() / (mask.sum() + vessels.sum()) > 0.6
+    assert (mask & field & ~inner_field(field, 4)).sum() <= 0.03 * mask.sum()
+
+
 @pytest.mark.parametrize("source", ["cta.nii.gz", "series"])
 def test_mesh(files, tmp_path, capsys, source):
     out = tmp_path / "vessels.obj"

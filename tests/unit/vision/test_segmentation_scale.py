@@ -63,7 +63,7 @@ def test_low_dose_fine_pitch_finds_the_tree():
     """0.08 mm pixels holding few photons: segmented pixel by pixel the tree sinks into the noise (recall ~0.4);
     at 0.24 mm it is found, and nothing but vessels."""
     image, truth = low_dose_dsa(768, 0.08, 0.12)
-    target, factor = coverage_at_scale(image, "auto", 0.08)
+    target, factor, _ = coverage_at_scale(image, "auto", 0.08)
     assert factor == 3 and target.shape == image.shape and target.dtype == np.float32
     recall, precision = recall_precision(target >= 0.5, truth)
     assert recall > 0.85 and precision > 0.95, (recall, precision)
@@ -73,10 +73,10 @@ def test_low_dose_fine_pitch_finds_the_tree():
 
 def test_coarse_pixels_and_masks_are_segmented_as_they_are():
     image, _ = low_dose_dsa(256, 0.17, 0.03)
-    target, factor = coverage_at_scale(image, "auto", 0.17)
+    target, factor, _ = coverage_at_scale(image, "auto", 0.17)
     assert factor == 1 and np.array_equal(target, vessel_coverage(image, "auto"))
     mask = np.zeros((200, 200), bool)
     mask[50:60, 20:180] = True
-    target, factor = coverage_at_scale(mask, "auto", 0.05)
+    target, factor, _ = coverage_at_scale(mask, "auto", 0.05)
     assert factor == 1 and np.array_equal(target, mask)
     assert coverage_at_scale(image, "auto", 0.17, settings=SegmentationScale(pitch_mm=0.34))[1] == 2  # the setting

@@ -1,0 +1,196 @@
+"""``python -m benchmarks.engine segmentation``: vessel segmentation of real X-ray angiograms against expert labels.
+
+Every image is scored by each method; the network is cross-validated: the images are dealt into ``--folds`` folds
+(:func:`~dsareg_engine.vision.angiogram.training.folds`), one network is trained per fold on the other folds'
+images (or read from ``--fold-weights DIR/foldK.pt``, made by ``segmentation-train --exclude``; each record's list
+of training images is checked against the fold), and an image is scored only by the network that did not see
+it. Methods:
+
+* ``network`` — the U-Net path of ``dsareg segment --method network`` (cross-validated as above);
+* ``frangi`` — the classical path (``--method frangi``), no training;
+* ``baseline`` — twenty lines of scikit-image: Frangi on the image, the field of view (pixels above 10 % of the
+  range) eroded by 10 px, the top 12 % of the field's response;
+* ``dsa`` — the DSA border model (``--method dsa``; what ``auto`` fell back to on grey images before this round).
+
+Per image: Dice, precision, recall, coverage (mask / image), and the share of the mask within
+``max(3, 1.2 % of the side)`` px of the field of view's edge (the field found from the image). ``--pictures DIR``
+writes image | label | mask strips for the worst, median and best network images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+METHODS = ("network", "frangi", "baseline", "dsa")
+
+
+def baseline_mask(pixels: np.ndarray) -> np.ndarray:
+    """The twenty-line scikit-image baseline (module docstring)."""
+    from scipy import ndimage
+    from skimage.filters import frangi
+
+    image = pixels.astype(np.float32) / max(float(pixels.max()), 1.0)
+    field = ndimage.binary_erosion(image > 0.1 * float(image.max()), iterations=10)
+    response = frangi(image, sigmas=(1, 2, 3, 4, 5), black_ridges=True)
+    level = np.quantile(response[field], 0.88) if field.any() else np.inf
+    return field & (response > level)
+
+
+def scores(mask: np.ndarray, label: np.ndarray, field: np.ndarray) -> dict[str, float]:
+    from dsareg_engine.vision.angiogram.field_of_view import inner_field
+
+    hits = float((mask & label).sum())
+    band = field & ~inner_field(field, max(3, round(0.012 * max(mask.shape))))
+    kept = max(float(mask.sum()), 1.0)
+    return {"dice": 2 * hits / max(float(mask.sum() + label.sum()), 1.0), "precision": hits / kept,
+            "recall": hits / max(float(label.sum()), 1.0), "coverage": float(mask.mean()),
+            "edge": float((mask & band).sum()) / kept}
+
+
+def fold_networks(images, args) -> list:
+    """One network per fold, each checked not to have seen its fold's images."""
+    from dsareg_engine.vision.angiogram.learned import load_network
+    from dsareg_engine.vision.angiogram.training import TrainingSettings, folds, save_weights, train
+
+    networks = []
+    for index, fold in enumerate(folds(len(images), args.folds)):
+        held_out = {images[i].name for i in fold}
+        path = Path(args.fold_weights) / f"fold{index}.pt"
+        if not path.is_file():
+            if not args.train:
+                raise SystemExit(f"{path} is missing: train it (segmentation-train --exclude …) or pass --train")
+            record = train([item for item in images if item.name not in held_out],
+                           TrainingSettings(iterations=args.iterations))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save_weights(record, path)
+        _check_fold(path, held_out)
+        networks.append((set(held_out), load_network(path)))
+    return networks
+
+
+def _check_fold(path: Path, held_out: set[str]) -> None:
+    import torch
+
+    seen = set(torch.load(path, map_location="cpu", weights_only=True)["data"]["images"])
+    if seen & held_out:
+        raise SystemExit(f"{path} was trained on held-out images {sorted(seen & held_out)}: not a cross-validation")
+
+
+def _segment(method: str, item, networks) -> tuple[np.ndarray, float]:
+    from dsareg_engine.vision.angiogram import segment_angiogram
+    from dsareg_engine.vision.angiogram.learned import vessel_probability
+    from dsareg_engine.vision.angiogram.vessel_mask import vessel_mask
+    from dsareg_engine.vision.segmentation import segment_vessels
+
+    started = time.perf_counter()
+    if method == "network":
+        model = next(model for held_out, model in networks if item.name in held_out)
+        mask = vessel_mask(*vessel_probability(item.pixels, model=model))[0]
+    elif method == "frangi":
+        mask = segment_angiogram(item.pixels, method="frangi").mask
+    elif method == "baseline":
+        mask = baseline_mask(item.pixels)
+    else:
+        mask = segment_vessels(item.pixels, "dsa")
+    return mask, time.perf_counter() - started
+
+
+def _summary(rows: list[dict], method: str) -> str:
+    values = {key: np.array([row[method][key] for row in rows]) for key in ("dice", "precision", "recall",
+                                                                            "coverage", "edge", "seconds")}
+    dice = values["dice"]
+    return (f"| {method} | {np.median(dice):.3f} | {np.percentile(dice, 10):.3f} | {dice.mean():.3f} | "
+            f"{np.median(values['precision']):.3f} | {np.median(values['recall']):.3f} | "
+            f"{np.median(values['coverage']) * 100:.1f} / {values['coverage'].max() * 100:.1f} | "
+            f"{np.median(values['edge']) * 100:.2f} / {values['edge'].max() * 100:.2f} | "
+            f"{np.median(values['seconds']):.3f} |")
+
+
+def _pictures(rows: list[dict], images, masks: dict, out: Path) -> None:
+    from PIL import Image
+
+    out.mkdir(parents=True, exist_ok=True)
+    order = sorted(range(len(rows)), key=lambda i: rows[i]["network"]["dice"])
+    for tag, index in (("worst", order[0]), ("median", order[len(order) // 2]), ("best", order[-1])):
+        item = images[index]
+        grey = np.clip(item.pixels, 0, 255).astype(np.uint8)
+        strip = np.concatenate([grey, item.label.astype(np.uint8) * 255, masks[index].astype(np.uint8) * 255], axis=1)
+        Image.fromarray(strip).save(out / f"segmentation-{tag}-{item.name}.png")
+        print(f"{out}/segmentation-{tag}-{item.name}.png: image | label | network mask "
+              f"(Dice {rows[index]['network']['dice']:.3f})")
+
+
+def _agreement(item, network_mask: np.ndarray) -> tuple[float, float]:
+    """What ``auto`` compares: the ``dsa`` mask (inside the collimated field) against the network's: their Dice
+    and the share of the ``dsa`` mask within 2 px of the network's."""
+    import cv2
+
+    from dsareg_engine.vision.segmentation import segment_vessels
+    from dsareg_engine.vision.segmentation_choice import collimated_inside, dice
+    from dsareg_engine.vision.angiogram.field_of_view import estimate_field_of_view
+
+    dsa_mask = segment_vessels(item.pixels, "dsa") & collimated_inside(estimate_field_of_view(item.pixels))
+    near = cv2.dilate(network_mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return dice(dsa_mask, network_mask), float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
+
+
+def bench_segmentation(args: argparse.Namespace) -> int:
+    import torch
+
+    from dsareg_engine.vision.angiogram.field_of_view import estimate_field_of_view
+    from dsareg_engine.vision.angiogram.training import labelled_images
+    from dsareg_engine.vision.segmentation_choice import AGREEMENT_DICE, EXPLAINED_SHARE
+
+    torch.set_num_threads(args.threads)
+    images = labelled_images(Path(args.data))
+    networks = fold_networks(images, args) if "network" in args.methods else []
+    rows, network_masks = [], {}
+    print("| image | " + " | ".join(f"{method} Dice" for method in args.methods) + " |")
+    print(f"|---|{'---|' * len(args.methods)}")
+    for index, item in enumerate(images):
+        field = estimate_field_of_view(item.pixels)
+        row = {}
+        for method in args.methods:
+            mask, seconds = _segment(method, item, networks)
+            row[method] = {**scores(mask, item.label, field), "seconds": seconds}
+            if method == "network":
+                network_masks[index] = mask
+        if "network" in row and "dsa" in row:
+            row["agreement"] = _agreement(item, network_masks[index])
+        rows.append(row)
+        dices = " | ".join(f"{row[method]['dice']:.3f}" for method in args.methods)
+        print(f"| {item.name} | {dices} |", flush=True)
+    print(f"\n{len(images)} images, {args.folds}-fold cross-validation for the network\n")
+    print("| method | Dice median | Dice p10 | Dice mean | precision median | recall median | coverage % median / max "
+          "| on the field's edge % median / max | s per image median |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for method in args.methods:
+        print(_summary(rows, method))
+    if rows and "agreement" in rows[0]:
+        agreement, explained = (np.array([row["agreement"][k] for row in rows]) for k in (0, 1))
+        keeps_dsa = (agreement >= AGREEMENT_DICE) & (explained >= EXPLAINED_SHARE)
+        print(f"\n`auto`'s dsa / network comparison (the network cross-validated): masks' Dice median "
+              f"{np.median(agreement):.3f}, max {agreement.max():.3f}; share of the dsa mask within 2 px of the "
+              f"network's median {np.median(explained):.3f}, max {explained.max():.3f}; `auto` keeps dsa on "
+              f"{int(keeps_dsa.sum())} of {len(rows)} (Dice >= {AGREEMENT_DICE} and share >= {EXPLAINED_SHARE})")
+    if args.pictures and network_masks:
+        _pictures(rows, images, network_masks, Path(args.pictures))
+    return 0
+
+
+def add_parser(which) -> None:
+    sub = which.add_parser("segmentation", help="vessel segmentation of real angiograms vs expert labels "
+                                                "(Dice, precision, recall, coverage; network cross-validated)")
+    sub.add_argument("--data", required=True, help="folder of N.png / N_gt.png pairs")
+    sub.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, help="methods to score")
+    sub.add_argument("--folds", type=int, default=3, help="cross-validation folds for the network (default 3)")
+    sub.add_argument("--fold-weights", default="segmentation-folds", help="folder of foldK.pt (made if --train)")
+    sub.add_argument("--train", action="store_true", help="train the missing fold networks (CPU, ~5-15 min each)")
+    sub.add_argument("--iterations", type=int, default=1000, help="optimiser steps per fold network")
+    sub.add_argument("--pictures", metavar="DIR", help="write image | label | mask strips here")
+    sub.add_argument("--threads", type=int, default=2, help="torch threads")
+    sub.set_defaults(func=bench_segmentation)

@@ -1,0 +1,112 @@
+"""What ``auto`` segments a grey-level image with: the DSA border model or the angiogram network.
+
+Two segmentations answer for grey images, each best where it was built for:
+
+* ``dsa`` (:mod:`.dsa_border`, :mod:`.dsa_coverage`): a physical border model with sub-pixel borders; exact on
+  clean subtracted DSA (ADD 0.005 mm on the paper's mesh), but on a real unsubtracted angiogram it marks
+  background anatomy and the field's edge (median Dice 0.22 on real coronary angiograms);
+* ``network`` (:mod:`.angiogram`): a U-Net trained on real angiograms; finds the vessels of real images
+  (Dice 0.7+, cross-validated) with pixel-level borders.
+
+``auto`` runs both and keeps ``dsa`` where the two agree (Dice of the masks ≥ ``AGREEMENT_DICE`` and at least
+``EXPLAINED_SHARE`` of the ``dsa`` mask within 2 px of the network's: the image is one the border model reads
+right, and its sub-pixel borders are kept), the network otherwise. Where the image
+has a collimated field, ``dsa`` is kept only inside it (the network's field, less its edge margin). Images that are
+nearly two-level (≥ 90 % of the pixels within 10 % of the extremes: an anti-aliased or JPEG'd mask) keep the
+``dsa`` path, whose histogram polarity reads masks of either polarity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .angiogram import AngiogramSegmentation, segment_angiogram
+
+AGREEMENT_DICE = 0.5
+"""The masks' Dice from which ``dsa`` may be kept. Measured (docs/benchmarks/segmentation.md): 0.62–0.86 on the
+project's synthetic DSA (phantom and the paper's mesh, 512 and 800 px, nine image formations), 0.01–0.60 on the
+40 real coronary angiograms (the network cross-validated; 5 of 40 above 0.5)."""
+EXPLAINED_SHARE = 0.8
+"""... and the share of the ``dsa`` mask within 2 px of the network's from which it is kept: 0.82–0.98 on that
+synthetic DSA, at most 0.79 on those real angiograms (the border model's extra pixels there are background)."""
+EXPLAINED_BAND = 0.02
+"""A close call (the verdict at least ``check``) within this of :data:`EXPLAINED_SHARE`."""
+
+
+@dataclass(frozen=True)
+class AutoChoice:
+    """Attributes:
+        method: ``"dsa"`` or the angiogram method used (``"network"``, or ``"frangi"`` without weights).
+        agreement: Dice of the two masks (None for mask-like images, where only ``dsa`` ran).
+        dsa_mask: the ``dsa`` mask (H, W) bool. angiogram: the angiogram segmentation, or None.
+    """
+
+    method: str
+    agreement: float | None
+    dsa_mask: np.ndarray
+    angiogram: AngiogramSegmentation | None
+    explained: float | None = None
+
+
+def is_mask_like(pixels: np.ndarray) -> bool:
+    """Nearly two-level: ≥ 90 % of the pixels within 10 % of the range from the minimum or the maximum."""
+    low, high = float(pixels.min()), float(pixels.max())
+    if high <= low:
+        return True
+    unit = (pixels.astype(np.float32) - low) / (high - low)
+    return float(np.mean((unit <= 0.1) | (unit >= 0.9))) >= 0.9
+
+
+def dice(first: np.ndarray, second: np.ndarray) -> float:
+    total = int(first.sum()) + int(second.sum())
+    return 1.0 if total == 0 else 2.0 * float((first & second).sum()) / total
+
+
+def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np.ndarray | None = None
+           ) -> AutoChoice:
+    """The ``auto`` choice for a grey image (``bright``: its vessels-bright form for ``dsa``)."""
+    from .dsa_border import dsa_vessel_mask
+
+    from .angiogram.learned import weights_available
+
+    dsa_mask = dsa_vessel_mask(bright, min_object_px)
+    if is_mask_like(pixels) or not weights_available():
+        return AutoChoice("dsa", None, dsa_mask, None)
+    angiogram = segment_angiogram(pixels, field)
+    dsa_mask = dsa_mask & collimated_inside(angiogram.field)
+    agreement = dice(dsa_mask, angiogram.mask)
+    near = cv2.dilate(angiogram.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    explained = float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
+    keep_dsa = agreement >= AGREEMENT_DICE and explained >= EXPLAINED_SHARE
+    return AutoChoice("dsa" if keep_dsa else angiogram.method, round(agreement, 4), dsa_mask, angiogram,
+                      round(explained, 4))
+
+
+def collimated_inside(field: np.ndarray) -> np.ndarray:
+    """Where a vessel may be: everywhere for an uncollimated image, else the field less its edge margin."""
+    from .angiogram.field_of_view import inner_field
+    from .angiogram.vessel_mask import edge_margin_px
+
+    return field if field.all() else inner_field(field, edge_margin_px(field.shape))
+
+
+def network_coverage(angiogram: AngiogramSegmentation) -> np.ndarray:
+    """The registration target from an angiogram segmentation: the probability within 1 px of the mask (0
+    elsewhere), float32 in [0, 1]: soft borders, no speckle outside the kept vessels."""
+    near = cv2.dilate(angiogram.mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    return np.where(near, angiogram.probability, 0.0).astype(np.float32)
+
+
+def segmentation_decision(name: str, choice: AutoChoice):
+    """The :class:`~dsareg_engine.io.input_decisions.InputDecision` of ``auto``'s choice for view ``name``: the
+    share of the ``dsa`` mask the network explains against :data:`EXPLAINED_SHARE` (a close call within
+    :data:`EXPLAINED_BAND`: the verdict says so), the masks' Dice named in the basis."""
+    from ..io.input_decisions import InputDecision
+
+    chosen = "dsa border model" if choice.method == "dsa" else f"angiogram {choice.method}"
+    basis = (f"share of the dsa mask within 2 px of the network's (masks' Dice {choice.agreement:.2f}, "
+             f"dsa kept from {AGREEMENT_DICE})")
+    return InputDecision(name, "segmentation", chosen, basis, choice.explained, EXPLAINED_SHARE, EXPLAINED_BAND)
