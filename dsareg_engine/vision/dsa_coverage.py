@@ -53,6 +53,12 @@ class CoverageSettings:
     wide_radius_px: float = 5.0
 
 
+def dsa_found(bright: np.ndarray, min_object_px: int) -> tuple[np.ndarray, float, np.ndarray]:
+    """``(contrast, noise σ, binary mask)`` of a bright-vessel image: the steps the coverage starts from."""
+    contrast, sigma = dsa_contrast(bright)
+    return contrast, sigma, dsa_vessel_mask(bright, min_object_px, (contrast, sigma))
+
+
 def _wide_edge(mask: np.ndarray, radius_px: float) -> np.ndarray:
     """``(H, W)`` bool outline pixels (±1 px) of vessels at least ``radius_px`` wide."""
     pixels = mask.astype(np.uint8)
@@ -61,10 +67,12 @@ def _wide_edge(mask: np.ndarray, radius_px: float) -> np.ndarray:
     return edge & (radius >= radius_px)
 
 
-def dsa_vessel_coverage(bright: np.ndarray, min_object_px: int, settings: CoverageSettings = CoverageSettings()) -> np.ndarray:
-    """Vessel coverage ``(H, W)`` float32 in [0, 1] of a bright-vessel float image (see the module docstring)."""
-    contrast, sigma = dsa_contrast(bright)
-    mask = dsa_vessel_mask(bright, min_object_px, (contrast, sigma))
+def dsa_vessel_coverage(bright: np.ndarray, min_object_px: int, settings: CoverageSettings = CoverageSettings(),
+                        found: tuple[np.ndarray, float, np.ndarray] | None = None) -> np.ndarray:
+    """Vessel coverage ``(H, W)`` float32 in [0, 1] of a bright-vessel float image (see the module docstring).
+
+    ``found``: ``(contrast, noise σ, binary mask)`` of ``bright`` when already computed (:func:`dsa_found`)."""
+    contrast, sigma, mask = found if found is not None else dsa_found(bright, min_object_px)
     if not mask.any():
         return mask.astype(np.float32)
     image_blur = estimate_blur_px(contrast, _wide_edge(mask, settings.wide_radius_px), settings.blur_smooth_px, sigma)

@@ -176,7 +176,7 @@ def vessel_coverage_and_choice(
     if choice is not None and choice.method != "dsa":
         _non_empty(choice.angiogram.mask, field_name)
         return network_coverage(choice.angiogram), choice
-    coverage = dsa_vessel_coverage(bright, min_size)
+    coverage = dsa_vessel_coverage(bright, min_size, found=None if choice is None else choice.dsa_found)
     if choice is not None and choice.angiogram is not None:
         coverage = np.where(collimated_inside(choice.angiogram.field), coverage, 0.0).astype(np.float32)
     _non_empty(coverage >= 0.5, field_name)

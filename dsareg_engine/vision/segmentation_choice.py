@@ -42,6 +42,7 @@ class AutoChoice:
         method: ``"dsa"`` or the angiogram method used (``"network"``, or ``"frangi"`` without weights).
         agreement: Dice of the two masks (None for mask-like images, where only ``dsa`` ran).
         dsa_mask: the ``dsa`` mask (H, W) bool. angiogram: the angiogram segmentation, or None.
+        dsa_found: ``(contrast, noise σ, unrestricted mask)`` of the ``dsa`` path, for its coverage.
     """
 
     method: str
@@ -49,6 +50,7 @@ class AutoChoice:
     dsa_mask: np.ndarray
     angiogram: AngiogramSegmentation | None
     explained: float | None = None
+    dsa_found: tuple | None = None
 
 
 def is_mask_like(pixels: np.ndarray) -> bool:
@@ -68,13 +70,13 @@ def dice(first: np.ndarray, second: np.ndarray) -> float:
 def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np.ndarray | None = None
            ) -> AutoChoice:
     """The ``auto`` choice for a grey image (``bright``: its vessels-bright form for ``dsa``)."""
-    from .dsa_border import dsa_vessel_mask
-
     from .angiogram.learned import weights_available
+    from .dsa_coverage import dsa_found
 
-    dsa_mask = dsa_vessel_mask(bright, min_object_px)
+    found = dsa_found(bright, min_object_px)
+    dsa_mask = found[2]
     if is_mask_like(pixels) or not weights_available():
-        return AutoChoice("dsa", None, dsa_mask, None)
+        return AutoChoice("dsa", None, dsa_mask, None, dsa_found=found)
     angiogram = segment_angiogram(pixels, field)
     dsa_mask = dsa_mask & collimated_inside(angiogram.field)
     agreement = dice(dsa_mask, angiogram.mask)
@@ -82,7 +84,7 @@ def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np
     explained = float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
     keep_dsa = agreement >= AGREEMENT_DICE and explained >= EXPLAINED_SHARE
     return AutoChoice("dsa" if keep_dsa else angiogram.method, round(agreement, 4), dsa_mask, angiogram,
-                      round(explained, 4))
+                      round(explained, 4), found)
 
 
 def collimated_inside(field: np.ndarray) -> np.ndarray:
