@@ -22,7 +22,7 @@ pydicom and PIL. Importing this module: 0.27 s (docs/concepts/layout.md, "Lazy n
   :func:`read_sources` (from bytes, without a case), :func:`write_dicom_outputs`;
   whose case it is: :func:`case_identity` (patient, study, series per input), :func:`with_source`, :func:`case_search_text`
 * process set-up: :func:`set_cpu_threads`, :func:`default_cpu_threads`, :func:`preload_case_loading`,
-  :func:`skip_exit_collections` (a quick exit), :func:`warm_up_parsers`, :func:`warm_up_renderer`, :func:`warm_up_kernels`, :func:`warm_up_job` (a worker's first job's set-up),
+  :func:`skip_exit_collections` (a quick exit), :func:`warm_up_parsers`, :func:`parse_without_network`, :func:`warm_up_renderer`, :func:`warm_up_kernels`, :func:`warm_up_job` (a worker's first job's set-up),
   :func:`compile_later_groups` (the kernels no first job needs, in the background)
 
 The command line's helpers (for packages that add ``dsareg`` sub-commands) are :mod:`dsareg_engine.commands.kit`.
@@ -139,6 +139,7 @@ __all__ = [
     "warm_up_job",
     "with_source",
     "warm_up_parsers",
+    "parse_without_network",
     "warm_up_renderer",
     "warm_up_kernels",
     "compile_later_groups",
@@ -172,6 +173,14 @@ def input_limits(limits: dict[str, int] | None) -> Any:
 def preload_case_loading() -> None:
     """Import everything :func:`load_case` needs (raises if the engine cannot load here)."""
     import dsareg_engine.io.case  # noqa: F401
+
+
+def parse_without_network() -> None:
+    """This process checks inputs only: segmentation runs without the vessel network (no torch import; ``auto``
+    keeps the DSA border model, ``network`` runs its classical fallback), :func:`~dsareg_engine.vision.angiogram.allow_network`."""
+    from .vision.angiogram import allow_network
+
+    allow_network(False)
 
 
 def warm_up_parsers() -> None:

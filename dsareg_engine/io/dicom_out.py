@@ -160,7 +160,9 @@ def _series(ds, modality: str, series_uid: str, number: int, description: str) -
     ds.SeriesNumber = number
     ds.SeriesDescription = description
     ds.SeriesDate, ds.SeriesTime = date, time
-    # no Laterality (Type 2C): head arteries are an unpaired body part, for which it must be absent, not empty
+    # no Laterality (Type 2C: required for a paired body part); Body Part Examined says the part is the head, an
+    # unpaired one, so a validator can tell that its absence is right (dciodvfy: without it, an error; empty, a warning)
+    ds.BodyPartExamined = "HEAD"
     ds.ContentDate, ds.ContentTime = date, time
 
 

@@ -70,12 +70,12 @@ def dice(first: np.ndarray, second: np.ndarray) -> float:
 def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np.ndarray | None = None
            ) -> AutoChoice:
     """The ``auto`` choice for a grey image (``bright``: its vessels-bright form for ``dsa``)."""
-    from .angiogram.learned import weights_available
+    from .angiogram import network_usable
     from .dsa_coverage import dsa_found
 
     found = dsa_found(bright, min_object_px)
     dsa_mask = found[2]
-    if is_mask_like(pixels) or not weights_available():
+    if is_mask_like(pixels) or not network_usable():
         return AutoChoice("dsa", None, dsa_mask, None, dsa_found=found)
     angiogram = segment_angiogram(pixels, field)
     dsa_mask = dsa_mask & collimated_inside(angiogram.field)

@@ -60,6 +60,7 @@ def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: i
         from ..engine_adapter import engine
 
         engine.preload_case_loading()
+        engine.parse_without_network()  # torch's import alone exceeds the memory limit below; the worker decides
         engine.warm_up_parsers()
     except Exception:  # noqa: BLE001
         engine_ok = False

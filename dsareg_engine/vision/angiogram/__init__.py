@@ -20,14 +20,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .shipped import WEIGHTS_PATH, weights_available
+
 ANGIOGRAM_METHODS = ("network", "frangi")
+__all__ = ["ANGIOGRAM_METHODS", "AngiogramSegmentation", "WEIGHTS_PATH", "allow_network", "network_usable",
+           "segment_angiogram", "weights_available"]
+
+_NETWORK = {"allowed": True}
+
+
+def allow_network(allowed: bool) -> None:
+    """Whether this process may run the network (and import torch). A process that only checks inputs (the
+    service's validator, under an address-space limit torch's import alone would exceed) turns it off: there
+    ``network`` runs the classical path and ``auto`` keeps ``dsa``; the worker decides with the network."""
+    _NETWORK["allowed"] = bool(allowed)
+
+
+def network_usable() -> bool:
+    """The network may run here and its weights are installed."""
+    return _NETWORK["allowed"] and weights_available()
 
 
 @dataclass(frozen=True)
 class AngiogramSegmentation:
     """Attributes:
         mask: (H, W) bool vessels. probability: (H, W) float32 in [0, 1]. field: (H, W) bool field of view.
-        method: ``"network"`` or ``"frangi"`` (the network falls back to Frangi when its weights are missing).
+        method: ``"network"`` or ``"frangi"`` (the network falls back to Frangi when its weights are missing or
+            the process does not run it, :func:`allow_network`).
         record: what :func:`~.vessel_mask.vessel_mask` did (threshold, pieces removed, edge margin, coverage).
     """
 
@@ -42,10 +61,11 @@ def segment_angiogram(pixels: np.ndarray, field: np.ndarray | None = None, *, me
                       vessels_dark: bool = True) -> AngiogramSegmentation:
     """The vessels of a grey X-ray angiogram ``pixels (H, W)``; ``field``: the file's field of view, if any."""
     from .classical import classical_probability
-    from .learned import vessel_probability, weights_available
     from .vessel_mask import vessel_mask
 
-    if method == "network" and weights_available():
+    if method == "network" and network_usable():
+        from .learned import vessel_probability  # torch: only where the network runs
+
         probability, found_field = vessel_probability(pixels, field, vessels_dark=vessels_dark)
     else:
         method = "frangi"

@@ -16,16 +16,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .shipped import WEIGHTS_PATH
 from .field_of_view import combined_field_of_view, estimate_field_of_view
 from .prepare import WorkingScale, averaging_factor, grown, normalized, shrunk
 from .unet import UNetSettings, VesselUNet, padded_to_level
-
-WEIGHTS_PATH = Path(__file__).resolve().parent / "weights" / "vessel_unet.pt"
-"""The shipped weights (trained by ``python -m benchmarks.engine segmentation-train``)."""
-
-
-def weights_available(path: Path = WEIGHTS_PATH) -> bool:
-    return Path(path).is_file()
 
 
 @functools.lru_cache(maxsize=4)

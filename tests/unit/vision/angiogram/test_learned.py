@@ -9,7 +9,8 @@ import pytest
 
 from dsareg_engine.vision.angiogram import segment_angiogram
 from dsareg_engine.vision.angiogram.field_of_view import inner_field
-from dsareg_engine.vision.angiogram.learned import WEIGHTS_PATH, load_network, weights_available
+from dsareg_engine.vision.angiogram import WEIGHTS_PATH, weights_available
+from dsareg_engine.vision.angiogram.learned import load_network
 from dsareg_engine.vision.segmentation import segment_vessels
 from tests.support.angiogram_images import unsubtracted_angiogram
 
