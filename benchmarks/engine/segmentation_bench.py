@@ -127,15 +127,12 @@ def _pictures(rows: list[dict], images, masks: dict, out: Path) -> None:
 def _agreement(item, network_mask: np.ndarray) -> tuple[float, float]:
     """What ``auto`` compares: the ``dsa`` mask (inside the collimated field) against the network's: their Dice
     and the share of the ``dsa`` mask within 2 px of the network's."""
-    import cv2
-
     from dsareg_engine.vision.segmentation import segment_vessels
-    from dsareg_engine.vision.segmentation_choice import collimated_inside, dice
+    from dsareg_engine.vision.segmentation_choice import collimated_inside, dice, explained_share
     from dsareg_engine.vision.angiogram.field_of_view import estimate_field_of_view
 
     dsa_mask = segment_vessels(item.pixels, "dsa") & collimated_inside(estimate_field_of_view(item.pixels))
-    near = cv2.dilate(network_mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    return dice(dsa_mask, network_mask), float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
+    return dice(dsa_mask, network_mask), explained_share(dsa_mask, network_mask)
 
 
 def bench_segmentation(args: argparse.Namespace) -> int:

@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..geometry.rig import ViewGeometry
 from .angiogram import ANGIOGRAM_METHODS, segment_angiogram
-from .segmentation_choice import AutoChoice, choose, collimated_inside, network_coverage
+from .segmentation_choice import AutoChoice, choose, network_coverage
 
 SEGMENTATION_METHODS = ("auto", "network", "frangi", "dsa", "otsu", "vesselness", "mask")
 
@@ -177,8 +177,8 @@ def vessel_coverage_and_choice(
         _non_empty(choice.angiogram.mask, field_name)
         return network_coverage(choice.angiogram), choice
     coverage = dsa_vessel_coverage(bright, min_size, found=None if choice is None else choice.dsa_found)
-    if choice is not None and choice.angiogram is not None:
-        coverage = np.where(collimated_inside(choice.angiogram.field), coverage, 0.0).astype(np.float32)
+    if choice is not None and choice.inside is not None:
+        coverage = np.where(choice.inside, coverage, 0.0).astype(np.float32)
     _non_empty(coverage >= 0.5, field_name)
     return coverage, choice
 

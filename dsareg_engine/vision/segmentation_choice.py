@@ -43,6 +43,7 @@ class AutoChoice:
         agreement: Dice of the two masks (None for mask-like images, where only ``dsa`` ran).
         dsa_mask: the ``dsa`` mask (H, W) bool. angiogram: the angiogram segmentation, or None.
         dsa_found: ``(contrast, noise σ, unrestricted mask)`` of the ``dsa`` path, for its coverage.
+        inside: where a vessel may be (:func:`collimated_inside` of the network's field), None where only ``dsa`` ran.
     """
 
     method: str
@@ -51,6 +52,7 @@ class AutoChoice:
     angiogram: AngiogramSegmentation | None
     explained: float | None = None
     dsa_found: tuple | None = None
+    inside: np.ndarray | None = None
 
 
 def is_mask_like(pixels: np.ndarray) -> bool:
@@ -78,13 +80,18 @@ def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np
     if is_mask_like(pixels) or not network_usable():
         return AutoChoice("dsa", None, dsa_mask, None, dsa_found=found)
     angiogram = segment_angiogram(pixels, field)
-    dsa_mask = dsa_mask & collimated_inside(angiogram.field)
-    agreement = dice(dsa_mask, angiogram.mask)
-    near = cv2.dilate(angiogram.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    explained = float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
+    inside = collimated_inside(angiogram.field)
+    dsa_mask = dsa_mask & inside
+    agreement, explained = dice(dsa_mask, angiogram.mask), explained_share(dsa_mask, angiogram.mask)
     keep_dsa = agreement >= AGREEMENT_DICE and explained >= EXPLAINED_SHARE
     return AutoChoice("dsa" if keep_dsa else angiogram.method, round(agreement, 4), dsa_mask, angiogram,
-                      round(explained, 4), found)
+                      round(explained, 4), found, inside)
+
+
+def explained_share(dsa_mask: np.ndarray, network_mask: np.ndarray) -> float:
+    """The share of ``dsa_mask`` within 2 px of ``network_mask`` (both (H, W) bool)."""
+    near = cv2.dilate(network_mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
 
 
 def collimated_inside(field: np.ndarray) -> np.ndarray:

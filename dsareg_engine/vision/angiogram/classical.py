@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .field_of_view import combined_field_of_view, estimate_field_of_view, inner_field
-from .prepare import WorkingScale, averaging_factor, grown, normalized, shrunk
+from .field_of_view import inner_field
+from .prepare import WorkingScale, working_image
 
 
 @dataclass(frozen=True)
@@ -38,12 +38,8 @@ def classical_probability(pixels: np.ndarray, field: np.ndarray | None = None, *
     """``(vessel probability-like map (H, W) in [0, 1], field of view (H, W) bool)`` (module docstring)."""
     from skimage.filters import apply_hysteresis_threshold, frangi
 
-    image = np.asarray(pixels, np.float32)
-    factor = averaging_factor(image.shape, scale)
-    small = shrunk(image, factor)
-    small_file_field = None if field is None else shrunk(field.astype(np.float32), factor) >= 0.5
-    small_field = combined_field_of_view(estimate_field_of_view(small), small_file_field)
-    dark = normalized(small, small_field, vessels_dark=vessels_dark)
+    work = working_image(pixels, field, vessels_dark=vessels_dark, scale=scale)
+    dark, small_field = work.network_input, work.field
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.background_radius_px + 1,) * 2)
     detail = cv2.morphologyEx(dark, cv2.MORPH_BLACKHAT, disc)
     response = frangi(detail, sigmas=settings.sigmas_px, black_ridges=False)
@@ -54,5 +50,4 @@ def classical_probability(pixels: np.ndarray, field: np.ndarray | None = None, *
     kept = apply_hysteresis_threshold(response, low, high) if high > 0 else np.zeros_like(inside)
     score = np.clip(0.5 * response / max(float(low), 1e-12), 0.0, 1.0).astype(np.float32)
     score[~kept] = np.minimum(score[~kept], 0.49)
-    full_field = grown(small_field.astype(np.float32), image.shape) >= 0.5
-    return np.clip(grown(score, image.shape), 0.0, 1.0), full_field
+    return work.back(score), work.full_field()

@@ -17,8 +17,7 @@ import numpy as np
 import torch
 
 from .shipped import WEIGHTS_PATH
-from .field_of_view import combined_field_of_view, estimate_field_of_view
-from .prepare import WorkingScale, averaging_factor, grown, normalized, shrunk
+from .prepare import WorkingScale, working_image
 from .unet import UNetSettings, VesselUNet, padded_to_level
 
 
@@ -47,13 +46,7 @@ def vessel_probability(pixels: np.ndarray, field: np.ndarray | None = None, *, v
 
     ``field``: the file's field of view (True inside), if it has one. ``model``: default the shipped network.
     """
-    image = np.asarray(pixels, np.float32)
-    factor = averaging_factor(image.shape, scale)
-    small = shrunk(image, factor)
-    small_file_field = None if field is None else shrunk(field.astype(np.float32), factor) >= 0.5
-    small_field = combined_field_of_view(estimate_field_of_view(small), small_file_field)
-    probability = network_probability(model or load_network(), normalized(small, small_field,
-                                                                          vessels_dark=vessels_dark))
-    probability[~small_field] = 0.0
-    full_field = grown(small_field.astype(np.float32), image.shape) >= 0.5
-    return np.clip(grown(probability, image.shape), 0.0, 1.0), full_field
+    work = working_image(pixels, field, vessels_dark=vessels_dark, scale=scale)
+    probability = network_probability(model or load_network(), work.network_input)
+    probability[~work.field] = 0.0
+    return work.back(probability), work.full_field()

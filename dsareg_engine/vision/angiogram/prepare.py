@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .field_of_view import combined_field_of_view, estimate_field_of_view
+
 
 @dataclass(frozen=True)
 class WorkingScale:
@@ -63,3 +65,33 @@ def normalized(pixels: np.ndarray, field: np.ndarray, *, vessels_dark: bool = Tr
     result = (scaled - mean) / max(deviation, 1e-3)
     result[~field] = 0.0
     return result.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class WorkingImage:
+    """An image at the working scale. Attributes: network_input (h, w) float32 (:func:`normalized`); field (h, w)
+    bool, the field of view there; factor: the averaging factor; shape: the original (H, W)."""
+
+    network_input: np.ndarray
+    field: np.ndarray
+    factor: int
+    shape: tuple[int, int]
+
+    def back(self, values: np.ndarray) -> np.ndarray:
+        """``values (h, w)`` on the original pixels (bilinear), clipped to [0, 1]."""
+        return np.clip(grown(values, self.shape), 0.0, 1.0)
+
+    def full_field(self) -> np.ndarray:
+        return grown(self.field.astype(np.float32), self.shape) >= 0.5
+
+
+def working_image(pixels: np.ndarray, field: np.ndarray | None = None, *, vessels_dark: bool = True,
+                  scale: WorkingScale = WorkingScale()) -> WorkingImage:
+    """``pixels (H, W)`` averaged to the working scale, its field of view found (and narrowed by the file's
+    ``field``, if any) and normalised: what both the network and the classical path start from."""
+    image = np.asarray(pixels, np.float32)
+    factor = averaging_factor(image.shape, scale)
+    small = shrunk(image, factor)
+    small_file_field = None if field is None else shrunk(field.astype(np.float32), factor) >= 0.5
+    small_field = combined_field_of_view(estimate_field_of_view(small), small_file_field)
+    return WorkingImage(normalized(small, small_field, vessels_dark=vessels_dark), small_field, factor, image.shape)
