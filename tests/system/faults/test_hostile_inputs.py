@@ -157,7 +157,10 @@ class PeakSampler(threading.Thread):
 
     def run(self) -> None:
         while not self.halt.wait(0.02):
-            for pid in descendants(self.srv.process.pid):
+            process = self.srv.process
+            if process is None:  # the server stopped (a failed test's teardown)
+                return
+            for pid in descendants(process.pid):
                 try:
                     if _is_validator(pid):
                         self.peak_kb = max(self.peak_kb, _status_kb(pid, "VmRSS"))
