@@ -131,12 +131,13 @@ class JobSettings(_Group):
         120.0, ge=0.0, description="How long a worker retries saving a finished job while the job database is out "
                                    "(exponential backoff) before giving up the attempt.")
     job_timeout_seconds: float = Field(3600.0, gt=0.0, description="A running job is stopped and failed after this long.")
-    # results to the PACS only after a person approved them (service/jobs/exports.py, docs/review.md)
+    # results to the PACS by the API process's exporter, never the worker; held for a review on request
+    # (service/jobs/exports.py, docs/review.md)
     export_after_review: bool = Field(
         False, description="Hold the STOW-RS / C-STORE of a job's DICOM results until a person approves the job "
-                           "(POST /v1/registrations/{id}/review); a rejected job is never exported. Off: results are "
-                           "stored as soon as the job ends.")
-    export_max_attempts: int = Field(5, ge=1, le=50, description="Export attempts of an approved job (each with the "
+                           "(POST /v1/registrations/{id}/review); a rejected job is never exported. Off: the exporter "
+                           "sends them as soon as the job succeeded (the worker goes on to the next job either way).")
+    export_max_attempts: int = Field(5, ge=1, le=50, description="Export attempts of a job's results (each with the "
                                                                  "DICOMweb / DIMSE retries) before it is marked failed.")
     export_retry_backoff_seconds: float = Field(
         5.0, ge=0.0, description="Delay before the second export attempt; doubles each attempt, at most 300 s.")
@@ -279,9 +280,9 @@ class DicomwebSettings(_Group):
                                                               "timeouts and 408/429/502/503/504.")
     dicomweb_retry_backoff_seconds: float = Field(0.5, ge=0.0, description="First retry delay (doubles each retry).")
     pacs_deadline_seconds: float = Field(
-        600.0, gt=0.0, description="PACS I/O of one job in all (every DICOMweb request of its fetch and store, with "
-                                   "retries; one export attempt): a slow or trickling PACS holds a worker at most this "
-                                   "long, then the job fails with a pacs-error.")
+        600.0, gt=0.0, description="PACS I/O of one job's fetch, or of one export attempt, in all (every DICOMweb "
+                                   "request, with retries): a slow or trickling PACS holds a worker (or the exporter) "
+                                   "at most this long, then a pacs-error.")
 
     @field_validator("dicomweb_servers", mode="before")
     @classmethod
@@ -311,7 +312,8 @@ class DimseSettings(_Group):
                           "volume when a received study has biplane XA but no volume; unset: such a study waits for one.")
     dicom_query_retry_seconds: float = Field(
         60.0, gt=0.0, description="Wait before asking dicom_query_peer again after it found no volume or was down.")
-    dicom_export_retries: int = Field(2, ge=0, le=10, description="Retries of a failed C-STORE of the results.")
+    dicom_export_retries: int = Field(2, ge=0, le=10, description="Retries of a failed C-STORE of the results within "
+                                                                  "one export attempt (EXPORT_MAX_ATTEMPTS in all).")
     dicom_export_backoff_seconds: float = Field(0.5, ge=0.0, description="First export retry delay (doubles each retry).")
     dicom_timeout_seconds: float = Field(20.0, gt=0.0, description="Timeout of DIMSE connections, associations and "
                                                                    "messages (SCU and SCP).")

@@ -140,7 +140,7 @@ def round_trip(folder: Path, stable_seconds: float) -> dict:
                 "queued_after_last_instance_seconds": round(_iso(job["created_at"]) - last, 2),
                 "job_seconds": round(_iso(job["finished_at"]) - _iso(job["started_at"]), 2),
                 "reg_at_destination_after_job_seconds": round(stored[0].stat().st_mtime - _iso(job["finished_at"]), 2),
-                "export": job["result"]["dicom"]["exported"]}
+                "export": job.get("export") or job["result"]["dicom"].get("exported")}
     finally:
         serve.terminate()
         scp.terminate()

@@ -89,7 +89,7 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
             ctx.sweeper.sweep_once()
             ctx.sweeper.start()
             ctx.callbacks = start_callbacks(ctx)
-            ctx.extra["exports"] = ExportDeliverer(ctx.store, ctx.blobs, ctx.settings)  # held for review
+            ctx.extra["exports"] = ExportDeliverer(ctx.store, ctx.blobs, ctx.settings)  # every PACS export
             ctx.extra["exports"].start()
             ctx.extra["dicom_listener"] = _start_dicom_node(ctx)
         log.info("dsareg service ready (%d worker processes, store %s)", settings.jobs.workers,

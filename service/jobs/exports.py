@@ -1,21 +1,24 @@
-"""PACS exports held for review (``DSAREG_EXPORT_AFTER_REVIEW=true``).
+"""PACS exports of a job's results, outside the registration worker (issue 43).
 
-* **Held**: a job whose DICOM results would go to a PACS (STOW-RS for a DICOMweb reference with
-  ``store_results``; C-STORE for a DIMSE reference with ``store_results`` or for a study received
-  over DIMSE with export destinations) is completed by its worker *without* the store; the
-  target (:func:`export_target`) is written with the job's completion, in the same transaction
-  (``job_exports``, state ``awaiting_review``): nothing can be lost between the two.
-* **Released by a review**: an approval makes it ``pending`` in the same transaction as the review
-  (``SqlJobStore.review``); a rejection makes it ``skipped``; nothing is ever sent for a job whose
-  latest review is not an approval (the store's due query checks it).
+* **Recorded with the job**: a job whose DICOM results go to a PACS (STOW-RS for a DICOMweb reference with
+  ``store_results``; C-STORE for a DIMSE reference with ``store_results`` or for a study received over DIMSE
+  with export destinations) is completed by its worker *without* the store: the target (:func:`export_target`)
+  is written with the job's completion, in the same transaction (``job_exports``): nothing can be lost between
+  the two, and the job is ``succeeded`` as soon as its registration is stored, whatever the PACS does.
+  State ``pending`` (due at once), or ``awaiting_review`` with ``DSAREG_EXPORT_AFTER_REVIEW=true``.
+* **Reviews**: an approval makes a held (or failed) export ``pending`` in the review's transaction
+  (``SqlJobStore.review``); a rejection makes a held or pending one ``skipped``; nothing is sent for a job whose
+  latest review is a rejection (the store's due query checks it).
 * **Delivered by the API process** (:class:`ExportDeliverer`, the loop of completion callbacks,
-  :mod:`.leased`), in both topologies: claimed with a lease, stored, recorded (``done``, or a
-  ``pacs-error`` and a retry after ``export_retry_backoff_seconds`` doubling, ``export_max_attempts``
-  in all, then ``failed``). The lease is short (``export_lease_seconds``, 15 s) and renewed every third of
-  it while the attempt runs: an API killed (or frozen) between the approval and the store, or during
-  it, leaves the row pending or leased for at most that long; after the restart it is stored then
-  (at least once; a PACS keeps one copy of a SOP Instance UID stored twice). Every step is an audit
-  event of the job.
+  :mod:`.leased`), in both topologies, never by a registration worker: claimed with a lease, at most
+  ``EXPORT_THREADS`` attempts at a time (the rest wait in the table, not in memory), stored, recorded (``done``,
+  or a ``pacs-error`` and a retry after ``export_retry_backoff_seconds`` doubling, ``export_max_attempts`` in
+  all, then ``failed``). An attempt is bounded by the DIMSE timeouts and ``dicom_export_retries`` (C-STORE) or
+  ``pacs_deadline_seconds`` (STOW-RS); a C-STORE retry goes only to the destinations not yet stored. The lease is
+  short (``export_lease_seconds``, 15 s) and renewed every third of it while the attempt runs: an API killed (or
+  frozen) between the job's end and the store, or during it, leaves the row pending or leased for at most that
+  long; after the restart it is stored then (at least once; a PACS keeps one copy of a SOP Instance UID stored
+  twice). Every step is an audit event of the job.
 """
 
 from __future__ import annotations
@@ -41,18 +44,20 @@ log = logging.getLogger("dsareg.service.exports")
 
 STOW, CSTORE = "stow-rs", "c-store"
 MAX_BACKOFF_SECONDS = 300.0
+EXPORT_THREADS = 2  # export attempts at a time per API process (a frozen peer holds one for its DIMSE timeouts)
 
 
-def export_target(pacs: Any, dimse: Any) -> dict[str, Any] | None:
-    """Where the worker would store this job's results (``pacs``/``dimse``: the worker's PACS job objects)."""
+def export_target(pacs: Any, dimse: Any, after_review: bool = False) -> dict[str, Any] | None:
+    """Where this job's results are to be stored (``pacs``/``dimse``: the worker's PACS job objects); None: nowhere."""
+    target: dict[str, Any] | None = None
     if isinstance(pacs, PacsJob) and pacs.reference.store_results:
         source = pacs.reference.source.dicomweb
-        return {"via": STOW, "server": source.url, "study_uid": source.study_uid}
-    if isinstance(pacs, DimsePullJob) and pacs.reference.store_results:
-        return {"via": CSTORE, "peers": [pacs.reference.source.dimse.peer]}
-    if dimse is not None and dimse.document.get("export"):
-        return {"via": CSTORE, "peers": list(dimse.document["export"])}
-    return None
+        target = {"via": STOW, "server": source.url, "study_uid": source.study_uid}
+    elif isinstance(pacs, DimsePullJob) and pacs.reference.store_results:
+        target = {"via": CSTORE, "peers": [pacs.reference.source.dimse.peer]}
+    elif dimse is not None and dimse.document.get("export"):
+        target = {"via": CSTORE, "peers": list(dimse.document["export"])}
+    return None if target is None else {**target, "after_review": after_review}
 
 
 def source_of(pacs: Any, dimse: Any) -> dict[str, Any] | None:
@@ -86,14 +91,16 @@ def _stow(target: dict[str, Any], files: list[tuple[str, bytes]], uids: list[str
             "seconds": round(time.perf_counter() - started, 3)}, None
 
 
-def _cstore(target: dict[str, Any], files: list[tuple[str, bytes]],
-            settings: ServiceSettings) -> tuple[dict | None, dict | None]:
+def _cstore(target: dict[str, Any], files: list[tuple[str, bytes]], settings: ServiceSettings,
+            before: dict | None = None) -> tuple[dict | None, dict | None]:
+    """C-STORE to each destination not yet stored by an earlier attempt (``before``: its outcome)."""
+    stored = {item["peer"]: item for item in (before or {}).get("peers") or [] if item.get("status") == "stored"}
     with tempfile.TemporaryDirectory(prefix="dsareg-export-") as tmp:
         paths = []
         for name, data in files:
             (Path(tmp) / name).write_bytes(data)
             paths.append(Path(tmp) / name)
-        results = [export_to(settings, peer, paths) for peer in target["peers"]]
+        results = [stored.get(peer) or export_to(settings, peer, paths) for peer in target["peers"]]
     outcome = {"via": CSTORE, "peers": results}
     failed = [item["error"] for item in results if item["status"] != "stored"]
     if failed:
@@ -102,9 +109,10 @@ def _cstore(target: dict[str, Any], files: list[tuple[str, bytes]],
     return outcome, None
 
 
-def store_results(job: JobRecord, target: dict[str, Any], read: Any,
-                  settings: ServiceSettings) -> tuple[dict | None, dict | None]:
-    """One export attempt of ``job``'s REG and overlays: ``(outcome, None)`` or ``(outcome or None, pacs-error)``."""
+def store_results(job: JobRecord, target: dict[str, Any], read: Any, settings: ServiceSettings,
+                  before: dict | None = None) -> tuple[dict | None, dict | None]:
+    """One export attempt of ``job``'s REG and overlays: ``(outcome, None)`` or ``(outcome or None, pacs-error)``
+    (``before``: the outcome of the previous attempt, whose stored C-STORE destinations are not sent again)."""
     missing = [name for name in STORED_FILES if name not in (job.artifacts or {})]
     if missing:
         return None, pacs_error(f"the job has no {', '.join(missing)} to export", step="results")
@@ -113,16 +121,16 @@ def store_results(job: JobRecord, target: dict[str, Any], read: Any,
     uids = [str(instances[name]["sop_instance_uid"]) for name in STORED_FILES if name in instances]
     if target.get("via") == STOW:
         return _stow(target, files, uids, settings)
-    return _cstore(target, files, settings)
+    return _cstore(target, files, settings, before)
 
 
 class ExportDeliverer(LeasedDeliverer):
-    """The API process's loop that stores approved jobs' results into their PACS (see the module docstring)."""
+    """The API process's loop that stores succeeded jobs' results into their PACS (see the module docstring)."""
 
     name = "exports"
 
     def __init__(self, store: DeliveryStore, blobs: BlobStore, settings: ServiceSettings):
-        super().__init__(threads=2)
+        super().__init__(threads=EXPORT_THREADS)
         self.store, self.blobs, self.settings = store, blobs, settings
         self.renewed_lease_seconds = settings.jobs.export_lease_seconds  # recovery after an API crash: this + a poll
 
@@ -142,7 +150,7 @@ class ExportDeliverer(LeasedDeliverer):
         job = self.store.get(row["job_id"])
         if job is None:
             return "gone"
-        outcome, error = store_results(job, row["target"], self.blobs.read, self.settings)
+        outcome, error = store_results(job, row["target"], self.blobs.read, self.settings, row.get("outcome"))
         attempt = row["attempts"]
         if error is None:
             state, next_at = "done", None

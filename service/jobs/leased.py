@@ -2,7 +2,9 @@
 
 Every ``POLL_SECONDS`` the loop asks the store what is due (:meth:`LeasedDeliverer.due`), takes
 each item with a lease (:meth:`claim`: a conditional UPDATE, so two API replicas never run the
-same attempt) and runs it on a small thread pool (:meth:`deliver`). An API that dies mid-attempt
+same attempt) and runs it on a small thread pool (:meth:`deliver`), never claiming more than the pool has
+threads free: what is not under way waits in the table (unclaimed, taken by whichever replica is free), not in a
+queue in memory whose leases would lapse before it starts. An API that dies mid-attempt
 leaves the row with a lease; once it has passed, a deliverer (after a restart, or another
 replica) takes it again: at least once, never lost. A deliverer with ``renewed_lease_seconds``
 claims a short lease and renews it every third of it while the attempt runs (:meth:`renew`), so a
@@ -37,6 +39,7 @@ class LeasedDeliverer(abc.ABC):
     def __init__(self, threads: int = DELIVERY_THREADS):
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+        self._threads = threads
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix=self.name)
         self._inflight: set[str] = set()
         self._inflight_lock = threading.Lock()
@@ -75,10 +78,12 @@ class LeasedDeliverer(abc.ABC):
                 log.exception("%s round failed", self.name)
 
     def deliver_due(self) -> int:
-        """Claim every due item and hand it to the pool; how many were claimed."""
+        """Claim due items while the pool has a free thread and hand each to it; how many were claimed."""
         claimed = 0
         for job_id in self.due(time.time()):
             with self._inflight_lock:
+                if len(self._inflight) >= self._threads:  # bounded: the rest stay due in the table
+                    break
                 if job_id in self._inflight:  # ours, still running (its lease lapsed while we were frozen)
                     continue
             row = self.claim(job_id, time.time())

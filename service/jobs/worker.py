@@ -2,8 +2,10 @@
 
 One job is one straight path (:func:`_register`): its inputs (the stored blobs, or a DICOMweb
 fetch) → :func:`service.engine_adapter.run_job`, the one call into the engine (read, register,
-write every output, warnings joined there) → the artifacts and the result into the store
-(STOW-RS first for a job by reference that asked for it).
+write every output, warnings joined there) → the artifacts and the result into the store. A job
+is done when its registration is stored: the STOW-RS / C-STORE of its results into a PACS is
+written with its completion as an export (:mod:`service.jobs.exports`) that the API process's
+exporter carries out; a worker never waits on a PACS peer after the engine.
 
 Runs in its own process (started by an executor with the ``spawn`` context). See
 :mod:`service.storage.leases` for the lease protocol. A background thread renews the lease
@@ -24,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from ..storage.blobs import BlobStore
-from ..pacs.dicom_jobs import STORED_FILES, PacsJob, pacs_job, pacs_problem
+from ..pacs.dicom_jobs import PacsJob, pacs_job, pacs_problem
 from ..pacs.dicomweb import PacsError
 from ..pacs.dimse.export import dimse_job
 from .exports import export_target, source_of
@@ -37,7 +39,6 @@ from ..storage.store import JobRecord, random_token, store_for, store_outage_err
 
 log = logging.getLogger("dsareg.service.worker")
 
-STORING_FRACTION = 0.985  # STOW-RS / C-STORE of the DICOM results into the PACS
 SAVING_FRACTION = 0.99  # artifacts into the blob store, then the result into the job store
 
 
@@ -271,18 +272,12 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
                      label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
     if control.lost:
         return "lost"
-    held = export_target(pacs, dimse) if settings.jobs.export_after_review else None  # stored once approved
-    if held is not None:
+    export = export_target(pacs, dimse, after_review=settings.jobs.export_after_review)  # sent by the exporter
+    if pacs is not None or dimse is not None:
         result.setdefault("dicom", {})["source"] = source_of(pacs, dimse)
-    elif pacs is not None:
-        control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
-        result = pacs.store_back(result, out_dir)
-    if dimse is not None and held is None:
-        control.progress({"stage": "storing", "iteration": 0, "loss": None, "fraction": STORING_FRACTION})
-        result = dimse.export(result, out_dir, STORED_FILES)
     control.progress({"stage": "saving", "iteration": 0, "loss": None, "fraction": SAVING_FRACTION})
     artifacts = with_store_retries(lambda: collect_artifacts(out_dir, blobs), settings, "storing artifacts", job.id)
-    outcome = finish.complete("succeeded", result=result, artifacts=artifacts, export=held)
+    outcome = finish.complete("succeeded", result=result, artifacts=artifacts, export=export)
     if outcome == "succeeded":  # shared (identical) artifacts may have been removed by a concurrent delete
         for name, digest in artifacts.items():
             if not blobs.exists(digest):

@@ -1,17 +1,15 @@
 """The PACS side of a job submitted by DICOMweb reference, run by the worker.
 
 A job by reference (``source.dicomweb``) fetches its inputs with QIDO-RS / WADO-RS before the
-engine runs (:meth:`PacsJob.fetch`) and, with ``store_results``, stores the REG and the overlays
-back into the study with STOW-RS after it (:meth:`PacsJob.store_back`); ``result.dicom`` lists
-what was fetched, written and stored. The DICOM results themselves (``reg.dcm``,
+engine runs (:meth:`PacsJob.fetch`); with ``store_results``, the REG and the overlays are stored
+back into the study with STOW-RS after the job, by the exporter (:mod:`service.jobs.exports`), not
+the worker; ``result.dicom`` lists what was fetched and written, the job's ``export`` what was stored. The DICOM results themselves (``reg.dcm``,
 ``overlay_{ap,lat}.dcm``, ``loss.dcm``, served under ``/v1/registrations/{id}/dicom/...``) are
 written by the engine for every job (``engine.run_case``).
 """
 
 from __future__ import annotations
 
-import time
-from pathlib import Path
 from typing import Any
 
 from ..engine_adapter import engine, fetched_case_files
@@ -78,26 +76,6 @@ class PacsJob:
                     check_file(data, limits)
                 except InstanceRefused as exc:
                     raise PacsError(server, f"check {name} instance", f"refused: {exc.reason}") from None
-
-    def store_back(self, result: dict, out_dir: Path) -> dict:
-        """Add where the inputs came from to ``result['dicom']`` and, when asked, STOW the REG and overlays."""
-        dicom = result["dicom"]
-        dicom["source"] = self.source_info
-        if not self.reference.store_results:
-            return result
-        source = self.reference.source.dicomweb
-        started = time.perf_counter()
-        try:
-            with self._client() as client:
-                stored = client.store(source.study_uid, [(Path(out_dir) / name).read_bytes() for name in STORED_FILES])
-        except PacsError as exc:
-            exc.mesh_to_world = result["mesh_to_world"]  # the registration itself succeeded
-            raise
-        uids = [dicom["instances"][name]["sop_instance_uid"] for name in STORED_FILES]
-        dicom["stored"] = {"server": client.server.url, "study_uid": source.study_uid, "sop_instance_uids": uids,
-                           "confirmed": sorted(set(uids) & set(stored)) == sorted(set(uids)),
-                           "store_seconds": round(time.perf_counter() - started, 3)}
-        return result
 
 
 def pacs_problem(exc: PacsError) -> dict[str, Any]:

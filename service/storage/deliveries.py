@@ -1,9 +1,12 @@
-"""Completion callbacks and PACS exports held for review (:class:`~service.storage.interfaces.Deliveries`).
+"""Completion callbacks and PACS exports (:class:`~service.storage.interfaces.Deliveries`).
 
 Both are at-least-once and leased like jobs: a due row is claimed by a conditional UPDATE (``attempts`` + 1, a
-lease), its outcome recorded only by the attempt that holds it. A callback is due once its job ended; an export
-once its job succeeded and its latest review approved it (:func:`decide_export`). The functions below write
-these rows inside the job transactions that create them (:mod:`service.storage.jobrows`,
+lease), its outcome recorded only by the attempt that holds it. A callback is due once its job ended. An export
+row is written with its job's success (:func:`queue_export`): ``pending`` (due at once) when the server exports
+at once, ``awaiting_review`` when it holds exports for a review (``export_after_review``), which an approval
+makes ``pending`` (:func:`decide_export`). A pending export is due unless the job's latest review rejected it
+(a held export is only ever pending after an approval, so for it this reads "approved"). The functions below
+write these rows inside the job transactions that create them (:mod:`service.storage.jobrows`,
 :mod:`service.storage.leases`, :mod:`service.storage.reviews`).
 """
 
@@ -49,16 +52,20 @@ def add_callback(conn: Any, job_id: str, url: str) -> None:
                                                state="pending", attempts=0, next_attempt_at=0.0))
 
 
-def hold_export(conn: Any, job_id: str, target: dict) -> None:
-    """A succeeded job's PACS export, held until a review approves it."""
-    conn.execute(job_exports.insert().values(job_id=job_id, target=dump_json(target), state="awaiting_review",
+def queue_export(conn: Any, job_id: str, target: dict) -> None:
+    """A succeeded job's PACS export: due at once, or held until a review approves it (``target["after_review"]``,
+    true when absent)."""
+    held = bool(target.get("after_review", True))
+    conn.execute(job_exports.insert().values(job_id=job_id, target=dump_json(target),
+                                             state="awaiting_review" if held else "pending",
                                              attempts=0, next_attempt_at=0.0))
-    record_event(conn, job_id, "export_awaiting_review", detail=target)
+    record_event(conn, job_id, "export_awaiting_review" if held else "export_queued", detail=target)
 
 
 def decide_export(conn: Any, job_id: str, decision: str) -> None:
-    """The latest review decides a held export: approved → due now (also again after ``skipped`` or
-    ``failed``); rejected → ``skipped`` unless it is already under way or done."""
+    """The latest review decides the export (held or not): approved → due now (also again after ``skipped`` or
+    ``failed``: an approval is how a failed export is tried again); rejected → ``skipped`` unless it is already
+    under way or done (a rejected result is not sent on)."""
     if decision == "approved":
         before, values = ("awaiting_review", "skipped", "failed"), {"state": "pending", "attempts": 0,
                                                                       "next_attempt_at": 0.0, "last_error": None}
@@ -117,13 +124,14 @@ class SqlDeliveries(OnDatabase):
                 job_callbacks.c.attempts == attempt).values(**values)).rowcount
         return bool(done)
 
-    # ---- PACS exports held for review -----------------------------------------------------------
+    # ---- PACS exports ---------------------------------------------------------------------------
     def _export_due(self, now: float):
         pending = sa.and_(job_exports.c.state == "pending", job_exports.c.next_attempt_at <= now)
         abandoned = sa.and_(job_exports.c.state == "exporting", job_exports.c.lease_until < now)
-        approved = sa.select(jobs.c.id).where(jobs.c.id == job_exports.c.job_id, jobs.c.status == "succeeded",
-                                              jobs.c.review_decision == "approved").exists()
-        return sa.and_(sa.or_(pending, abandoned), approved)
+        not_rejected = sa.or_(jobs.c.review_decision.is_(None), jobs.c.review_decision != "rejected")
+        allowed = sa.select(jobs.c.id).where(jobs.c.id == job_exports.c.job_id, jobs.c.status == "succeeded",
+                                             not_rejected).exists()
+        return sa.and_(sa.or_(pending, abandoned), allowed)
 
     def due_exports(self, now: float, limit: int = 20) -> list[str]:
         with self.engine.connect() as conn:
@@ -138,7 +146,8 @@ class SqlDeliveries(OnDatabase):
             if not won:
                 return None
             row = conn.execute(sa.select(job_exports).where(job_exports.c.job_id == job_id)).first()
-        return {**dict(row._mapping), "target": load_json(row._mapping["target"])}
+        return {**dict(row._mapping), "target": load_json(row._mapping["target"]),
+                "outcome": load_json(row._mapping["outcome"])}
 
     def renew_export(self, job_id: str, attempt: int, until: float) -> bool:
         """Extend the lease of an export attempt still running (same attempt, still ``exporting``)."""

@@ -5,7 +5,7 @@
 * :class:`Leases` — the workers' and the sweeper's side: claim, heartbeat, complete, release, recover (the lease
   protocol: :mod:`service.storage.leases`), the case a worker read, worker liveness, retention;
 * :class:`Reviews` — a person's review of a finished job and the audit log of every transition;
-* :class:`Deliveries` — completion callbacks and PACS exports held for review, each leased like a job;
+* :class:`Deliveries` — completion callbacks and PACS exports (at once or after a review), each leased like a job;
 * :class:`DicomInbox` — the DICOM node's durable index of received instances.
 
 :class:`JobStore` is the first four together, what :class:`~service.storage.store.SqlJobStore` is; code that
@@ -24,7 +24,7 @@ from .records import JobRecord, StoredInstance
 
 class JobReader(Protocol):
     def get(self, job_id: str) -> JobRecord | None:
-        """The job with its callback's delivery state, its held export and its previous job."""
+        """The job with its callback's delivery state, its PACS export and its previous job."""
 
 
 class Jobs(JobReader, Protocol):
@@ -116,7 +116,7 @@ class Deliveries(Protocol):
         """Record the outcome of delivery ``attempt`` (``delivered``, ``pending`` again, or ``failed``)."""
 
     def due_exports(self, now: float, limit: int = 20) -> list[str]:
-        """Approved succeeded jobs whose export is due (pending and its time has come, or its lease expired)."""
+        """Succeeded jobs not rejected whose export is due (pending and its time has come, or its lease expired)."""
 
     def claim_export(self, job_id: str, now: float, lease_seconds: float) -> dict[str, Any] | None:
         """Take one due export (``attempts`` + 1); None when another process has it or it is not due."""

@@ -35,7 +35,7 @@ def row_to_job(row: Any) -> JobRecord:
 
 
 def read_job(engine: sa.Engine, job_id: str) -> JobRecord | None:
-    """The job with its callback's delivery state, its held export and its previous job (outer joins)."""
+    """The job with its callback's delivery state, its PACS export and its previous job (outer joins)."""
     query = (sa.select(jobs, *delivery_columns(), job_previous.c.previous_id)
              .select_from(jobs.outerjoin(job_callbacks, job_callbacks.c.job_id == jobs.c.id)
                           .outerjoin(job_exports, job_exports.c.job_id == jobs.c.id)
@@ -86,7 +86,7 @@ class SqlJobs(OnDatabase):
         return None if row is None else row_to_job(row)
 
     def get(self, job_id: str) -> JobRecord | None:
-        """The job, with its callback's delivery state, its held export and its previous job (outer joins)."""
+        """The job, with its callback's delivery state, its PACS export and its previous job (outer joins)."""
         return read_job(self.engine, job_id)
 
     def list(self, *, owner: str | None, status: str | None, limit: int, cursor: str | None,

@@ -26,7 +26,7 @@ import sqlalchemy as sa
 
 from .audit import record_event
 from .database import OnDatabase
-from .deliveries import hold_export
+from .deliveries import queue_export
 from .jobrows import read_job
 from .records import FINISHED, JobRecord, dump_json
 from .schema import dimse_instances, job_blobs, jobs, workers
@@ -88,8 +88,8 @@ class SqlLeases(OnDatabase):
     def complete(self, job_id: str, worker_id: str, status: str, *, result: dict | None = None,
                  error: dict | None = None, artifacts: dict[str, str] | None = None, attempt: int | None = None,
                  export: dict | None = None) -> bool:
-        """Finish the job if this worker still owns it (``export``: a PACS target held for review, recorded in
-        the same transaction, so a job that succeeded never loses it).
+        """Finish the job if this worker still owns it (``export``: the PACS target of its results, due at once or
+        held for review, recorded in the same transaction, so a job that succeeded never loses it).
 
         With ``attempt``: also when its lease expired meanwhile (e.g. the database was down while
         the job finished) and the sweeper put it back in the queue, as long as no worker claimed it
@@ -117,7 +117,7 @@ class SqlLeases(OnDatabase):
                 attempt = conn.execute(sa.select(jobs.c.attempts).where(jobs.c.id == job_id)).scalar_one()
                 record_event(conn, job_id, status, worker_id, attempt)
                 if export is not None and status == "succeeded":
-                    hold_export(conn, job_id, export)
+                    queue_export(conn, job_id, export)
         return bool(done)
 
     def release(self, job_id: str, worker_id: str, *, reason: str | None = None) -> bool:

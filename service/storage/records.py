@@ -20,7 +20,8 @@ DECISIONS = ("approved", "rejected")
 REVIEW_FILTERS = ("none", *DECISIONS)
 """``list(review=…)``: jobs never reviewed, or whose latest review has this decision."""
 EXPORT_STATES = ("awaiting_review", "pending", "exporting", "done", "failed", "skipped")
-"""A held PACS export (service/jobs/exports.py): held until approved, then leased and stored like a callback."""
+"""A job's PACS export (service/jobs/exports.py): pending at once (or held until approved), then leased and stored like
+a callback, outside the registration worker."""
 
 
 def new_job_id() -> str:
@@ -75,7 +76,7 @@ class JobRecord:
     previous_id: str | None = None  # the job a tracking job started from (``POST …/track``)
     callback: dict[str, Any] | None = None  # delivery state of the completion callback (read by ``get``)
     review: dict[str, Any] | None = None  # {"decision", "comment", "by", "at" (epoch s)}: the latest review
-    export: dict[str, Any] | None = None  # the held PACS export (export_after_review; read by ``get``)
+    export: dict[str, Any] | None = None  # the PACS export (at once or after review; read by ``get``)
     case: dict[str, Any] | None = None  # whose case (patient, study, series; engine case_identity): owner's eyes only
     case_search: str | None = None  # what ``list(q=…)`` matches (lower-case; engine case_search_text)
 

@@ -2,7 +2,7 @@
 
 The latest review is kept on the job (``review_decision`` for filtering, ``review`` for the page); every review
 is also a ``reviewed`` event of the audit log, which holds every transition of the job
-(:func:`~service.storage.audit.record_event`). A review decides the job's held PACS export in the same
+(:func:`~service.storage.audit.record_event`). A review decides the job's PACS export in the same
 transaction (:func:`~service.storage.deliveries.decide_export`).
 """
 

@@ -1,7 +1,7 @@
 """The job database's tables: one SQLAlchemy ``MetaData`` for everything the service keeps in it.
 
 Jobs and their leases (``jobs``, ``job_blobs``, ``workers``), reviews and audit (columns of ``jobs``,
-``job_events``), completion callbacks and held PACS exports (``job_callbacks``, ``job_exports``), tracking links
+``job_events``), completion callbacks and PACS exports (``job_callbacks``, ``job_exports``), tracking links
 (``job_previous``), blobs kept in the database (``blob_data``, :mod:`service.storage.dbblobs`), the DICOM node's
 inbox (``dimse_instances``, :mod:`service.storage.inbox`) and the readiness probe (``store_probe``).
 
@@ -119,7 +119,7 @@ job_exports = sa.Table(
     sa.Column("last_error", sa.Text),  # JSON: the pacs-error problem of the last failed attempt
     sa.Index("ix_job_exports_state", "state", "next_attempt_at"),
 )
-"""One row per succeeded job whose PACS export waits for a review (``export_after_review``)."""
+"""One row per succeeded job that stores results into a PACS: due at once, or held for a review (``export_after_review``)."""
 
 probe = sa.Table(
     "store_probe", metadata,

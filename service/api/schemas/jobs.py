@@ -128,8 +128,10 @@ class JobStatus(BaseModel):
                                                     "null until then.")
     case: CaseIdentity | None = Field(None, description=CASE_TEXT)
     export: ExportState | None = Field(
-        None, description="The PACS export held for review (DSAREG_EXPORT_AFTER_REVIEW=true): absent when the server "
-                          "exports at once, or the job stores nothing into a PACS.")
+        None, description="The PACS export of the results (STOW-RS / C-STORE), sent after the job succeeded (held for "
+                          "a review first with DSAREG_EXPORT_AFTER_REVIEW=true): its state, attempts and last error. "
+                          "Absent when the job stores nothing into a PACS (and for jobs that ended before round 13, "
+                          "which exported inside the job: result.dicom.stored / exported).")
     links: JobLinks
 
 

@@ -338,9 +338,11 @@ class DicomResult(BaseModel):
         default_factory=dict, description="By file name (`reg.dcm`, `overlay_ap.dcm`, `overlay_lat.dcm`, `loss.dcm`; "
                                           "with options.hemodynamics `parametric_ap.dcm`, `parametric_lat.dcm`).")
     source: DicomSource | None = None
-    stored: DicomStored | None = None
-    exported: list[DimseExport] | None = Field(None, description="A study received over DIMSE: its results' C-STORE to "
-                                                                 "each destination.")
+    stored: DicomStored | None = Field(None, description="Jobs made before the exports left the worker only: their "
+                                                         "STOW-RS (now the job's `export`).")
+    exported: list[DimseExport] | None = Field(None, description="Jobs made before the exports left the worker only: "
+                                                                 "their C-STORE to each destination (now the job's "
+                                                                 "`export`).")
 
 
 class MaskShift(BaseModel):

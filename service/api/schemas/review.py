@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ...problems import ProblemDetails
 from .closed import CLOSED
+from .dimse_result import DimseExport
 
 Decision = Literal["approved", "rejected"]
 ReviewFilter = Literal["none", "approved", "rejected"]
@@ -57,22 +58,29 @@ ExportStateName = Literal["awaiting_review", "pending", "exporting", "done", "fa
 
 
 class ExportState(BaseModel):
-    """The PACS export of a job held for review (``DSAREG_EXPORT_AFTER_REVIEW=true``; docs/review.md)."""
+    """The PACS export of a job's results: sent after the job succeeded by the service's exporter, never by the
+    registration worker (held for a review first with ``DSAREG_EXPORT_AFTER_REVIEW=true``; docs/review.md)."""
 
     model_config = CLOSED
 
     state: ExportStateName = Field(
-        description="awaiting_review: the results wait for an approval; pending: approved, the store is due (or "
-                    "retried at next_attempt_at); exporting: an attempt is under way; done: stored; failed: out of "
-                    "attempts (error says why; a new approval tries again); skipped: rejected, never exported.")
+        description="awaiting_review: the results wait for an approval; pending: due (at once, or approved), or "
+                    "retried at next_attempt_at after a failed attempt (error says why); exporting: an attempt is "
+                    "under way; done: stored; failed: out of attempts (error says why; an approval tries again); "
+                    "skipped: rejected, never exported.")
     via: Literal["stow-rs", "c-store"] = Field(description="STOW-RS (job by DICOMweb reference) or C-STORE (DIMSE).")
     destination: str = Field(description="The DICOMweb server URL, or the AE titles of the DICOM peers.")
+    after_review: bool = Field(True, description="Held until a person approved the job (DSAREG_EXPORT_AFTER_REVIEW "
+                                                 "when the job ended); false: sent as soon as the job succeeded.")
     study_uid: str | None = Field(None, description="The study the results are stored into (STOW-RS).")
-    attempts: int = Field(0, description="Export attempts since the latest approval.")
+    attempts: int = Field(0, description="Export attempts (since the latest approval, for a held export).")
     last_attempt_at: str | None = None
     next_attempt_at: str | None = Field(None, description="When the next attempt is due (pending after a failure).")
     done_at: str | None = None
     sop_instance_uids: list[str] = Field(default_factory=list, description="What was stored (done).")
+    peers: list[DimseExport] | None = Field(
+        None, description="C-STORE: each destination's outcome in the latest attempt (a destination stored once is "
+                          "not sent again).")
     error: ProblemDetails | None = Field(None, description="The pacs-error of the last failed attempt.")
 
 
@@ -96,11 +104,14 @@ def export_model(row: dict[str, Any] | None) -> ExportState | None:
     target = row.get("target") or {}
     destination = target.get("server") if target.get("via") == "stow-rs" else ", ".join(target.get("peers") or [])
     retry_at = row.get("next_attempt_at") if row["state"] == "pending" and row.get("attempts") else None
+    peers = (row.get("outcome") or {}).get("peers") if target.get("via") == "c-store" else None
     return ExportState(
-        state=row["state"], via=target.get("via", "stow-rs"), destination=destination or "", study_uid=target.get("study_uid"),
+        state=row["state"], via=target.get("via", "stow-rs"), destination=destination or "",
+        after_review=bool(target.get("after_review", True)), study_uid=target.get("study_uid"),
         attempts=row.get("attempts") or 0, last_attempt_at=_iso(row.get("last_attempt_at")),
         next_attempt_at=_iso(retry_at), done_at=_iso(row.get("done_at")),
         sop_instance_uids=_stored_uids(row.get("outcome")) if row["state"] == "done" else [],
+        peers=[DimseExport(**item) for item in peers] if peers else None,
         error=ProblemDetails(**row["last_error"]) if row.get("last_error") and row["state"] != "done" else None)
 
 

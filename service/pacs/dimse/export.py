@@ -1,12 +1,13 @@
 """Results back by C-STORE (SCU): the REG and the overlays of a job to its DICOM destinations.
 
-Run by the worker after the engine, for jobs made from a DICOM study (input role ``dimse``).
-The destinations are ``dicom_export`` (AE titles of ``dicom_peers``), else the peer that sent
-the study. Each destination gets one association with every file; a failure (connection
-refused, association rejected, a C-STORE status that is not success or warning) is retried
-``dicom_export_retries`` times with doubling back-off. Export never fails the job: the
-registration result stands, and ``result.dicom.exported`` lists for each destination what was
-stored, or a ``pacs-error`` naming the peer, the step and the DIMSE status.
+Run by the API process's exporter (:mod:`service.jobs.exports`) after the job succeeded, never by
+the worker, for jobs made from a DICOM study (input role ``dimse``) and DIMSE references with
+``store_results``. The destinations are ``dicom_export`` (AE titles of ``dicom_peers``), else the
+peer that sent the study. Each destination gets one association with every file; a failure
+(connection refused, association rejected or timed out, a C-STORE status that is not success or
+warning) is retried ``dicom_export_retries`` times with doubling back-off within one export attempt.
+Export never fails the job: the registration result stands, and the job's ``export`` says for
+each destination what was stored, or a ``pacs-error`` naming the peer, the step and the DIMSE status.
 """
 
 from __future__ import annotations
@@ -96,17 +97,10 @@ def export_to(settings: Any, title: str, files: list[Path]) -> dict[str, Any]:
 
 
 class DimseJob:
-    """The DICOM side of a job made from a received study: its source, then the export."""
+    """The DICOM side of a job made from a received study: its source and its export destinations."""
 
     def __init__(self, document: dict[str, Any], settings: Any):
         self.document, self.settings = document, settings
-
-    def export(self, result: dict, out_dir: Path, files: tuple[str, ...]) -> dict:
-        dicom = result.setdefault("dicom", {})
-        dicom["source"] = self.document["source"]
-        paths = [Path(out_dir) / name for name in files if (Path(out_dir) / name).is_file()]
-        dicom["exported"] = [export_to(self.settings, title, paths) for title in self.document.get("export", [])]
-        return result
 
 
 def dimse_source(job: Any, read: Any) -> dict[str, Any] | None:

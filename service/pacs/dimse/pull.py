@@ -5,8 +5,9 @@ peer by AE title (one of ``dicom_peers``: nothing else is reachable); the worker
 AP and LAT instances and the volume series with **C-MOVE** (``"retrieve": "move"``, the default:
 the peer sends them to dsareg's own DICOM node, :mod:`.query`) or **C-GET** (``"get"``: Study Root,
 the instances come back on the same association, so the peer needs no route back to dsareg) and, with
-``store_results``, stores the REG and overlays back into the peer by C-STORE
-(:mod:`.export`, bounded retries; a failed export is listed in the result, never fails the job).
+``store_results``, the REG and overlays are stored back into the peer by C-STORE after the job, by the
+exporter (:mod:`service.jobs.exports` with :mod:`.export`; a failed export is the job's ``export``
+state, never fails the job nor holds the worker).
 A retrieve that fails fails the job with ``pacs-error`` naming the peer, the step and the
 DIMSE status.
 """
@@ -17,12 +18,11 @@ import json
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
-from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ...engine_adapter import engine, fetched_case_files
+from ...engine_adapter import fetched_case_files
 from ..dicomweb import ReferenceRequestFields, StudyReference
 from .get_receive import GetReceiver
 from .query import DimsePacsError, bounded, deadline_of, query_identifier, retrieve, scu_ae, silence_detail
@@ -168,17 +168,6 @@ class DimsePullJob:
                                       "fetch_seconds": round(time.perf_counter() - started, 3),
                                       "instances": 2 + len(volume)}}
         return fetched_case_files(images["ap"], images["lat"], volume, source.frames, warnings)
-
-    def store_back(self, result: dict, out_dir: Path) -> dict:
-        from .export import export_to
-
-        dicom = result.setdefault("dicom", {})
-        dicom["source"] = self.source_info
-        if self.reference.store_results:
-            names = (engine.REG_DCM, engine.overlay_dcm("ap"), engine.overlay_dcm("lat"))
-            paths = [Path(out_dir) / name for name in names if (Path(out_dir) / name).is_file()]
-            dicom["exported"] = [export_to(self.settings, self.reference.source.dimse.peer, paths)]
-        return result
 
 
 def pull_job(job: Any, read: Any, settings: Any) -> DimsePullJob | None:

@@ -428,7 +428,7 @@ function reviewKeys(send) {
 
 const EXPORT_WORDS = {
   awaiting_review: "held until the job is approved",
-  pending: "approved; being sent",
+  pending: "queued; being sent",
   exporting: "being sent",
   done: "stored",
   failed: "failed",
@@ -454,14 +454,18 @@ function exportLine(job) {
 
 function exportState(exp) {
   if (!exp) return null;
+  // sent by the service after the job succeeded (the job itself never waits on the PACS)
   const where = `${exp.via === "stow-rs" ? "STOW-RS" : "C-STORE"} to ${exp.destination}`;
-  return el("p", { id: "export-state" }, "PACS export: ", badge(EXPORT_WORDS[exp.state] || exp.state, exp.state === "done" ? "ok" : exp.state),
-    ` (${where}${exp.attempts ? `, ${exp.attempts} attempt${exp.attempts === 1 ? "" : "s"}` : ""})`,
+  const retrying = exp.state === "pending" && exp.attempts > 0;
+  const word = retrying ? "retrying" : exp.state === "pending" && exp.after_review ? "approved; being sent" : EXPORT_WORDS[exp.state] || exp.state;
+  const next = retrying && exp.next_attempt_at ? `, next at ${exp.next_attempt_at.replace("T", " ").slice(0, 19)}` : "";
+  return el("p", { id: "export-state" }, "PACS export: ", badge(word, exp.state === "done" ? "ok" : exp.state),
+    ` (${where}${exp.attempts ? `, ${exp.attempts} attempt${exp.attempts === 1 ? "" : "s"}` : ""}${next})`,
     exp.error && exp.state !== "done" ? [el("br"), el("span", { class: "error" }, exp.error.detail || exp.error.title)] : null);
 }
 
 async function watchExport(id, polls) {
-  // the export runs in the service after the approval: follow it for a while (every 1 s)
+  // the export runs in the service after the job (or the approval): follow it for a while (every 1 s)
   await new Promise((done) => setTimeout(done, 1000));
   const shown = document.getElementById("export-state");
   if (!shown || !location.hash.endsWith(id)) return;
@@ -513,6 +517,7 @@ async function showJob(id) {
         plotFigure(job.links.animation, "Animation of the registration converging", "Animation"))),
       el("div", {}, review, exportLine(job), verdictSection(job), el("h3", {}, "Metrics"),
         metricsList(job), historySection(job))));
+  if (job.export && ["pending", "exporting"].includes(job.export.state)) watchExport(id, 60);
 }
 
 // ---- the key and the router ---------------------------------------------------------------------
