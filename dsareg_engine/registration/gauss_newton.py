@@ -30,7 +30,7 @@ DAMPING_MIN = 1e-6
 
 
 def normal_equations(problem, stage, pose: np.ndarray, dtype: torch.dtype) -> tuple[float, np.ndarray, np.ndarray]:
-    """Loss, ``Jᵀr`` ``(6,)`` and ``JᵀJ`` ``(6, 6)`` of one pose ``(4, 4)`` at ``stage`` (``problem``: the solver's _Problem).
+    """Loss, ``Jᵀr`` ``(6,)`` and ``JᵀJ`` ``(6, 6)`` of one pose ``(4, 4)`` at ``stage`` (``problem``: a :class:`.problem._Problem`).
 
     The loss equals ``problem.loss`` at that pose (its gradient is 2·Jᵀr).
     """

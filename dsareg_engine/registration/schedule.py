@@ -82,7 +82,7 @@ FINER_LEVEL_RATIO = 1.5
 def pyramid_scales(image_side_px: int, coarsest_scale: float | None = None) -> list[float]:
     """Scales 1/2^k … 1 with the coarsest level at least COARSEST_SIDE_PX on its short side.
 
-    ``coarsest_scale`` (from the vessels' extent, see ``solver._coarsest_scale``): when it is finer than the
+    ``coarsest_scale`` (from the vessels' extent, see ``preparation._coarsest_scale``): when it is finer than the
     image's coarsest level and at most 0.5, it becomes the coarsest level, replacing the power-of-two levels
     below it and a next one less than FINER_LEVEL_RATIO finer; the ladder's coarsest level then follows the
     extent continuously instead of jumping by a factor 2 (4× the pixels of every start's renders) when the

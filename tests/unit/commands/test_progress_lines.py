@@ -65,7 +65,7 @@ def test_a_failed_summary_prints_no_python_dict_and_names_both_dice():
     from types import SimpleNamespace
 
     from dsareg_engine.registration.confidence import assess
-    from dsareg_engine.registration.solver import _convergence
+    from dsareg_engine.registration.summary import _convergence
     from service.cli.subcommands import summary_line
 
     converged, reason = _convergence(None, {"ap": SimpleNamespace(dice=0.245), "lat": SimpleNamespace(dice=0.9)})

@@ -7,9 +7,10 @@ import torch
 from dsareg_engine.metrics import mean_distance_mm
 from dsareg_engine.registration import RegistrationOptions
 from dsareg_engine.registration.gauss_newton import levenberg_marquardt, normal_equations
+from dsareg_engine.registration.optimizers import _run_lbfgs
 from dsareg_engine.registration.parameterization import PoseIncrement, random_start_poses
+from dsareg_engine.registration.problem import _Problem
 from dsareg_engine.registration.schedule import Stage
-from dsareg_engine.registration.solver import _Problem, _run_lbfgs
 
 
 def _stage(blur_px: float, sigma_px: float = 0.25) -> Stage:

@@ -14,7 +14,6 @@ from dsareg_engine.registration.schedule import (
     INTERMEDIATE_TOLERANCE,
     PLATEAU_TOLERANCE,
     SWITCH_TOLERANCE,
-    Stage,
     build_schedule,
     pyramid_scales,
 )
@@ -98,99 +97,3 @@ def test_thin_vessel_weights_favour_thin_branches():
     weights = thin_vessel_weights(mask)
     assert weights.mean() == pytest.approx(1.0, rel=1e-5)
     assert weights[41, 30] > 3 * weights[16, 30]
-
-
-class _SlowlyImprovingProblem:
-    """Stands in for the registration problem: its loss falls by 0.1 % per evaluation, forever."""
-
-    def __init__(self):
-        self.evaluations = 0
-
-    def loss(self, poses, stage, dtype):
-        self.evaluations += 1
-        return poses.sum(-1) * 0.0 + 0.999 ** self.evaluations
-
-
-@pytest.mark.parametrize("tolerance, stops", [(PLATEAU_TOLERANCE, False), (SWITCH_TOLERANCE, True)])
-def test_adam_stops_on_a_plateau_of_the_stage_tolerance(tolerance, stops):
-    from dsareg_engine.registration.schedule import Stage
-    from dsareg_engine.registration.solver import ADAM_PATIENCE, _run_adam
-
-    stage = Stage("ap:1/1", 1.0, 0.5, 0.0, ("ap",), "adam", 60, 0.1, True, plateau_tolerance=tolerance)
-    delta = torch.zeros((2, 6), dtype=torch.float64, requires_grad=True)
-    outcome = _run_adam(_SlowlyImprovingProblem(), stage, lambda d: d, delta, torch.float64, lambda *args: None)
-    if stops:  # 0.1 % per step never adds up to 1 % within the patience window
-        assert outcome.stopped_by == "tolerance" and outcome.iterations == ADAM_PATIENCE + 1
-    else:  # every step or two beats the best by 0.1 %: runs to the cap
-        assert outcome.stopped_by == "iterations" and outcome.iterations == 60
-
-
-class _JitteringProblem:
-    """Stands in for the registration problem: its loss jitters by ±3 % around a level that a new best beats by
-    0.2 % every 7 evaluations, as the starts near a minimum do at the coarsest level's 0.8-mm step."""
-
-    def __init__(self):
-        self.evaluations = 0
-
-    def loss(self, poses, stage, dtype):
-        self.evaluations += 1
-        jitter = 0.03 * (1 if self.evaluations % 2 else -1) if self.evaluations % 7 else -0.032
-        return poses.sum(-1) * 0.0 + (1.0 + jitter) * 0.998 ** (self.evaluations // 7)
-
-
-def test_the_coarsest_level_stops_on_a_jittering_plateau():
-    from dsareg_engine.registration.solver import _run_adam
-
-    coarsest = build_schedule("simultaneous", 512, 300)[0]
-    assert coarsest.plateau_window > 0 and coarsest.plateau_tolerance == PLATEAU_TOLERANCE
-    delta = torch.zeros((8, 6), dtype=torch.float64, requires_grad=True)
-    outcome = _run_adam(_JitteringProblem(), coarsest, lambda d: d, delta, torch.float64, lambda *args: None)
-    assert outcome.stopped_by == "tolerance" and outcome.iterations <= 3 * coarsest.plateau_window
-
-
-class _DescendingProblem:
-    def __init__(self):
-        self.evaluations = 0
-
-    def loss(self, poses, stage, dtype):
-        self.evaluations += 1
-        return poses.sum(-1) * 0.0 + 0.99 ** self.evaluations
-
-
-def test_the_coarsest_level_runs_on_while_the_loss_falls():
-    from dsareg_engine.registration.solver import _run_adam
-
-    coarsest = Stage(**{**vars(build_schedule("simultaneous", 512, 300)[0]), "max_iterations": 40})
-    delta = torch.zeros((8, 6), dtype=torch.float64, requires_grad=True)
-    outcome = _run_adam(_DescendingProblem(), coarsest, lambda d: d, delta, torch.float64, lambda *args: None)
-    assert outcome.stopped_by == "iterations" and outcome.iterations == 40  # 1 % a step: 4 % a window
-
-
-def _tree_of_extent(side_px: int, extent_px: int) -> dict[str, np.ndarray]:
-    """Masks whose vessels span ``extent_px``: only their extent sets the ladder, so they are cut to the tree's box
-    (``side_px`` is the image's side, passed to the schedule apart)."""
-    mask = np.zeros((extent_px + 10, extent_px // 2 + 30), bool)
-    mask[5, 20] = mask[4 + extent_px, 19 + extent_px // 2] = True  # the box's corners: the extent is its longer side
-    return {"ap": mask, "lat": mask}
-
-
-@pytest.mark.parametrize("side_px", [512, 1024])
-def test_the_coarsest_level_follows_the_vessels_extent_without_a_cliff(side_px):
-    """Two px more or less of the tree move the coarsest level's scale by about 1 % (a cliff was 2×, at 192 px)."""
-    from dsareg_engine.registration.options import RegistrationOptions
-    from dsareg_engine.registration.solver import _ladder_schedule
-
-    coarsest = [_ladder_schedule(RegistrationOptions(), side_px, _tree_of_extent(side_px, extent), ("ap", "lat"), 1.0)[0].scale
-                for extent in range(100, side_px - 10, 2)]
-    steps = np.array(coarsest[:-1]) / np.array(coarsest[1:])
-    assert np.all(steps >= 1.0) and steps.max() < 1.03  # monotone: a larger tree, a coarser level; never a jump
-    assert coarsest[-1] == pyramid_scales(side_px)[0]  # a tree filling the image: the image's pyramid
-
-
-def test_a_tree_filling_the_image_keeps_the_image_pyramid():
-    from dsareg_engine.registration.options import RegistrationOptions
-    from dsareg_engine.registration.solver import _ladder_schedule
-
-    for extent in (400, 630, 750):  # the paper's mesh spans 631-750 px at 800 px (Table 1)
-        stages = _ladder_schedule(RegistrationOptions(), 800, _tree_of_extent(800, extent), ("ap", "lat"), 1.0)
-        assert [stage.scale for stage in stages] == [stage.scale for stage in build_schedule("simultaneous", 800, 300)]

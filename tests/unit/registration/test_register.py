@@ -130,11 +130,11 @@ def test_registration_tolerates_simulated_segmentation_errors(phantom, synthetic
 def test_stage_runner_runs_the_fixed_stage_list_then_the_again_stage(phantom, synthetic_case):
     import torch
 
-    from dsareg_engine.registration import solver
+    from dsareg_engine.registration import preparation
 
     rig, masks = synthetic_case(phantom, 160, 3.0, 3.0)
     options = RegistrationOptions(starts=2, max_iterations=30)
-    names = [stage.name for stage in solver._prepare(phantom, masks, rig, options, torch.device("cpu")).stages]
+    names = [stage.name for stage in preparation._prepare(phantom, masks, rig, options, torch.device("cpu")).stages]
     result = register(phantom, masks, rig, options)
     ran = list(result.metrics["iterations"])
     assert ran[:len(names)] == names and all(name.endswith(":again") for name in ran[len(names):])

@@ -16,7 +16,7 @@ from dsareg_engine.simulation.phantom_study import AP_ANGLES, LAT_ANGLES, SID_MM
 from dsareg_engine.registration import RegistrationOptions
 from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.schedule import pyramid_scales
-from dsareg_engine.registration.solver import _pyramid_side_px
+from dsareg_engine.registration.preparation import _pyramid_side_px
 from dsareg_engine.render import Camera, render_hard_silhouette
 
 IMAGE_PX = 256
