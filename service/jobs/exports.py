@@ -11,7 +11,8 @@
   latest review is a rejection (the store's due query checks it).
 * **Delivered by the API process** (:class:`ExportDeliverer`, the loop of completion callbacks,
   :mod:`.leased`), in both topologies, never by a registration worker: claimed with a lease, at most
-  ``EXPORT_THREADS`` attempts at a time (the rest wait in the table, not in memory), stored, recorded (``done``,
+  ``EXPORT_THREADS`` attempts at a time and one per destination (a frozen peer holds one thread, the other
+  destinations' exports go on; the rest wait in the table, not in memory), stored, recorded (``done``,
   or a ``pacs-error`` and a retry after ``export_retry_backoff_seconds`` doubling, ``export_max_attempts`` in
   all, then ``failed``). An attempt is bounded by the DIMSE timeouts and ``dicom_export_retries`` (C-STORE) or
   ``pacs_deadline_seconds`` (STOW-RS); a C-STORE retry goes only to the destinations not yet stored. The lease is
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -44,7 +46,7 @@ log = logging.getLogger("dsareg.service.exports")
 
 STOW, CSTORE = "stow-rs", "c-store"
 MAX_BACKOFF_SECONDS = 300.0
-EXPORT_THREADS = 2  # export attempts at a time per API process (a frozen peer holds one for its DIMSE timeouts)
+EXPORT_THREADS = 4  # export attempts at a time per API process, each to another destination
 
 
 def export_target(pacs: Any, dimse: Any, after_review: bool = False) -> dict[str, Any] | None:
@@ -58,6 +60,11 @@ def export_target(pacs: Any, dimse: Any, after_review: bool = False) -> dict[str
     elif dimse is not None and dimse.document.get("export"):
         target = {"via": CSTORE, "peers": list(dimse.document["export"])}
     return None if target is None else {**target, "after_review": after_review}
+
+
+def destination_of(target: dict[str, Any]) -> str:
+    """One export attempt at a time per destination (per API process): a frozen peer holds one thread, not all."""
+    return str(target.get("server")) if target.get("via") == STOW else ",".join(target.get("peers") or [])
 
 
 def source_of(pacs: Any, dimse: Any) -> dict[str, Any] | None:
@@ -133,20 +140,40 @@ class ExportDeliverer(LeasedDeliverer):
         super().__init__(threads=EXPORT_THREADS)
         self.store, self.blobs, self.settings = store, blobs, settings
         self.renewed_lease_seconds = settings.jobs.export_lease_seconds  # recovery after an API crash: this + a poll
+        self._busy: set[str] = set()  # destinations with an attempt under way here
+        self._busy_lock = threading.Lock()
 
     def due(self, now: float) -> list[str]:
-        return self.store.due_exports(now)
+        return self.store.due_exports(now, limit=100)
 
     def claim(self, job_id: str, now: float) -> dict[str, Any] | None:
         job = self.store.get(job_id)
         if job is None or not job.export:
             return None
-        return self.store.claim_export(job_id, now, self.renewed_lease_seconds)
+        destination = destination_of(job.export["target"])
+        with self._busy_lock:
+            if destination in self._busy:  # its peer is busy with another job's attempt (or frozen): later
+                return None
+            self._busy.add(destination)
+        row = self.store.claim_export(job_id, now, self.renewed_lease_seconds)
+        if row is None:
+            self._free(destination)
+        return row
+
+    def _free(self, destination: str) -> None:
+        with self._busy_lock:
+            self._busy.discard(destination)
 
     def renew(self, row: dict[str, Any], until: float) -> bool:
         return self.store.renew_export(row["job_id"], row["attempts"], until)
 
     def deliver(self, row: dict[str, Any]) -> str:
+        try:
+            return self._attempt(row)
+        finally:
+            self._free(destination_of(row["target"]))
+
+    def _attempt(self, row: dict[str, Any]) -> str:
         job = self.store.get(row["job_id"])
         if job is None:
             return "gone"

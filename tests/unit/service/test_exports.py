@@ -100,34 +100,63 @@ def test_an_export_is_due_when_its_job_succeeds_and_a_rejection_stops_it(store):
 
 def test_the_target_says_whether_it_is_held():
     class Dimse:
-        document = {"export": ["A", "B"]}
+        def __init__(self):
+            self.document = {"export": ["A", "B"]}
 
     assert export_target(None, Dimse()) == {"via": "c-store", "peers": ["A", "B"], "after_review": False}
     assert export_target(None, Dimse(), after_review=True)["after_review"] is True
     assert export_target(None, None) is None
 
 
-def test_the_exporter_takes_no_more_than_its_threads_and_leaves_the_rest_unclaimed(store, tmp_path):
+def test_the_exporter_takes_no_more_than_its_threads_one_per_destination_and_leaves_the_rest_unclaimed(store,
+                                                                                                      tmp_path):
     import threading
 
     release = threading.Event()
-    jobs = [_succeeded(store, None, {"via": "c-store", "peers": ["P"], "after_review": False}) for _ in range(5)]
+    peers = ["P0", "P1", "P2", "P3", "P4", "P0"]  # six jobs, five destinations
+    jobs = [_succeeded(store, None, {"via": "c-store", "peers": [peer], "after_review": False}) for peer in peers]
 
     class Frozen(ExportDeliverer):
-        def deliver(self, row):  # a frozen peer: the attempt does not end until released
+        def _attempt(self, row):  # frozen peers: the attempt does not end until released
             release.wait(10)
             store.finish_export(row["job_id"], row["attempts"], state="done", outcome={}, error=None,
                                 next_attempt_at=None)
             return "done"
 
     deliverer = Frozen(store, BlobStore(tmp_path), _settings(tmp_path, []))
-    assert deliverer.deliver_due() == EXPORT_THREADS == 2
+    assert deliverer.deliver_due() == EXPORT_THREADS == 4
     assert deliverer.deliver_due() == 0  # full: nothing more is claimed (its lease would lapse in a memory queue)
-    states = sorted(store.get(job.id).export["state"] for job in jobs)
-    assert states == ["exporting"] * 2 + ["pending"] * 3
+    states = [store.get(job.id).export["state"] for job in jobs]
+    assert states == ["exporting"] * 4 + ["pending"] * 2  # P0's second job waits for P0 even when a thread is free
     release.set()
     for job in jobs:
         assert _drain(deliverer, store, job.id, ("done",))["attempts"] == 1
+    deliverer._pool.shutdown(wait=True)
+
+
+def test_a_frozen_destination_holds_one_thread_and_the_others_exports_go_on(store, tmp_path):
+    import threading
+
+    release = threading.Event()
+    frozen = [_succeeded(store, None, {"via": "c-store", "peers": ["FROZEN"], "after_review": False}) for _ in range(5)]
+    healthy = _succeeded(store, None, {"via": "stow-rs", "server": "http://pacs/dicom-web", "study_uid": "1.2",
+                                       "after_review": False})
+
+    class Mixed(ExportDeliverer):
+        def _attempt(self, row):
+            if row["target"]["via"] == "c-store":
+                release.wait(10)
+            store.finish_export(row["job_id"], row["attempts"], state="done", outcome={}, error=None,
+                                next_attempt_at=None)
+            return "done"
+
+    deliverer = Mixed(store, BlobStore(tmp_path), _settings(tmp_path, []))
+    assert deliverer.deliver_due() == 2  # one to the frozen peer, the STOW-RS beside it
+    assert _drain(deliverer, store, healthy.id, ("done",), timeout=5)["attempts"] == 1
+    assert sum(store.get(job.id).export["state"] == "exporting" for job in frozen) == 1
+    release.set()
+    for job in frozen:
+        _drain(deliverer, store, job.id, ("done",))
     deliverer._pool.shutdown(wait=True)
 
 
