@@ -127,19 +127,53 @@ def gaussian_blur(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
 
     Applied to the rendered silhouettes and to the targets alike, so the blur widens the
     capture range without moving the optimum.
+
+    On the CPU it is one autograd node (:class:`_CpuBlur`: OpenCV's separable filter, forward and backward);
+    elsewhere weighted sums of shifted slices.
     """
     if sigma_px <= 0:
         return images
+    if images.device.type == "cpu" and images.dtype in (torch.float32, torch.float64):
+        return _CpuBlur.apply(images, sigma_px)
     kernel = torch.as_tensor(gaussian_kernel(sigma_px), dtype=images.dtype, device=images.device)
     half = len(kernel) // 2
     # Weighted sums of shifted slices: for one channel and a short kernel this is several
-    # times faster than conv2d, forward and especially backward, on the CPU.
+    # times faster than conv2d, forward and especially backward.
     padded = F.pad(images, (half, half, 0, 0))
     width = images.shape[-1]
     rows = sum(kernel[k] * padded[..., :, k : k + width] for k in range(2 * half + 1))
     padded = F.pad(rows, (0, 0, half, half))
     height = images.shape[-2]
     return sum(kernel[k] * padded[..., k : k + height, :] for k in range(2 * half + 1))
+
+
+def _separable_blur(images: torch.Tensor, kernel: np.ndarray) -> torch.Tensor:
+    """``(B, H, W)`` CPU images blurred by ``kernel`` along both axes, zero padding (OpenCV), same dtype."""
+    array = images.detach().contiguous().numpy()
+    kernel = kernel.astype(array.dtype)
+    out = np.empty_like(array)
+    for index in range(array.shape[0]):
+        out[index] = cv2.sepFilter2D(array[index], -1, kernel, kernel, borderType=cv2.BORDER_CONSTANT)
+    return torch.from_numpy(out)
+
+
+class _CpuBlur(torch.autograd.Function):
+    """The Gaussian blur as a single autograd node on the CPU.
+
+    The shifted-slice sums made 2 × (2·⌈3σ⌉ + 1) slice and product nodes per blur, each of whose backward
+    fills a full-size zero tensor: at the 2-px blur of the coarsest level with 8 starts (autoinit, 170 px)
+    forward + backward took 18.8 ms, here 2.1 ms (1 thread). The kernel is symmetric and the padding zero,
+    so the backward (the adjoint) is the same blur of the incoming gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, images: torch.Tensor, sigma_px: float) -> torch.Tensor:
+        ctx.kernel = gaussian_kernel(sigma_px)
+        return _separable_blur(images, ctx.kernel)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return _separable_blur(grad, ctx.kernel), None
 
 
 def thin_vessel_weights(mask: np.ndarray, max_ratio: float = 8.0) -> np.ndarray:
