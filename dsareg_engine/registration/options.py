@@ -81,7 +81,7 @@ class RegistrationOptions(BaseModel):
     )
     seed: int = Field(0, ge=0, le=2**63 - 1, description="Seed for the extra starts; the same seed gives the same result.")
     coarse_to_fine: bool = Field(True, description="Image pyramid from ~100 px up (off: full size only).")
-    refine: bool = Field(True, description="Final L-BFGS stage at full size with a pose-change stop rule.")
+    refine: bool = Field(True, description="Final stage at full size with a pose-change stop rule (L-BFGS; Levenberg–Marquardt after a two-view pyramid on the CPU).")
     mode: Literal["full", "track"] = Field(
         "full",
         description="full: multi-start coarse-to-fine registration. track: re-registration after a small motion "

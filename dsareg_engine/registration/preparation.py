@@ -65,7 +65,7 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     side_px = round(shortest * final_scale)
     schedule = (
         build_track_schedule(used_views, side_px, options.max_iterations, jacobian_available(device)) if tracking
-        else _ladder_schedule(options, side_px, masks, used_views, final_scale)
+        else _ladder_schedule(options, side_px, masks, used_views, final_scale, jacobian_available(device))
     )
     stages = [Stage(**{**vars(stage), "scale": stage.scale * final_scale}) for stage in schedule]
     starts = searched.poses if searched is not None else random_start_poses(
@@ -75,13 +75,13 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
 
 
 def _ladder_schedule(options: RegistrationOptions, side_px: int, masks: dict[str, np.ndarray], used_views,
-                     final_scale: float) -> list[Stage]:
+                     final_scale: float, jacobian: bool = False) -> list[Stage]:
     """The coarse-to-fine stages: the image's pyramid, its coarsest level set by the vessels' extent when that is
     what limits it (:func:`_coarsest_scale`), else by :func:`_pyramid_side_px`'s power-of-two rule."""
     coarsest = _coarsest_scale(side_px, masks, used_views, final_scale)
     side = side_px if coarsest is not None else _pyramid_side_px(side_px, masks, used_views, final_scale)
     return build_schedule(options.configuration, side, options.max_iterations, options.coarse_to_fine, options.refine,
-                          coarsest)
+                          coarsest, jacobian)
 
 
 def _vessel_extent_px(masks: dict[str, np.ndarray], used_views) -> int:

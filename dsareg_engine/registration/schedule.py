@@ -50,6 +50,9 @@ class Stage:
         pose_tolerance: L-BFGS stop on pose change (mm units; None: the solver's LBFGS_POSE_TOLERANCE).
         plateau_window: Adam only: > 0 stops when the mean best loss of the last this many steps is not
             WINDOW_TOLERANCE below the mean of the window before (0: the solver's patience rule).
+        handover: the Levenberg–Marquardt stage at the last Adam level that hands the kept start to the
+            full-size fit (see HANDOVER_POSE_TOLERANCE): the starts are ranked as the final stage ranks them,
+            and the fine-stage work (border, partial check) waits for the final stage.
     """
 
     name: str
@@ -67,6 +70,7 @@ class Stage:
     pose_tolerance: float | None = None
     level_of_detail: bool | None = None
     plateau_window: int = 0
+    handover: bool = False
 
 
 PLATEAU_WINDOW = 4
@@ -75,6 +79,14 @@ WINDOW_TOLERANCE = 1e-2
 fraction from the window before. At its 0.8-mm step the starts near a minimum jitter by a few % of the loss, and
 a stop on a new best of 0.1 % within 8 steps ended the level after 12–67 steps, by when the jitter happened to
 touch a new best: a draw moved by a few border pixels of the target (docs/benchmarks/clinical.md, round 10)."""
+HANDOVER_BLUR_PX = 1.0
+HANDOVER_POSE_TOLERANCE = 0.03
+"""Two-view ladders on the CPU (the Jacobian kernel, :mod:`.gauss_newton`) end with Levenberg–Marquardt instead of
+L-BFGS: first at the last Adam level, blurred by HANDOVER_BLUR_PX, stopped at this pose change (mm; the tracking
+schedule's coarse stop), then at full size as sharp as L-BFGS was (FINAL_SIGMA_PX, float64, the same pose stop).
+The last Adam level hands over a pose 0.3–0.8 mm off on the paper's mesh at 800 px; L-BFGS took 14–17 full-size
+evaluations from there (two or three of them overshooting line-search probes), Levenberg–Marquardt takes 2–3
+iterations at quarter size and 4 at full size, each about two L-BFGS evaluations' work; ADD the same to 4 decimals."""
 FINER_LEVEL_RATIO = 1.5
 """A level above a fractional coarsest one is kept when it is at least this much finer (else it nearly repeats it)."""
 
@@ -96,7 +108,7 @@ def pyramid_scales(image_side_px: int, coarsest_scale: float | None = None) -> l
     return [coarsest_scale] + [scale for scale in scales if scale >= FINER_LEVEL_RATIO * coarsest_scale]
 
 
-def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, final: bool) -> list[Stage]:
+def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, final: bool, jacobian: bool = False) -> list[Stage]:
     label = "+".join(views)
     stages = []
     if len(scales) == 1 and not final:  # single level, no refinement: plain Adam at full size
@@ -141,25 +153,41 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
                 plateau_window=PLATEAU_WINDOW if not last and len(set(scales)) > 1 else 0,
             )
         )
+    if final and jacobian and len(views) == 2 and len(set(scales)) > 1:
+        stages[-1:] = _gauss_newton_finish(stages[-2], stages[-1], max_iterations)
     return stages
+
+
+def _gauss_newton_finish(adam: Stage, final: Stage, max_iterations: int) -> list[Stage]:
+    """The L-BFGS stage ``final`` replaced by Levenberg–Marquardt at ``adam``'s level, then at full size (see
+    HANDOVER_POSE_TOLERANCE)."""
+    handover = Stage(
+        name=f"{adam.name}:lm", scale=adam.scale, sigma_px=ADAM_SIGMA_PX, blur_px=HANDOVER_BLUR_PX, views=final.views,
+        optimizer="gauss_newton", max_iterations=min(max_iterations, 60), learning_rate=adam.learning_rate,
+        all_starts=False, pose_tolerance=HANDOVER_POSE_TOLERANCE, float64=False, level_of_detail=True, handover=True,
+    )
+    return [handover, Stage(**{**vars(final), "optimizer": "gauss_newton", "max_iterations": min(max_iterations, 40),
+                               "float64": True, "level_of_detail": False})]
 
 
 def build_schedule(
     configuration: str, image_side_px: int, max_iterations: int, coarse_to_fine: bool = True, refine: bool = True,
-    coarsest_scale: float | None = None,
+    coarsest_scale: float | None = None, jacobian: bool = False,
 ) -> list[Stage]:
     """Stages for ``ap``, ``lat``, ``simultaneous``, ``ap_then_lat`` or ``lat_then_ap``.
 
     Sequential configurations run the whole ladder on the first view, then switch the
     second view's λ on and repeat the finer half of the ladder with both views.
     ``coarse_to_fine=False`` keeps only the full-size level; ``refine=False`` drops the
-    final L-BFGS stage (both exist to measure what each contributes); ``coarsest_scale``: see :func:`pyramid_scales`.
+    final L-BFGS stage (both exist to measure what each contributes); ``coarsest_scale``: see :func:`pyramid_scales`;
+    ``jacobian`` (the Jacobian kernel runs here): two-view pyramids end with Levenberg–Marquardt (see
+    HANDOVER_POSE_TOLERANCE).
     """
     scales = pyramid_scales(image_side_px, coarsest_scale) if coarse_to_fine else [1.0]
     if configuration in ("ap", "lat"):
         return _ladder((configuration,), scales, max_iterations, final=refine)
     if configuration == "simultaneous":
-        return _ladder(("ap", "lat"), scales, max_iterations, final=refine)
+        return _ladder(("ap", "lat"), scales, max_iterations, final=refine, jacobian=jacobian)
     first = configuration.split("_then_")[0]
     if configuration not in ("ap_then_lat", "lat_then_ap"):
         raise ValueError(f"unknown configuration {configuration!r}")
@@ -168,6 +196,6 @@ def build_schedule(
     # result, because one view leaves depth and out-of-plane rotation weakly determined.
     stages = [Stage(**{**vars(stage), "plateau_tolerance": SWITCH_TOLERANCE, "plateau_window": 0})
               for stage in _ladder((first,), scales[:-1] or scales, max_iterations, final=False)]
-    both = _ladder(("ap", "lat"), scales[1:] if len(scales) > 2 else scales, max_iterations, final=refine)
+    both = _ladder(("ap", "lat"), scales[1:] if len(scales) > 2 else scales, max_iterations, final=refine, jacobian=jacobian)
     both[0] = Stage(**{**vars(both[0]), "all_starts": True, "add_initial_starts": True, "plateau_window": 0})
     return stages + both

@@ -117,7 +117,8 @@ def _run_stage(setup: _Setup, run: _Run, reporter: _Reporter, options: Registrat
     # Fine stages only, and not in the single-view phase of a sequential configuration: one
     # view's depth is loose there, and a border measured at a wrong magnification costs the
     # two-view stages extra iterations to undo.
-    fine = index > 0 and stage.scale >= 0.5 * finest_scale and set(stage.views) == set(setup.used_views) and index < planned
+    fine = (index > 0 and stage.scale >= 0.5 * finest_scale and set(stage.views) == set(setup.used_views) and index < planned
+            and not stage.handover)
     if fine and not (problem.partial or setup.tracking or run.partial_checked):
         # The first fine stage: does a live start explain every vessel with part of the model unmatched?
         run.partial_checked = True
@@ -125,8 +126,9 @@ def _run_stage(setup: _Setup, run: _Run, reporter: _Reporter, options: Registrat
     if options.border_correction and fine:
         problem.update_border_shifts(run.pose_history[-1], stage.views)
     if not stage.all_starts and len(run.poses) > 1:
-        run.other = _runner_up(problem, stage, run.poses)
-        run.poses, run.starts_agreeing = _keep_best(problem, stage, run.poses)
+        ranking = setup.stages[-1] if stage.handover else stage  # a hand-over ranks as the fit after it would
+        run.other = _runner_up(problem, ranking, run.poses)
+        run.poses, run.starts_agreeing = _keep_best(problem, ranking, run.poses)
     dtype = torch.float64 if (stage.optimizer == "lbfgs" if stage.float64 is None else stage.float64) else torch.float32
     increment = PoseIncrement(run.poses, problem.centre, problem.radius_mm)
     # Fine levels with one start (every tracking stage) evaluate the loss in a window.
@@ -175,7 +177,7 @@ def _border_moved(problem: _Problem, options: RegistrationOptions, stage: Stage,
     than BORDER_RECHECK_PX (the stage is then run once more with them). The first measurement is
     taken at the last Adam level's pose: on small images (the phantom at 256 px) that pose can be
     far enough off to measure a border 0.3–0.6 px wrong, which the final fit then keeps."""
-    if not (options.border_correction and stage.optimizer == "lbfgs" and set(stage.views) == set(used_views)):
+    if not (options.border_correction and stage.optimizer != "adam" and set(stage.views) == set(used_views)):
         return False
     before = dict(problem.border_shift_px)
     problem.update_border_shifts(pose, stage.views)

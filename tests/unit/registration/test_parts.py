@@ -83,6 +83,18 @@ def test_schedule_shapes():
     assert build_schedule("lat", 400, 100)[-1].views == ("lat",)
 
 
+def test_two_view_pyramids_end_with_levenberg_marquardt_where_the_jacobian_kernel_runs():
+    for configuration in ("simultaneous", "ap_then_lat"):
+        lbfgs, lm = build_schedule(configuration, 800, 300), build_schedule(configuration, 800, 300, jacobian=True)
+        handover, final = lm[-2:]
+        assert lm[:-2] == lbfgs[:-1]  # the Adam levels are untouched
+        assert handover.optimizer == final.optimizer == "gauss_newton" and handover.handover and not final.handover
+        assert handover.scale == lm[-3].scale and handover.blur_px > 0 and not handover.all_starts and not handover.float64
+        assert final.name == lbfgs[-1].name and final.scale == 1.0 and final.sigma_px == lbfgs[-1].sigma_px and final.float64
+    assert build_schedule("ap", 800, 300, jacobian=True) == build_schedule("ap", 800, 300)  # one view: L-BFGS
+    assert build_schedule("simultaneous", 150, 300, jacobian=True)[-1].optimizer == "lbfgs"  # no pyramid: L-BFGS
+
+
 def test_options_errors_name_the_field():
     with pytest.raises(DsaregInputError, match="options.configuration"):
         parse_options({"configuration": "sideways"})
