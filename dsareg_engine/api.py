@@ -74,11 +74,13 @@ from .warmup import compile_later_groups, warm_up_job, warm_up_kernels, warm_up_
 if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never imported here at run time)
     from .hemodynamics.intake import check_timed_runs
     from .io.case import CaseFiles, load_case, load_case_files
+    from .io.model_cache import DirectoryModelStore
     from .io.xa_run import ImageReading
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
 
 _LAZY = {  # heavy: loaded on first use (the module docstring says why and what each costs)
     "CaseFiles": "dsareg_engine.io.case",
+    "DirectoryModelStore": "dsareg_engine.io.model_cache",
     "load_case": "dsareg_engine.io.case",
     "load_case_files": "dsareg_engine.io.case",
     "ImageReading": "dsareg_engine.io.xa_run",
@@ -102,6 +104,7 @@ __all__ = [
     "RESULT_JSON",
     "CaseFiles",
     "DicomIdentity",
+    "DirectoryModelStore",
     "DicomSources",
     "DsaregInputError",
     "GeometrySpec",

@@ -29,6 +29,7 @@ from .errors import DsaregInputError
 from .io.case import Case, CaseFiles, load_case_files
 from .io.dicom_identity import DicomSources
 from .io.limits import DEFAULT_LIMITS, InputLimits
+from .io.model_cache import ModelStore
 from .io.input_decisions import InputDecision, with_close_calls
 from .io.review_files import write_model_json, write_view_files
 from .io.view_roles import views_swapped
@@ -62,7 +63,7 @@ required (a failure raises: the caller stores them in a PACS)."""
 def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_dir: Path, *,
              limits: InputLimits = DEFAULT_LIMITS, progress: Callable[[dict], None] | None = None,
              should_stop: Callable[[], bool] | None = None, label: str | None = None,
-             dicom: DicomOutputs = "best_effort") -> dict:
+             dicom: DicomOutputs = "best_effort", model_store: ModelStore | None = None) -> dict:
     """Files in, files out: read the case, register it, write every output into ``out_dir``.
 
     The one call an application makes for a whole job (the service's workers do). Writes what
@@ -78,7 +79,8 @@ def run_case(files: CaseFiles, options: RegistrationOptions | dict | None, out_d
     """
     options = options if isinstance(options, RegistrationOptions) else parse_options(options)
     case = load_case_files(files, options.segmentation, limits, reading=image_reading(options),
-                           volume_reading=VolumeReading.from_options(options), mesh_units=options.mesh_units)
+                           volume_reading=VolumeReading.from_options(options), mesh_units=options.mesh_units,
+                           model_store=model_store)
     if views_swapped(case.decisions):  # the files follow the views they are (hemodynamics reads them again)
         files = dataclasses.replace(files, ap=files.lat, lat=files.ap, ap_name=files.lat_name, lat_name=files.ap_name)
     if options.hemodynamics:

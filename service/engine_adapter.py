@@ -151,17 +151,33 @@ def xa_view_angle_deg(a: tuple[float, float], b: tuple[float, float]) -> float:
 def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: str, read: Any,
                   limits: dict[str, int] | None = None, reading: dict[str, Any] | None = None,
                   volume: dict[str, Any] | None = None, mesh_units: str | None = None, *,
-                  hemodynamics: bool = False) -> Any:
+                  hemodynamics: bool = False, models: dict[str, Any] | None = None) -> Any:
     """Read a job's stored inputs as the worker will (the API's validator calls this); ``reading``:
     :func:`image_reading_json` of the job's options; ``volume``: :func:`volume_reading` of them; ``mesh_units``:
-    the options' ``mesh_units``; ``hemodynamics``: the views must also be timed runs (``engine.check_timed_runs``)."""
+    the options' ``mesh_units``; ``hemodynamics``: the views must also be timed runs (``engine.check_timed_runs``);
+    ``models``: :func:`model_cache` (a volume's model is kept there for the worker and later jobs)."""
     files = stored_case_files(inputs, geometry, read, limits)
     case = engine.load_case_files(files, segmentation, input_limits(limits),
                                   reading=engine.ImageReading(**reading) if reading else None,
-                                  volume_reading=engine.VolumeReading(**(volume or {})), mesh_units=mesh_units)
+                                  volume_reading=engine.VolumeReading(**(volume or {})), mesh_units=mesh_units,
+                                  model_store=model_store(models))
     if hemodynamics:
         engine.check_timed_runs(files)
     return case
+
+
+def model_cache(storage: Any) -> dict[str, Any] | None:
+    """The volume-model cache of ``storage`` (:class:`service.settings.StorageSettings`) as plain data for another
+    process: ``{"dir", "entries"}``, or None when it is off."""
+    folder = storage.model_dir
+    return None if folder is None else {"dir": str(folder), "entries": int(storage.model_cache_entries)}
+
+
+def model_store(models: dict[str, Any] | None) -> Any:
+    """The engine's store for :func:`model_cache`'s description (files shared by every process), or None."""
+    if not models:
+        return None
+    return engine.DirectoryModelStore(models["dir"], max_entries=models["entries"])
 
 
 def case_summary(case: Any) -> dict[str, Any]:
@@ -200,15 +216,15 @@ def fetched_case(files: Any, source: str) -> tuple[dict[str, Any], str | None]:
 
 
 def run_job(files: Any, options: dict[str, Any], out_dir: Path, *, limits: dict[str, int] | None, control: Any,
-            label: str, dicom: str) -> dict[str, Any]:
+            label: str, dicom: str, models: dict[str, Any] | None = None) -> dict[str, Any]:
     """A worker's one call into the engine: ``engine.run_case`` (read, register, write every output).
 
     ``control`` gives ``progress(update)`` and ``should_stop()``; ``dicom``: ``"best_effort"`` or
     ``"required"`` (a job by DICOMweb reference stores them in its PACS). Returns the result as
-    strict JSON (no NaN, no numpy types), warnings included.
+    strict JSON (no NaN, no numpy types), warnings included. ``models``: :func:`model_cache`.
     """
     result = engine.run_case(files, options, out_dir, limits=input_limits(limits), progress=control.progress,
-                             should_stop=control.should_stop, label=label, dicom=dicom)
+                             should_stop=control.should_stop, label=label, dicom=dicom, model_store=model_store(models))
     return json_safe(result)
 
 

@@ -91,6 +91,16 @@ class StorageSettings(_Group):
                     "(507 + Retry-After) before anything is written, a worker does not claim jobs below it, and new "
                     "DICOM associations are refused (C-STORE answers 'out of resources'); 0: no floor (a full disk "
                     "is still a 507, never a 500).")
+    model_cache_entries: int = Field(
+        16, ge=0, description="Vessel models read from volumes kept in <data_dir>/models for the next job on the same "
+                              "volume (same files, same volume options): the submission's check reads the volume, "
+                              "the worker and later jobs take the model (a whole-head CTA: about a minute of CPU "
+                              "each time otherwise). The least recently used go first; 0: off.")
+
+    @property
+    def model_dir(self) -> Path | None:
+        """Where the volume models are kept, or None when the cache is off."""
+        return self.data_dir / "models" if self.model_cache_entries > 0 else None
 
 
 class DatabaseSettings(_Group):

@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_job_cost(which)
     _add_views(which)
     _add_segmentation(which)
+    _add_whole_head(which)
     return parser
 
 
@@ -246,6 +247,13 @@ def _add_segmentation(which) -> None:
 
     add_bench(which)
     add_training(which)
+
+
+def _add_whole_head(which) -> None:
+    """``python -m benchmarks.engine whole-head``: a 512 x 512 x 440 CTA read and registered twice (issue 41)."""
+    from .whole_head import add_parser
+
+    add_parser(which)
 
 
 def _add_views(which) -> None:

@@ -22,7 +22,8 @@ from ..vision.segmentation_choice import segmentation_decision
 from ..vision.segmentation_scale import SegmentationScale, coverage_at_scale
 from .view_roles import Acquisition, named_views
 from .xa_run import ImageReading
-from .volume_io import read_volume
+from .model_cache import CachedModel, ModelStore, model_key
+from .volume_io import read_volume, read_volume_identities
 from .volume_kind import VolumeReading
 from .volume_vessels import VolumeReadout, extract_vessels
 
@@ -108,7 +109,7 @@ class CaseFiles:
 
 def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputLimits = DEFAULT_LIMITS,
                     reading: ImageReading | None = None, volume_reading: VolumeReading | None = None,
-                    mesh_units: str | None = None) -> Case:
+                    mesh_units: str | None = None, model_store: ModelStore | None = None) -> Case:
     """:func:`load_case` for a :class:`CaseFiles`; its ``warnings`` come first in the case's.
 
     ``reading`` (e.g. from the job's options) adds to the files' own: frames given by both must agree.
@@ -117,7 +118,8 @@ def load_case_files(files: CaseFiles, segmentation: str = "auto", limits: InputL
     case = load_case(mesh=files.mesh, mesh_name=files.mesh_name, volume=files.volume, volume_name=files.volume_name,
                      ap=files.ap, ap_name=files.ap_name, lat=files.lat, lat_name=files.lat_name,
                      geometry=files.geometry, segmentation=segmentation, limits=limits,
-                     reading=own.merged(reading), volume_reading=volume_reading, mesh_units=mesh_units)
+                     reading=own.merged(reading), volume_reading=volume_reading, mesh_units=mesh_units,
+                     model_store=model_store)
     case.warnings[:0] = list(files.warnings)
     return case
 
@@ -139,6 +141,7 @@ def load_case(
     reading: ImageReading | None = None,
     volume_reading: VolumeReading | None = None,
     mesh_units: str | None = None,
+    model_store: ModelStore | None = None,
 ) -> Case:
     """Read, validate and segment the inputs of one case.
 
@@ -158,6 +161,8 @@ def load_case(
         volume_reading: how to read vessels from a volume (kind, thresholds); ``None`` = detect.
         mesh_units: the mesh file's unit (``mm``, ``cm``, ``m``); ``None``: the format's own (GLB: metres), else
             mm. A model whose size is implausible for head arteries in that unit is refused (:mod:`.mesh_units`).
+        model_store: where a volume's model is kept for the next case on the same volume (:mod:`.model_cache`);
+            ``None``: the volume is read every time.
 
     Raises:
         DsaregInputError: with ``field`` naming the input at fault.
@@ -170,7 +175,7 @@ def load_case(
         )
     decisions: list[InputDecision] = []
     surface, volume_readout, volume_sources = _read_surface(mesh, mesh_name, volume, volume_name, limits, warnings,
-                                                            kinds, volume_reading, mesh_units, decisions)
+                                                            kinds, volume_reading, mesh_units, decisions, model_store)
 
     images: dict[str, LoadedImage] = {}
     reading = reading if reading is not None else ImageReading.both(frame)
@@ -230,7 +235,7 @@ def _sources(images: dict[str, LoadedImage], volume: DicomSources) -> DicomSourc
 def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | list[bytes] | None,
                   volume_name: str | None, limits: InputLimits, warnings: list[str],
                   kinds: dict[str, str], volume_reading: VolumeReading | None = None, mesh_units: str | None = None,
-                  decisions: list[InputDecision] | None = None,
+                  decisions: list[InputDecision] | None = None, model_store: ModelStore | None = None,
                   ) -> tuple[TriangleMesh, VolumeReadout | None, DicomSources]:
     """The vessel surface from exactly one of a mesh or a volume (read by its kind, meshed, decimated), and for a
     volume what was read from it and its DICOM identities (``DicomSources.volume``); the mesh's unit (its size
@@ -250,19 +255,36 @@ def _read_surface(mesh: bytes | None, mesh_name: str | None, volume: bytes | lis
         kinds["mesh"] = result.format
         warnings.extend(result.warnings)
         return result.mesh, None, DicomSources()
+    key = model_key(volume, volume_name, volume_reading, limits.working_faces) if model_store is not None else None
+    model = model_store.get(key) if model_store is not None and key is not None else None
+    if model is not None:  # the same volume read the same way before: its headers only, for the DICOM outputs
+        identities, unreadable = read_volume_identities(volume, volume_name, field_name="volume")
+    else:
+        model, identities, unreadable = _read_volume_model(volume, volume_name, limits, volume_reading)
+        if model_store is not None and key is not None:
+            model_store.put(key, model)
+    warnings.extend(model.warnings)
+    decisions.extend(model.readout.decisions)  # kind, vessel window, bone threshold, vessel shape
+    kinds["volume"] = model.kind
+    sources = DicomSources(volume=identities, unreadable=("volume",) if unreadable else ())
+    return model.surface, model.readout, sources
+
+
+def _read_volume_model(volume: bytes | list[bytes], volume_name: str | None, limits: InputLimits,
+                       volume_reading: VolumeReading | None) -> tuple[CachedModel, tuple, bool]:
+    """A volume read, its vessels extracted, the surface decimated to the working budget: the model, the volume's
+    DICOM identities and whether one was unreadable."""
     loaded = read_volume(volume, volume_name, limits, field_name="volume")
-    warnings.extend(loaded.warnings)
+    warnings = list(loaded.warnings)
     extraction = extract_vessels(loaded, volume_reading, field_name="volume")
     surface = extraction.mesh
-    decisions.extend(extraction.readout.decisions)  # kind, vessel window, bone threshold, vessel shape
     unit_decision(surface, MeshUnit("mm", "tag"), "volume")  # a size no head has: a wrong voxel spacing
-    kinds["volume"] = loaded.kind
     if surface.n_faces > limits.working_faces:
         original = surface.n_faces
         surface = decimate(surface, limits.working_faces)
         warnings.append(f"volume: surface decimated from {original} to {surface.n_faces} faces")
-    sources = DicomSources(volume=loaded.dicom, unreadable=("volume",) if loaded.dicom_unreadable else ())
-    return surface, extraction.readout, sources
+    model = CachedModel(surface, extraction.readout, tuple(warnings), loaded.kind)
+    return model, loaded.dicom, loaded.dicom_unreadable
 
 
 def _view_for_image(rig: Rig, name: str, image: LoadedImage, warnings: list[str]) -> ViewGeometry:

@@ -47,7 +47,7 @@ from .volume_formats import check_affine as _check_affine
 from .volume_formats import check_bytes as _check_bytes
 from .volume_series import pick_volume_series
 
-__all__ = ["RAS_TO_LPS", "Volume", "read_volume", "volume_to_mesh"]
+__all__ = ["RAS_TO_LPS", "Volume", "read_volume", "read_volume_identities", "volume_to_mesh"]
 
 
 @dataclass
@@ -136,6 +136,27 @@ def read_volume(
     if fmt == "rad":
         raise DsaregInputError("a .rad header needs its .raw file too (send both)", field=field_name)
     raise DsaregInputError("content is not a recognised volume format", field=field_name, accepted=_ACCEPTED)
+
+
+def read_volume_identities(data: bytes | list[bytes], name: str | None = None, *,
+                           field_name: str = "volume") -> tuple[tuple[DicomIdentity, ...], bool]:
+    """The DICOM identities of a volume's files and whether one was unreadable, as :func:`read_volume` gives them
+    (``Volume.dicom``, ``Volume.dicom_unreadable``), from the headers alone: no pixel decoded (a model cache hit,
+    :mod:`.model_cache`). ``((), False)`` for a volume that is not DICOM."""
+    parts = [bytes(part) for part in data] if isinstance(data, (list, tuple)) else [data]
+    if len(parts) == 1:
+        fmt = detect_volume_format(parts[0]) or ("dicom" if (name or "").lower().endswith((".dcm", ".dicom", ".ima"))
+                                                 else None)
+        if fmt != "dicom":
+            return (), False
+    elif len(parts) == 2 and any(_detached_format(p) or rad_format.looks_like_rad(p[:4096]) for p in parts):
+        return (), False
+    headers = [parse_dicom(part, field_name)[0] for part in parts]
+    if len(parts) > 1:
+        headers = [headers[i] for i in pick_volume_series(headers, field_name=field_name)[0]]
+    identities = [identity_or_none(header) for header in headers]
+    return (tuple(identity for identity, _ in identities if identity is not None),
+            any(unreadable for _, unreadable in identities))
 
 
 def _detached_format(data: bytes) -> str | None:
@@ -295,7 +316,7 @@ def read_dicom_series(
             if (int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)) != (rows, cols):
                 raise DsaregInputError("DICOM slices differ in size", field=field_name)
         geometry = [_frame_geometry(header, None, field_name) for header in headers]
-        slices = [_dicom_pixels(one, field_name) for one in parsed]
+        slices = parsed  # decoded one at a time into the volume below (not all held as float32 at once)
         kind = "dicom-series"
     row_dir, col_dir, spacing = geometry[0][1], geometry[0][2], geometry[0][3]
     for _, other_row, other_col, _ in geometry[1:]:
@@ -305,10 +326,12 @@ def read_dicom_series(
     positions = np.array([g[0] for g in geometry])
     order = np.argsort(positions @ normal)
     positions = positions[order]
-    for s in slices:
-        if s.shape != (rows, cols):
+    voxels = np.empty((cols, rows, len(order)), np.float32)  # [i=col, j=row, k]
+    for k, index in enumerate(order):
+        one = slices[index] if kind == "dicom-enhanced" else _dicom_pixels(slices[index], field_name)
+        if one.shape != (rows, cols):
             raise DsaregInputError("a DICOM slice has pixel data of the wrong size", field=field_name)
-    voxels = np.stack([slices[i].T for i in order], axis=2).astype(np.float32)  # [i=col, j=row, k]
+        voxels[:, :, k] = one.T
     affine = _series_affine(positions, row_dir, col_dir, spacing, field_name)
     identities = [identity_or_none(header) for header in headers]
     return Volume(voxels, affine, kind, warnings=series_warnings, tags=_identity_tags(first),

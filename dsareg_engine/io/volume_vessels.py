@@ -59,6 +59,7 @@ DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spre
 VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the way from the noise floor to the tissue
 PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
+HEAD_MARGIN_VOX = 6  # CTA: the head's box (above air) grown by this: past the smoothing (2 voxels) and the skin
 
 
 @dataclass
@@ -146,22 +147,48 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     else:
         kind, source = reading.kind, "given: volume_kind"
     spacing = np.asarray(volume.spacing_mm)
-    smooth = ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
+    head = _head_box(voxels) if kind == "cta" else tuple(slice(0, n) for n in voxels.shape)
+    affine = _cropped_affine(volume.affine, head)
+    smooth = ndimage.gaussian_filter(voxels[head], SMOOTHING_SIGMA_VOX)
     if kind == "3d-dsa":
         (field, mask, levels), excluded, plate_share = _dsa3d(smooth, reading, field_name), None, None
     else:
-        field, mask, levels, excluded, plate_share = _tubes(kind, smooth, volume.affine, spacing, reading, field_name)
+        field, mask, levels, excluded, plate_share = _tubes(kind, smooth, affine, spacing, reading, field_name)
+    del smooth
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
-                            levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(mask.size), labels_count,
+                            levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(voxels.size), labels_count,
                             "local half maximum" if "low" in levels else "level")
-    measures = check_vessel_shape(mask, spacing, readout, field_name=field_name, plate_share=plate_share)
+    kept = _uncropped(mask, head, voxels.shape)
+    measures = check_vessel_shape(kept, spacing, readout, field_name=field_name, plate_share=plate_share)
     readout.plate_share = measures["plate_fraction"]
     readout.decisions = _decisions(readout, reading, voxels, levels)
-    mesh = surface_from_mask(field, mask, levels["min"], volume.affine, field_name=field_name)
+    mesh = surface_from_mask(field, mask, levels["min"], affine, field_name=field_name)
     readout.faces = mesh.n_faces
-    return VesselExtraction(mesh, readout, mask, excluded)
+    return VesselExtraction(mesh, readout, kept, None if excluded is None else _uncropped(excluded, head, voxels.shape))
+
+
+def _head_box(voxels: np.ndarray) -> tuple[slice, ...]:
+    """A CTA's head: the box of the voxels above air (``AIR_HU``), grown by ``HEAD_MARGIN_VOX`` (past the smoothing's
+    reach and the skin's partial volume). The air around a head holds no vessel, tissue or bone level, so reading
+    the box reads the same; a whole-head series is half air (memory and time follow the box, not the grid)."""
+    return bounding_box(voxels > AIR_HU, margin=HEAD_MARGIN_VOX) or tuple(slice(0, n) for n in voxels.shape)
+
+
+def _cropped_affine(affine: np.ndarray, box: tuple[slice, ...]) -> np.ndarray:
+    """The affine of the sub-grid ``box`` (its voxel 0 is the grid's voxel ``box.start``)."""
+    out = np.array(affine, float)
+    out[:3, 3] = affine[:3, :3] @ np.array([b.start for b in box], float) + affine[:3, 3]
+    return out
+
+
+def _uncropped(mask: np.ndarray, box: tuple[slice, ...], shape) -> np.ndarray:
+    if mask.shape == tuple(shape):
+        return mask
+    out = np.zeros(shape, bool)
+    out[box] = mask
+    return out
 
 
 def _labelled(volume: Volume, voxels: np.ndarray, labels: LabelMap, field_name: str) -> VesselExtraction:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 from ..budgets import check_job_cost
-from ..engine_adapter import check_options, engine, image_reading_json, job_case, volume_reading
+from ..engine_adapter import check_options, engine, image_reading_json, job_case, model_cache, volume_reading
 from ..jobs.callbacks import url_problem
 from ..pacs.instance_check import InstanceLimits, refusal_of_file
 from ..storage.blobs import safe_suffix
@@ -162,6 +162,7 @@ async def validate_inputs(ctx: IntakeContext, inputs: list[InputFile], geometry:
         "mesh_units": options.mesh_units,
         "hemodynamics": options.hemodynamics,
         "blob_root": str(ctx.blobs.root), "limits": ctx.settings.limits.input_limits,
+        "models": model_cache(ctx.settings.storage),
         "require_cuda": options.device == "cuda" and ctx.settings.jobs.executor == "embedded",
     })
     if outcome.unavailable:

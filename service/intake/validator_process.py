@@ -94,7 +94,7 @@ def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: i
             inputs = [InputFile(**item) for item in request["inputs"]]
             case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
                                  request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
-                                 hemodynamics=bool(request.get("hemodynamics")))
+                                 hemodynamics=bool(request.get("hemodynamics")), models=request.get("models"))
             conn.send({"ok": True, "summary": case_summary(case)})
         except engine.DsaregInputError as exc:
             conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})

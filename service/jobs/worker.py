@@ -31,7 +31,7 @@ from ..pacs.dicomweb import PacsError
 from ..pacs.dimse.export import dimse_job
 from .exports import export_target, source_of
 from ..storage.diskspace import has_room, is_disk_full
-from ..engine_adapter import collect_artifacts, engine, fetched_case, run_job, stored_case_files
+from ..engine_adapter import collect_artifacts, engine, fetched_case, model_cache, run_job, stored_case_files
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
 from ..storage.interfaces import Leases
@@ -269,7 +269,8 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
         files = pacs.fetch()
         _record_case(finish.store, job, files, "dicomweb" if isinstance(pacs, PacsJob) else "dimse", settings)
     result = run_job(files, job.options, out_dir, limits=settings.limits.input_limits, control=control,
-                     label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required")
+                     label=f"job {job.id}", dicom="best_effort" if pacs is None and dimse is None else "required",
+                     models=model_cache(settings.storage))
     if control.lost:
         return "lost"
     export = export_target(pacs, dimse, after_review=settings.jobs.export_after_review)  # sent by the exporter

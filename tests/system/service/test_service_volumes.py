@@ -42,6 +42,23 @@ def test_a_cta_registers_and_the_result_says_how_it_was_read(server, cta):
     assert volume["tissue_level"] < volume["vessel_min"] < volume["vessel_max"]
     assert 0 < volume["voxels_kept"] < 0.01 * volume["voxels_total"] and volume["faces"] > 500
     assert result["metrics"]["ground_truth"]["add_mm"] < 0.6, result["metrics"]["ground_truth"]
+    _the_second_job_takes_the_model(server, cta, options, volume)
+
+
+def _the_second_job_takes_the_model(server, cta, options, volume):
+    """Issue 41: the submission's check read the volume and kept its model (<data_dir>/models); the worker and a
+    second job on the same series take it: one model file, used (its time touched) by each, the same readout."""
+    models = sorted((server.data_dir / "models").glob("*.npz"))
+    assert len(models) == 1, models
+    used = models[0].stat().st_mtime_ns
+    with server.client() as client:
+        response = _post(client, cta, options)
+        assert response.status_code == 202, response.text
+        job = wait_for(client, response.json()["id"], timeout=300)
+    assert job["status"] == "succeeded", job
+    assert job["result"]["volume"] == volume
+    assert sorted((server.data_dir / "models").glob("*.npz")) == models
+    assert models[0].stat().st_mtime_ns > used
 
 
 def test_no_vessels_in_the_window_is_refused_at_submission(server, cta):

@@ -59,3 +59,45 @@ def test_plate_parts_are_told_from_tube_parts():
     assert (shape.plate & ~vessel).sum() > 0.9 * (both & ~vessel).sum()
     far_tube = vessel & ~plate(voxel, 12.0, width_mm=60.0)  # the tube away from the slab
     assert (shape.plate & far_tube).sum() < 0.05 * far_tube.sum()
+
+
+def test_the_working_grid_is_bounded_by_voxels_not_millimetres():
+    """Issue 41 item 2: a 256³ 3DRA whose file says 1 mm (the anatomy says ~0.4) was upsampled to a 0.5 mm working
+    grid (8× its voxels) and peaked at 3.2 GB. The working voxel is coarsened to hold at most MAX_WORK_VOXELS."""
+    from dsareg_engine.io import medial_shape as module
+
+    assert module.working_mm((100, 100, 100), (0.5, 0.5, 0.5)) == module.WORK_MM
+    coarse = module.working_mm((256, 256, 256), (1.0, 1.0, 1.0))  # 512³ at 0.5 mm: 134 M voxels
+    assert coarse > module.WORK_MM
+    assert np.prod(np.array([256, 256, 256]) * 1.0 / coarse) == pytest.approx(module.MAX_WORK_VOXELS, rel=1e-6)
+
+
+def test_a_plate_on_a_capped_working_grid_still_reads_as_a_plate(monkeypatch):
+    """The same plate and tube, measured with the cap forcing a working grid twice as coarse: still told apart."""
+    from dsareg_engine.io import medial_shape as module
+
+    mask = plate(0.5, 3.0) | np.roll(tube(0.5, 1.5, size_mm=50.0), 0, axis=0)
+    fine = medial_shape(mask, (0.5,) * 3).plate_share
+    monkeypatch.setattr(module, "MAX_WORK_VOXELS", int(mask.size / 8))
+    capped = medial_shape(mask, (0.5,) * 3)
+    assert module.working_mm(mask.shape, (0.5,) * 3) == pytest.approx(2 * module.WORK_MM)
+    assert capped.plate_share == pytest.approx(fine, abs=0.1) and capped.plate_share > 0.5
+    assert medial_shape(tube(0.5, 2.5), (0.5,) * 3).plate_share < 0.3
+
+
+def test_a_coarse_voxel_volume_is_measured_within_a_memory_bound():
+    """The peak of measuring a large mask (160³ at 1.6 mm: 384² × 448 working voxels at 0.5 mm, several GB before)
+    stays within a bound set by MAX_WORK_VOXELS (here 4 M, to keep the test short), in a fresh process."""
+    import subprocess
+    import sys
+
+    code = ("import resource, numpy as np; from dsareg_engine.io import medial_shape as module; "
+            "from dsareg_engine.io.medial_shape import medial_shape; module.MAX_WORK_VOXELS = 4_000_000; "
+            "m = np.zeros((160, 160, 160), bool); m[20:140, 20:140, 60:66] = True; m[70:76, 70:76, 10:150] = True; "
+            "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss; "
+            "s = medial_shape(m, (1.6, 1.6, 1.6), with_parts=True); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base, s.plate_share)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=300)
+    grown_kb, share = out.stdout.split()
+    assert int(grown_kb) < 500_000, out.stdout  # the uncapped grid (77 M working voxels) needs GBs
+    assert float(share) > 0.5

@@ -60,6 +60,7 @@ ADDED_SINCE_BASE |= {"DSAREG_DICOM_INBOX_RETENTION_HOURS"}  # the DICOM inbox is
 ADDED_SINCE_BASE |= {"DSAREG_EXPORT_LEASE_SECONDS"}  # issue 34: was a constant (15 s); the tests wait less for it
 ADDED_SINCE_BASE |= {"DSAREG_WARM_UP_JOB"}  # issue 34: test servers start without the warm-up job
 ADDED_SINCE_BASE |= {"DSAREG_PACS_ACCESS"}  # issue 43: which PACS studies each API key may have fetched
+ADDED_SINCE_BASE |= {"DSAREG_MODEL_CACHE_ENTRIES"}  # issue 41: volume models kept for the next job on the volume
 
 
 def _env_names_of(settings_source: str) -> list[str]:

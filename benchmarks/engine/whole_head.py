@@ -1,0 +1,99 @@
+"""``python -m benchmarks.engine whole-head``: a whole-head CTA as scanners write it, read and registered twice.
+
+The head (:func:`dsareg_engine.simulation.synthetic_heads_layered.make_layered_cta_head`: tables and diploë, a
+cancellous skull base, streak noise; the phantom's tree) on a scanner's grid (default 512 × 512 × 440 at 0.45 mm,
+air around a 174 × 204 mm head), written as a DICOM series beside its XA pair (256 px, geometry in the tags). Each
+job runs in a fresh process (its peak RSS is its own): the case read as a job reads it, then registered with no
+initial pose, with a volume-model store (:mod:`dsareg_engine.io.model_cache`) in a temporary folder shared by
+both. Job 1 reads the volume and keeps its model; job 2 takes it. A row: CPU s and peak RSS of the whole job (read +
+registration), the read's CPU s, ADD, verdict, voxels kept.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+GRID_VOX = (512, 512, 440)
+VOXEL_MM = 0.45
+HEAD_MM = (70.0, 85.0, 70.0)  # the skull's inner half-extents (a head, not the tree's box)
+
+
+def add_parser(which) -> None:
+    sub = which.add_parser("whole-head", help="a whole-head CTA (512 x 512 x 440 at 0.45 mm): CPU s and peak RSS of "
+                                              "two jobs on it (the second takes the kept model)")
+    sub.add_argument("--voxel", type=float, default=VOXEL_MM, help="voxel size, mm (isotropic)")
+    sub.add_argument("--grid", default="x".join(map(str, GRID_VOX)), help="the scanner's grid, e.g. 512x512x440")
+    sub.set_defaults(func=bench_whole_head)
+
+
+def _write_case(folder: Path, voxel_mm: float, grid: tuple[int, int, int]) -> Path:
+    from dsareg_engine.io.case import CaseFiles
+    from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head
+    from dsareg_engine.simulation.synthetic_volumes import fitting_pixel_spacing_mm, vessel_tree, volume_case_of
+    from .clinical_volumes import TREE_DEPTH, VolumeCaseFiles
+
+    tree = vessel_tree(TREE_DEPTH, 3)
+    volume = make_layered_cta_head(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid)
+    case = volume_case_of(volume, image_px=256, pixel_spacing_mm=fitting_pixel_spacing_mm(tree, 256))
+    files = CaseFiles(ap=case.ap, ap_name="ap.dcm", lat=case.lat, lat_name="lat.dcm", volume=volume.parts,
+                      volume_name="series.dcm")
+    path = folder / "case.pickle"
+    path.write_bytes(pickle.dumps(VolumeCaseFiles(files, case.mesh_to_world)))
+    return path
+
+
+def run_job(case_path: str, models: str) -> dict:
+    """One job in this process: read (with the model store ``models``) and register; CPU s and peak RSS."""
+    import resource
+    import time
+
+    from dsareg_engine.io.case import load_case_files
+    from dsareg_engine.io.input_decisions import with_close_calls
+    from dsareg_engine.io.model_cache import DirectoryModelStore
+    from dsareg_engine.registration.options import parse_options
+    from dsareg_engine.registration.solver import register
+
+    case = pickle.loads(Path(case_path).read_bytes())
+
+    def cpu() -> float:
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        return usage.ru_utime + usage.ru_stime
+
+    options = parse_options({"device": "cpu", "ground_truth_mesh_to_world": case.mesh_to_world.tolist()})
+    start, wall = cpu(), time.perf_counter()
+    loaded = load_case_files(case.files, options.segmentation, model_store=DirectoryModelStore(models))
+    read_cpu = cpu() - start
+    result = register(loaded.mesh, loaded.fitted, loaded.rig, options)
+    confidence = with_close_calls({"metrics": {"confidence": dict(result.metrics.get("confidence") or {})}},
+                                  list(loaded.decisions))["metrics"]["confidence"]
+    return {"read_cpu_s": read_cpu, "cpu_s": cpu() - start, "wall_s": time.perf_counter() - wall,
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+            "add_mm": result.metrics["ground_truth"]["add_mm"], "verdict": confidence.get("verdict", "?"),
+            "voxels_kept": loaded.volume.voxels_kept, "faces": loaded.mesh.n_faces}
+
+
+def bench_whole_head(args) -> int:
+    grid = tuple(int(v) for v in args.grid.lower().split("x"))
+    with tempfile.TemporaryDirectory() as folder:
+        print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} CTA at {args.voxel:g} mm ...", flush=True)
+        case_path = _write_case(Path(folder), args.voxel, grid)
+        print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for job in ("1: reads the volume", "2: the kept model"):
+            code = ("import json, sys; from benchmarks.engine.whole_head import run_job; "
+                    "print(json.dumps(run_job(sys.argv[1], sys.argv[2])))")
+            out = subprocess.run([sys.executable, "-c", code, str(case_path), str(Path(folder) / "models")],
+                                 capture_output=True, text=True, check=True)
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            print(f"| {job} | {row['read_cpu_s']:.1f} | {row['cpu_s']:.1f} | {row['wall_s']:.1f} | "
+                  f"{row['peak_rss_gb']:.2f} | {row['add_mm']:.3f} | {row['verdict']} | {row['voxels_kept']} | "
+                  f"{row['faces']} |", flush=True)
+    return 0
+
+
+__all__ = ["add_parser", "bench_whole_head", "run_job"]

@@ -1,0 +1,145 @@
+"""Vessel models extracted from volumes, kept for the next job on the same volume.
+
+A hospital registers one CTA against several runs; each job read it again (a whole-head CTA: a minute of CPU and
+GBs). Here a volume's model is kept under a key made of the volume's content and of everything its reading depends
+on, and a later job with the same key takes the model instead of reading the volume:
+
+* **key** (:func:`model_key`): SHA-256 of ``MODEL_VERSION``, the volume's files (each one's SHA-256, in order), its
+  file name, the :class:`~.volume_kind.VolumeReading` (kind, window, labels) and the working face budget;
+* **value** (:class:`CachedModel`): the surface (after decimation), the readout with its decisions, the reader's
+  warnings and the volume's format. No DICOM identity is kept (patient data stays with the uploads): a hit reads
+  the series' headers again (:func:`.volume_io.read_volume_identities`, no pixel decoding);
+* **store** (:class:`DirectoryModelStore`): one ``.npz`` file per key in a folder every process of a deployment
+  shares (the service's data folder), written to a temporary name then renamed (a reader never sees half a file,
+  two writers of one key write the same bytes), bounded in entries and bytes (the least recently used go first),
+  read without pickle. An unreadable entry is a miss (and removed).
+
+Bump ``MODEL_VERSION`` whenever the extraction's output for the same input changes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from ..mesh import TriangleMesh
+from .input_decisions import InputDecision
+from .volume_kind import VolumeReading
+from .volume_vessels import VolumeReadout
+
+MODEL_VERSION = "volume-model-1"
+
+
+@dataclass(frozen=True)
+class CachedModel:
+    """What a volume's reading gave a case: its surface (world mm, decimated), readout, warnings and format."""
+
+    surface: TriangleMesh
+    readout: VolumeReadout
+    warnings: tuple[str, ...]
+    kind: str
+
+
+def model_key(volume: bytes | list[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:
+    """The cache key of a volume read with ``reading`` into at most ``working_faces`` faces (hex SHA-256)."""
+    parts = list(volume) if isinstance(volume, (list, tuple)) else [volume]
+    described = {"version": MODEL_VERSION, "files": [hashlib.sha256(bytes(p)).hexdigest() for p in parts],
+                 "name": name or "", "reading": asdict(reading or VolumeReading()), "faces": int(working_faces)}
+    return hashlib.sha256(json.dumps(described, sort_keys=True, default=list).encode()).hexdigest()
+
+
+def to_bytes(model: CachedModel) -> bytes:
+    """An ``.npz`` of the model: ``vertices``, ``faces`` and ``meta`` (JSON: readout, decisions, warnings, kind)."""
+    readout = asdict(model.readout)
+    meta = {"readout": readout, "warnings": list(model.warnings), "kind": model.kind}
+    out = io.BytesIO()
+    np.savez(out, vertices=model.surface.vertices, faces=model.surface.faces,
+             meta=np.frombuffer(json.dumps(meta).encode(), np.uint8))
+    return out.getvalue()
+
+
+def from_bytes(data: bytes) -> CachedModel:
+    """The model :func:`to_bytes` wrote (no pickle); raises ``ValueError`` / ``KeyError`` on anything else."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as stored:
+        vertices, faces = np.array(stored["vertices"], np.float64), np.array(stored["faces"], np.int64)
+        meta = json.loads(bytes(stored["meta"]).decode())
+    readout = dict(meta["readout"])
+    readout["decisions"] = [InputDecision(**item) for item in readout.get("decisions", [])]
+    return CachedModel(TriangleMesh(vertices, faces), VolumeReadout(**readout), tuple(meta["warnings"]),
+                       str(meta["kind"]))
+
+
+class ModelStore(Protocol):
+    """Where models are kept: ``get`` a key's model (None: a miss), ``put`` one."""
+
+    def get(self, key: str) -> CachedModel | None: ...
+
+    def put(self, key: str, model: CachedModel) -> None: ...
+
+
+class DirectoryModelStore:
+    """Models as files in ``root`` (created on first use), at most ``max_entries`` of them and ``max_bytes`` in all."""
+
+    def __init__(self, root: str | os.PathLike, max_entries: int = 32, max_bytes: int = 256 << 20):
+        self.root, self.max_entries, self.max_bytes = Path(root), int(max_entries), int(max_bytes)
+
+    def _path(self, key: str) -> Path:
+        if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
+            raise ValueError("a model key is a hex SHA-256")
+        return self.root / f"{key}.npz"
+
+    def get(self, key: str) -> CachedModel | None:
+        path = self._path(key)
+        try:
+            model = from_bytes(path.read_bytes())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError):  # a damaged entry: a miss, and gone
+            path.unlink(missing_ok=True)
+            return None
+        try:
+            os.utime(path)  # recently used
+        except OSError:
+            pass
+        return model
+
+    def put(self, key: str, model: CachedModel) -> None:
+        data = to_bytes(model)
+        if len(data) > self.max_bytes:
+            return
+        self.root.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=self.root, prefix=".model-", suffix=".tmp")
+        try:
+            with os.fdopen(handle, "wb") as out:
+                out.write(data)
+            os.replace(temporary, self._path(key))
+        except OSError:
+            Path(temporary).unlink(missing_ok=True)
+            return
+        self._evict()
+
+    def _evict(self) -> None:
+        entries = []
+        for path in self.root.glob("*.npz"):
+            try:
+                status = path.stat()
+            except OSError:
+                continue
+            entries.append((status.st_mtime, status.st_size, path))
+        entries.sort(reverse=True)  # newest first
+        total = 0
+        for rank, (_, size, path) in enumerate(entries):
+            total += size
+            if rank >= self.max_entries or total > self.max_bytes:
+                path.unlink(missing_ok=True)
+
+
+__all__ = ["CachedModel", "DirectoryModelStore", "MODEL_VERSION", "ModelStore", "from_bytes", "model_key", "to_bytes"]
