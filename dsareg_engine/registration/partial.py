@@ -38,11 +38,31 @@ def _near(mask: np.ndarray, tolerance_px: float) -> np.ndarray:
     return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= tolerance_px
 
 
-def match_fractions(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float = MATCH_TOLERANCE_PX) -> dict:
-    """``{"unmatched": …, "uncovered": …}`` of one view (see the module); 1.0 where the silhouette / mask is empty."""
-    unmatched = float((silhouette & ~_near(mask, tolerance_px)).sum() / silhouette.sum()) if silhouette.any() else 1.0
-    uncovered = float((mask & ~_near(silhouette, tolerance_px)).sum() / mask.sum()) if mask.any() else 1.0
-    return {"unmatched": unmatched, "uncovered": uncovered}
+def match_fractions(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float = MATCH_TOLERANCE_PX,
+                    mask_near: np.ndarray | None = None) -> dict:
+    """``{"unmatched": …, "uncovered": …}`` of one view (see the module); 1.0 where the silhouette / mask is empty.
+    ``mask_near``: ``_near(mask, tolerance_px)`` when the caller keeps it."""
+    return {"unmatched": _unmatched(silhouette, mask, tolerance_px, mask_near), "uncovered": _uncovered(silhouette, mask, tolerance_px)}
+
+
+def _unmatched(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float, mask_near: np.ndarray | None = None) -> float:
+    if not silhouette.any():
+        return 1.0
+    near = _near(mask, tolerance_px) if mask_near is None else mask_near
+    return float((silhouette & ~near).sum() / silhouette.sum())
+
+
+def _uncovered(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float) -> float:
+    return float((mask & ~_near(silhouette, tolerance_px)).sum() / mask.sum()) if mask.any() else 1.0
+
+
+def view_looks_partial(silhouette: np.ndarray, mask: np.ndarray, mask_near: np.ndarray | None = None,
+                       tolerance_px: float = MATCH_TOLERANCE_PX) -> bool:
+    """One view's part of :func:`looks_partial`, the same answer as from :func:`match_fractions`, but the uncovered
+    fraction (a distance transform of the silhouette) only computed when the unmatched one qualifies."""
+    if _unmatched(silhouette, mask, tolerance_px, mask_near) < PARTIAL_UNMATCHED:
+        return False
+    return _uncovered(silhouette, mask, tolerance_px) <= PARTIAL_UNCOVERED
 
 
 def unmatched_pixels(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float = MATCH_TOLERANCE_PX) -> np.ndarray:

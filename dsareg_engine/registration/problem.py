@@ -16,7 +16,7 @@ from .border import update_border_shift
 from .level_of_detail import _decimated, level_of_detail_faces, mean_projected_face_area_px
 from .options import RegistrationOptions
 from .parameterization import mesh_radius_mm
-from .partial import match_fractions, trimmed_weight
+from .partial import MATCH_TOLERANCE_PX, _near, match_fractions, trimmed_weight, view_looks_partial
 from .schedule import Stage
 from .targets import ViewTarget, gaussian_blur, level_target, signed_border_distance
 
@@ -47,6 +47,7 @@ class _Problem:
         self._targets: dict[tuple, ViewTarget] = {}
         self.border_shift_px = {name: 0.0 for name in masks}
         self._signed_distance: dict[str, np.ndarray] = {}
+        self._mask_near: dict[str, np.ndarray] = {}
         self._mesh_tensors: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
         self.windows: dict[tuple[str, float], tuple[int, int, int, int]] = {}
         """Per (view, scale): the pixel window ``(x0, y0, x1, y1)`` the loss is evaluated in (see set_windows)."""
@@ -162,14 +163,28 @@ class _Problem:
 
     def match_fractions(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> dict[str, dict]:
         """Per view the unmatched / uncovered fractions (:func:`.partial.match_fractions`) of the full mesh at ``mesh_to_world``."""
+        return {name: match_fractions(self._hard_silhouette(name, mesh_to_world), self.masks[name],
+                                      mask_near=self.mask_near(name)) for name in views}
+
+    def looks_partial(self, mesh_to_world: np.ndarray, views: tuple[str, ...]) -> bool:
+        """:func:`.partial.looks_partial` of :meth:`match_fractions`, view by view (:func:`.partial.view_looks_partial`):
+        the first view that rules partial visibility out ends it; the usual answer, no, then costs one hard render
+        and no distance transform (the mask's is kept, :meth:`mask_near`)."""
+        return all(view_looks_partial(self._hard_silhouette(name, mesh_to_world), self.masks[name], self.mask_near(name))
+                   for name in views)
+
+    def mask_near(self, view_name: str) -> np.ndarray:
+        """``(H, W)`` bool: within :data:`.partial.MATCH_TOLERANCE_PX` of the view's vessels, computed once."""
+        if view_name not in self._mask_near:
+            self._mask_near[view_name] = _near(self.masks[view_name], MATCH_TOLERANCE_PX)
+        return self._mask_near[view_name]
+
+    def _hard_silhouette(self, view_name: str, mesh_to_world: np.ndarray) -> np.ndarray:
+        """``(H, W)`` bool: the whole mesh's hard silhouette in the view at ``mesh_to_world``, full resolution."""
         vertices, faces = self.mesh_tensors(torch.float64)
-        fractions = {}
-        for name in views:
-            view = self.rig.views[name]
-            pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
-            silhouette = render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
-            fractions[name] = match_fractions(silhouette, self.masks[name])
-        return fractions
+        view = self.rig.views[view_name]
+        pose = torch.as_tensor(view.world_to_view @ mesh_to_world, device=self.device)[None]
+        return render_hard_silhouette(vertices, faces, pose, Camera.from_view(view))[0].cpu().numpy()
 
     def view_inputs(self, name: str, stage: Stage, dtype: torch.dtype) -> tuple[Camera, torch.Tensor, torch.Tensor | None, int]:
         """The stage's camera, target ``(h, w)`` and weight ``(h, w)`` or None, cut to its window if it has

@@ -13,7 +13,7 @@ import torch
 from .optimizers import _RUNNERS, _StageOutcome
 from .options import RegistrationOptions
 from .parameterization import PoseIncrement
-from .partial import explained_faces, looks_partial, refit_faces
+from .partial import explained_faces, refit_faces
 from .preparation import _Setup
 from .problem import _Problem
 from .progress import ProgressPlan
@@ -122,7 +122,7 @@ def _run_stage(setup: _Setup, run: _Run, reporter: _Reporter, options: Registrat
     if fine and not (problem.partial or setup.tracking or run.partial_checked):
         # The first fine stage: does a live start explain every vessel with part of the model unmatched?
         run.partial_checked = True
-        problem.partial = any(looks_partial(problem.match_fractions(pose, stage.views)) for pose in run.poses)
+        problem.partial = any(problem.looks_partial(pose, stage.views) for pose in run.poses)
     if options.border_correction and fine:
         problem.update_border_shifts(run.pose_history[-1], stage.views)
     if not stage.all_starts and len(run.poses) > 1:

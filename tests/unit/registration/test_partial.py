@@ -104,6 +104,23 @@ def test_match_fractions_and_partial_rule_by_hand():
     assert weight[20, 20] == 1.0 and weight[20, 23] == 1.0 and weight[20, 25] < 0.1  # 2 px band kept
 
 
+def test_the_per_view_partial_rule_answers_as_the_fractions_do():
+    from dsareg_engine.registration.partial import MATCH_TOLERANCE_PX, _near, view_looks_partial
+
+    rng = np.random.default_rng(3)
+    mask = np.zeros((40, 40), bool)
+    mask[10:30, 18:22] = True
+    for _ in range(200):
+        model = np.roll(mask, int(rng.integers(-6, 7)), axis=1)
+        model[10:30, 30:34] = rng.random() < 0.5
+        model[rng.integers(0, 40, 30), rng.integers(0, 40, 30)] = True
+        if rng.random() < 0.1:
+            model[:] = False
+        fractions = match_fractions(model, mask, mask_near=_near(mask, MATCH_TOLERANCE_PX))
+        assert fractions == match_fractions(model, mask)
+        assert view_looks_partial(model, mask) == view_looks_partial(model, mask, _near(mask, MATCH_TOLERANCE_PX)) == looks_partial({"ap": fractions})
+
+
 def test_verdict_tells_partial_filling_from_a_wrong_pose_and_missing_vessels():
     ok = assess(SIGNALS)
     assert ok["verdict"] == "ok" and ok["reasons"] == []
