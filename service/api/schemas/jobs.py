@@ -33,8 +33,9 @@ class Progress(BaseModel):
     stage: str = Field(description="Current stage: 'queued', 'start', an optimization stage named "
                                    "'<views>:1/<downscale>' (e.g. 'ap+lat:1/4', 'ap:1/2') or "
                                    "'<views>:1/1:refine' (the final L-BFGS), then the outputs: 'outputs' (PNGs, "
-                                   "0.92–0.96), 'animation', 'hemodynamics' (with options.hemodynamics), 'dicom' (0.98), 'storing' (STOW-RS, jobs by reference) "
-                                   "and 'saving' (0.99). A succeeded job reports its last optimization stage at 1.0.")
+                                   "0.92–0.96), 'animation', 'hemodynamics' (with options.hemodynamics), 'dicom' "
+                                   "(0.98) and 'saving' (0.99); the PACS export comes after the job (its `export`). "
+                                   "A succeeded job reports its last optimization stage at 1.0.")
     iteration: int = Field(0, description="Iteration within the stage (L-BFGS: function evaluations).")
     loss: float | None = Field(None, description="Latest loss (mean squared silhouette error over the active views).")
     fraction: float = Field(0.0, ge=0.0, le=1.0,
