@@ -326,12 +326,13 @@ def read_dicom_series(
     positions = np.array([g[0] for g in geometry])
     order = np.argsort(positions @ normal)
     positions = positions[order]
-    voxels = np.empty((cols, rows, len(order)), np.float32)  # [i=col, j=row, k]
+    stored = np.empty((len(order), rows, cols), np.float32)  # slice by slice, each one contiguous
     for k, index in enumerate(order):
         one = slices[index] if kind == "dicom-enhanced" else _dicom_pixels(slices[index], field_name)
         if one.shape != (rows, cols):
             raise DsaregInputError("a DICOM slice has pixel data of the wrong size", field=field_name)
-        voxels[:, :, k] = one.T
+        stored[k] = one
+    voxels = stored.transpose(2, 1, 0)  # [i=col, j=row, k], a view (Fortran order, as NIfTI volumes come)
     affine = _series_affine(positions, row_dir, col_dir, spacing, field_name)
     identities = [identity_or_none(header) for header in headers]
     return Volume(voxels, affine, kind, warnings=series_warnings, tags=_identity_tags(first),

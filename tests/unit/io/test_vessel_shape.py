@@ -63,3 +63,35 @@ def test_too_many_voxels_are_refused_before_the_shape_is_measured(monkeypatch):
     head = np.linalg.norm(_grid(40), axis=-1) < 16  # 27 % of the volume
     with pytest.raises(DsaregInputError, match="far more than vessels"):
         check_vessel_shape(head, SPACING, _readout("3d-dsa"))
+
+
+def test_a_solid_mass_refusal_names_the_spacing_that_would_fit():
+    """Issue 41 item 2: a 3DRA whose file says 1 mm (its voxels ~0.4 mm) was refused as "a solid mass" with a hint
+    naming options.volume_kind and the window, never the spacing. The refusal now states the spacing it read and the
+    one that would make the mass's thick parts an artery's width."""
+    grid = _grid()
+    ball = np.linalg.norm(grid, axis=-1) < 20  # 40 mm across at the stated spacing
+    with pytest.raises(DsaregInputError, match="solid mass") as info:
+        check_vessel_shape(ball, SPACING, _readout("3d-dsa"))
+    message = str(info.value)
+    stated = " × ".join(f"{v:g}" for v in np.broadcast_to(SPACING, (3,)))
+    assert f"at the stated {stated} mm voxels" in message and "voxels of about" in message, message
+    assert "spacing" in info.value.accepted
+    from dsareg_engine.io.vessel_shape import spacing_hint
+
+    tube = np.linalg.norm(grid[..., :2], axis=-1) < 2.0  # a 4 mm artery: no hint
+    assert spacing_hint(tube, SPACING) == ""
+
+
+def test_a_crop_around_the_circle_of_willis_is_not_refused_for_its_vessel_share():
+    """Issue 41 item 3: a real CTA crop of the circle of Willis kept 5.7 % of its voxels as vessels and was refused
+    ("at most 3 % for cta"); a crop that tight is mostly vessels and brain. Tubes taking 6 % pass the share check."""
+    grid = _grid(48)
+    tubes = np.zeros(grid.shape[:3], bool)
+    for axis in range(3):
+        others = [a for a in range(3) if a != axis]
+        tubes |= np.linalg.norm(grid[..., others] - 6.0 * (axis - 1), axis=-1) < 4.2
+    share = tubes.mean()
+    assert 0.05 < share < 0.09
+    measures = check_vessel_shape(tubes, SPACING, _readout("cta"))
+    assert measures["kept_fraction"] == pytest.approx(share)
