@@ -153,7 +153,10 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
                 plateau_window=PLATEAU_WINDOW if not last and len(set(scales)) > 1 else 0,
             )
         )
-    if final and jacobian and len(views) == 2 and len(set(scales)) > 1:
+    # Only after two Adam levels or more: a single (coarsest) level hands over a pose from its 2-px blur and 0.8-mm
+    # steps, from which Levenberg–Marquardt's σ-long full-size steps took longer than L-BFGS (the phantom at 512 px,
+    # no initial pose: 6 + 31 iterations against 27 L-BFGS evaluations, +10 % CPU).
+    if final and jacobian and len(views) == 2 and sum(stage.optimizer == "adam" for stage in stages) >= 2:
         stages[-1:] = _gauss_newton_finish(stages[-2], stages[-1], max_iterations)
     return stages
 

@@ -93,6 +93,8 @@ def test_two_view_pyramids_end_with_levenberg_marquardt_where_the_jacobian_kerne
         assert final.name == lbfgs[-1].name and final.scale == 1.0 and final.sigma_px == lbfgs[-1].sigma_px and final.float64
     assert build_schedule("ap", 800, 300, jacobian=True) == build_schedule("ap", 800, 300)  # one view: L-BFGS
     assert build_schedule("simultaneous", 150, 300, jacobian=True)[-1].optimizer == "lbfgs"  # no pyramid: L-BFGS
+    single = build_schedule("simultaneous", 512, 300, coarsest_scale=0.4, jacobian=True)  # one Adam level: L-BFGS
+    assert [stage.optimizer for stage in single] == ["adam", "lbfgs"]
 
 
 def test_options_errors_name_the_field():
