@@ -184,14 +184,14 @@ def test_orthanc_sends_a_study_and_gets_the_reg_back(node, orthanc, study, tmp_p
             (job,) = wait_jobs(client, study_uid)
             queued_s = time.monotonic() - started - sent_s
             done = wait_for(client, job["id"], timeout=300)
-        finished = time.monotonic()
-        assert done["status"] == "succeeded", done
-        assert export_of(client, job["id"])["state"] == "done"
-        reg_uid = done["result"]["dicom"]["instances"]["reg.dcm"]["sop_instance_uid"]
-        found = []
-        while not found and time.monotonic() - finished < 10:
-            found = pacs.post("/tools/find", json={"Level": "Instance", "Query": {"SOPInstanceUID": reg_uid}}).json()
-        in_orthanc_s = time.monotonic() - finished
+            finished = time.monotonic()
+            assert done["status"] == "succeeded", done
+            reg_uid = done["result"]["dicom"]["instances"]["reg.dcm"]["sop_instance_uid"]
+            found = []
+            while not found and time.monotonic() - finished < 10:
+                found = pacs.post("/tools/find", json={"Level": "Instance", "Query": {"SOPInstanceUID": reg_uid}}).json()
+            in_orthanc_s = time.monotonic() - finished
+            assert export_of(client, job["id"])["state"] == "done"
         reg = pydicom.dcmread(io.BytesIO(pacs.get(f"/instances/{found[0]}/file").content))
         classes = [pacs.get(f"/instances/{item['ID']}/simplified-tags").json().get("SOPClassUID")
                    for item in pacs.get(f"/studies/{orthanc_study}/instances").json()]
