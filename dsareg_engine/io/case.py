@@ -276,7 +276,7 @@ def _read_volume_model(volume: bytes | list[bytes], volume_name: str | None, lim
     DICOM identities and whether one was unreadable."""
     loaded = read_volume(volume, volume_name, limits, field_name="volume")
     warnings = list(loaded.warnings)
-    extraction = extract_vessels(loaded, volume_reading, field_name="volume")
+    extraction = extract_vessels(loaded, volume_reading, field_name="volume", release=True)
     surface = extraction.mesh
     unit_decision(surface, MeshUnit("mm", "tag"), "volume")  # a size no head has: a wrong voxel spacing
     if surface.n_faces > limits.working_faces:

@@ -129,8 +129,11 @@ class VesselExtraction:
     excluded: np.ndarray | None = None  # bool: what was set aside (CTA bone + band, the MRA scalp shell)
 
 
-def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, field_name: str = "volume") -> VesselExtraction:
-    """The vessel surface (world mm) of ``volume`` read as its kind, with the readout.
+def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, field_name: str = "volume",
+                    release: bool = False) -> VesselExtraction:
+    """The vessel surface (world mm) of ``volume`` read as its kind, with the readout. ``release``: the caller
+    needs ``volume.data`` no more: it is let go (``None``) once the head's box is smoothed (a whole-head CTA's
+    float32 grid, 0.46 GB, is not held through the reading).
 
     Raises:
         DsaregInputError: no vessels in the window, or a kept shape implausible for vessels (``field_name``).
@@ -146,27 +149,35 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
         kind, source = detect_volume_kind(volume.tags, voxels)
     else:
         kind, source = reading.kind, "given: volume_kind"
-    spacing = np.asarray(volume.spacing_mm)
+    spacing, shape, air = np.asarray(volume.spacing_mm), voxels.shape, _air_share(voxels)
     head = _head_box(voxels) if kind == "cta" else tuple(slice(0, n) for n in voxels.shape)
     affine = _cropped_affine(volume.affine, head)
     smooth = ndimage.gaussian_filter(voxels[head], SMOOTHING_SIGMA_VOX)
+    if release:
+        volume.data = voxels = None  # type: ignore[assignment]
     if kind == "3d-dsa":
         (field, mask, levels), excluded, plate_share = _dsa3d(smooth, reading, field_name), None, None
     else:
         field, mask, levels, excluded, plate_share = _tubes(kind, smooth, affine, spacing, reading, field_name)
     del smooth
+    total = int(np.prod(shape))
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
-                            levels.get("tissue"), levels.get("vessel"), int(mask.sum()), int(voxels.size), labels_count,
+                            levels.get("tissue"), levels.get("vessel"), int(mask.sum()), total, labels_count,
                             "local half maximum" if "low" in levels else "level")
-    kept = _uncropped(mask, head, voxels.shape)
+    kept = _uncropped(mask, head, shape)
     measures = check_vessel_shape(kept, spacing, readout, field_name=field_name, plate_share=plate_share)
     readout.plate_share = measures["plate_fraction"]
-    readout.decisions = _decisions(readout, reading, voxels, levels)
+    readout.decisions = _decisions(readout, reading, air, levels)
     mesh = surface_from_mask(field, mask, levels["min"], affine, field_name=field_name)
     readout.faces = mesh.n_faces
-    return VesselExtraction(mesh, readout, kept, None if excluded is None else _uncropped(excluded, head, voxels.shape))
+    return VesselExtraction(mesh, readout, kept, None if excluded is None else _uncropped(excluded, head, shape))
+
+
+def _air_share(voxels: np.ndarray) -> float:
+    """The share of voxels below ``AIR_HU`` (every second voxel per axis): the air around a head in HU."""
+    return float(np.mean(voxels[::2, ::2, ::2] < AIR_HU))
 
 
 def _head_box(voxels: np.ndarray) -> tuple[slice, ...]:
@@ -230,14 +241,18 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
         return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
 
     field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
+    read_mask = mask
     mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside, box = np.zeros(plates.shape, bool), bounding_box(plates, margin=rim)
         set_aside[box] = ndimage.binary_dilation(plates[box], iterations=rim)
         field, mask, levels, excluded = read(set_aside)
+        read_mask = mask
         mask, more, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
         plates |= more
+    if field is None:  # CTA: the surface's field, of the last reading, made once the plate measure's peak is over
+        field = _cta_field(smooth, ground, read_mask, levels)
     return field, mask, levels, excluded | plates, plate_share
 
 
@@ -333,9 +348,10 @@ def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) 
     return float(touching.sum() / max(int(surface.sum()), 1))
 
 
-def _decisions(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray, levels: dict) -> list[InputDecision]:
-    """What was decided about the volume, each with its measure and close-call band (:mod:`.input_decisions`)."""
-    decisions = [_kind_decision(readout, reading, voxels)]
+def _decisions(readout: VolumeReadout, reading: VolumeReading, air: float, levels: dict) -> list[InputDecision]:
+    """What was decided about the volume, each with its measure and close-call band (:mod:`.input_decisions`);
+    ``air``: :func:`_air_share`."""
+    decisions = [_kind_decision(readout, reading, air)]
     if readout.kind != "3d-dsa":
         given = reading.vessel_min is not None
         contrast = (levels["vessel"] - levels["tissue"]) if levels.get("vessel") is not None else None
@@ -359,13 +375,12 @@ def _decisions(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarra
     return decisions
 
 
-def _kind_decision(readout: VolumeReadout, reading: VolumeReading, voxels: np.ndarray) -> InputDecision:
+def _kind_decision(readout: VolumeReadout, reading: VolumeReading, air: float) -> InputDecision:
     if reading.kind != "auto":
         return InputDecision("volume", "volume kind", readout.kind, readout.kind_source, source="option")
     if readout.kind_source.startswith(("Modality MR", "Image Type", "Modality XA", "Modality ")) and \
             "air" not in readout.kind_source:
         return InputDecision("volume", "volume kind", readout.kind, readout.kind_source, source="tag")
-    air = float(np.mean(voxels[::2, ::2, ::2] < AIR_HU))
     return InputDecision("volume", "volume kind", readout.kind, f"{readout.kind_source}; share of voxels below "
                          f"{AIR_HU:.0f} (air around a head in HU)", air, MIN_AIR_FRACTION, MIN_AIR_FRACTION / 2.0)
 
@@ -450,9 +465,18 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     # in a bony canal (vessel and bone around), not the partial-volume layer of a bone surface (tissue beside)
     steps = int(np.ceil(PV_BAND_MM / float(spacing.min()))) + 1  # the wall beside bone: the lumen is seeded
     mask = _regrown(core, window, smooth, level, steps)
-    field = _partial_volume_field(smooth, near_bone | bone, tissue, peak, bone, bone_hu)
-    field[(near_bone | bone) & ~mask] = np.minimum(field[(near_bone | bone) & ~mask], tissue)  # no surface there
-    return field, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
+    # the surface's field: :func:`_cta_field` (made by the caller once the reading is final)
+    return None, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
+
+
+def _cta_field(smooth: np.ndarray, ground: _CtaGround, read_mask: np.ndarray, levels: dict) -> np.ndarray:
+    """The field a CTA's surface is marched in: :func:`_partial_volume_field`, and no surface at bone and its band
+    outside the voxels the reading kept (``read_mask``, before plates were set aside)."""
+    near = ground.near_bone | ground.bone
+    field = _partial_volume_field(smooth, near, levels["tissue"], levels["vessel"], ground.bone, levels["max"])
+    outside = near & ~read_mask
+    field[outside] = np.minimum(field[outside], levels["tissue"])  # no surface there
+    return field
 
 
 def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: float, steps: int) -> np.ndarray:
@@ -466,7 +490,7 @@ def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: fl
     outer_low, outer_high = np.maximum(low - 2, 0), np.minimum(high + 2, core.shape)
     inner = tuple(slice(a - b, c - b) for a, b, c in zip(low, outer_low, high))
     box, outer = (tuple(slice(a, b) for a, b in zip(lo, hi)) for lo, hi in ((low, high), (outer_low, outer_high)))
-    enclosed = ndimage.minimum_filter(smooth[outer], size=5)[inner] > level  # no tissue within 2 voxels
+    enclosed = ndimage.minimum_filter(smooth[outer] > level, size=5)[inner]  # no tissue within 2 voxels (all above)
     grown = ndimage.binary_dilation(core[box], iterations=steps, mask=core[box] | (window[box] & enclosed))
     mask = np.zeros(core.shape, bool)
     mask[box] = grown
