@@ -131,3 +131,17 @@ def test_vessels_close_to_the_bone_threshold_are_a_close_call():
     given = extract_vessels(Volume(data, volume.affine, volume.kind, tags=volume.tags),
                             VolumeReading("cta", vessel_max=850.0)).readout
     assert not any(decision.close for decision in given.decisions if decision.what == "bone threshold")
+
+
+def test_a_released_volume_reads_the_same_and_lets_its_grid_go():
+    """Issue 41: a job does not hold the volume's float32 grid through the reading (``release=True``, as
+    ``load_case`` reads): the same surface, readout and decisions, and ``volume.data`` is let go."""
+    parts = _case("cta", "a").volume.parts
+    kept, released = read_volume(parts), read_volume(parts)
+    shape = kept.data.shape
+    a = extract_vessels(kept)
+    b = extract_vessels(released, release=True)
+    assert released.data is None and kept.data is not None
+    assert np.array_equal(a.mesh.vertices, b.mesh.vertices) and np.array_equal(a.mesh.faces, b.mesh.faces)
+    assert a.readout.to_dict() == b.readout.to_dict() and a.readout.decisions == b.readout.decisions
+    assert b.kept.shape == shape and np.array_equal(a.kept, b.kept)
