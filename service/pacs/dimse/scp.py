@@ -71,6 +71,7 @@ SUCCESS, OUT_OF_RESOURCES, CANNOT_UNDERSTAND = 0x0000, 0xA700, 0xC000
 REJECT_CALLING = (0x01, 0x01, 0x03)  # rejected-permanent, service-user, calling AE title not recognised
 REJECT_CALLED = (0x01, 0x01, 0x07)  # rejected-permanent, service-user, called AE title not recognised
 REJECT_FULL = (0x02, 0x03, 0x02)  # rejected-transient, service-provider (presentation), local limit exceeded
+REJECT_LIMIT = REJECT_FULL  # the same code from pynetdicom when its maximum_associations are open
 
 
 def decodable_transfer_syntaxes() -> list[str]:
@@ -168,6 +169,23 @@ class StoreScp:
             event.assoc.kill()
             return
         bound_association(event.assoc, self.limits.max_instance_bytes, self.settings.storage.data_dir / "tmp")
+
+    def on_rejected(self, event: Any) -> None:
+        """A rejection by the DICOM stack itself, before our policy ran (ours are logged by :meth:`policy`): above all
+        the association limit, which a busy modality meets and which left no trace before."""
+        assoc = event.assoc
+        request, answer = assoc.requestor.primitive, assoc.acceptor.primitive
+        calling = str(getattr(request, "calling_ae_title", "") or "").strip()
+        reason = (getattr(answer, "result", None), getattr(answer, "result_source", None),
+                  getattr(answer, "diagnostic", None))
+        self.stats["rejected"] += 1
+        if reason == REJECT_LIMIT:
+            log.warning("association from %s@%s rejected: the node's %d associations at a time are all open "
+                        "(transient: the sender may retry)", calling, assoc.requestor.address,
+                        assoc.ae.maximum_associations)
+        else:
+            log.warning("association from %s@%s rejected by the DICOM stack (result %s, source %s, reason %s)",
+                        calling, assoc.requestor.address, *reason)
 
     def association_id(self, assoc: Any) -> str:
         with self._lock:
@@ -352,7 +370,8 @@ def start_server(settings: Any, scp: StoreScp):
     if not log.isEnabledFor(logging.DEBUG):  # one INFO line per C-STORE otherwise
         logging.getLogger("pynetdicom").setLevel(logging.WARNING)
     ae = make_ae(settings)
-    handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_C_STORE, scp.on_store), (evt.EVT_ACSE_RECV, scp.on_acse),
+    handlers = [(evt.EVT_REQUESTED, scp.on_requested), (evt.EVT_REJECTED, scp.on_rejected),
+                (evt.EVT_C_STORE, scp.on_store), (evt.EVT_ACSE_RECV, scp.on_acse),
                 (evt.EVT_RELEASED, scp.on_released), (evt.EVT_ABORTED, scp.on_aborted),
                 (evt.EVT_CONN_CLOSE, scp.on_closed)]
     return ae.start_server((settings.dimse.dicom_host, settings.dimse.dicom_port), block=False, evt_handlers=handlers)

@@ -240,3 +240,30 @@ def test_a_file_whose_index_write_failed_is_removed_by_the_standalone_listener(t
         server.shutdown()
         loop.close()
         close_intake(intake)
+
+
+def test_an_association_past_the_limit_is_refused_and_logged(node, study, caplog):
+    """Issue 43 item 7: pynetdicom refuses an association past its maximum (local limit exceeded) before our policy
+    runs, and nothing was logged: a modality kept out by a busy node left no trace. Now a warning names the sender."""
+    import logging
+
+    scp, port = node()
+    held = []
+    with caplog.at_level(logging.WARNING, logger="service.pacs.dimse.scp"):
+        try:
+            for _ in range(10):  # pynetdicom's default maximum_associations
+                assoc = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
+                assert assoc.is_established
+                held.append(assoc)
+            refused = _ae(study).associate("127.0.0.1", port, ae_title="DSAREG")
+            assert refused.is_rejected
+            deadline = time.monotonic() + 5
+            while not any("associations at a time" in r.getMessage() for r in caplog.records):
+                assert time.monotonic() < deadline, [r.getMessage() for r in caplog.records]
+                time.sleep(0.05)
+        finally:
+            for assoc in held:
+                assoc.release()
+    line = next(r.getMessage() for r in caplog.records if "associations at a time" in r.getMessage())
+    assert "SCU@127.0.0.1" in line and "10 associations" in line, line
+    assert scp.stats["rejected"] == 1
