@@ -50,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_views(which)
     _add_segmentation(which)
     _add_whole_head(which)
+    _add_real_volumes(which)
     return parser
 
 
@@ -252,6 +253,13 @@ def _add_segmentation(which) -> None:
 def _add_whole_head(which) -> None:
     """``python -m benchmarks.engine whole-head``: a 512 x 512 x 440 CTA read and registered twice (issue 41)."""
     from .whole_head import add_parser
+
+    add_parser(which)
+
+
+def _add_real_volumes(which) -> None:
+    """``python -m benchmarks.engine real-volumes``: the real vessel files of ../shared/data (issue 41)."""
+    from .real_volumes import add_parser
 
     add_parser(which)
 
