@@ -101,9 +101,9 @@ def shape_measures(mask: np.ndarray, spacing, plate_share: float | None = None) 
 
 
 def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = "volume",
-                       plate_share: float | None = None) -> dict[str, float]:
+                       plate_share: float | None = None, total_voxels: int | None = None) -> dict[str, float]:
     """Raise :class:`DsaregInputError` when the kept voxels cannot be vessels; else the measures
-    (``plate_share``: :func:`shape_measures`')."""
+    (``plate_share``: :func:`shape_measures`'; ``total_voxels``: the volume's, when ``mask`` is a crop of it)."""
     what = readout.text() if readout is not None else "the kept voxels"
     kind = getattr(readout, "kind", "3d-dsa")
     accepted = ("a vessel model: set options.volume_kind (cta, mra, 3d-dsa) or the vessel window "
@@ -113,12 +113,13 @@ def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = 
     if int(mask.sum()) < MIN_KEPT_VOXELS:
         raise DsaregInputError(f"no vessels in the window: {what}", field=field_name, accepted=accepted)
     limit = MAX_KEPT_FRACTION.get(kind, 0.5)
-    kept_fraction = int(mask.sum()) / mask.size
+    kept_fraction = int(mask.sum()) / (total_voxels or mask.size)
     if kept_fraction > limit:  # before the shape measures: on a third of a head they cost ~0.5 GB and seconds
         raise DsaregInputError(
             f"keeps {100 * kept_fraction:.1f}% of the volume, far more than vessels "
             f"(at most {100 * limit:.0f}% for {kind}): {what}", field=field_name, accepted=accepted)
     measures = shape_measures(mask, spacing, plate_share)
+    measures["kept_fraction"] = kept_fraction
     if measures["enclosed_ratio"] > MAX_ENCLOSED_RATIO:
         raise DsaregInputError(
             f"the kept voxels form a closed shell (enclosing {measures['enclosed_ratio']:.1f}× their own volume: "

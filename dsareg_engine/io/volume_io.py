@@ -457,22 +457,21 @@ def surface_from_mask(smooth: np.ndarray, mask: np.ndarray, level: float, affine
                       field_name: str = "volume") -> TriangleMesh:
     """Marching cubes of ``smooth`` at ``level`` around the kept voxels ``mask`` (elsewhere: the field's floor),
     enclosed cavities filled; vertices mapped through ``affine`` to world mm, normals outward. The field is built
-    and marched in the mask's box (grown by 3 voxels, padded by one with the floor): a whole head's grid is never
-    allocated again for a surface that lies in a few percent of it."""
+    in the mask's box; the whole padded grid is marched (the vertices' float32 indices are the whole grid's)."""
     from scipy import ndimage
     from skimage.measure import marching_cubes
 
     floor = float(smooth.min())
     box = bounding_box(mask, margin=3) or tuple(slice(0, n) for n in mask.shape)  # the floor beyond 2 voxels
-    field = np.full([b.stop - b.start + 2 for b in box], floor, np.result_type(smooth, floor))  # padded by one voxel
-    inner = (slice(1, -1),) * 3
-    field[inner] = np.where(ndimage.binary_dilation(mask[box], iterations=2), smooth[box], floor)
+    padded = tuple(slice(b.start + 1, b.stop + 1) for b in box)
+    field = np.full([n + 2 for n in mask.shape], floor, np.result_type(smooth, floor))  # padded by one voxel
+    field[padded] = np.where(ndimage.binary_dilation(mask[box], iterations=2), smooth[box], floor)
     cavities = ndimage.binary_fill_holes(mask[box]) & ~mask[box]  # a vessel lumen has no enclosed voids
-    field[inner][cavities] = max(float(smooth.max()), level + 1.0)
+    field[padded][cavities] = max(float(smooth.max()), level + 1.0)
     vertices, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
     if len(faces) == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    vertices = vertices.astype(np.float64) - 1.0 + np.array([b.start for b in box], float)  # the grid's indices
+    vertices = vertices - 1.0  # undo the padding
     world = vertices @ affine[:3, :3].T + affine[:3, 3]
     faces = faces.astype(np.int64)
     if np.linalg.det(affine[:3, :3]) < 0:

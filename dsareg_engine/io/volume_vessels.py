@@ -166,12 +166,14 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
                             levels.get("tissue"), levels.get("vessel"), int(mask.sum()), total, labels_count,
                             "local half maximum" if "low" in levels else "level")
-    kept = _uncropped(mask, head, shape)
-    measures = check_vessel_shape(kept, spacing, readout, field_name=field_name, plate_share=plate_share)
+    measures = check_vessel_shape(mask, spacing, readout, field_name=field_name, plate_share=plate_share,
+                                  total_voxels=total)
     readout.plate_share = measures["plate_fraction"]
     readout.decisions = _decisions(readout, reading, air, levels)
     mesh = surface_from_mask(field, mask, levels["min"], affine, field_name=field_name)
+    del field  # before the full-grid masks below
     readout.faces = mesh.n_faces
+    kept = _uncropped(mask, head, shape)
     return VesselExtraction(mesh, readout, kept, None if excluded is None else _uncropped(excluded, head, shape))
 
 
