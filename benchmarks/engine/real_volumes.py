@@ -32,6 +32,8 @@ def read_one(path: str, kind: str) -> dict:
 
     from dsareg_engine.errors import DsaregInputError
 
+    from .whole_head import peak_rss_kb
+
     start = resource.getrusage(resource.RUSAGE_SELF)
     try:
         row = _read(Path(path), kind)
@@ -39,9 +41,7 @@ def read_one(path: str, kind: str) -> dict:
         row = {"read": f"refused: {str(error)[:160]}"}
     end = resource.getrusage(resource.RUSAGE_SELF)
     row["cpu_s"] = end.ru_utime + end.ru_stime - start.ru_utime - start.ru_stime
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            row["peak_rss_gb"] = int(line.split()[1]) / 1e6
+    row["peak_rss_gb"] = peak_rss_kb() / 1e6
     return row
 
 
@@ -81,7 +81,7 @@ def bench_real_volumes(args) -> int:
                                  check=True)
             row = json.loads(out.stdout.strip().splitlines()[-1])
             print(f"| {path.name} | {kind} | {row['read']} | {row.get('faces', '')} | {row.get('voxels_kept', '')} | "
-                  f"{row['cpu_s']:.1f} | {row.get('peak_rss_gb', 0):.2f} |", flush=True)
+                  f"{row['cpu_s']:.1f} | {row['peak_rss_gb']:.2f} |", flush=True)
     return 0
 
 

@@ -35,6 +35,7 @@ def _write_case(folder: Path, voxel_mm: float, grid: tuple[int, int, int]) -> Pa
     from dsareg_engine.io.case import CaseFiles
     from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head
     from dsareg_engine.simulation.synthetic_volumes import fitting_pixel_spacing_mm, vessel_tree, volume_case_of
+
     from .clinical_volumes import TREE_DEPTH, VolumeCaseFiles
 
     tree = vessel_tree(TREE_DEPTH, 3)
@@ -72,12 +73,12 @@ def run_job(case_path: str, models: str) -> dict:
     confidence = with_close_calls({"metrics": {"confidence": dict(result.metrics.get("confidence") or {})}},
                                   list(loaded.decisions))["metrics"]["confidence"]
     return {"read_cpu_s": read_cpu, "cpu_s": cpu() - start, "wall_s": time.perf_counter() - wall,
-            "peak_rss_gb": _peak_rss_kb() / 1e6,
+            "peak_rss_gb": peak_rss_kb() / 1e6,
             "add_mm": result.metrics["ground_truth"]["add_mm"], "verdict": confidence.get("verdict", "?"),
             "voxels_kept": loaded.volume.voxels_kept, "faces": loaded.mesh.n_faces}
 
 
-def _peak_rss_kb() -> int:
+def peak_rss_kb() -> int:
     """This process's peak RSS (``VmHWM``): ``ru_maxrss`` carries the parent's peak across exec (the generator's GBs)."""
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmHWM:"):
@@ -106,4 +107,4 @@ def bench_whole_head(args) -> int:
     return 0
 
 
-__all__ = ["add_parser", "bench_whole_head", "run_job"]
+__all__ = ["add_parser", "bench_whole_head", "peak_rss_kb", "run_job"]

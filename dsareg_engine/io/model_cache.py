@@ -12,7 +12,8 @@ on, and a later job with the same key takes the model instead of reading the vol
 * **store** (:class:`DirectoryModelStore`): one ``.npz`` file per key in a folder every process of a deployment
   shares (the service's data folder), written to a temporary name then renamed (a reader never sees half a file,
   two writers of one key write the same bytes), bounded in entries and bytes (the least recently used go first),
-  read without pickle. An unreadable entry is a miss (and removed).
+  read without pickle. An unreadable entry is a miss (and removed); a temporary file a killed writer left is
+  removed by the next write once it is an hour old.
 
 Bump ``MODEL_VERSION`` whenever the extraction's output for the same input changes.
 """
@@ -24,6 +25,7 @@ import io
 import json
 import os
 import tempfile
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol
@@ -36,6 +38,7 @@ from .volume_kind import VolumeReading
 from .volume_vessels import VolumeReadout
 
 MODEL_VERSION = "volume-model-1"
+STALE_TEMPORARY_S = 3600.0  # a temporary file this old is no write in progress (a model is written in seconds)
 
 
 @dataclass(frozen=True)
@@ -127,6 +130,13 @@ class DirectoryModelStore:
         self._evict()
 
     def _evict(self) -> None:
+        stale = time.time() - STALE_TEMPORARY_S  # a writer killed between its write and its rename left these
+        for path in self.root.glob(".model-*.tmp"):
+            try:
+                if path.stat().st_mtime < stale:
+                    path.unlink()
+            except OSError:
+                continue
         entries = []
         for path in self.root.glob("*.npz"):
             try:
@@ -142,4 +152,4 @@ class DirectoryModelStore:
                 path.unlink(missing_ok=True)
 
 
-__all__ = ["CachedModel", "DirectoryModelStore", "MODEL_VERSION", "ModelStore", "from_bytes", "model_key", "to_bytes"]
+__all__ = ["MODEL_VERSION", "CachedModel", "DirectoryModelStore", "ModelStore", "from_bytes", "model_key", "to_bytes"]

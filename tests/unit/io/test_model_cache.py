@@ -71,3 +71,23 @@ def test_the_store_is_bounded_and_a_damaged_entry_is_a_miss(tmp_path):
     assert store.get(keys[1]) is not None
     with pytest.raises(ValueError):
         store.get("../../etc/passwd")
+
+
+def test_a_killed_writers_temporary_file_is_removed_once_stale(tmp_path):
+    """A process killed between its write and its rename (the validator, SIGKILLed mid-put) leaves a temporary
+    file; the next put removes it once it is older than STALE_TEMPORARY_S, and never one being written now."""
+    import os
+    import time
+
+    from dsareg_engine.io.model_cache import STALE_TEMPORARY_S
+
+    store = DirectoryModelStore(tmp_path)
+    old, fresh = tmp_path / ".model-old.tmp", tmp_path / ".model-fresh.tmp"
+    old.write_bytes(b"half a model")
+    fresh.write_bytes(b"being written")
+    past = time.time() - STALE_TEMPORARY_S - 60
+    os.utime(old, (past, past))
+    model = case_module._read_volume_model(_case().volume.parts, "series.dcm", case_module.DEFAULT_LIMITS, None)[0]
+    store.put(f"{1:064x}", model)
+    assert not old.exists() and fresh.exists()
+    assert store.get(f"{1:064x}") is not None
