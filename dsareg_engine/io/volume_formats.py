@@ -81,12 +81,17 @@ def detached_data_file(header: bytes, fmt: str) -> str | None:
     return None if value.upper() == "LOCAL" else value
 
 
-def _named_data(header: bytes, fmt: str, field_name: str) -> bytes:
-    """``header`` with its data-file line naming ``volume.data`` (the file written beside it)."""
-    value = detached_data_file(header, fmt) or ""
+def _refuse_split_data(value: str, field_name: str) -> None:
+    """Refuse a data-file line naming several files (``LIST``, a ``%d`` pattern), or none."""
     if not value or value.upper().startswith("LIST") or "%" in value:  # a name may hold spaces; a pattern has a %
         raise DsaregInputError(f"the header's data is split over several files ('{value[:80]}')", field=field_name,
                                accepted="a header with one data file")
+
+
+def _named_data(header: bytes, fmt: str, field_name: str) -> bytes:
+    """``header`` with its data-file line naming ``volume.data`` (the file written beside it)."""
+    value = detached_data_file(header, fmt) or ""
+    _refuse_split_data(value, field_name)
     pattern = {"metaimage": _META_DATA_FILE, "nrrd": _NRRD_DATA_FILE}[fmt]
     return pattern.sub(lambda m: m.group(1) + b"volume.data", header[:65536], count=1) + header[65536:]
 
@@ -125,6 +130,8 @@ def read_itk_volume(header: bytes, data: bytes | None, fmt: str, limits: InputLi
     import SimpleITK as sitk
 
     detached = detached_data_file(header, fmt)
+    if detached is not None:
+        _refuse_split_data(detached, field_name)  # before asking for "its data file" (a list names several)
     if detached is not None and data is None:
         raise DsaregInputError(f"a detached {_DETACHED_SUFFIX[fmt]} header needs its data file '{detached[:80]}' too "
                                "(send both)", field=field_name, accepted=ACCEPTED)

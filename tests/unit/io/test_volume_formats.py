@@ -97,3 +97,14 @@ def test_declared_size_checked_before_reading(tmp_path):
     header, data = _written(tmp_path, "v.mhd")
     with pytest.raises(DsaregInputError, match="above the limit"):
         read_volume([header, data], limits=InputLimits(max_volume_bytes=100))
+
+
+@pytest.mark.parametrize("line", [b"data file: LIST\nslice1.raw\nslice2.raw", b"data file: s%03d.raw 1 4 1"])
+def test_a_nrrd_split_over_several_files_is_refused_naming_it(tmp_path, line):
+    """Issue 43 item 7: a NRRD header with a list of data files read as 'not enough values to unpack'."""
+    header = (b"NRRD0004\ntype: short\ndimension: 3\nsizes: 4 5 6\nencoding: raw\n"
+              b"space: left-posterior-superior\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n" + line + b"\n\n")
+    for parts in ([header, VOXELS.tobytes()], header):  # with a data file, and the header alone
+        with pytest.raises(DsaregInputError, match="split over several files") as refused:
+            read_volume(parts, "v.nhdr") if isinstance(parts, bytes) else read_volume(parts)
+        assert "a header with one data file" in str(refused.value)
