@@ -27,9 +27,30 @@ from dataclasses import dataclass
 
 import sqlalchemy as sa
 
-if logging.getLogger("alembic").level == logging.NOTSET:  # not set by the operator: Alembic's INFO lines at import
-    logging.getLogger("alembic").setLevel(logging.WARNING)  # and per migration ("setup plugin", "Context impl") say
-    # nothing an operator acts on; its warnings still show, and `dsareg db upgrade` prints what it did
+_CHATTER = ("Context impl ", "Will assume ")  # alembic.runtime.migration's lines before any revision runs
+
+
+def _no_alembic_chatter(record: logging.LogRecord) -> bool:
+    """Drop Alembic's set-up lines at INFO (a logging filter); its "Running upgrade A -> B" lines and warnings
+    pass."""
+    return record.levelno > logging.INFO or not str(record.msg).startswith(_CHATTER)
+
+
+def quiet_alembic_setup() -> None:
+    """Alembic logs ten INFO lines at import and per migration ("setup plugin …", "Context impl SQLiteImpl.",
+    "Will assume non-transactional DDL.") that tell an operator nothing: silence them unless the operator set
+    Alembic's loggers, and keep the lines of the revisions that run ("Running upgrade 0001 -> 0002, …")."""
+    if logging.getLogger("alembic").level != logging.NOTSET:
+        return  # set by the operator (a logging configuration): theirs
+    plugins = logging.getLogger("alembic.runtime.plugins")
+    if plugins.level == logging.NOTSET:
+        plugins.setLevel(logging.WARNING)
+    migration = logging.getLogger("alembic.runtime.migration")
+    if _no_alembic_chatter not in migration.filters:
+        migration.addFilter(_no_alembic_chatter)
+
+
+quiet_alembic_setup()
 
 HEAD = "0002"
 """The newest revision (migrations/versions; ``tests/unit/service/test_service_migrations.py`` checks it): a

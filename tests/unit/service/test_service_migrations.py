@@ -150,3 +150,21 @@ def test_a_fresh_database_is_made_without_alembic_info_lines(tmp_path):
                           text=True, timeout=60, cwd=Path(__file__).resolve().parents[3], check=False)
     assert done.returncode == 0, done.stderr
     assert "alembic" not in done.stderr, done.stderr
+
+
+def test_an_upgrade_logs_the_revisions_it_runs_and_no_alembic_set_up_lines(tmp_path):
+    """Alembic's set-up lines ("setup plugin …", "Context impl …", "Will assume …") are silenced at INFO; the
+    lines of the revisions that run are kept (an operator sees what a start-up changed)."""
+    code = ("import logging, sys\nlogging.basicConfig(level=logging.INFO)\n"
+            "from service.storage.migrate import upgrade_database\n"
+            "import sqlalchemy as sa\nfrom alembic import command\n"
+            "from service.storage.revisions import alembic_config\n"
+            "with sa.create_engine(sys.argv[1]).begin() as conn:\n"
+            "    command.upgrade(alembic_config(conn), '0001')\n"
+            "assert upgrade_database(sys.argv[1]).applied == ('0002',)\n")
+    done = subprocess.run([sys.executable, "-c", code, f"sqlite:///{tmp_path / 'jobs.db'}"], capture_output=True,
+                          text=True, timeout=60, cwd=Path(__file__).resolve().parents[3], check=False)
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stderr.splitlines() if "alembic" in line]
+    assert [line.split(",")[0] for line in lines] == ["INFO:alembic.runtime.migration:Running upgrade  -> 0001",
+                                                     "INFO:alembic.runtime.migration:Running upgrade 0001 -> 0002"]
