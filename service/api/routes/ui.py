@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from importlib import resources
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from fastapi.responses import RedirectResponse, Response
 
 from ...problems import Problem
@@ -38,9 +38,25 @@ def ui_root() -> Response:
     return RedirectResponse("/ui/", status_code=308)
 
 
+KEY_FORM = b'<form id="key-form" class="key"'
+
+
+def index_page(auth_enabled: bool) -> bytes:
+    """``index.html``; without API keys configured its key box is sent hidden (there is no key to enter; app.js
+    shows it again if a request is answered 401)."""
+    page = _read("index.html")
+    if auth_enabled:
+        return page
+    if KEY_FORM not in page:
+        raise RuntimeError("service/api/ui/static/index.html lost its key form: index_page cannot hide it")
+    return page.replace(KEY_FORM, KEY_FORM + b" hidden", 1)
+
+
 @router.get("/ui/")
-def ui_index() -> Response:
-    return Response(_read("index.html"), media_type=FILES["index.html"], headers=HEADERS)
+def ui_index(request: Request) -> Response:
+    ctx = getattr(request.app.state, "ctx", None)
+    auth_enabled = True if ctx is None else ctx.settings.auth.auth_enabled
+    return Response(index_page(auth_enabled), media_type=FILES["index.html"], headers=HEADERS)
 
 
 @router.get("/ui/{name}")

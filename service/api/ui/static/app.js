@@ -543,6 +543,7 @@ document.addEventListener("DOMContentLoaded", () => {
   });
   document.getElementById("forget-key").addEventListener("click", () => { sessionStorage.removeItem(KEY); keyState(); route(); });
   keyState();
+  if (sessionStorage.getItem(KEY)) showKeyForm(true);  // a key kept from before: its "Forget key" stays reachable
   window.addEventListener("hashchange", route);
   route();
 });

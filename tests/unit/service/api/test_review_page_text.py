@@ -1,5 +1,5 @@
 """The review page's wording (service/api/ui/static): the pose is labelled as the pose, not as an error among the
-metrics, and the API-key box shows only when the server asks for a key (a request answered 401)."""
+metrics, and the API-key box shows only when the server asks for a key (keys configured, or a request answered 401)."""
 
 from __future__ import annotations
 
@@ -22,3 +22,25 @@ def test_the_key_box_hides_when_a_request_without_a_key_is_not_refused():
     assert "showKeyForm(response.status === 401)" in api
     assert 'getElementById("key-form").hidden' in app
     assert ".key[hidden] { display: none; }" in (STATIC / "app.css").read_text(encoding="utf-8")  # .key sets display
+
+
+def _page(tmp_path, **keys) -> str:
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import load_settings
+
+    settings = load_settings(None, data_dir=str(tmp_path), **keys)
+    with TestClient(create_app(settings, start_background=False)) as client:
+        answer = client.get("/ui/")
+    assert answer.status_code == 200, answer.text
+    return answer.text
+
+
+def test_the_page_is_sent_with_its_key_box_hidden_when_no_keys_are_configured(tmp_path):
+    """Issue 44 item 13: the API-key box showed on a server without keys (until a request answered)."""
+    form = re.compile(r'<form id="key-form"[^>]*>')
+    without_keys = form.findall(_page(tmp_path / "open"))
+    with_keys = form.findall(_page(tmp_path / "keys", api_keys="k-ui-test"))
+    assert len(without_keys) == 1 and re.search(r"\shidden[\s>]", without_keys[0]), without_keys
+    assert len(with_keys) == 1 and "hidden" not in with_keys[0], with_keys
