@@ -78,6 +78,7 @@ class _Slot:
         self.ready = False
         self.lock = threading.Lock()  # the pipe is used by one request thread and by readiness checks
         self.waited_s = 0.0  # the last call's wait for the process's start-up (imports, parser warm-up)
+        self.ended = ""  # how a process found dead ended, for the one line that replaces it (ValidatorPool._refill)
 
     def start(self) -> None:
         parent, child = self.ctx.Pipe(duplex=True)
@@ -94,6 +95,13 @@ class _Slot:
         """Take ``other``'s (warm) process; ours must have been killed."""
         self.process, self.conn, self.ready = other.process, other.conn, other.ready
         other.process, other.conn, other.ready = None, None, False
+
+    def note_end(self) -> None:
+        """Keep how the (dead) process ended, for the pool's one log line: a negative exit code is the signal's
+        number (-9: killed, the memory cap or the OOM killer)."""
+        if self.process is not None:
+            self.process.join(1)
+            self.ended = f"pid {self.process.pid} ended with exit code {self.process.exitcode}"
 
     def health(self) -> str:
         """``ok``, ``frozen`` (stopped by a signal or a debugger) or ``dead``."""
@@ -171,9 +179,8 @@ class _Slot:
             why = "timeout"
         except (EOFError, OSError, BrokenPipeError):
             why = "dead"
-        if why == "dead" and self.process is not None:  # what ended it: a negative code is the signal's number
-            self.process.join(1)
-            log.warning("validator pid %s found dead (exit code %s)", self.process.pid, self.process.exitcode)
+        if why == "dead":
+            self.note_end()
         self.kill()
         return None, why
 
@@ -246,6 +253,7 @@ class ValidatorPool:
     def _refill(self, slot: _Slot, why: str, *, spare_now: bool = True) -> None:
         """``slot`` (its process killed) takes the warm spare; a new spare starts now, or (``spare_now=False``,
         a request is about to be sent again) after that request, so its warm-up does not compete with it."""
+        ended, slot.ended = slot.ended, ""
         with self._spare_lock:
             if self._halt.is_set():
                 return
@@ -257,7 +265,8 @@ class ValidatorPool:
             if spare_now:
                 self.spare.start()
             self.replaced += 1
-        log.warning("validator replaced (%s); pid %s takes over", why, slot.process.pid if slot.process else None)
+        log.warning("validator replaced (%s); pid %s takes over%s", why, slot.process.pid if slot.process else None,
+                    f" ({ended})" if ended else "")  # one line per replaced process (was also "found dead")
 
     def _watch(self) -> None:
         """Idle validators (and the spare) found dead or frozen are replaced before a request meets them."""
@@ -268,6 +277,8 @@ class ValidatorPool:
                 try:
                     health = slot.health()
                     if health != "ok" and not self._halt.is_set():
+                        if health == "dead":
+                            slot.note_end()
                         slot.kill()
                         self._refill(slot, f"{health} while idle")
                 finally:

@@ -107,3 +107,31 @@ def test_a_request_that_waits_for_a_starting_validator_says_so(caplog):
     first, second = (record.getMessage() for record in caplog.records)
     assert first.startswith("validation took 5.37 s, 0.") and "waiting for the validator to finish starting" in first
     assert second == "validation took 0.15 s"
+
+
+def test_a_validator_found_dead_is_one_warning_naming_how_it_ended(tmp_path, caplog):
+    """Issue 43 item 7: a validator killed under a request logged two warnings for one death ("validator pid P
+    found dead (exit code -9)", then "validator replaced (dead)"); now one line says both."""
+    import logging
+    import os
+    import signal
+
+    request = _stored_request(tmp_path)
+    pool = ValidatorPool(1, timeout_seconds=120, memory_mb=0)
+    try:
+        pool._ensure_spare()
+        slot = pool.slots[0]
+        slot.start()
+        assert slot.wait_ready(120) and pool.spare.wait_ready(120)
+        dead = slot.process.pid
+        os.kill(dead, signal.SIGKILL)
+        slot.process.join(10)
+        with caplog.at_level(logging.INFO, logger="dsareg"):
+            reply, why = pool._run(slot, request)
+        assert why is None and reply is not None and reply.get("ok"), (why, reply)  # parsed by the spare
+        warnings = [record.getMessage() for record in caplog.records if record.levelno >= logging.WARNING]
+        assert len(warnings) == 1, warnings
+        assert warnings[0].startswith("validator replaced (dead); pid ") and \
+            f"(pid {dead} ended with exit code {-signal.SIGKILL})" in warnings[0], warnings
+    finally:
+        pool.stop()
