@@ -159,7 +159,8 @@ def run_registration_case(
     if not any(decision.what == "view roles" for decision in case.decisions):  # no header named the views
         swap_hint(case.mesh, case.fitted, case.rig, result, options)
     acquisition = case.acquisition.to_dict() if case.acquisition is not None else None
-    if acquisition is not None and acquisition["sequential"]:  # a pose per run, the motion between them
+    one_plane = options.mode == "track" and options.configuration in ("ap", "lat")  # the other run is an earlier one
+    if acquisition is not None and acquisition["sequential"] and not one_plane:  # a pose per run, the motion between
         acquisition = sequential_runs(case.mesh, case.fitted, case.rig, result, acquisition, options.device)
     return write_outputs(result, case.masks, Path(out_dir), case.mesh, case.rig, animation=options.animation,
                          images=case.images, label=label, progress=progress, warnings=case.warnings,

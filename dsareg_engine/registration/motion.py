@@ -24,21 +24,7 @@ from ..mesh import TriangleMesh
 from ..metrics import dice
 from .options import RegistrationOptions
 from .result import RegistrationResult
-from .track import motion_between
-
-
-def held_depth(refined: np.ndarray, joint: np.ndarray, world_to_view: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """``refined`` (mesh_to_world 4x4) slid along the source ray through the model's ``centre`` (mesh mm) until that
-    centre lies at ``joint``'s depth in the view (``world_to_view``): its projection stays where it was."""
-    def in_view(pose: np.ndarray) -> np.ndarray:
-        transform = world_to_view @ pose
-        return transform[:3, :3] @ centre + transform[:3, 3]
-
-    seen, wanted = in_view(refined), in_view(joint)
-    shift_view = seen * (wanted[2] / seen[2] - 1.0)
-    out = np.array(refined, dtype=np.float64)
-    out[:3, 3] += np.linalg.solve(world_to_view[:3, :3], shift_view)
-    return out
+from .track import held_depth, motion_between
 
 
 def run_poses(mesh: TriangleMesh, targets: dict[str, np.ndarray], rig: Rig, joint: np.ndarray,

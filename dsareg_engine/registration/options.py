@@ -98,6 +98,10 @@ class RegistrationOptions(BaseModel):
         "the border exactly on the model's surface); reported as metrics.border_shift_px.",
     )
     initial_mesh_to_world: Matrix4 | None = Field(None, description="Overrides the geometry's initial pose.")
+    reference_mesh_to_world: Matrix4 | None = Field(
+        None, description="Tracking (mode track): the procedure's first pose, mesh mm → world mm; the result's "
+        "metrics.tracking.since_reference is the motion since it (null: the initial pose is the reference). "
+        "POST …/track sets it from the job it tracks from.")
     region: ModelRegion | None = Field(
         None, description="Register only this part of the model (what the run injected, when the model holds more "
         "vessels than the images show); without it partial visibility is detected from the images.")

@@ -19,7 +19,7 @@ from .result import RegistrationResult, ViewResult
 from .search.initialization import GIVEN_INITIALIZATION, Initialization
 from .stages import _Run
 from .targets import shifted_mask
-from .track import motion_between
+from .tracking import hold_unmeasured_depth, track_metrics
 
 MIN_CONVERGED_DICE = 0.5
 
@@ -29,7 +29,9 @@ def _summary(setup: _Setup, run: _Run, options: RegistrationOptions, total_secon
     """The result: the kept pose, per-view overlaps, and metrics (stages, convergence, confidence, ground truth)."""
     problem, used_views, initial = setup.problem, setup.used_views, setup.initial
     mesh, rig = problem.mesh, problem.rig
-    estimate = run.poses[0]
+    estimate, depth_held_mm = run.poses[0], None
+    if setup.tracking:  # one plane: its depth along the beam held at the previous pose's (:mod:`.tracking`)
+        estimate, depth_held_mm = hold_unmeasured_depth(estimate, initial, rig, used_views, mesh.vertices.mean(axis=0))
     view_results = _view_results(problem, initial, estimate)
     converged, reason = _convergence(run.outcome, view_results)
     metrics = {
@@ -45,12 +47,12 @@ def _summary(setup: _Setup, run: _Run, options: RegistrationOptions, total_secon
         "configuration": options.configuration,
     }
     points = mesh.vertices if target_points is None else target_points
-    if setup.tracking:
-        metrics["mode"] = "track"
-        metrics["motion"] = motion_between(initial, estimate, points)
     if options.border_correction:
         metrics["border_shift_px"] = {name: round(problem.border_shift_px[name], 4) for name in used_views}
     metrics["confidence"] = _confidence(problem, estimate, view_results, run.other, run.outcome, used_views, setup.searched)
+    if setup.tracking:
+        metrics.update(track_metrics(initial, estimate, options.reference_mesh_to_world, points, rig, used_views,
+                                     depth_held_mm, metrics["confidence"]))
     if len(used_views) == 1:
         metrics["warnings"] = [
             (f"single-view registration ({used_views[0]}): translation along that view's central ray and "

@@ -72,9 +72,10 @@ def build_track_schedule(views: tuple[str, ...], image_side_px: int, max_iterati
 def motion_between(previous: np.ndarray, current: np.ndarray, points: np.ndarray) -> dict:
     """How far the model moved from ``previous`` to ``current`` (both mesh_to_world 4x4).
 
-    Returns ``rotation_deg`` (angle of the relative rotation), ``translation_mm`` (displacement
-    of the points' centroid, world mm), ``mean_displacement_mm`` (mean point displacement) and
-    ``world_motion`` (4x4 ``current · previous⁻¹``, world frame).
+    Returns ``rotation_deg`` (angle of the relative rotation), ``rotation_vector_deg`` (its axis times that angle,
+    world frame), ``translation_mm`` and ``translation_vector_mm`` (displacement of the points' centroid, world
+    mm), ``mean_displacement_mm`` (mean point displacement) and ``world_motion`` (4x4 ``current · previous⁻¹``,
+    world frame).
     """
     previous = np.asarray(previous, dtype=np.float64)
     current = np.asarray(current, dtype=np.float64)
@@ -83,9 +84,26 @@ def motion_between(previous: np.ndarray, current: np.ndarray, points: np.ndarray
     before = previous[:3, :3] @ centre + previous[:3, 3]
     after = current[:3, :3] @ centre + current[:3, 3]
     moved = (points @ current[:3, :3].T + current[:3, 3]) - (points @ previous[:3, :3].T + previous[:3, 3])
+    rotation = np.degrees(so3_log(relative[:3, :3]))
     return {
-        "rotation_deg": float(np.degrees(np.linalg.norm(so3_log(relative[:3, :3])))),
+        "rotation_deg": float(np.linalg.norm(rotation)),
+        "rotation_vector_deg": rotation.tolist(),
         "translation_mm": float(np.linalg.norm(after - before)),
+        "translation_vector_mm": (after - before).tolist(),
         "mean_displacement_mm": float(np.linalg.norm(moved, axis=1).mean()),
         "world_motion": relative.tolist(),
     }
+
+
+def held_depth(refined: np.ndarray, joint: np.ndarray, world_to_view: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``refined`` (mesh_to_world 4x4) slid along the source ray through the model's ``centre`` (mesh mm) until that
+    centre lies at ``joint``'s depth in the view (``world_to_view``): its projection stays where it was."""
+    def in_view(pose: np.ndarray) -> np.ndarray:
+        transform = world_to_view @ pose
+        return transform[:3, :3] @ centre + transform[:3, 3]
+
+    seen, wanted = in_view(refined), in_view(joint)
+    shift_view = seen * (wanted[2] / seen[2] - 1.0)
+    out = np.array(refined, dtype=np.float64)
+    out[:3, 3] += np.linalg.solve(world_to_view[:3, :3], shift_view)
+    return out

@@ -147,11 +147,16 @@ class RegistrationClient:
         _raise_for(response)
         return response.json()
 
-    def track(self, job_id: str, *, ap: Path | bytes, lat: Path | bytes, options: dict | None = None,
-              callback_url: str | None = None) -> dict[str, Any]:
-        """Re-register a succeeded job's model to a new AP/LAT pair from its pose; the new job's status."""
+    def track(self, job_id: str, *, ap: Path | bytes | None = None, lat: Path | bytes | None = None,
+              options: dict | None = None, callback_url: str | None = None) -> dict[str, Any]:
+        """Re-register a succeeded job's model to a later run of either plane (``ap`` or ``lat`` alone) or both from
+        its pose; the new job's status (its result's ``metrics.tracking``: the motion since the first job's pose)."""
+        if ap is None and lat is None:
+            raise ValueError("give ap, lat or both")
         files = []
         for field, item in (("ap", ap), ("lat", lat)):
+            if item is None:
+                continue
             name, content = (Path(item).name, Path(item).read_bytes()) if isinstance(item, (str, Path)) else (
                 f"{field}.png", bytes(item))
             files.append((field, (name, content, "application/octet-stream")))

@@ -229,6 +229,40 @@ class Motion(BaseModel):
     translation_mm: float = Field(description="Displacement of the model's centroid, world mm.")
     mean_displacement_mm: float = Field(description="Mean displacement of the model's vertices, mm.")
     world_motion: Matrix4 | None = Field(None, description="4x4 current · previous⁻¹ (world frame).")
+    rotation_vector_deg: list[float] | None = Field(
+        None, min_length=3, max_length=3, description="The rotation's axis times its angle, degrees, world frame "
+                                                      "(its norm is rotation_deg).")
+    translation_vector_mm: list[float] | None = Field(
+        None, min_length=3, max_length=3, description="Displacement of the model's centroid, world mm (its norm is "
+                                                      "translation_mm).")
+
+
+class Tracking(BaseModel):
+    """A tracking job over a procedure (`POST …/track`, `options.mode: "track"`): the planes fitted, the motion since
+    the procedure's first pose and since the previous one, and what one plane cannot measure (docs/api/results.md)."""
+
+    model_config = CLOSED
+
+    views: list[Literal["ap", "lat"]] = Field(description="The planes fitted this time: one (a single-plane run) or both.")
+    frame: Literal["world"] = Field(description="The frame of every vector here: the geometry's world frame (DICOM XA: "
+                                                "patient LPS axes, origin at the isocentre), mm.")
+    reference_mesh_to_world: Matrix4 = Field(description="4x4 mesh mm → world mm: the procedure's first pose (the "
+                                                         "first job's result), or the previous pose when none was given.")
+    reference_given: bool = Field(description="False: no reference was given (options.reference_mesh_to_world), the "
+                                              "previous pose stands for it.")
+    since_reference: Motion = Field(description="The model's motion from the reference pose to this one.")
+    since_previous: Motion = Field(description="The model's motion from the previous pose to this one (= "
+                                               "metrics.motion).")
+    along_beam_measured: bool = Field(description="False for one plane: the motion along its beam is not in the image; "
+                                                  "the pose keeps the previous pose's depth there, and the verdict is at "
+                                                  "most `check` with the reason.")
+    unmeasured_view: Literal["ap", "lat"] | None = Field(None, description="One plane: the plane whose beam direction "
+                                                                          "was not measured.")
+    unmeasured_direction_world: list[float] | None = Field(
+        None, min_length=3, max_length=3, description="One plane: unit vector (world) from its X-ray source through the "
+                                                      "model's centroid, along which the motion was not measured.")
+    depth_held_mm: float | None = Field(None, description="One plane: how far the fitted pose was moved back along the "
+                                                          "beam to the previous pose's depth, mm.")
 
 
 class ResultMetrics(BaseModel):
@@ -261,6 +295,9 @@ class ResultMetrics(BaseModel):
     initialization: Initialization | None = None
     mode: Literal["register", "track"] | None = Field(None, description="track: a tracking job (then `motion`).")
     motion: Motion | None = None
+    tracking: Tracking | None = Field(None, description="Tracking jobs: the planes fitted, the motion since the "
+                                                        "procedure's first pose and since the previous one, what one "
+                                                        "plane cannot measure.")
 
 
 class DetectorGeometry(BaseModel):

@@ -143,6 +143,11 @@ def test_openapi_types_the_whole_result(contract_server):
     assert {"$ref": "#/components/schemas/CoverageSearch"} in initialization["coverage"]["anyOf"]
     assert {"parts_searched", "best_score", "faces_fraction"} <= set(_schema(doc, "BranchSearch")["properties"])
     assert {"rotation_deg", "translation_mm"} <= set(_schema(doc, "Motion")["required"])
+    tracking = _schema(doc, "Tracking")  # tracking over a procedure: either plane alone or both (issue 42)
+    assert {"views", "since_reference", "since_previous", "along_beam_measured"} <= set(tracking["required"])
+    assert {"$ref": "#/components/schemas/Tracking"} in metrics["tracking"]["anyOf"]
+    track_body = doc["paths"]["/v1/registrations/{job_id}/track"]["post"]["requestBody"]["content"]
+    assert "required" not in track_body["multipart/form-data"]["schema"]  # ap, lat or both
     result = _schema(doc, "RegistrationResult")["properties"]
     assert _enum(doc, result["verdict"]) == ["ok", "check", "failed"]
     assert {"$ref": "#/components/schemas/DicomResult"} in result["dicom"]["anyOf"]

@@ -69,3 +69,45 @@ def test_track_errors(server, example_case):
         bad = c.post(f"/v1/registrations/{job_id}/track", files=files, data={"options": "[1]"})
         assert bad.status_code == 422 and bad.json()["field"] == "options"
         assert c.post(f"/v1/registrations/{job_id}/track", data={"x": "1"}).status_code == 415
+
+
+@needs_engine
+def test_track_one_plane_then_both_reports_the_motion_since_the_first_pose(server, example_case):
+    """A later AP run alone: only AP is fitted, the motion along its beam is said to be unmeasured, never `ok`; a
+    later run of both planes from that job carries the first job's pose as the reference."""
+    views, _ = small_views()
+    centre = example_case.vertices.mean(axis=0)
+    moved = random_start_poses(np.eye(4), centre, 2, 1.5, 1.5, seed=3)[1]
+    later = random_start_poses(moved, centre, 2, 1.5, 1.5, seed=5)[1]
+    masks = {name: render_mask(example_case.vertices, example_case.faces, view, later) for name, view in views.items()}
+    ap_mask = render_mask(example_case.vertices, example_case.faces, views["ap"], moved)
+    with server.client() as c:
+        first = wait_for(c, submit(c, example_case).json()["id"], timeout=180)
+        assert first["status"] == "succeeded", first
+        refused = c.post(f"/v1/registrations/{first['id']}/track", files=[("ap", ("ap2.png", png_bytes(ap_mask), "image/png"))],
+                         data={"options": json.dumps({"configuration": "lat"})})
+        assert refused.status_code == 422 and refused.json()["field"] == "options.configuration", refused.text
+        nothing = c.post(f"/v1/registrations/{first['id']}/track", files={"options": (None, "{}")})
+        assert nothing.status_code == 422 and nothing.json()["field"] == "ap", nothing.text
+
+        one = c.post(f"/v1/registrations/{first['id']}/track", files=[("ap", ("ap2.png", png_bytes(ap_mask), "image/png"))])
+        assert one.status_code == 202, one.text
+        one = wait_for(c, one.json()["id"], timeout=180)
+        assert one["status"] == "succeeded", one
+        tracking = one["result"]["metrics"]["tracking"]
+        assert tracking["views"] == ["ap"] and not tracking["along_beam_measured"] and tracking["unmeasured_view"] == "ap"
+        assert one["result"]["verdict"] == "check" and "AP beam" in one["result"]["metrics"]["confidence"]["reasons"][-1]
+        assert np.allclose(tracking["reference_mesh_to_world"], first["result"]["mesh_to_world"])
+
+        both = c.post(f"/v1/registrations/{one['id']}/track", files=[
+            ("ap", ("ap3.png", png_bytes(masks["ap"]), "image/png")), ("lat", ("lat3.png", png_bytes(masks["lat"]), "image/png"))])
+        assert both.status_code == 202, both.text
+        both = wait_for(c, both.json()["id"], timeout=180)
+        assert both["status"] == "succeeded", both
+        tracking = both["result"]["metrics"]["tracking"]
+        assert tracking["views"] == ["ap", "lat"] and tracking["along_beam_measured"] and tracking["reference_given"]
+        assert np.allclose(tracking["reference_mesh_to_world"], first["result"]["mesh_to_world"])  # carried along
+        assert np.allclose(both["result"]["initial_mesh_to_world"], one["result"]["mesh_to_world"])
+        true = np.asarray(later)[:3, :3] @ centre + later[:3, 3] - (np.asarray(first["result"]["mesh_to_world"])[:3, :3]
+                                                                  @ centre + np.asarray(first["result"]["mesh_to_world"])[:3, 3])
+        assert np.linalg.norm(np.subtract(tracking["since_reference"]["translation_vector_mm"], true)) < 0.5, tracking
