@@ -55,6 +55,14 @@ def _start_dicom_node(ctx: ServiceContext) -> DicomListener | None:
     return listener
 
 
+def no_keys_warning(settings: ServiceSettings) -> str:
+    """The one start-up line of a server without API keys (``dsareg serve`` logged a second one when it moved a
+    ``--host`` to loopback)."""
+    asked = settings.server.host
+    moved = f" (not {asked}: serving other machines needs API keys)" if asked != settings.effective_host else ""
+    return f"no API keys configured: authentication is off and the service listens on 127.0.0.1 only{moved}"
+
+
 def warn_hidden_jobs(ctx: ServiceContext) -> None:
     """With API keys on, the jobs made while they were off (owner ``anonymous``) answer 404 to every key: say so
     at start, and how to hand them to a key (service/cli/jobs.py)."""
@@ -75,7 +83,7 @@ def make_lifespan(settings: ServiceSettings, metrics: ServiceMetrics, holder: di
         holder["ctx"] = ctx
         app.state.ctx = ctx
         if not settings.auth.auth_enabled:
-            log.warning("no API keys configured: authentication is off and the service listens on 127.0.0.1 only")
+            log.warning(no_keys_warning(settings))
         else:
             warn_hidden_jobs(ctx)
         if start_background:

@@ -159,7 +159,6 @@ def run_serve(args: argparse.Namespace) -> int:
         workers=args.workers, threads_per_worker=args.threads_per_worker, log_level=args.log_level,
     )
     logging.basicConfig(level=settings.server.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    log = logging.getLogger("dsareg.service")
     tls = tls_options(args.ssl_certfile, args.ssl_keyfile)  # a wrong file: one line, exit 2, nothing started
     if settings.dimse.dicom_port:  # the DICOM node's settings, before anything starts (a SettingError, exit 2)
         from ..pacs.dimse.job_options import dicom_job_options
@@ -168,9 +167,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if settings.effective_database_url.startswith("sqlite"):
         settings.storage.data_dir.mkdir(parents=True, exist_ok=True)
     migrate_at_start(settings.effective_database_url)  # the job database's schema (docs/operations/upgrades.md)
-    host = settings.effective_host
-    if host != settings.server.host:
-        log.warning("no API keys configured: binding to 127.0.0.1 instead of %s", settings.server.host)
+    host = settings.effective_host  # 127.0.0.1 without API keys: the app's start-up says so (api/lifespan.py)
     app = create_app(settings)
     uvicorn.run(app, host=host, port=settings.server.port, log_level=settings.server.log_level.lower(), access_log=False,
                 timeout_graceful_shutdown=10, http=http_protocol(settings),  # bad Content-Length → problem+json

@@ -110,9 +110,10 @@ def _cstore(target: dict[str, Any], files: list[tuple[str, bytes]], settings: Se
         results = [stored.get(peer) or export_to(settings, peer, paths) for peer in target["peers"]]
     outcome = {"via": CSTORE, "peers": results}
     failed = [item["error"] for item in results if item["status"] != "stored"]
-    if failed:
+    if failed:  # every failed destination in the detail (the exporter's one log line per attempt shows it)
         first = failed[0]
-        return outcome, pacs_error(first["detail"], peer=first["peer"], step=first["step"], dimse_status=first["status"])
+        return outcome, pacs_error("; ".join(item["detail"] for item in failed), peer=first["peer"], step=first["step"],
+                                   dimse_status=first["status"])
     return outcome, None
 
 

@@ -89,7 +89,8 @@ def export_to(settings: Any, title: str, files: list[Path]) -> dict[str, Any]:
             error = ExportError("associate", f"{type(exc).__name__}: {str(exc)[:160]}")
         if attempts <= settings.dimse.dicom_export_retries:
             time.sleep(settings.dimse.dicom_export_backoff_seconds * 2 ** (attempts - 1))
-    log.warning("export to %s failed after %d attempts: %s %s", title, attempts, error.step, error.detail)
+    log.debug("export to %s failed after %d attempts: %s %s", title, attempts, error.step, error.detail)  # the
+    # exporter's one warning per export attempt carries it (service/jobs/exports.py; it was logged twice)
     return {"peer": title, "host": peer.host, "port": peer.port, "status": "failed", "attempts": attempts,
             "seconds": round(time.perf_counter() - started, 3),
             "error": {"type": PACS_ERROR, "peer": title, "step": error.step, "status": error.status,

@@ -197,3 +197,24 @@ def test_a_retry_goes_only_to_the_destinations_not_yet_stored(store, tmp_path):
         live.server.shutdown()
     assert row["attempts"] == 2 and len(live.stored) == 3 and len(later.stored) == 3  # LIVE got each object once
     assert [p["status"] for p in row["outcome"]["peers"]] == ["stored", "stored"]
+
+
+def test_each_failed_export_attempt_is_one_warning_naming_every_destination(store, tmp_path, caplog):
+    """Issue 43 item 7: a failed C-STORE export was logged twice (``dsareg.dimse``: "export to DEAD failed after
+    …", then the exporter's "export attempt 1 pending (PACS DEAD: …)"); now one warning per attempt, and a second
+    failed destination is named in it (the detail held the first only)."""
+    import logging
+
+    dead = [{"ae_title": title, "host": "127.0.0.1", "port": free_port()} for title in ("DEADONE", "DEADTWO")]
+    blobs = BlobStore(tmp_path / "blobs")
+    job = _succeeded(store, blobs, {"via": "c-store", "peers": ["DEADONE", "DEADTWO"], "after_review": False})
+    deliverer = ExportDeliverer(store, blobs, _settings(tmp_path, dead, export_max_attempts=2))
+    with caplog.at_level(logging.INFO, logger="dsareg"):
+        row = _drain(deliverer, store, job.id, ("failed",))
+        deliverer._pool.shutdown(wait=True)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name.startswith("dsareg")]
+    assert len(warnings) == row["attempts"] == 2, warnings
+    for number, line in enumerate(warnings, start=1):
+        assert line.startswith(f"job {job.id}: export attempt {number} ") and "PACS DEADONE" in line \
+            and "PACS DEADTWO" in line, line
+    assert "DEADTWO" in row["last_error"]["detail"] and row["last_error"]["peer"] == "DEADONE"
