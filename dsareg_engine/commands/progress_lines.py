@@ -63,11 +63,15 @@ class ProgressPrinter:
         stage = str(event.get("stage") or "")
         fraction = float(event.get("fraction") or 0.0)
         loss = event.get("loss")
+        iteration = int(event.get("iteration") or 0)
         parts = [f"{fraction * 100:5.1f}%"]
-        if status:
-            parts.append(f"{status:9s}")
+        if status:  # padded to align the stages; alone when there is none (was "running  " and an empty stage)
+            parts.append(f"{status:9s}" if stage else status)
+        if not stage and status == "running":
+            parts.append("(starting)")  # claimed by a worker, no stage reported yet
         if stage:  # a job not started yet has no stage: its status alone (was "queued     it 0")
-            parts.append(f"{stage} it {int(event.get('iteration') or 0)}")
+            counted = iteration > 0 or isinstance(loss, (int, float))  # "outputs", "dicom": no iterations
+            parts.append(f"{stage} it {iteration}" if counted else stage)
         if isinstance(loss, (int, float)):
             parts.append(f"loss {loss:.5f}")
         return stage, " ".join(parts)

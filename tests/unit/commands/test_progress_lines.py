@@ -87,3 +87,18 @@ def test_a_job_without_a_stage_shows_its_status_alone():
     out = io.StringIO()
     ProgressPrinter(out, tty=False).update({}, "queued")
     assert out.getvalue().split() == ["progress", "0.0%", "queued"], out.getvalue()
+
+
+def test_no_progress_line_has_an_empty_stage_or_a_count_of_nothing():
+    """Issue 44 item 13: `dsareg submit` printed "progress   0.0% running  " (a claimed job, no stage yet) and
+    "outputs it 0" / "dicom it 0" for steps that count no iterations."""
+    out = io.StringIO()
+    printer = ProgressPrinter(out, every_seconds=0.0, tty=False)
+    for event, status in (({}, "queued"), ({"fraction": 0.0}, "running"),
+                          ({"stage": "ap+lat:1/2", "iteration": 1, "loss": 0.01513, "fraction": 0.548}, "running"),
+                          ({"stage": "outputs", "iteration": 0, "fraction": 0.92}, "running"),
+                          ({"stage": "dicom", "fraction": 0.98}, "running")):
+        printer.update(event, status)
+    assert out.getvalue().splitlines() == ["progress   0.0% queued", "progress   0.0% running (starting)",
+                                           "progress  54.8% running   ap+lat:1/2 it 1 loss 0.01513",
+                                           "progress  92.0% running   outputs", "progress  98.0% running   dicom"]
