@@ -44,3 +44,46 @@ def test_the_page_is_sent_with_its_key_box_hidden_when_no_keys_are_configured(tm
     with_keys = form.findall(_page(tmp_path / "keys", api_keys="k-ui-test"))
     assert len(without_keys) == 1 and re.search(r"\shidden[\s>]", without_keys[0]), without_keys
     assert len(with_keys) == 1 and "hidden" not in with_keys[0], with_keys
+
+
+def _chunk(source: str, start: str, end: str = "\n}\n") -> str:
+    begin = source.index(start)
+    return source[begin:source.index(end, begin) + len(end)]
+
+
+def test_the_review_page_shows_the_export_state_its_reason_and_next_attempt():
+    """Issue 43 item 2: an export runs after the job, with its state on the review page: queued, retrying with the
+    reason and the next attempt, stored, failed (app.js's exportState run by node on a minimal DOM)."""
+    import json
+    import shutil
+    import subprocess
+
+    if shutil.which("node") is None:
+        import pytest
+
+        pytest.skip("node is not installed: the export line is not rendered")
+    app = (STATIC / "app.js").read_text(encoding="utf-8")
+    dom = ("class Node { constructor(tag) { this.tag = tag; this.children = []; this.attrs = {}; }\n"
+           "  append(c) { this.children.push(c); } setAttribute(n, v) { this.attrs[n] = v; } addEventListener() {}\n"
+           "  get textContent() { return this.children.map((c) => c.textContent).join(''); } }\n"
+           "class Text extends Node { constructor(t) { super('#text'); this.t = t; } get textContent() { return this.t; } }\n"
+           "const document = { createElement: (t) => new Node(t), createTextNode: (t) => new Text(t) };\n")
+    code = dom + "\n".join((_chunk(app, "function el("), _chunk(app, "function badge("),
+                            _chunk(app, "const EXPORT_WORDS = {", "\n};\n"), _chunk(app, "function exportState(")))
+    states = [
+        {"state": "pending", "via": "c-store", "destination": "PACS", "attempts": 0},
+        {"state": "pending", "via": "c-store", "destination": "PACS", "attempts": 2,
+         "next_attempt_at": "2026-12-06T10:00:05Z", "error": {"detail": "PACS PACS: associate failed after 3 attempts"}},
+        {"state": "done", "via": "stow-rs", "destination": "http://pacs/dicom-web", "attempts": 1},
+        {"state": "failed", "via": "c-store", "destination": "PACS", "attempts": 5, "error": {"detail": "refused"}},
+    ]
+    code += f"\nconsole.log(JSON.stringify({json.dumps(states)}.map((s) => exportState(s).textContent)));"
+    lines = json.loads(subprocess.run(["node", "-e", code], capture_output=True, text=True, timeout=20,
+                                      check=True).stdout)
+    assert lines == [
+        "PACS export: queued; being sent (C-STORE to PACS)",
+        "PACS export: retrying (C-STORE to PACS, 2 attempts, next at 2026-12-06 10:00:05)"
+        "PACS PACS: associate failed after 3 attempts",
+        "PACS export: stored (STOW-RS to http://pacs/dicom-web, 1 attempt)",
+        "PACS export: failed (C-STORE to PACS, 5 attempts)refused",
+    ], lines
