@@ -82,8 +82,8 @@ def test_the_review_page_shows_the_export_state_its_reason_and_next_attempt():
                                       check=True).stdout)
     assert lines == [
         "PACS export: queued; being sent (C-STORE to PACS)",
-        "PACS export: retrying (C-STORE to PACS, 2 attempts, next at 2026-12-06 10:00:05)"
-        "PACS PACS: associate failed after 3 attempts",
+        ("PACS export: retrying (C-STORE to PACS, 2 attempts, next at 2026-12-06 10:00:05)"
+         "PACS PACS: associate failed after 3 attempts"),  # the reason on its own line (a <br> before it)
         "PACS export: stored (STOW-RS to http://pacs/dicom-web, 1 attempt)",
         "PACS export: failed (C-STORE to PACS, 5 attempts)refused",
     ], lines
