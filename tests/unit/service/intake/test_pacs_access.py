@@ -75,3 +75,29 @@ def test_every_key_entry_and_no_policy_without_keys(tmp_path):
 def test_a_malformed_policy_is_refused_naming_the_entry(value, says):
     with pytest.raises(ValueError, match=says):
         parse_pacs_access(value)
+
+
+def test_a_dimse_reference_is_held_to_the_same_policy(tmp_path):
+    """The DIMSE pull (``source.dimse``: C-MOVE / C-GET from a configured peer) goes through the same check as a
+    DICOMweb reference: the key's peers are AE titles, its studies UID roots."""
+    peers = [{"ae_title": title, "host": "127.0.0.1", "port": 11112 + n} for n, title in enumerate(("ARCHIVE", "CATH"))]
+    policy = {hash_api_key(RADIOLOGY): {"peers": ["ARCHIVE"], "studies": [ROOT]}}
+    settings = ServiceSettings(data_dir=tmp_path, dicom_peers=peers, min_free_bytes=0,
+                               api_keys=f"{RADIOLOGY},{RESEARCH}", pacs_access=json.dumps(policy))
+
+    def dimse(peer: str = "ARCHIVE", study_uid: str = ROOT + "7") -> str:
+        source = {"peer": peer, "study_uid": study_uid, "ap": {"series_uid": "1.2.3.1"},
+                  "lat": {"series_uid": "1.2.3.2"}, "volume": {"series_uid": "1.2.3.3"}}
+        return json.dumps({"source": {"dimse": source}, "options": {}})
+
+    ctx = IntakeContext.open(settings, lambda s, store: NoExecutor(), validate=False)
+    try:
+        assert _submit(ctx, _who(RADIOLOGY), dimse()).created
+        for text, who, field in ((dimse(peer="CATH"), _who(RADIOLOGY), "source.dimse.peer"),
+                                 (dimse(study_uid="1.2.3.4"), _who(RADIOLOGY), "source.dimse.study_uid"),
+                                 (dimse(), _who(RESEARCH), "source.dimse.peer")):  # no entry: default deny
+            with pytest.raises(AccessDenied) as caught:
+                _submit(ctx, who, text)
+            assert caught.value.field == field and refusal_problem(caught.value).status == 403
+    finally:
+        close_intake(ctx)
