@@ -122,6 +122,7 @@ def test_submit_help_says_out_implies_wait(capsys):
         main(["submit", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "implies --wait" in text and "--ground-truth" in text
+    assert "README" not in text and "/openapi.json" in text  # option details: the schema, not the README (issue 44)
 
 
 def test_register_one_line_summary(tmp_path):
