@@ -57,7 +57,12 @@ def echoscu(port: int, calling: str = "STORESCU", called: str = "DSAREG") -> sub
 
 
 class StoreScp(LoggedProcess):
-    """dcmtk ``storescp`` (AE ``title``) writing what it receives into ``folder``: an export destination."""
+    """dcmtk ``storescp`` (AE ``title``) writing what it receives into ``folder``: an export destination.
+
+    It listens on every interface: dcmtk's storescp (3.6.7, Debian's) has no bind-address option (only a port,
+    or ``--inetd``), so it cannot be held to loopback as dsareg's own listeners in the tests are (``serve`` and
+    the DICOM node bind 127.0.0.1). Its port is a free ephemeral one, it lives for the test only, and it accepts
+    what any peer sends: test data, never patient data."""
 
     def __init__(self, folder: Path, title: str = "STORESCU", port: int | None = None):
         self.folder, self.title, self.port = Path(folder), title, port or free_port()
