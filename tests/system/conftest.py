@@ -4,7 +4,9 @@
 module on one of them, so a module's server is started once) and then ``pytest -m timed tests/system``
 serially: the tests below time answers on real processes (a callback within 2 s, a page load ≤ 2 s, a
 review answer < 2 s, a REG in the PACS ≤ 3 s after the job, a cancel < 10 s, every fault test's bound) and must
-not share the 2 cores with another test. A test that adds such a bound adds its module (or its node id) here.
+not share the 2 cores with another test. A test that adds such a bound adds its module (or its node id) here,
+and reads its bound through ``tests.support.time_bounds.allowed``: before each timed test the machine's neighbours
+are measured, and on a busy machine the bounds stretch by that contention (at most 4x); a quiet one moves none.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
+from tests.support import time_bounds
 
 HERE = Path(__file__).parent
 TIMED = (
@@ -43,3 +47,20 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if timed(item):
             item.add_marker(pytest.mark.timed)
+
+
+_STRETCHED: list[tuple[str, float]] = []
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Before a timed test (and its fixtures' servers): how much of a core the neighbours leave."""
+    if item.get_closest_marker("timed") and time_bounds.measure() > 1.0:
+        _STRETCHED.append((item.nodeid, time_bounds.factor()))
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    if _STRETCHED:
+        worst = max(factor for _, factor in _STRETCHED)
+        terminalreporter.write_line(f"timed bounds stretched for a busy machine on {len(_STRETCHED)} test(s), "
+                                    f"at most x{worst:.1f} (tests/support/time_bounds.py)")

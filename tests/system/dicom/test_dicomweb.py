@@ -24,6 +24,7 @@ from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, read_registr
 from service.pacs.dicomweb import DicomwebClient, PacsServer
 from tests.support.servers import OrthancServer, free_port
 from tests.support.service_testkit import Server, forget_generated_client, generated_client, wait_for
+from tests.support.time_bounds import allowed
 
 OPTIONS = {"starts": 1}
 
@@ -277,7 +278,7 @@ def test_a_trickling_pacs_frees_the_worker_after_the_jobs_pacs_deadline(service,
     print(f"\ntrickling PACS: the worker held {held_s:.2f} s (DSAREG_PACS_DEADLINE_SECONDS {PACS_DEADLINE_S:g})")
     assert job["status"] == "failed" and job["error"]["type"].endswith("/pacs-error"), job
     assert "DSAREG_PACS_DEADLINE_SECONDS" in job["error"]["detail"] and trickler.requests >= 1
-    assert held_s <= PACS_DEADLINE_S + 3.0, held_s  # the budget, one read timeout, the job's own bookkeeping
+    assert held_s <= PACS_DEADLINE_S + allowed(3.0), held_s  # the budget, one read timeout, the job's own bookkeeping
 
 
 def example_lua(dsareg_url: str, dicomweb_url: str, options: str = "{ starts = 1 }") -> str:

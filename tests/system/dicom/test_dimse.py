@@ -21,6 +21,7 @@ from dsareg_engine.io.dicom_out import REG_SOP_CLASS, SC_SOP_CLASS, new_uid, rea
 from tests.support.dimse_kit import StoreScp, echoscu, jobs_of_study, need_dcmtk, renamed_study, scu_send, storescu
 from tests.support.servers import OrthancServer, free_port
 from tests.support.service_testkit import Server, forget_generated_client, generated_client, wait_for
+from tests.support.time_bounds import allowed
 
 STABLE_S = 1.0
 QUICK = {"starts": 1, "max_iterations": 3, "coarse_to_fine": False, "refine": False}  # a job that is over fast
@@ -197,7 +198,7 @@ def test_orthanc_sends_a_study_and_gets_the_reg_back(node, orthanc, study, tmp_p
                    for item in pacs.get(f"/studies/{orthanc_study}/instances").json()]
     print(f"\nOrthanc C-STORE {len(paths)} instances {sent_s:.2f} s, job listed {queued_s:.2f} s later, "
           f"REG found in Orthanc {in_orthanc_s:.2f} s after the job finished")
-    assert in_orthanc_s <= 3.0  # the exporter takes it within 0.25 s of the job's end
+    assert in_orthanc_s <= allowed(3.0)  # the exporter takes it within 0.25 s of the job's end
     assert classes.count(SC_SOP_CLASS) == 2 and classes.count(REG_SOP_CLASS) == 1
     frame = pydicom.dcmread(paths[-1]).FrameOfReferenceUID
     assert_pose(reg, frame, study.mesh_to_world)

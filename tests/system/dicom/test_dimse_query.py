@@ -16,6 +16,7 @@ from pynetdicom import AE, evt
 from service.pacs.dimse.query import STUDY_FIND, DimsePacsError, latest_volume
 from service.settings import ServiceSettings
 from tests.support.servers import free_port
+from tests.support.time_bounds import allowed
 
 
 @pytest.fixture
@@ -46,5 +47,5 @@ def test_a_peer_that_answers_pending_for_ever_is_cut_at_the_pacs_deadline(endles
     with pytest.raises(DimsePacsError) as failed:
         latest_volume(settings, "ENDLESS", "P", exclude_study="")
     took = time.monotonic() - started
-    assert took <= 1.5 + 0.3 + 2.0, took  # the deadline, one answer's wait, the association's set-up
+    assert took <= 1.5 + 0.3 + allowed(2.0), took  # the deadline, one answer's wait, the association's set-up
     assert "DSAREG_PACS_DEADLINE_SECONDS" in str(failed.value) and failed.value.step.startswith("C-FIND studies")

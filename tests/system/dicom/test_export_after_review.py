@@ -19,6 +19,7 @@ import pytest
 from tests.support.dimse_kit import StoreScp, jobs_of_study, need_dcmtk, renamed_study, storescu
 from tests.support.servers import OrthancServer, free_port
 from tests.support.service_testkit import Server, wait_for
+from tests.support.time_bounds import allowed
 
 RESULTS = ("reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm")
 START_S = 240.0  # a worker's start (torch, kernels, warm-up job) on a loaded 2-core machine has taken > 90 s
@@ -111,7 +112,7 @@ def test_held_until_approved_and_never_after_rejection(node, orthanc, study, fin
     assert not set().union(*map(result_uids, finished)) & in_pacs(orthanc, study.study_uid)
     with node.client() as client:
         answer, seconds = review(client, approved["id"], "approved")
-        assert answer["export"]["state"] == "pending" and seconds < 2.0
+        assert answer["export"]["state"] == "pending" and seconds < allowed(2.0)
         started = time.monotonic()
         done = export_state(client, approved["id"], ("done", "failed"), timeout=30)
         print(f"\nexport after approval: done {time.monotonic() - started:.2f} s after the answer")
@@ -156,7 +157,7 @@ def test_a_pacs_that_does_not_answer_gives_a_pacs_error_without_holding_the_revi
     try:
         with node.client() as client:
             answer, seconds = review(client, job["id"], "approved")
-            assert seconds < 2.0 and answer["export"]["state"] == "pending"
+            assert seconds < allowed(2.0) and answer["export"]["state"] == "pending"
             failed = export_state(client, job["id"], ("failed", "done"), timeout=60)
     finally:
         os.kill(orthanc.process.pid, signal.SIGCONT)

@@ -24,6 +24,7 @@ from tests.support.faults_kit import (
     wait_gone,
 )
 from tests.support.service_testkit import Server, needs_engine, submit, wait_for
+from tests.support.time_bounds import allowed
 
 pytestmark = [needs_engine, pytest.mark.slow]
 
@@ -107,7 +108,7 @@ def test_sigkill_server_workers_follow_then_restart_finishes_all(tmp_path, case,
     try:
         with second.client() as client:
             response, took = timed_post(client, case, {**FAST, "seed": 7})
-            assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+            assert response.status_code == 202 and took < allowed(NEXT_POST_SECONDS), (response.status_code, took)
             ids.append(response.json()["id"])
         _assert_invariants(second, ids)
     finally:
@@ -139,7 +140,7 @@ def test_sigkill_idle_worker_then_busy_worker(two_workers, case, slow_case):
         os.kill(idle[0], signal.SIGKILL)
         time.sleep(0.3)
         response, took = timed_post(client, case, {**FAST, "seed": 1})
-        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        assert response.status_code == 202 and took < allowed(NEXT_POST_SECONDS), (response.status_code, took)
         ids.append(response.json()["id"])
         deadline = time.monotonic() + 120
         while len(_worker_pids(srv)) < 2 and time.monotonic() < deadline:  # the replaced idle one warmed up
@@ -152,7 +153,7 @@ def test_sigkill_idle_worker_then_busy_worker(two_workers, case, slow_case):
         os.kill(int(worker_id.split("-")[-3]), signal.SIGKILL)
         killed_at = time.time()
         response, took = timed_post(client, case, {**FAST, "seed": 3})
-        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        assert response.status_code == 202 and took < allowed(NEXT_POST_SECONDS), (response.status_code, took)
         ids.append(response.json()["id"])
         _assert_invariants(srv, ids)
         assert body["status"] == "running" and _events(srv.data_dir)(busy).count("claimed") == 2
@@ -160,7 +161,7 @@ def test_sigkill_idle_worker_then_busy_worker(two_workers, case, slow_case):
         requeue_s, claim_s = at["lease_expired"] - killed_at, at["claimed"] - killed_at
         print(f"\nbusy worker SIGKILLed: its job requeued after {requeue_s:.2f} s, claimed again after "
               f"{claim_s:.2f} s (lease 30 s)")
-        assert requeue_s <= 5.0 and claim_s <= 15.0, (requeue_s, claim_s)
+        assert requeue_s <= allowed(5.0) and claim_s <= allowed(15.0), (requeue_s, claim_s)
         assert len(_wait_idle(srv, 2)) == 2  # the supervisor replaced both
 
 
@@ -174,14 +175,14 @@ def test_slow_loris_and_client_disconnect_do_not_hurt(two_workers, case):
         for sock in slow[:4]:
             sock.sendall(b"v 1 0 0\n")  # trickle
         response, took = timed_post(client, case, {**FAST, "seed": 1})
-        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        assert response.status_code == 202 and took < allowed(NEXT_POST_SECONDS), (response.status_code, took)
         ids.append(response.json()["id"])
         assert client.get("/healthz", timeout=1).status_code == 200
         for sock in slow:  # the clients give up mid-upload
             sock.close()
         time.sleep(1.0)
         response, took = timed_post(client, case, {**FAST, "seed": 2})
-        assert response.status_code == 202 and took < NEXT_POST_SECONDS, (response.status_code, took)
+        assert response.status_code == 202 and took < allowed(NEXT_POST_SECONDS), (response.status_code, took)
         ids.append(response.json()["id"])
         _assert_invariants(srv, ids)
         metrics = client.get("/metrics").text

@@ -198,7 +198,7 @@ def test_hostile_corpus_never_5xx(hostile_server, case, tmp_path):
     # the validator parses (the event loop never waits on it), but here it decodes bombs on the same 2 cores:
     # measured 0.17-0.88 s on the shared, loaded machine (load average 8-14), so the bound is the 2 s each
     # /healthz above already had; the 0.5 s target is asserted by the parsing corpus (no decode competing)
-    assert stall["worst_s"] < 4 * STALL_LIMIT_S, stall
+    assert stall["worst_s"] < allowed(4 * STALL_LIMIT_S), stall
     assert (validator_peak - validator_base) < 512 * 1024, (validator_peak, validator_base)
     assert api_growth < 256 * 1024, api_growth
     server_errors = [line for line in metrics.splitlines()  # (/readyz is 503 while the validator warms up)
@@ -241,6 +241,7 @@ BOUNDARY = "hostileXyZ"
 
 POLLER = """
 import http.client, json, os, sys, time
+from tests.support.time_bounds import allowed
 port, stop = int(sys.argv[1]), sys.argv[2]
 worst, polls, slow = 0.0, 0, []
 while not os.path.exists(stop):
@@ -428,5 +429,5 @@ def test_request_parsing_corpus(parsing_server, case, tmp_path):
           f"{stall['worst_s']:.3f} s over {stall['polls']} polls")
     assert not failures, failures
     assert jobs_after == jobs_before  # nothing refused was accepted (the cut body used to make a job)
-    assert stall["polls"] > 10 and stall["worst_s"] < STALL_LIMIT_S, stall
+    assert stall["polls"] > 10 and stall["worst_s"] < allowed(STALL_LIMIT_S), stall
     assert "Traceback" not in srv.logs()
