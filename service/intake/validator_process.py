@@ -35,16 +35,17 @@ def _become_validator(parent_pid: int | None) -> None:
 
     A stop signal sent to the whole process group (Ctrl-C, systemd's stop, ``kill -TERM -- -PGID``) reaches the
     validators too; ended by it, they were found dead by the pool's watchdog before the server stopped the pool,
-    and a normal stop logged ``validator replaced (dead while idle)``. The server stops them itself."""
+    and a normal stop logged ``validator replaced (dead while idle)``. The server stops them itself. The signals
+    are ignored before the imports (about a second): a stop soon after a validator started killed it there."""
     import signal
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from ..engine_adapter import engine
     from ..jobs.procwatch import die_with_parent, set_process_name
 
     set_process_name("dsareg-validate")
     engine.skip_exit_collections()  # a server's stop waits for its validators' exit
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if parent_pid is not None:  # a parse in progress must not outlive a SIGKILLed server
         die_with_parent(parent_pid, signal.SIGKILL)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 
+from service.intake.allowance import AllowancePolicy
 from service.intake.validator import ValidatorPool
 from service.storage.blobs import BlobStore
 from service.storage.store import InputFile
@@ -92,7 +93,7 @@ def test_a_request_that_waits_for_a_starting_validator_says_so(caplog):
         theirs.recv()
         theirs.send({"ok": True})
 
-    slot = _Slot(mp.get_context("spawn"), 0, 1, Spawner())
+    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(0, 60.0), 1, Spawner())
     slot.process, slot.conn = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours
     helper = threading.Thread(target=validator_starting_slowly)
     helper.start()
@@ -135,3 +136,71 @@ def test_a_validator_found_dead_is_one_warning_naming_how_it_ended(tmp_path, cap
             f"(pid {dead} ended with exit code {-signal.SIGKILL})" in warnings[0], warnings
     finally:
         pool.stop()
+
+
+def test_a_validator_still_importing_outlives_a_stop_signal():
+    """The signals were ignored only after the engine's import (about a second): a stop to the process group soon
+    after a validator (or a spare) started killed it there, and the watchdog logged it as replaced. The import is
+    made slow here (3 s) and the SIGTERM sent while it runs."""
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import sys, time, types\n"
+            "class Slow(types.ModuleType):\n"
+            "    def __getattr__(self, name):\n"
+            "        if name.startswith('__'):\n"
+            "            raise AttributeError(name)\n"
+            "        print('importing', flush=True)\n"
+            "        time.sleep(3)\n"
+            "        raise AttributeError(name)\n"
+            "sys.modules['service.engine_adapter'] = Slow('service.engine_adapter')\n"
+            "from service.intake.validator_process import _become_validator\n"
+            "try:\n    _become_validator(None)\nexcept ImportError:\n    print('survived', flush=True)\n")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "importing"
+        child.send_signal(signal.SIGTERM)
+        assert child.stdout.readline().strip() == "survived" and child.wait(10) == 0, child.returncode
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_a_large_volumes_allowance_moves_the_requests_deadline_to_its_time(caplog):
+    """Issue 41: the validator announces a large volume's allowance (sized from its header) before reading it; the
+    request then waits that long, not the base limit (bounded by the operator's ceiling); a base-limit request is
+    cut at the base limit, and the time limit it met is named in the refusal."""
+    import logging
+    import multiprocessing as mp
+    import os
+    import time
+    from types import SimpleNamespace
+
+    from service.intake.spawner import Spawner
+    from service.intake.validator import _Slot
+
+    ours, theirs = mp.Pipe(duplex=True)
+    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(512, 0.4, 4096, 3.0), 1, Spawner())
+    slot.process, slot.conn, slot.ready = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours, True
+
+    def validator_reading(announce: float | None, reading_s: float):
+        theirs.recv()
+        if announce is not None:
+            theirs.send({"allowance": {"memory_mb": 2000, "timeout_s": announce, "volume": "512x512x440"}})
+        time.sleep(reading_s)
+        theirs.send({"ok": True})
+
+    for announce, expected in ((10.0, ({"ok": True}, None)), (None, (None, "timeout"))):
+        helper = threading.Thread(target=validator_reading, args=(announce, 1.0))
+        helper.start()
+        try:
+            assert slot.call({"inputs": []}, timeout=0.4) == expected
+        finally:
+            helper.join()
+        if announce is not None:  # the announced 10 s is cut to the 3 s ceiling; the 1 s read fits it
+            assert (slot.allowance.memory_mb, slot.allowance.timeout_s, slot.allowance.raised) == (2000, 3.0, True)
+            slot.process, slot.conn = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours
+    pool = ValidatorPool(1, timeout_seconds=0.4, memory_mb=512, volume_memory_mb=4096, volume_timeout_seconds=3.0)
+    refused = pool._failed("timeout", {"inputs": []}, slot.allowance.__class__(2000, 3.0, "512x512x440"))
+    assert "within 3 s (the time allowed for a 512x512x440 volume)" in refused.message and refused.field == "volume"
