@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import threading
 
-from service.intake.allowance import AllowancePolicy
 from service.intake.validator import ValidatorPool
 from service.storage.blobs import BlobStore
 from service.storage.store import InputFile
@@ -93,7 +92,7 @@ def test_a_request_that_waits_for_a_starting_validator_says_so(caplog):
         theirs.recv()
         theirs.send({"ok": True})
 
-    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(0, 60.0), 1, Spawner())
+    slot = _Slot(mp.get_context("spawn"), 0, 1, Spawner())
     slot.process, slot.conn = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours
     helper = threading.Thread(target=validator_starting_slowly)
     helper.start()
@@ -165,42 +164,3 @@ def test_a_validator_still_importing_outlives_a_stop_signal():
     finally:
         child.kill()
         child.wait()
-
-
-def test_a_large_volumes_allowance_moves_the_requests_deadline_to_its_time(caplog):
-    """Issue 41: the validator announces a large volume's allowance (sized from its header) before reading it; the
-    request then waits that long, not the base limit (bounded by the operator's ceiling); a base-limit request is
-    cut at the base limit, and the time limit it met is named in the refusal."""
-    import logging
-    import multiprocessing as mp
-    import os
-    import time
-    from types import SimpleNamespace
-
-    from service.intake.spawner import Spawner
-    from service.intake.validator import _Slot
-
-    ours, theirs = mp.Pipe(duplex=True)
-    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(512, 0.4, 4096, 3.0), 1, Spawner())
-    slot.process, slot.conn, slot.ready = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours, True
-
-    def validator_reading(announce: float | None, reading_s: float):
-        theirs.recv()
-        if announce is not None:
-            theirs.send({"allowance": {"memory_mb": 2000, "timeout_s": announce, "volume": "512x512x440"}})
-        time.sleep(reading_s)
-        theirs.send({"ok": True})
-
-    for announce, expected in ((10.0, ({"ok": True}, None)), (None, (None, "timeout"))):
-        helper = threading.Thread(target=validator_reading, args=(announce, 1.0))
-        helper.start()
-        try:
-            assert slot.call({"inputs": []}, timeout=0.4) == expected
-        finally:
-            helper.join()
-        if announce is not None:  # the announced 10 s is cut to the 3 s ceiling; the 1 s read fits it
-            assert (slot.allowance.memory_mb, slot.allowance.timeout_s, slot.allowance.raised) == (2000, 3.0, True)
-            slot.process, slot.conn = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours
-    pool = ValidatorPool(1, timeout_seconds=0.4, memory_mb=512, volume_memory_mb=4096, volume_timeout_seconds=3.0)
-    refused = pool._failed("timeout", {"inputs": []}, slot.allowance.__class__(2000, 3.0, "512x512x440"))
-    assert "within 3 s (the time allowed for a 512x512x440 volume)" in refused.message and refused.field == "volume"
