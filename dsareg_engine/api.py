@@ -75,12 +75,15 @@ if TYPE_CHECKING:  # the lazy names below, for type checkers and linters (never 
     from .hemodynamics.intake import check_timed_runs
     from .io.case import CaseFiles, load_case, load_case_files
     from .io.model_cache import DirectoryModelStore
+    from .io.volume_cost import VolumeCost, volume_read_cost
     from .io.xa_run import ImageReading
     from .pipeline import RegistrationCanceled, run_case, run_registration_case
 
 _LAZY = {  # heavy: loaded on first use (the module docstring says why and what each costs)
     "CaseFiles": "dsareg_engine.io.case",
     "DirectoryModelStore": "dsareg_engine.io.model_cache",
+    "VolumeCost": "dsareg_engine.io.volume_cost",
+    "volume_read_cost": "dsareg_engine.io.volume_cost",
     "load_case": "dsareg_engine.io.case",
     "load_case_files": "dsareg_engine.io.case",
     "ImageReading": "dsareg_engine.io.xa_run",
@@ -114,6 +117,7 @@ __all__ = [
     "RegistrationCanceled",
     "RegistrationOptions",
     "RigSpec",
+    "VolumeCost",
     "VolumeReading",
     "c_arm_rotation",
     "case_identity",
@@ -139,6 +143,7 @@ __all__ = [
     "skip_exit_collections",
     "ViewSpec",
     "validate_rigid",
+    "volume_read_cost",
     "warm_up_job",
     "with_source",
     "warm_up_parsers",

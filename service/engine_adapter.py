@@ -166,6 +166,20 @@ def load_job_case(inputs: list[InputFile], geometry: str | None, segmentation: s
     return case
 
 
+def volume_cost(inputs: list[InputFile], read: Any, limits: dict[str, int] | None = None,
+                volume: dict[str, Any] | None = None, models: dict[str, Any] | None = None) -> Any:
+    """What reading a job's volume will cost, from its header (``engine.VolumeCost``; no voxel decoded): None
+    without a volume or a declared shape; raises ``engine.DsaregInputError`` for what its header already refuses.
+    The files as :func:`stored_case_files` gives them; ``volume``: :func:`volume_reading`; ``models``:
+    :func:`model_cache` (a kept model: the read costs headers only)."""
+    items = [f for f in inputs if f.role == "volume"]
+    if not items:
+        return None
+    data = read(items[0].sha256) if len(items) == 1 else [read(item.sha256) for item in items]
+    return engine.volume_read_cost(data, "volume" + items[0].suffix, input_limits(limits),
+                                   engine.VolumeReading(**(volume or {})), model_store(models))
+
+
 def model_cache(storage: Any) -> dict[str, Any] | None:
     """The volume-model cache of ``storage`` (:class:`service.settings.StorageSettings`) as plain data for another
     process: ``{"dir", "entries"}``, or None when it is off."""

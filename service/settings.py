@@ -171,6 +171,13 @@ class LimitSettings(_Group):
     validation_processes: int = Field(1, ge=1, le=16, description="Processes that parse inputs for the API.")
     validation_memory_mb: int = Field(
         512, ge=0, description="Extra address space for one input parse (RLIMIT_AS of the validator; 0: unlimited).")
+    validation_volume_memory_mb: int = Field(
+        4096, ge=0, description="The most extra address space one submission's volume may be given for its first read, "
+                                "sized from the volume's header (voxel count -> measured cost); a volume expected to "
+                                "need more is refused at once. 0: volumes get validation_memory_mb like any input.")
+    validation_volume_timeout_seconds: float = Field(
+        300.0, ge=0.0, description="The longest one submission's volume may be given for its first read (sized from "
+                                   "its header alike; at least validation_timeout_seconds). 0: no more than that.")
     max_mesh_faces: int | None = Field(None, ge=1, description="Refuse meshes with more faces (engine default 500k).")
     max_image_pixels: int | None = Field(None, ge=1, description="Refuse larger images, from the header (engine default 64 MP).")
     max_image_bytes: int = Field(

@@ -34,9 +34,9 @@ BOUNDARY = "service.engine_adapter"
 ENGINE_API = "dsareg_engine.api"
 ENGINE_PUBLIC = (ENGINE_API, "dsareg_engine.commands.kit")
 LAZY_MODULES = {"dsareg_engine.pipeline", "dsareg_engine.io.case", "dsareg_engine.io.xa_run",
-                "dsareg_engine.hemodynamics.intake", "dsareg_engine.io.model_cache"}
+                "dsareg_engine.hemodynamics.intake", "dsareg_engine.io.model_cache", "dsareg_engine.io.volume_cost"}
 """What ``dsareg_engine.api`` loads on first use: torch and numba, or pydicom and PIL, or scipy (the model cache reads
-volume readouts; its docstring measures them)."""
+volume readouts; its docstring measures them; the volume cost reads the volume's headers with the readers)."""
 
 
 def _modules() -> dict[str, Path]:

@@ -33,3 +33,18 @@ class InputLimits:
 
 
 DEFAULT_LIMITS = InputLimits()
+
+
+@dataclass(frozen=True)
+class ShapeProbe(InputLimits):
+    """Limits that stop a volume reader at its declared shape: the shape check every reader makes before any
+    voxel is decoded (:func:`.volume_formats.check_bytes`) raises :class:`DeclaredShape` once the shape passes
+    ``max_volume_bytes`` (:func:`.volume_cost.declared_volume`)."""
+
+
+class DeclaredShape(Exception):  # noqa: N818 - a result carried out of the reader, not an error
+    """A volume's declared ``shape`` and sample size (``itemsize``, bytes), raised under a :class:`ShapeProbe`."""
+
+    def __init__(self, shape: tuple[int, ...], itemsize: int):
+        super().__init__(shape, itemsize)
+        self.shape, self.itemsize = tuple(int(s) for s in shape), int(itemsize)

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DsaregInputError
-from .limits import DEFAULT_LIMITS, InputLimits
+from .limits import DEFAULT_LIMITS, DeclaredShape, InputLimits, ShapeProbe
 
 RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 ITK_FORMATS = ("metaimage", "vtk-image")
@@ -108,6 +108,8 @@ def check_bytes(shape, itemsize: int, limits: InputLimits, field_name: str) -> N
             f"above the limit of {limits.max_volume_bytes / 2**20:.0f} MiB",
             field=field_name,
         )
+    if isinstance(limits, ShapeProbe):  # the header alone was asked for: stop before any voxel is decoded
+        raise DeclaredShape(tuple(shape), int(itemsize))
 
 
 def check_affine(affine: np.ndarray, field_name: str) -> np.ndarray:

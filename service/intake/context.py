@@ -51,7 +51,8 @@ def start_validator(settings: ServiceSettings) -> ValidatorPool:
     """The validator processes of ``settings`` (``DSAREG_VALIDATION_*``), started (they warm up meanwhile)."""
     limits = settings.limits
     pool = ValidatorPool(limits.validation_processes, limits.validation_timeout_seconds, limits.validation_memory_mb,
-                         threads=settings.jobs.threads_per_worker)
+                         threads=settings.jobs.threads_per_worker, volume_memory_mb=limits.validation_volume_memory_mb,
+                         volume_timeout_seconds=limits.validation_volume_timeout_seconds)
     pool.start()
     return pool
 

@@ -11,6 +11,10 @@ the worker will run (:func:`service.engine_adapter.load_job_case`: the same
   and replaced, and the submission is refused naming the time limit (an HTTP 422);
 * an address-space limit (``validation_memory_mb`` on top of what the warmed-up
   process already uses): a decompression bomb fails with MemoryError, refused alike;
+* a larger allowance for a submission whose volume needs it, sized from the volume's header before any voxel is
+  decoded and capped by ``validation_volume_memory_mb`` / ``validation_volume_timeout_seconds``
+  (:mod:`.allowance`): the process announces it (``{"allowance"}``), the request waits that long, the process is
+  replaced after it; the model it made is kept in the model cache for the worker;
 * crash containment: a dead or frozen process is replaced by a warm spare within
   ``WATCH_SECONDS`` and the request is sent once more to it (see :class:`ValidatorPool`).
 
@@ -34,6 +38,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
+from .allowance import Allowance, AllowancePolicy
 from .spawner import Spawner
 from .validator_process import largest_input, validator_main
 
@@ -68,22 +73,25 @@ def process_state(pid: int) -> str | None:
 class _Slot:
     """One validator process and its pipe (the process started on ``spawner``'s thread)."""
 
-    def __init__(self, ctx: Any, memory_mb: int, threads: int, spawner: Spawner):
+    def __init__(self, ctx: Any, policy: AllowancePolicy, threads: int, spawner: Spawner):
         self.ctx = ctx
         self.spawner = spawner
-        self.memory_mb = memory_mb
+        self.policy = policy
+        self.memory_mb = policy.memory_mb
         self.threads = threads
         self.process: Any = None
         self.conn: Connection | None = None
         self.ready = False
         self.lock = threading.Lock()  # the pipe is used by one request thread and by readiness checks
         self.waited_s = 0.0  # the last call's wait for the process's start-up (imports, parser warm-up)
+        self.allowance = policy.base()  # the last call's (a large volume's is announced by the process)
         self.ended = ""  # how a process found dead ended, for the one line that replaces it (ValidatorPool._refill)
 
     def start(self) -> None:
         parent, child = self.ctx.Pipe(duplex=True)
         self.process = self.ctx.Process(
-            target=validator_main, args=(child, self.memory_mb, self.threads, os.getpid()), name="dsareg-validator",
+            target=validator_main, args=(child, self.memory_mb, self.threads, os.getpid(), self.policy),
+            name="dsareg-validator",
             daemon=True
         )
         self.spawner.run(self.process.start)
@@ -126,6 +134,19 @@ class _Slot:
             if health != "ok":
                 raise _Unhealthy(health)
 
+    def _reply(self, deadline: float, sent: float) -> dict:
+        """The request's reply; a large volume's allowance (``{"allowance"}``, sent first) moves the deadline to
+        its time after ``sent`` (at most the policy's ceiling)."""
+        self.allowance = self.policy.base()
+        while True:
+            message = self._receive(deadline)
+            if "allowance" not in message:
+                return message
+            given = message["allowance"]
+            self.allowance = Allowance(int(given["memory_mb"]), min(float(given["timeout_s"]), self.policy.ceiling_s),
+                                       str(given["volume"]))
+            deadline = max(deadline, sent + self.allowance.timeout_s)
+
     def wait_ready(self, timeout: float) -> bool:
         if self.ready:
             return True
@@ -164,6 +185,7 @@ class _Slot:
         """``(reply, None)``, or ``(None, why)`` with why ``timeout``, ``dead`` or ``frozen`` (the process is
         then killed; the pool gives the slot a fresh one). Blocking; the caller holds ``lock``."""
         deadline = time.monotonic() + timeout
+        self.allowance = self.policy.base()
         try:
             if self.health() != "ok":
                 raise _Unhealthy(self.health())
@@ -172,7 +194,7 @@ class _Slot:
             self.waited_s = time.monotonic() - waiting
             assert self.conn is not None
             self.conn.send(request)
-            return self._receive(deadline), None
+            return self._reply(deadline, time.monotonic()), None
         except _Unhealthy as exc:
             why = exc.health
         except TimeoutError:
@@ -185,9 +207,12 @@ class _Slot:
         return None, why
 
 
-def log_validation_time(seconds: float, waited_s: float) -> None:
+def log_validation_time(seconds: float, waited_s: float, allowance: Allowance | None = None) -> None:
     """The time a submission's parse took; a request that came while its validator was still starting (before
-    /readyz answers 200) says how much of it was that start, paid once per validator."""
+    /readyz answers 200) says how much of it was that start, paid once per validator; a large volume's allowance."""
+    if allowance is not None and allowance.raised:
+        log.info("a %s volume was given %d MB and %g s to parse (sized from its header)", allowance.volume,
+                 allowance.memory_mb, allowance.timeout_s)
     if waited_s >= 0.5:
         log.info("validation took %.2f s, %.2f s of it waiting for the validator to finish starting (imports and "
                  "parser warm-up, once per validator process: a request sent before /readyz answers 200 pays it)",
@@ -218,12 +243,16 @@ class ValidatorPool:
     CACHE_SIZE = 512
     RETRY_AFTER_SECONDS = 5
 
-    def __init__(self, processes: int, timeout_seconds: float, memory_mb: int, threads: int = 1):
+    def __init__(self, processes: int, timeout_seconds: float, memory_mb: int, threads: int = 1, *,
+                 volume_memory_mb: int = 0, volume_timeout_seconds: float = 0.0):
+        """``volume_memory_mb`` / ``volume_timeout_seconds``: the most one submission's large volume may be given
+        (:mod:`.allowance`; 0 and 0: the base limits for every submission)."""
         self.ctx = mp.get_context("spawn")
         self.timeout = timeout_seconds
+        policy = AllowancePolicy(memory_mb, timeout_seconds, volume_memory_mb, volume_timeout_seconds)
         self.spawner = Spawner()  # a validator dies with the thread that started it (PR_SET_PDEATHSIG)
-        self.slots = [_Slot(self.ctx, memory_mb, threads, self.spawner) for _ in range(processes)]
-        self.spare = _Slot(self.ctx, memory_mb, threads, self.spawner)
+        self.slots = [_Slot(self.ctx, policy, threads, self.spawner) for _ in range(processes)]
+        self.spare = _Slot(self.ctx, policy, threads, self.spawner)
         self.replaced = 0
         self._spare_lock = threading.Lock()
         self._halt = threading.Event()
@@ -309,8 +338,9 @@ class ValidatorPool:
                         else:
                             why = None
                 elif reply is not None and reply.get("recycle"):  # memory the allocator keeps after a MemoryError
-                    slot.kill()
-                    self._refill(slot, "recycled after MemoryError")
+                    slot.kill()                                       # or a large volume's read
+                    recycle = reply["recycle"]
+                    self._refill(slot, "recycled " + (recycle if isinstance(recycle, str) else "after MemoryError"))
             finally:
                 self._ensure_spare()
         return reply, why
@@ -335,11 +365,12 @@ class ValidatorPool:
             started = time.monotonic()
             slot.waited_s = 0.0
             reply, why = await asyncio.to_thread(self._run, slot, request)
-            log_validation_time(time.monotonic() - started, slot.waited_s)
+            allowance = slot.allowance
+            log_validation_time(time.monotonic() - started, slot.waited_s, allowance)
         finally:
             free.put_nowait(slot)
         if why is not None:
-            return self._failed(why, request)
+            return self._failed(why, request, allowance)
         assert reply is not None
         if reply.get("ok"):
             return ValidationOutcome(ok=True, summary=reply.get("summary") or {})
@@ -351,12 +382,15 @@ class ValidatorPool:
                                      accepted="well-formed mesh/volume and image files")
         return ValidationOutcome(ok=False, message=reply.get("message"), field=reply.get("field"), accepted=reply.get("accepted"))
 
-    def _failed(self, why: str, request: dict) -> ValidationOutcome:
+    def _failed(self, why: str, request: dict, allowance: Allowance) -> ValidationOutcome:
         if why == "frozen":  # two validators stopped in a row: a machine problem, not the input's
             return ValidationOutcome(ok=False, busy=True, message="input validation is temporarily unavailable")
         if why == "timeout":
-            return ValidationOutcome(ok=False, message=f"the inputs could not be parsed within {self.timeout:g} s",
-                                     field=largest_input(request), accepted="smaller or simpler inputs")
+            given = f" (the time allowed for a {allowance.volume} volume)" if allowance.raised else ""
+            return ValidationOutcome(ok=False, message=f"the inputs could not be parsed within "
+                                                       f"{allowance.timeout_s:g} s{given}",
+                                     field="volume" if allowance.raised else largest_input(request),
+                                     accepted="smaller or simpler inputs")
         return ValidationOutcome(ok=False, message="the inputs crashed the parser on two fresh processes",
                                  field=largest_input(request), accepted="well-formed mesh/volume and image files")
 

@@ -12,20 +12,41 @@ from __future__ import annotations
 import os
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
+
+from .allowance import Allowance, AllowancePolicy, TooLarge, size_allowance
+
+MB = 1 << 20
 
 
-def _set_memory_limit(extra_mb: int) -> None:
+def _set_memory_limit(extra_mb: int, ceiling_mb: int = 0) -> int | None:
+    """Address space at most ``extra_mb`` over the current size (the soft limit), raisable per request up to
+    ``ceiling_mb`` over it (the hard limit); the current size in bytes, or None when there is no limit."""
     if extra_mb <= 0:
-        return
+        return None
     try:
         import resource
 
         with open("/proc/self/statm") as f:
             pages = int(f.read().split()[0])
         current = pages * os.sysconf("SC_PAGE_SIZE")
-        limit = current + extra_mb * 1024 * 1024
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    except Exception:  # noqa: BLE001, S110 - best effort on platforms without it
+        resource.setrlimit(resource.RLIMIT_AS, (current + extra_mb * MB, current + max(extra_mb, ceiling_mb) * MB))
+        return current
+    except Exception:  # noqa: BLE001 - best effort on platforms without it
+        return None
+
+
+def _allow_memory(start: int | None, extra_mb: int) -> None:
+    """Raise this process's soft address-space limit to ``extra_mb`` over its warmed-up size ``start``."""
+    if start is None or extra_mb <= 0:
+        return
+    try:
+        import resource
+
+        _, hard = resource.getrlimit(resource.RLIMIT_AS)
+        wanted = start + extra_mb * MB
+        resource.setrlimit(resource.RLIMIT_AS, (wanted if hard == resource.RLIM_INFINITY else min(wanted, hard), hard))
+    except Exception:  # noqa: BLE001, S110 - best effort
         pass
 
 
@@ -50,10 +71,14 @@ def _become_validator(parent_pid: int | None) -> None:
         die_with_parent(parent_pid, signal.SIGKILL)
 
 
-def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None) -> None:
+def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: int | None = None,
+                   policy: AllowancePolicy | None = None) -> None:
     """Child loop: one request at a time ``{"inputs", "geometry", "segmentation", "blob_root", "reading",
-    "volume_reading", "mesh_units"}``."""
+    "volume_reading", "mesh_units"}``. ``policy``: the allowance a large volume may be given (:mod:`.allowance`);
+    a request given more than the base limits first sends ``{"allowance": ...}`` (its parent waits that long), and
+    its process is replaced after it (the memory its allocator keeps)."""
     _become_validator(parent_pid)
+    policy = policy or AllowancePolicy(memory_mb, 0.0)
     engine_ok = True
     # parsing needs no torch (the engine imports it only to register); should a parser import it,
     # its thread pool reads this at start-up
@@ -66,10 +91,8 @@ def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: i
         engine.warm_up_parsers()
     except Exception:  # noqa: BLE001
         engine_ok = False
-    _set_memory_limit(memory_mb)
-    from ..engine_adapter import case_summary, engine, load_job_case
-    from ..storage.blobs import BlobStore
-    from ..storage.store import InputFile
+    start = _set_memory_limit(memory_mb, policy.ceiling_mb)
+    from ..engine_adapter import engine
 
     conn.send({"ready": True, "engine": engine_ok})
     while True:
@@ -90,21 +113,55 @@ def validator_main(conn: Connection, memory_mb: int, threads: int, parent_pid: i
             conn.send({"ok": False, "message": "CUDA is not available on this server", "field": "options.device",
                        "accepted": "auto or cpu"})
             continue
-        try:
-            blobs = BlobStore(request["blob_root"])
-            inputs = [InputFile(**item) for item in request["inputs"]]
-            case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
-                                 request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
-                                 hemodynamics=bool(request.get("hemodynamics")), models=request.get("models"))
-            conn.send({"ok": True, "summary": case_summary(case)})
-        except engine.DsaregInputError as exc:
-            conn.send({"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted})
-        except MemoryError:
-            conn.send({"ok": False, "message": f"decoding needs more than the {memory_mb} MB this server allows "
-                                               "for parsing one submission", "field": largest_input(request),
-                       "accepted": "smaller inputs", "recycle": True})
-        except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
-            conn.send({"ok": False, "internal": True, "kind": type(exc).__name__})
+        conn.send(_answer(conn, request, policy, start))
+
+
+def _answer(conn: Connection, request: dict, policy: AllowancePolicy, start: int | None) -> dict[str, Any]:
+    """The reply to one request: its volume's allowance sized (and announced), its inputs read as the worker will."""
+    from ..engine_adapter import case_summary, engine, load_job_case
+    from ..storage.blobs import BlobStore
+    from ..storage.store import InputFile
+
+    allowance = policy.base()
+    try:
+        blobs = BlobStore(request["blob_root"])
+        inputs = [InputFile(**item) for item in request["inputs"]]
+        allowance = _allowance(inputs, request, blobs.read, policy)
+        if allowance.raised:
+            conn.send({"allowance": allowance.as_json()})
+            _allow_memory(start, allowance.memory_mb)
+        case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
+                             request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
+                             hemodynamics=bool(request.get("hemodynamics")), models=request.get("models"))
+        reply = {"ok": True, "summary": case_summary(case)}
+    except TooLarge as exc:
+        reply = {"ok": False, "message": exc.message, "field": "volume", "accepted": exc.accepted}
+    except engine.DsaregInputError as exc:
+        reply = {"ok": False, "message": exc.message, "field": exc.field, "accepted": exc.accepted}
+    except MemoryError:
+        reply = {"ok": False, "message": f"decoding needs more than the {allowance.memory_mb} MB this server allows "
+                                         f"for parsing {_what(allowance)}", "field": largest_input(request),
+                 "accepted": "smaller inputs", "recycle": True}
+    except Exception as exc:  # noqa: BLE001 - reported as a generic input problem, logged by type only
+        reply = {"ok": False, "internal": True, "kind": type(exc).__name__}
+    if allowance.raised:  # the memory its allocator keeps after a large read
+        reply["recycle"] = reply.get("recycle") or "after a volume's allowance"
+    return reply
+
+
+def _allowance(inputs: list, request: dict, read: Any, policy: AllowancePolicy) -> Allowance:
+    """The base limits, or more for a volume whose header says its first read needs more (:mod:`.allowance`)."""
+    from ..engine_adapter import volume_cost
+
+    volume = [item for item in inputs if item.role == "volume"]
+    if not volume or (policy.volume_memory_mb <= 0 and policy.volume_timeout_s <= 0):
+        return policy.base()
+    cost = volume_cost(inputs, read, request.get("limits"), request.get("volume_reading"), request.get("models"))
+    return size_allowance(cost, sum(item.size for item in volume), policy)
+
+
+def _what(allowance: Allowance) -> str:
+    return f"a submission with a {allowance.volume} volume" if allowance.raised else "one submission"
 
 
 def largest_input(request: dict) -> str | None:

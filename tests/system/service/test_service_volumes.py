@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dsareg_engine.simulation.synthetic_volumes import make_volume_case
-from tests.support.service_testkit import wait_for
+from tests.support.service_testkit import Server, wait_for
 
 
 @pytest.fixture(scope="module")
@@ -104,3 +104,62 @@ def _png() -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(image).save(buffer, format="PNG")
     return buffer.getvalue()
+
+
+# ---- a volume larger than the validator's base limits (issue 41) ------------------------------------------------
+SMALL_BASE_MB = "24"  # this CTA's first read needs ~50 MB over the validator's size, as a whole-head CTA's ~1.1 GB
+"""The validator's base limit lowered so that the small CTA needs more than it, as a whole-head CTA (512 x 512 x 440)
+needs more than the default 512 MB: the test's stand-in for the whole head, read in seconds."""
+
+
+def test_a_volume_above_the_base_limits_is_refused_by_the_fixed_limits_and_accepted_with_its_allowance(cta, tmp_path):
+    """The same submission to two validator pools with the base limit lowered: with the fixed limits of before
+    (no volume allowance) it is refused; sized from its header it is read, and its model kept for the worker."""
+    import asyncio
+
+    from service.intake.validator import ValidatorPool
+    from service.storage.blobs import BlobStore
+    from service.storage.store import InputFile
+
+    blobs = BlobStore(tmp_path / "data")
+    inputs = [vars(InputFile(role, *blobs.put_bytes(data), ".dcm"))
+              for role, data in [("ap", cta.ap), ("lat", cta.lat), *(("volume", part) for part in cta.volume.parts)]]
+    request = {"inputs": inputs, "geometry": None, "segmentation": "auto", "blob_root": str(blobs.root), "limits": {},
+               "volume_reading": {"kind": "auto"}, "models": {"dir": str(tmp_path / "models"), "entries": 4}}
+    outcomes = []
+    for volume_mb, volume_s in ((0, 0.0), (4096, 300.0)):
+        pool = ValidatorPool(1, timeout_seconds=60, memory_mb=int(SMALL_BASE_MB), volume_memory_mb=volume_mb,
+                             volume_timeout_seconds=volume_s)
+        pool.start()
+        try:
+            outcomes.append(asyncio.run(pool.validate(request)))
+        finally:
+            pool.stop()
+    before, now = outcomes
+    assert not before.ok and before.field in ("volume", "ap", "lat"), before  # decoding failed under 24 MB
+    assert now.ok, now
+    assert len(list((tmp_path / "models").glob("*.npz"))) == 1  # the model made once, kept for the worker
+
+
+@pytest.fixture(scope="module")
+def small_base_server(tmp_path_factory):
+    srv = Server(tmp_path_factory.mktemp("allowance") / "data", workers=1,
+                 env={"DSAREG_VALIDATION_MEMORY_MB": SMALL_BASE_MB}).start(timeout=240)
+    yield srv
+    srv.stop()
+
+
+def test_a_volume_above_the_base_limits_is_accepted_with_the_default_volume_settings(small_base_server, cta):
+    """A real server whose validator has a 24 MB base (the volume settings their defaults): the CTA's header sizes
+    its allowance, the submission is accepted, the worker takes the model the check made and the job succeeds."""
+    options = {"initialization": "given", "initial_mesh_to_world": np.eye(4).tolist(), "starts": 1,
+               "max_iterations": 10}  # the job's outcome is the point here, not its accuracy
+    with small_base_server.client() as client:
+        response = _post(client, cta, options)
+        assert response.status_code == 202, response.text
+        job = wait_for(client, response.json()["id"], timeout=300)
+    assert job["status"] == "succeeded", job
+    assert job["result"]["volume"]["voxels_total"] == 75 * 75 * 95
+    logs = small_base_server.logs()
+    assert "a 75x75x95 volume was given" in logs and "recycled after a volume's allowance" in logs, logs[-3000:]
+    assert len(list((small_base_server.data_dir / "models").glob("*.npz"))) == 1

@@ -61,6 +61,8 @@ ADDED_SINCE_BASE |= {"DSAREG_EXPORT_LEASE_SECONDS"}  # issue 34: was a constant 
 ADDED_SINCE_BASE |= {"DSAREG_WARM_UP_JOB"}  # issue 34: test servers start without the warm-up job
 ADDED_SINCE_BASE |= {"DSAREG_PACS_ACCESS"}  # issue 43: which PACS studies each API key may have fetched
 ADDED_SINCE_BASE |= {"DSAREG_MODEL_CACHE_ENTRIES"}  # issue 41: volume models kept for the next job on the volume
+ADDED_SINCE_BASE |= {"DSAREG_VALIDATION_VOLUME_MEMORY_MB",  # issue 41: a large volume's allowance at intake
+                     "DSAREG_VALIDATION_VOLUME_TIMEOUT_SECONDS"}
 
 
 def _env_names_of(settings_source: str) -> list[str]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 
+from service.intake.allowance import AllowancePolicy
 from service.intake.validator import ValidatorPool
 from service.storage.blobs import BlobStore
 from service.storage.store import InputFile
@@ -92,7 +93,7 @@ def test_a_request_that_waits_for_a_starting_validator_says_so(caplog):
         theirs.recv()
         theirs.send({"ok": True})
 
-    slot = _Slot(mp.get_context("spawn"), 0, 1, Spawner())
+    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(0, 60.0), 1, Spawner())
     slot.process, slot.conn = SimpleNamespace(is_alive=lambda: True, pid=os.getpid()), ours
     helper = threading.Thread(target=validator_starting_slowly)
     helper.start()
@@ -164,3 +165,46 @@ def test_a_validator_still_importing_outlives_a_stop_signal():
     finally:
         child.kill()
         child.wait()
+
+
+def test_a_large_volumes_allowance_moves_the_requests_deadline_to_its_time():
+    """Issue 41: the validator announces a large volume's allowance (sized from its header) before reading it; the
+    request then waits that long, not the base limit (bounded by the operator's ceiling); a request without one is
+    cut at the base limit; a refusal for time names the limit it met."""
+    import multiprocessing as mp
+    import os
+    import time
+    from types import SimpleNamespace
+
+    from service.intake.spawner import Spawner
+    from service.intake.validator import _Slot
+
+    def validator_reading(theirs, announce: float | None):
+        theirs.recv()
+        if announce is not None:
+            theirs.send({"allowance": {"memory_mb": 2000, "timeout_s": announce, "volume": "512x512x440"}})
+        time.sleep(1.0)  # reading: longer than the base limit (0.4 s)
+        try:
+            theirs.send({"ok": True})
+        except OSError:
+            pass  # cut: the pool closed its end
+
+    outcomes = []
+    for announce in (10.0, None):
+        ours, theirs = mp.Pipe(duplex=True)
+        slot = _Slot(mp.get_context("spawn"), AllowancePolicy(512, 0.4, 4096, 3.0), 1, Spawner())
+        slot.process = SimpleNamespace(is_alive=lambda: True, pid=os.getpid(), kill=lambda: None, join=lambda t: None)
+        slot.conn, slot.ready = ours, True
+        helper = threading.Thread(target=validator_reading, args=(theirs, announce))
+        helper.start()
+        try:
+            outcomes.append((slot.call({"inputs": []}, timeout=0.4), slot.allowance))
+        finally:
+            helper.join()
+    (answered, given), (cut, base) = outcomes
+    assert answered == ({"ok": True}, None) and cut == (None, "timeout")
+    assert (given.memory_mb, given.timeout_s, given.raised) == (2000, 3.0, True)  # 10 s announced, 3 s ceiling
+    assert not base.raised and base.timeout_s == 0.4
+    pool = ValidatorPool(1, timeout_seconds=0.4, memory_mb=512, volume_memory_mb=4096, volume_timeout_seconds=3.0)
+    refused = pool._failed("timeout", {"inputs": []}, given)
+    assert "within 3 s (the time allowed for a 512x512x440 volume)" in refused.message and refused.field == "volume"

@@ -1,0 +1,92 @@
+"""What reading a volume will cost, from its header alone: the declared shape, and the memory and CPU time the
+first read (vessels extracted, surface made) is expected to take.
+
+Why: a service parses every submission in a process with a memory and time allowance sized for images and models;
+a whole-head CTA (512 × 512 × 440) needs more than that allowance, a 3D-RA crop far less. The header tells which
+before any voxel is decoded, so the allowance can be sized for this volume (and a volume beyond what the server
+allows refused at once, not after a minute of work).
+
+* :func:`declared_volume`: the shape every reader declares (and checks against ``max_volume_bytes``) before it
+  decodes a voxel, got by running the reader itself under a :class:`~.limits.ShapeProbe` (the same parsing and the
+  same refusals as a full read, up to that point: a broken header is refused here already).
+* :func:`expected_read_cost`: address-space growth (MB) and CPU s of the first read of ``voxels`` voxels,
+  interpolated in :data:`MEASURED` (a warmed-up process, as the service's validator is; measured with
+  ``python -m benchmarks.engine whole-head --intake``), extrapolated past the largest at its last slope.
+* :func:`volume_read_cost`: both for a case's volume files, zero when its model is already kept
+  (:mod:`.model_cache`: a hit reads headers only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .limits import DEFAULT_LIMITS, DeclaredShape, InputLimits, ShapeProbe
+from .model_cache import ModelStore, model_key
+from .volume_io import read_volume
+from .volume_kind import VolumeReading
+
+MEASURED: tuple[tuple[float, float, float], ...] = (
+    # voxels, address-space growth MB, CPU s of the first read of a case (the volume's files already in memory, the
+    # process warmed up as the service's validator is); 2 CPU cores x86_64, loaded by other engineers
+    (0.0, 40.0, 0.4),  # headers and the volume reader's first imports (a kept model's case: 39 MB, 0.3 s)
+    (0.53e6, 49.0, 0.4),  # 75 x 75 x 95 at 1.2 mm (the service tests' small CTA)
+    (14.4e6, 665.0, 11.0),  # 256 x 256 x 220 at 0.9 mm
+    (48.7e6, 956.0, 21.5),  # 384 x 384 x 330 at 0.6 mm
+    (115.3e6, 1089.0, 40.4),  # 512 x 512 x 440 at 0.45 mm (whole-head CTA; 193 s of wall-clock on the loaded machine)
+)
+"""Measured first reads of the layered CTA head (:mod:`benchmarks.engine.whole_head`), one field of view at three
+voxel sizes: the plate/tube measure's working set is bounded (16 M voxels), so the cost per voxel falls."""
+
+
+@dataclass(frozen=True)
+class VolumeCost:
+    """A volume's declared ``shape`` and its first read's expected ``memory_mb`` (address-space growth) and
+    ``cpu_s``; ``cached``: its model is kept, the read costs headers only."""
+
+    shape: tuple[int, ...]
+    memory_mb: float
+    cpu_s: float
+    cached: bool = False
+
+    @property
+    def voxels(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+
+def declared_volume(data: bytes | list[bytes], name: str | None = None, limits: InputLimits = DEFAULT_LIMITS, *,
+                    field_name: str = "volume") -> tuple[int, ...] | None:
+    """The volume's declared shape, from its header (no voxel decoded); ``None`` when its reader declared none
+    before decoding (then it was read whole). Raises ``DsaregInputError`` as :func:`.volume_io.read_volume` does
+    for everything it checks before the shape (format, series, declared size above ``limits``)."""
+    try:
+        read_volume(data, name, ShapeProbe(**asdict(limits)), field_name=field_name)
+    except DeclaredShape as declared:
+        return declared.shape
+    return None
+
+
+def expected_read_cost(voxels: int) -> tuple[float, float]:
+    """``(memory MB, CPU s)`` the first read of ``voxels`` voxels is expected to take (:data:`MEASURED`)."""
+    points = np.array(MEASURED)
+    n = float(max(0, voxels))
+    if n <= points[-1, 0]:
+        return float(np.interp(n, points[:, 0], points[:, 1])), float(np.interp(n, points[:, 0], points[:, 2]))
+    (n0, m0, c0), (n1, m1, c1) = points[-2], points[-1]
+    return float(m1 + (n - n1) * (m1 - m0) / (n1 - n0)), float(c1 + (n - n1) * (c1 - c0) / (n1 - n0))
+
+
+def volume_read_cost(volume: bytes | list[bytes], name: str | None, limits: InputLimits = DEFAULT_LIMITS,
+                     reading: VolumeReading | None = None, store: ModelStore | None = None) -> VolumeCost | None:
+    """What reading ``volume`` (a case's volume files) will cost; ``None`` when its header declares no shape."""
+    shape = declared_volume(volume, name, limits)
+    if shape is None:
+        return None
+    if store is not None and store.get(model_key(volume, name, reading, limits.working_faces)) is not None:
+        return VolumeCost(shape, *expected_read_cost(0), cached=True)
+    voxels = int(np.prod(shape, dtype=np.int64))
+    return VolumeCost(shape, *expected_read_cost(voxels))
+
+
+__all__ = ["MEASURED", "VolumeCost", "declared_volume", "expected_read_cost", "volume_read_cost"]
