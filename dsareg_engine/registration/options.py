@@ -102,6 +102,12 @@ class RegistrationOptions(BaseModel):
         None, description="Tracking (mode track): the procedure's first pose, mesh mm → world mm; the result's "
         "metrics.tracking.since_reference is the motion since it (null: the initial pose is the reference). "
         "POST …/track sets it from the job it tracks from.")
+    single_plane_depth: Literal["fit", "previous"] = Field(
+        "fit", description="Tracking with one plane (configuration ap or lat): the model's depth along that plane's "
+        "beam, which one view shows through perspective alone. 'fit': where the fit puts it (within 0.1 mm on "
+        "synthetic images of an exact model, but a model 1 % too large moved it 1.4-1.6 mm: "
+        "docs/benchmarks/tracking.md); 'previous': held at the previous pose's (no motion along the beam assumed). "
+        "Either way metrics.tracking says it is not measured and the verdict is at most check.")
     region: ModelRegion | None = Field(
         None, description="Register only this part of the model (what the run injected, when the model holds more "
         "vessels than the images show); without it partial visibility is detected from the images.")

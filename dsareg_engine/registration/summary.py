@@ -30,7 +30,7 @@ def _summary(setup: _Setup, run: _Run, options: RegistrationOptions, total_secon
     problem, used_views, initial = setup.problem, setup.used_views, setup.initial
     mesh, rig = problem.mesh, problem.rig
     estimate, depth_held_mm = run.poses[0], None
-    if setup.tracking:  # one plane: its depth along the beam held at the previous pose's (:mod:`.tracking`)
+    if setup.tracking and options.single_plane_depth == "previous":  # one plane: its depth held (:mod:`.tracking`)
         estimate, depth_held_mm = hold_unmeasured_depth(estimate, initial, rig, used_views, mesh.vertices.mean(axis=0))
     view_results = _view_results(problem, initial, estimate)
     converged, reason = _convergence(run.outcome, view_results)

@@ -253,16 +253,22 @@ class Tracking(BaseModel):
     since_reference: Motion = Field(description="The model's motion from the reference pose to this one.")
     since_previous: Motion = Field(description="The model's motion from the previous pose to this one (= "
                                                "metrics.motion).")
-    along_beam_measured: bool = Field(description="False for one plane: the motion along its beam is not in the image; "
-                                                  "the pose keeps the previous pose's depth there, and the verdict is at "
-                                                  "most `check` with the reason.")
+    along_beam_measured: bool = Field(description="False for one plane: one view shows the motion along its beam "
+                                                  "through perspective alone (confounded with the model's scale); the "
+                                                  "verdict is then at most `check` with the reason.")
     unmeasured_view: Literal["ap", "lat"] | None = Field(None, description="One plane: the plane whose beam direction "
                                                                           "was not measured.")
     unmeasured_direction_world: list[float] | None = Field(
         None, min_length=3, max_length=3, description="One plane: unit vector (world) from its X-ray source through the "
                                                       "model's centroid, along which the motion was not measured.")
-    depth_held_mm: float | None = Field(None, description="One plane: how far the fitted pose was moved back along the "
-                                                          "beam to the previous pose's depth, mm.")
+    along_beam_mm: float | None = Field(None, description="One plane: the motion since the previous pose along that "
+                                                          "direction (signed, mm; near 0 with depth `previous`): the part "
+                                                          "not measured.")
+    depth: Literal["fit", "previous"] | None = Field(None, description="One plane: where the depth along its beam "
+                                                                       "comes from (options.single_plane_depth): the "
+                                                                       "fit's perspective, or held at the previous pose's.")
+    depth_held_mm: float | None = Field(None, description="One plane, depth `previous`: how far the fitted pose was "
+                                                          "moved back along the beam to the previous pose's depth, mm.")
 
 
 class ResultMetrics(BaseModel):

@@ -13,7 +13,12 @@ from dsareg_engine.registration import RegistrationOptions
 from dsareg_engine.registration.parameterization import random_start_poses
 from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.tracking import (
-    beam_direction, hold_unmeasured_depth, lower_verdict, track_metrics, tracking_record)
+    beam_direction,
+    hold_unmeasured_depth,
+    lower_verdict,
+    track_metrics,
+    tracking_record,
+)
 from dsareg_engine.render import Camera, render_hard_silhouette
 
 
@@ -95,9 +100,18 @@ def test_one_plane_is_never_ok_and_a_failure_stays_failed():
     rig, rng = _paper_rig(), np.random.default_rng(3)
     previous, estimate, points = _pose(rng), _pose(rng), rng.normal(size=(20, 3))
     ok = {"verdict": "ok", "reasons": []}
-    metrics = track_metrics(previous, estimate, None, points, rig, ("lat",), 0.4, ok)
-    assert metrics["mode"] == "track" and metrics["motion"] == metrics["tracking"]["since_previous"]
-    assert ok["verdict"] == "check" and "LAT beam" in ok["reasons"][-1] and "cannot be measured" in ok["reasons"][-1]
+    metrics = track_metrics(previous, estimate, None, points, rig, ("lat",), None, ok)  # the fit's own depth
+    record = metrics["tracking"]
+    assert metrics["mode"] == "track" and metrics["motion"] == record["since_previous"] and record["depth"] == "fit"
+    beam = np.asarray(record["unmeasured_direction_world"])
+    assert record["along_beam_mm"] == pytest.approx(np.dot(record["since_previous"]["translation_vector_mm"], beam),
+                                                    abs=1e-4)
+    assert ok["verdict"] == "check" and "LAT beam" in ok["reasons"][-1] and "not measured" in ok["reasons"][-1]
+    assert f"{record['along_beam_mm']:+.2f} mm along it" in ok["reasons"][-1]
+    held = {"verdict": "ok", "reasons": []}
+    record = track_metrics(previous, estimate, None, points, rig, ("lat",), 0.4, held)["tracking"]
+    assert record["depth"] == "previous" and record["depth_held_mm"] == 0.4 and held["verdict"] == "check"
+    assert "keeps the previous pose's depth" in held["reasons"][-1]
     failed = {"verdict": "failed", "reasons": ["dice"]}
     track_metrics(previous, estimate, None, points, rig, ("ap",), 0.4, failed)
     assert failed["verdict"] == "failed" and len(failed["reasons"]) == 2
@@ -117,31 +131,37 @@ def _masks(mesh, rig, pose):
 
 
 def test_engine_tracks_a_later_run_of_one_plane(phantom):
-    """A later AP run alone: the pose follows the motion across the AP beam, keeps the previous depth along it, reports
-    the motion since the procedure's first pose, and says `check` where both planes say `ok`."""
+    """A later AP run alone: the pose follows the motion across the AP beam, says the motion along it is not
+    measured (or holds the previous depth there when asked), reports the motion since the procedure's first pose,
+    and says `check` where both planes say `ok`."""
     rig = _paper_rig(400)
     reference = np.eye(4)
     previous = random_start_poses(reference, phantom.centroid, 2, 1.0, 1.0, seed=4)[1]
     truth = random_start_poses(previous, phantom.centroid, 2, 2.0, 2.5, seed=6)[1]
     masks = _masks(phantom, rig, truth)
-    common = dict(mode="track", initial_mesh_to_world=previous.tolist(), reference_mesh_to_world=reference.tolist(),
-                  ground_truth_mesh_to_world=truth.tolist())
+    common = {"mode": "track", "initial_mesh_to_world": previous.tolist(), "reference_mesh_to_world": reference.tolist(),
+              "ground_truth_mesh_to_world": truth.tolist()}
     one = register(phantom, masks, rig, RegistrationOptions(configuration="ap", **common))
+    kept = register(phantom, masks, rig, RegistrationOptions(configuration="ap", single_plane_depth="previous", **common))
     both = register(phantom, masks, rig, RegistrationOptions(**common))
-    record = one.metrics["tracking"]
-    assert record["views"] == ["ap"] and not record["along_beam_measured"] and record["unmeasured_view"] == "ap"
-    assert one.metrics["confidence"]["verdict"] == "check" and both.metrics["confidence"]["verdict"] == "ok"
-    assert "single-plane track (AP only)" in one.metrics["confidence"]["reasons"][-1]
     assert both.metrics["tracking"]["along_beam_measured"] and both.metrics["ground_truth"]["add_mm"] < 0.05
+    assert both.metrics["confidence"]["verdict"] == "ok"
     centre = phantom.vertices.mean(axis=0)
-    error = one.mesh_to_world[:3, :3] @ centre + one.mesh_to_world[:3, 3] - (truth[:3, :3] @ centre + truth[:3, 3])
-    beam = np.asarray(record["unmeasured_direction_world"])
-    assert np.linalg.norm(error - (error @ beam) * beam) < 0.1  # across the beam: measured
-    assert one.metrics["ground_truth"]["rotation_error_deg"] < 0.2
+    for result in (one, kept):
+        record = result.metrics["tracking"]
+        assert record["views"] == ["ap"] and not record["along_beam_measured"] and record["unmeasured_view"] == "ap"
+        assert result.metrics["confidence"]["verdict"] == "check"
+        assert "single-plane track (AP only)" in result.metrics["confidence"]["reasons"][-1]
+        error = result.mesh_to_world[:3, :3] @ centre + result.mesh_to_world[:3, 3] - (truth[:3, :3] @ centre + truth[:3, 3])
+        beam = np.asarray(record["unmeasured_direction_world"])
+        assert np.linalg.norm(error - (error @ beam) * beam) < 0.1  # across the beam: measured
+        assert result.metrics["ground_truth"]["rotation_error_deg"] < 0.2
+        rotation, translation = _expected(reference, result.mesh_to_world, phantom.vertices)
+        assert np.allclose(record["since_reference"]["rotation_vector_deg"], rotation, atol=1e-6)
+        assert np.allclose(record["since_reference"]["translation_vector_mm"], translation, atol=1e-6)
+        true_rotation, _ = _expected(reference, truth, phantom.vertices)
+        assert np.linalg.norm(rotation - true_rotation) < 0.2
+    assert one.metrics["tracking"]["depth"] == "fit" and one.metrics["tracking"]["depth_held_mm"] is None
+    assert kept.metrics["tracking"]["depth"] == "previous" and kept.metrics["tracking"]["depth_held_mm"] > 0
     depth_axis = rig.views["ap"].world_to_view[2, :3]  # the view's z axis in the world: the held depth
-    assert abs(np.dot(record["since_previous"]["translation_vector_mm"], depth_axis)) < 1e-6
-    rotation, translation = _expected(reference, one.mesh_to_world, phantom.vertices)
-    assert np.allclose(record["since_reference"]["rotation_vector_deg"], rotation, atol=1e-6)
-    assert np.allclose(record["since_reference"]["translation_vector_mm"], translation, atol=1e-6)
-    true_rotation, _ = _expected(reference, truth, phantom.vertices)
-    assert np.linalg.norm(rotation - true_rotation) < 0.2
+    assert abs(np.dot(kept.metrics["tracking"]["since_previous"]["translation_vector_mm"], depth_axis)) < 1e-6
