@@ -1,10 +1,14 @@
-"""API keys: required when configured, hashed at rest, jobs scoped to their key."""
+"""API keys: required when configured, hashed at rest, jobs scoped to their key; wrong keys throttled per client
+address (issue 43 item 3)."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
 import time
+
+import httpx
 
 from tests.support.service_testkit import Server, submit
 
@@ -52,11 +56,41 @@ def test_api_keys_required_and_scoped(tmp_path, example_case):
                 assert a.get(f"/v1/registrations/{job_id}").status_code == 404
                 assert b.get(f"/v1/registrations/{beta_job.json()['id']}").status_code == 404
                 assert not list((srv.data_dir / "blobs").glob("??/*"))
+        _wrong_keys_are_throttled(srv, alpha)  # last: it blocks the loopback address for 60 s
     finally:
         srv.stop()
     logs = srv.logs()
     assert alpha not in logs and beta not in logs
+    warnings = [line for line in logs.splitlines() if "wrong API key from" in line]
+    assert len(warnings) == 1 + len(GUESSES), warnings  # the one "Bearer wrong" above, then the guesses
+    assert all("127.0.0.1" in line for line in warnings) and "429" in warnings[-1], warnings
+    assert re.search(r"\(10 within 60 s\)", warnings[-1]), warnings[-1]
+    assert not any(guess in logs for guess in GUESSES) and "Bearer" not in "\n".join(warnings)
     assert "authentication is off" not in logs
+
+
+GUESSES = [f"guessed-key-{n:02d}-s3cret" for n in range(10)]
+
+
+def _wrong_keys_are_throttled(srv: Server, valid: str) -> None:
+    """10 wrong keys from 127.0.0.1 within 60 s: 401 each, then 429 with Retry-After for that address, its
+    valid key included (the documented policy: a blocked address learns nothing about the keys it tries, until
+    its oldest counted failure is 60 s old); another client address (127.0.0.2) is not blocked."""
+    with srv.client() as guesser:
+        codes = [guesser.get("/v1/registrations", headers={"Authorization": f"Bearer {g}"}).status_code
+                 for g in GUESSES]
+        blocked = guesser.get("/v1/registrations", headers={"Authorization": "Bearer one-more-guess"})
+        valid_too = guesser.get("/v1/registrations", headers={"Authorization": f"Bearer {valid}"})
+        no_key = guesser.get("/v1/registrations")
+        health = guesser.get("/healthz")
+    assert codes == [401] * len(GUESSES)
+    assert blocked.status_code == 429 and 30 <= int(blocked.headers["retry-after"]) <= 60, blocked.headers
+    assert blocked.headers["content-type"].startswith("application/problem+json") and "retry in" in blocked.text
+    assert valid_too.status_code == 429 and int(valid_too.headers["retry-after"]) <= 60
+    assert no_key.status_code == 401 and health.status_code == 200  # no key: a plain 401, not counted
+    other = httpx.HTTPTransport(local_address="127.0.0.2")  # another client address on the loopback
+    with srv.client(transport=other, headers={"Authorization": f"Bearer {valid}"}) as neighbour:
+        assert neighbour.get("/v1/registrations").status_code == 200
 
 
 def _engine() -> bool:
