@@ -97,9 +97,15 @@ def _add_track(which) -> None:
                        help="per-frame rotation range (deg, random axis through the mesh centre)")
     track.add_argument("--translation", type=float, nargs=2, default=[0.5, 3.0], metavar=("MIN", "MAX"),
                        help="per-frame translation range (mm, random direction)")
+    track.add_argument("--planes", nargs="+", default=["both"], choices=["both", "ap", "lat", "alternate"],
+                       help="planes sent each frame, one table row per choice over the same motions: both, ap or lat "
+                       "alone, alternate (AP, LAT, AP, ...)")
+    track.add_argument("--grey", action="store_true", help="grey-level DSA images segmented as the service does, not true masks")
+    track.add_argument("--model-scale", type=float, default=1.0, help="the images show the model scaled by this about "
+                       "its centre (a 3D model of the wrong size); the model registered is as given")
     track.add_argument("--options", default="{}", help="extra registration options as JSON")
     _add_device(track)
-    track.set_defaults(func=deferred("benchmarks.engine.phantom:bench_track"))
+    track.set_defaults(func=deferred("benchmarks.engine.tracking:bench_track"))
 
 
 def _add_robustness(which) -> None:

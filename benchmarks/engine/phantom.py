@@ -280,60 +280,6 @@ def bench_autoinit(args: argparse.Namespace) -> int:
     return 0
 
 
-def bench_track(args: argparse.Namespace) -> int:
-    """Sequences of small motions, each frame re-registered from the previous frame's estimate."""
-    mesh = load_mesh_argument(args.mesh)
-    paper = load_rig("paper")
-    views = {name: view.resized(args.size, args.size) for name, view in paper.views.items()}
-    rig = Rig(views, np.eye(4))
-    vertices, faces = mesh.torch(torch.float64)
-    rng = np.random.default_rng(args.seed)
-    extra = {"mode": "track", **_options(args)}
-    print(f"mesh {mesh.n_faces} faces, {args.size}x{args.size} px, {args.sequences} sequences x {args.frames} motions of "
-          f"{args.rotation[0]:g}-{args.rotation[1]:g} deg and {args.translation[0]:g}-{args.translation[1]:g} mm, "
-          f"each registered from the previous estimate (the first from the true pose), options {extra}")
-    # Warm-up (compiled kernels loaded, level-of-detail mesh made), as in a running tracker: not counted.
-    warm = {name: render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view)[None], Camera.from_view(view))[0].numpy()
-            for name, view in views.items()}
-    register(mesh, warm, rig, RegistrationOptions(configuration="simultaneous", **extra, initial_mesh_to_world=np.eye(4).tolist()))
-    rows = []
-    for sequence in range(args.sequences):
-        truth, estimate = np.eye(4), np.eye(4)
-        for frame in range(args.frames):
-            angle = np.radians(rng.uniform(*args.rotation))
-            truth = _perturbation(mesh, truth, angle, rng.uniform(*args.translation), rng)
-            masks = {
-                name: render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view @ truth)[None],
-                                             Camera.from_view(view))[0].numpy()
-                for name, view in views.items()
-            }
-            options = RegistrationOptions(configuration="simultaneous", **extra, initial_mesh_to_world=estimate.tolist(),
-                                          ground_truth_mesh_to_world=truth.tolist())
-            started, cpu = time.perf_counter(), time.process_time()
-            result = register(mesh, masks, rig, options)
-            wall, cpu = time.perf_counter() - started, time.process_time() - cpu
-            estimate = result.mesh_to_world
-            gt = result.metrics["ground_truth"]
-            motion = result.metrics.get("motion", {})
-            rows.append({**gt, "wall": wall, "cpu": cpu, "converged": result.metrics["converged"],
-                         "motion_mm": motion.get("translation_mm", float("nan")), "motion_deg": motion.get("rotation_deg", float("nan")),
-                         "iterations": sum(result.metrics["iterations"].values())})
-            print(f"sequence {sequence} frame {frame}: motion {rows[-1]['motion_deg']:.2f} deg / {rows[-1]['motion_mm']:.2f} mm, "
-                  f"ADD {gt['add_mm']:.4f} mm, rotation {gt['rotation_error_deg']:.4f} deg, {1e3 * wall:.0f} ms "
-                  f"(CPU {1e3 * cpu:.0f} ms), {rows[-1]['iterations']} iterations, converged {rows[-1]['converged']}", flush=True)
-    add = np.array([row["add_mm"] for row in rows])
-    wall = np.array([row["wall"] for row in rows]) * 1e3
-    cpu = np.array([row["cpu"] for row in rows]) * 1e3
-    print("| frames | success (ADD < 1 mm) | ADD mm median / p90 / max | rotation ° median | translation mm median | "
-          "ms per frame pair median / p90 | CPU ms median | converged |")
-    print("|---|---|---|---|---|---|---|---|")
-    print(f"| {len(rows)} | {np.mean(add < 1.0) * 100:.0f} % | {np.median(add):.4f} / {np.percentile(add, 90):.4f} / {add.max():.4f} | "
-          f"{np.median([r['rotation_error_deg'] for r in rows]):.4f} | {np.median([r['translation_error_mm'] for r in rows]):.4f} | "
-          f"{np.median(wall):.0f} / {np.percentile(wall, 90):.0f} | {np.median(cpu):.0f} | "
-          f"{sum(r['converged'] for r in rows)}/{len(rows)} |")
-    return 0
-
-
 _SAFETY_ROWS = {"wrong_tree": "wrong_tree", "swapped_views": "swapped_views", "swapped_views+early_filling": "swapped_early"}
 
 
