@@ -171,10 +171,16 @@ def _add_partial(which) -> None:
     partial.add_argument("--kinds", nargs="+", default=["full", "early_filling", "selective_injection", "extra_territory"],
                          choices=["full", "early_filling", "selective_injection", "extra_territory", "reflux_injection",
                                   "foreign_territory", "bolus_front", "wrong_tree", "swapped_views",
-                                  "swapped_views+early_filling"],
+                                  "swapped_views+early_filling", "image_extra_territory", "image_foreign_territory",
+                                  "image_missing_small_branches", "image_background"],
                          help="rows to run (reflux_injection, foreign_territory, bolus_front: the second generator family; "
+                         "image_*: the images hold more than the model (its mirror territory, another tree, its thinnest "
+                         "branches, segmentation-like background); "
                          "wrong_tree, swapped_views, swapped_views+early_filling: one safety row, e.g. with --no-safety)")
     partial.add_argument("--no-safety", action="store_true", help="skip the wrong-tree and swapped-views rows")
+    partial.add_argument("--initial", type=float, nargs=2, metavar=("DEG", "MM"),
+                         help="give an initial pose this far from the true one (random axis and direction; Table 1's is "
+                         "12.8 deg, 2-4 mm) instead of none")
     partial.add_argument("--options", default="{}", help="extra registration options as JSON")
     partial.add_argument("--corruption", default="none", choices=list(CORRUPTIONS),
                          help="segmentation errors applied to every mask (as in bench robustness; all = wider borders, "

@@ -283,6 +283,29 @@ def bench_autoinit(args: argparse.Namespace) -> int:
 _SAFETY_ROWS = {"wrong_tree": "wrong_tree", "swapped_views": "swapped_views", "swapped_views+early_filling": "swapped_early"}
 
 
+def _image_extra_territory(mesh, tree, rng):
+    from dsareg_engine.simulation import partial_filling as made
+
+    return made.images_hold_more(made.extra_territory(mesh, tree), "image_extra_territory")
+
+
+def _image_background(mesh, tree, rng):
+    from dsareg_engine.simulation import partial_filling as made
+
+    return made.full_visibility(mesh)  # the masks get add_background (bench_partial)
+
+
+def _image_missing_small_branches(mesh, tree, rng):
+    from dsareg_engine.simulation import partial_filling as made
+
+    return made.missing_small_branches(mesh, 0.25, rng, tree)
+
+
+_IMAGES_HOLD_MORE = {"image_extra_territory": _image_extra_territory, "image_background": _image_background,
+                     "image_missing_small_branches": _image_missing_small_branches}
+"""The rows whose images hold more than the model (``image_foreign_territory`` is ``foreign_territory`` turned round)."""
+
+
 def _partial_cases(mesh, args: argparse.Namespace):
     """``(row name, fraction, PartialCase or a safety tag)`` for every row of ``bench partial``."""
     from dsareg_engine.geometry.vessel_tree import vessel_tree
@@ -303,9 +326,12 @@ def _partial_cases(mesh, args: argparse.Namespace):
             rows.append(("extra_territory", None, lambda: made.extra_territory(mesh, tree)))
         elif kind in _SAFETY_ROWS:
             rows.append((kind, 0.5 if kind == "swapped_views+early_filling" else None, _SAFETY_ROWS[kind]))
-        elif kind == "foreign_territory":
+        elif kind in ("foreign_territory", "image_foreign_territory"):
             other = make_vessel_phantom(seed=args.seed + 3)
-            rows.append((kind, None, lambda other=other: made.foreign_territory(mesh, other, tree)))
+            turned = (lambda case, kind=kind: made.images_hold_more(case, kind)) if kind.startswith("image_") else (lambda case: case)
+            rows.append((kind, None, lambda other=other, turned=turned: turned(made.foreign_territory(mesh, other, tree))))
+        elif kind in _IMAGES_HOLD_MORE:
+            rows.append((kind, None, lambda kind=kind: _IMAGES_HOLD_MORE[kind](mesh, tree, rng)))
         else:
             rows += [(kind, fraction, lambda f=fraction, kind=kind: per_fraction[kind](f)) for fraction in args.fractions]
     if not args.no_safety:
@@ -346,8 +372,9 @@ def bench_partial(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed + 1)
     extra = json.loads(args.options)
     masks = "true masks" if args.corruption == "none" else f"masks with segmentation errors ({args.corruption})"
+    start = "no initial pose" if args.initial is None else f"an initial pose {args.initial[0]:g} deg / {args.initial[1]:g} mm off"
     print(f"mesh {mesh.n_faces} faces, clinical rig {width}x{height} px, detector {args.detector_mm:g} mm wide, "
-          f"{args.cases} cases per row, no initial pose, "
+          f"{args.cases} cases per row, {start}, "
           f"{masks} of the visible part, options {extra}")
     print("| row | visible fraction | success (ADD < 1 mm) | ADD mm median / max | verdicts ok / check / failed "
           "| partial reason | median CPU s |")
@@ -359,6 +386,8 @@ def bench_partial(args: argparse.Namespace) -> int:
             rows = []
             for index in range(args.cases):
                 made = _corrupted(_partial_case(mesh, rig, rng, case, args), args.corruption, rng)
+                if name == "image_background":
+                    made = _corrupted(made, "background", rng)
                 row, details = _partial_row(name, index, made, rig, args, extra)
                 confusion[(row["right"], row["verdict"])] += 1
                 rows.append(row)
@@ -387,6 +416,10 @@ def _partial_row(name: str, index: int, made, rig, args: argparse.Namespace, ext
     """Register one ``bench partial`` case: its table entry and, for ``--cases-out``, the verdict's reasons and
     what the pose search did."""
     model, masks, fraction, truth = made
+    if args.initial is not None:  # a start this far off, from its own generator (the cases stay those of no pose)
+        rng = np.random.default_rng([args.seed, index, len(name)])
+        extra = {**extra, "initial_mesh_to_world": _perturbation(model, truth, np.radians(args.initial[0]),
+                                                                  args.initial[1], rng).tolist()}
     options = RegistrationOptions(seed=args.seed + index, **extra, ground_truth_mesh_to_world=truth.tolist())
     cpu = time.process_time()
     result = register(model, masks, rig, options)
@@ -395,7 +428,7 @@ def _partial_row(name: str, index: int, made, rig, args: argparse.Namespace, ext
     row = {"add": add, "right": add < 1.0 and name != "wrong_tree", "verdict": confidence["verdict"],
            "cpu": time.process_time() - cpu, "fraction": fraction,
            "partial": any("do not show" in reason for reason in confidence["reasons"])}
-    return row, {"reasons": confidence["reasons"], "initialization": result.metrics["initialization"],
+    return row, {"reasons": confidence["reasons"], "signals": confidence["signals"], "initialization": result.metrics["initialization"],
                  "seconds": result.metrics.get("seconds")}
 
 

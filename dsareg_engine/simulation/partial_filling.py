@@ -22,7 +22,16 @@ A second, different family (to measure the engine on cases its branch search was
 * :func:`foreign_territory` — the model holds another vessel tree (e.g. another phantom) joined at
   the inflow and spreading away from the mesh, not a mirror copy.
 
-Fractions are of the model's faces. Distances come from :mod:`dsareg_engine.geometry.vessel_tree`.
+The opposite case, the images holding more than the model (a model of one territory, a CTA model without
+its small branches), to measure what the registration does with vessels it cannot explain:
+
+* :func:`images_hold_more` — a case above turned round: the images show its model, the model registered is
+  what it showed (``image_extra_territory``: the mesh and its mirror territory shown, the mesh registered;
+  ``image_foreign_territory``: the mesh and another tree shown);
+* :func:`missing_small_branches` — the model is the mesh less its thinnest distal branches (a CTA segmentation
+  that missed them), the images show the whole mesh.
+
+Fractions are of the model's faces (for the cases where the images hold more: the model's faces / the faces shown). Distances come from :mod:`dsareg_engine.geometry.vessel_tree`.
 """
 
 from __future__ import annotations
@@ -45,8 +54,9 @@ class PartialCase:
         model: what is registered.
         visible: what the images are rendered from.
         kind: ``"early_filling"``, ``"bolus_front"``, ``"selective_injection"``, ``"extra_territory"``, ``"reflux_injection"``,
-            ``"foreign_territory"`` or ``"full"``.
-        visible_fraction: visible faces / model faces.
+            ``"foreign_territory"``, ``"full"``, or one where the images hold more: ``"image_extra_territory"``,
+            ``"image_foreign_territory"``, ``"image_missing_small_branches"``.
+        visible_fraction: visible faces / model faces (above 1 where the images hold more).
     """
 
     model: TriangleMesh
@@ -164,3 +174,30 @@ def _turn_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return 2.0 * np.outer(side, side) - np.eye(3)
     skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + skew + skew @ skew / (1.0 + cosine)
+
+
+def images_hold_more(case: PartialCase, kind: str) -> PartialCase:
+    """``case`` turned round: the images show ``case.model``, the model registered is ``case.visible``."""
+    return PartialCase(case.visible, case.model, kind, case.model.n_faces / case.visible.n_faces)
+
+
+def missing_small_branches(mesh: TriangleMesh, drop: float, rng: np.random.Generator, tree: VesselTree | None = None,
+                           points: int = 400, largest_share: float = 0.1) -> PartialCase:
+    """The model = ``mesh`` less its thinnest distal branches, about ``drop`` of its faces (a CTA model without its small
+    vessels); the images show the whole mesh. Of ``points`` random points away from the inflow, the branches
+    downstream of them holding at most ``largest_share`` of the faces are dropped thinnest first (median vessel
+    thickness over the branch) until ``drop`` is reached; what stays is connected to the inflow."""
+    tree = tree or vessel_tree(mesh)
+    from_inflow = tree.distances_from(tree.inflow)
+    eligible = rng.permutation(np.flatnonzero(from_inflow > 0.1 * from_inflow.max()))[:points]
+    branches = tree.downstream_sets(eligible)[:, mesh.faces].all(axis=2)
+    shares = branches.mean(axis=1)
+    small = np.flatnonzero((shares > 0) & (shares <= largest_share))
+    thickness = np.array([np.median(tree.thickness_mm[mesh.faces[branches[i]]]) for i in small])
+    dropped = np.zeros(mesh.n_faces, bool)
+    for index in small[np.argsort(thickness, kind="stable")]:
+        if dropped.mean() >= drop:
+            break
+        dropped |= branches[index]
+    model = compact(mesh, ~dropped)
+    return PartialCase(model, mesh, "image_missing_small_branches", mesh.n_faces / model.n_faces)

@@ -60,6 +60,21 @@ def add_speckle(mask: np.ndarray, rng: np.random.Generator, spots_per_megapixel:
     return image.astype(bool)
 
 
+def add_background(mask: np.ndarray, rng: np.random.Generator, blobs: int = 3) -> np.ndarray:
+    """Background a segmentation keeps that no vessel model explains: ``blobs`` filled ellipses (semi-axes W/60–W/25,
+    overlapping anatomy: bone, air, a subtraction residue) at random places, and the edge of a round field of view
+    (a ring 2 px wide, radius 0.46–0.5 W, centred near the image's centre)."""
+    height, width = mask.shape
+    image = mask.astype(np.uint8)
+    for _ in range(blobs):
+        centre = (int(rng.integers(width)), int(rng.integers(height)))
+        axes = tuple(int(width * rng.uniform(1 / 60, 1 / 25)) for _ in range(2))
+        cv2.ellipse(image, centre, axes, float(rng.uniform(0, 180)), 0, 360, 1, -1)
+    centre = (int(width / 2 + rng.uniform(-0.02, 0.02) * width), int(height / 2 + rng.uniform(-0.02, 0.02) * height))
+    cv2.circle(image, centre, int(width * rng.uniform(0.46, 0.5)), 1, 2)
+    return image.astype(bool)
+
+
 CORRUPTIONS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] = {
     "none": lambda mask, rng: mask.copy(),
     "grow_1px": lambda mask, rng: grow_border(mask, 1),
@@ -67,6 +82,7 @@ CORRUPTIONS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] 
     "missing_segments": drop_segments,
     "catheter": add_catheter,
     "speckle": add_speckle,
+    "background": add_background,
     "all": lambda mask, rng: add_speckle(add_catheter(drop_segments(grow_border(mask, 1), rng), rng), rng),
 }
 """Named corruptions for ``python -m benchmarks.engine robustness``; ``all`` chains grow, drop, catheter, speckle."""

@@ -37,3 +37,23 @@ def test_a_safety_row_runs_alone_and_the_default_still_appends_all_three():
     default = _partial_cases(mesh, Namespace(kinds=["full"], no_safety=False, seed=0, fractions=[0.5]))
     assert [(name, fraction) for name, fraction, _ in default] == [
         ("full", 1.0), ("wrong_tree", None), ("swapped_views", None), ("swapped_views+early_filling", 0.5)]
+
+
+def test_the_rows_whose_images_hold_more_than_the_model():
+    from argparse import Namespace
+
+    from benchmarks.engine.cli import build_parser
+    from benchmarks.engine.phantom import _partial_cases
+    from dsareg_engine.simulation.phantom import make_vessel_phantom
+
+    mesh = make_vessel_phantom(depth=3)
+    kinds = ["image_extra_territory", "image_foreign_territory", "image_missing_small_branches", "image_background"]
+    rows = _partial_cases(mesh, Namespace(kinds=kinds, no_safety=True, seed=0, fractions=[0.5]))
+    assert [name for name, _, _ in rows] == kinds
+    cases = {name: case() for name, _, case in rows}
+    for name in kinds[:3]:
+        assert cases[name].model.n_faces < cases[name].visible.n_faces and cases[name].visible_fraction > 1.0, name
+    assert cases["image_extra_territory"].model is mesh and cases["image_foreign_territory"].model is mesh
+    assert cases["image_background"].model is cases["image_background"].visible is mesh  # its masks get the background
+    args = build_parser().parse_args(["partial", "--initial", "10", "4", "--kinds", *kinds])
+    assert args.initial == [10.0, 4.0] and args.kinds == kinds

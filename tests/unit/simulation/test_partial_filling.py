@@ -89,3 +89,26 @@ def test_foreign_territory_joins_another_tree_at_the_inflow(phantom_tree):
     assert (placed.mean(axis=0) - inflow) @ (mesh.centroid - inflow) < 0  # spreading away from the mesh
     rms = lambda v: np.sqrt(((v - v.mean(axis=0)) ** 2).sum(axis=1).mean())
     assert rms(placed) == pytest.approx(rms(mesh.vertices), rel=1e-6)
+
+
+def test_images_holding_more_turn_a_case_round(phantom_tree):
+    from dsareg_engine.simulation.partial_filling import images_hold_more
+
+    mesh, tree = phantom_tree
+    case = images_hold_more(extra_territory(mesh, tree), "image_extra_territory")
+    assert case.model is mesh and case.visible.n_faces == 2 * mesh.n_faces  # the images show both territories
+    assert case.kind == "image_extra_territory" and case.visible_fraction == 2.0
+
+
+def test_missing_small_branches_drops_the_thinnest_distal_branches(phantom_tree):
+    from dsareg_engine.simulation.partial_filling import missing_small_branches
+
+    mesh, tree = phantom_tree
+    case = missing_small_branches(mesh, 0.25, np.random.default_rng(0), tree)
+    assert case.visible is mesh and case.kind == "image_missing_small_branches"
+    assert 0.70 <= case.model.n_faces / mesh.n_faces <= 0.75  # about a quarter dropped, not much more
+    assert case.visible_fraction == pytest.approx(mesh.n_faces / case.model.n_faces)
+    kept = cKDTree(case.model.vertices).query(mesh.vertices)[0] < 1e-9
+    assert kept[tree.inflow]  # the trunk stays
+    # what is dropped is thin: its median thickness well under the kept vessels'
+    assert np.median(tree.thickness_mm[~kept]) < 0.9 * np.median(tree.thickness_mm[kept])

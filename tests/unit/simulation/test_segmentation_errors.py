@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dsareg_engine.simulation.segmentation_errors import CORRUPTIONS, add_catheter, add_speckle, corrupt, drop_segments, grow_border, shrink_border
+from dsareg_engine.simulation.segmentation_errors import CORRUPTIONS, add_background, add_catheter, add_speckle, corrupt, drop_segments, grow_border, shrink_border
 
 
 @pytest.fixture()
@@ -38,3 +38,10 @@ def test_corrupt_names_the_accepted_corruptions(vessel):
     assert np.array_equal(corrupt(vessel, "none", np.random.default_rng(0)), vessel)
     with pytest.raises(ValueError, match="accepted: none, grow_1px"):
         corrupt(vessel, "blur", np.random.default_rng(0))
+
+
+def test_background_adds_blobs_and_a_field_of_view_ring_away_from_the_vessels(vessel):
+    added = add_background(vessel, np.random.default_rng(0))
+    assert (added & vessel).sum() == vessel.sum() and added.sum() > 1.5 * vessel.sum()  # only adds, and a lot
+    assert added[:, :5].any() and added[:, -5:].any() and added[:5].any() and added[-5:].any()  # the ring near the edges
+    assert np.array_equal(added, corrupt(vessel, "background", np.random.default_rng(0)))
