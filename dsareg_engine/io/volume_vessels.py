@@ -525,13 +525,19 @@ def _partial_volume_field(smooth, near_bone, tissue: float, vessel: float, bone:
 
 
 def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
-    """Inside the head: above an Otsu level between air and tissue, holes filled in 3D and slice by slice."""
+    """Inside the head: above an Otsu level between air and tissue, holes filled in 3D and slice by slice.
+
+    The volume's faces are not the head's surface: a TOF slab or a crop cuts through the head, so the closing
+    runs on the mask continued past its faces (padded with its edge) and does not erode the head from them; only
+    real air makes an outside (the MRA scalp shell is measured from it)."""
     from scipy import ndimage
     from skimage.filters import threshold_otsu
 
     sample = smooth[::2, ::2, ::2]
     level = float(threshold_otsu(sample[sample < np.percentile(sample, 99.0)]))
-    head = ndimage.binary_closing(smooth > 0.5 * level, iterations=2)
+    pad = 2  # the closing's reach (its iterations)
+    padded = np.pad(smooth > 0.5 * level, pad, mode="edge")
+    head = ndimage.binary_closing(padded, iterations=pad)[pad:-pad, pad:-pad, pad:-pad]
     axial = int(np.argmax(np.abs(affine[2, :3])))  # the voxel axis closest to patient z
     filled = ndimage.binary_fill_holes(head)
     moved = np.moveaxis(filled, axial, 0)

@@ -166,3 +166,40 @@ def test_a_plate_like_stretch_of_the_tree_in_a_csf_cistern_is_not_set_aside_in_a
     assert covered.mean() > 0.9, covered.mean()
     assert covered[(height > -1.0) & (height < 19.0)].mean() > 0.9
     assert covered[height > 19.0].mean() > 0.9  # the branches beyond it
+
+
+def _slab_inside_the_head(head, slab_mm: float, margin_mm: float = 3.0):
+    """The voxels of ``head`` around its tree (no scalp, no air) over ``slab_mm`` along z: a TOF slab's crop."""
+    from dsareg_engine.io.volume_io import Volume
+
+    volume = read_volume(head.parts)
+    inv = np.linalg.inv(volume.affine)
+    ijk = head.tree.vertices @ inv[:3, :3].T + inv[:3, 3]
+    spacing = np.asarray(volume.spacing_mm)
+    low = np.maximum(np.floor(ijk.min(0) - margin_mm / spacing).astype(int), 0)
+    high = np.minimum(np.ceil(ijk.max(0) + margin_mm / spacing).astype(int) + 1, volume.data.shape)
+    axial = int(np.argmax(np.abs(volume.affine[2, :3])))
+    middle, half = (low[axial] + high[axial]) // 2, round(slab_mm / spacing[axial] / 2)
+    low[axial], high[axial] = middle - half, middle + half
+    affine = volume.affine.copy()
+    affine[:3, 3] = volume.affine[:3, :3] @ low + volume.affine[:3, 3]
+    data = np.ascontiguousarray(volume.data[tuple(slice(a, b) for a, b in zip(low, high))])
+    return Volume(data, affine, volume.kind, tags=volume.tags), data.shape[axial] * spacing[axial]
+
+
+def test_a_tof_slab_cut_through_the_head_is_read_as_its_vessels():
+    """A TOF slab (or a crop) cuts through the head: its faces are not the head's surface. On main the closing of the
+    head mask eroded it from the volume's faces and the 7-mm scalp shell was taken from there: a 12-mm slab was
+    refused ("no head interior deeper than 7 mm"), a 16-mm one kept 129 voxels of the tree."""
+    head = make_layered_mra_head(voxel_mm=(0.5, 0.5, 0.8), tree=_tree(), min_head_mm=SMALL_HEAD_MM)
+    volume, thickness_mm = _slab_inside_the_head(head, slab_mm=12.0)
+    assert 11.0 < thickness_mm < 13.5
+    extraction = extract_vessels(volume)
+    corners = volume.affine @ np.array([[0.0, 0.0, 0.0, 1.0], [*(np.array(volume.data.shape) - 1.0), 1.0]]).T
+    z = corners[2]
+    inside = head.tree.vertices[(head.tree.vertices[:, 2] > min(z) + 1.0) & (head.tree.vertices[:, 2] < max(z) - 1.0)]
+    assert len(inside) > 50
+    model = cKDTree(extraction.mesh.vertices)
+    assert np.percentile(model.query(inside)[0], 75) < 1.5, np.percentile(model.query(inside)[0], [50, 75, 90])
+    truth = cKDTree(head.tree.vertices)
+    assert np.percentile(truth.query(extraction.mesh.vertices)[0], 95) < 1.6
