@@ -176,8 +176,10 @@ class LimitSettings(_Group):
                                 "sized from the volume's header (voxel count -> measured cost); a volume expected to "
                                 "need more is refused at once. 0: volumes get validation_memory_mb like any input.")
     validation_volume_timeout_seconds: float = Field(
-        300.0, ge=0.0, description="The longest one submission's volume may be given for its first read (sized from "
-                                   "its header alike; at least validation_timeout_seconds). 0: no more than that.")
+        600.0, ge=0.0, description="The most time one submission's volume may be given for its first read: its "
+                                   "validator's CPU seconds are sized from the header (3 x the measured cost) up to "
+                                   "this, and its wall-clock is bounded by this (a loaded machine slows the read, not "
+                                   "the input). 0: no more than validation_timeout_seconds.")
     max_mesh_faces: int | None = Field(None, ge=1, description="Refuse meshes with more faces (engine default 500k).")
     max_image_pixels: int | None = Field(None, ge=1, description="Refuse larger images, from the header (engine default 64 MP).")
     max_image_bytes: int = Field(

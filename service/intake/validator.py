@@ -13,8 +13,9 @@ the worker will run (:func:`service.engine_adapter.load_job_case`: the same
   process already uses): a decompression bomb fails with MemoryError, refused alike;
 * a larger allowance for a submission whose volume needs it, sized from the volume's header before any voxel is
   decoded and capped by ``validation_volume_memory_mb`` / ``validation_volume_timeout_seconds``
-  (:mod:`.allowance`): the process announces it (``{"allowance"}``), the request waits that long, the process is
-  replaced after it; the model it made is kept in the model cache for the worker;
+  (:mod:`.allowance`): the process announces it (``{"allowance"}``), the request waits that long (its time counted
+  in the process's CPU seconds, its wall-clock bounded by the ceiling), the process is replaced after it; the model
+  it made is kept in the model cache for the worker;
 * crash containment: a dead or frozen process is replaced by a warm spare within
   ``WATCH_SECONDS`` and the request is sent once more to it (see :class:`ValidatorPool`).
 
@@ -57,6 +58,7 @@ class ValidationOutcome:
     busy: bool = False  # no validator could take the request now (the intake answers Overloaded)
 
 
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 WATCH_SECONDS = 0.2  # how often a waiting request (and the watchdog) looks at its validator's process
 WATCHDOG_SECONDS = 0.5
 
@@ -67,6 +69,16 @@ def process_state(pid: int) -> str | None:
         with open(f"/proc/{pid}/stat") as f:
             return f.read().rsplit(")", 1)[1].split()[0]
     except (OSError, IndexError):
+        return None
+
+
+def process_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of ``pid`` (its own, not its children's), None when it is gone (Linux)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+    except (OSError, IndexError, ValueError):
         return None
 
 
@@ -85,6 +97,8 @@ class _Slot:
         self.lock = threading.Lock()  # the pipe is used by one request thread and by readiness checks
         self.waited_s = 0.0  # the last call's wait for the process's start-up (imports, parser warm-up)
         self.allowance = policy.base()  # the last call's (a large volume's is announced by the process)
+        self.cpu_budget: tuple[float, float] | None = None  # (the process's CPU s when given, the CPU s allowed)
+        self.cpu_used: float | None = None  # the CPU s the last large volume's read took
         self.ended = ""  # how a process found dead ended, for the one line that replaces it (ValidatorPool._refill)
 
     def start(self) -> None:
@@ -133,19 +147,33 @@ class _Slot:
             health = self.health()
             if health != "ok":
                 raise _Unhealthy(health)
+            if self.cpu_budget is not None and self._cpu_now() - self.cpu_budget[0] > self.cpu_budget[1]:
+                raise TimeoutError  # a large volume's read past its CPU seconds
 
     def _reply(self, deadline: float, sent: float) -> dict:
         """The request's reply; a large volume's allowance (``{"allowance"}``, sent first) moves the deadline to
-        its time after ``sent`` (at most the policy's ceiling)."""
-        self.allowance = self.policy.base()
-        while True:
-            message = self._receive(deadline)
-            if "allowance" not in message:
-                return message
-            given = message["allowance"]
-            self.allowance = Allowance(int(given["memory_mb"]), min(float(given["timeout_s"]), self.policy.ceiling_s),
-                                       str(given["volume"]))
-            deadline = max(deadline, sent + self.allowance.timeout_s)
+        its wall-clock after ``sent`` and counts the process's CPU seconds from now against its ``cpu_s`` (both at
+        most the policy's ceiling)."""
+        self.allowance, self.cpu_budget, self.cpu_used = self.policy.base(), None, None
+        try:
+            while True:
+                message = self._receive(deadline)
+                if "allowance" not in message:
+                    if self.cpu_budget is not None:
+                        self.cpu_used = self._cpu_now() - self.cpu_budget[0]
+                    return message
+                given, ceiling = message["allowance"], self.policy.ceiling_s
+                self.allowance = Allowance(int(given["memory_mb"]), min(float(given["timeout_s"]), ceiling),
+                                           str(given["volume"]), min(float(given.get("cpu_s") or 0.0), ceiling))
+                deadline = max(deadline, sent + self.allowance.timeout_s)
+                if self.allowance.cpu_s > 0:
+                    self.cpu_budget = (self._cpu_now(), self.allowance.cpu_s)
+        finally:
+            self.cpu_budget = None
+
+    def _cpu_now(self) -> float:
+        """The process's CPU seconds so far (0 when it is gone: its health says so)."""
+        return (process_cpu_seconds(self.process.pid) if self.process is not None else None) or 0.0
 
     def wait_ready(self, timeout: float) -> bool:
         if self.ready:
@@ -185,7 +213,7 @@ class _Slot:
         """``(reply, None)``, or ``(None, why)`` with why ``timeout``, ``dead`` or ``frozen`` (the process is
         then killed; the pool gives the slot a fresh one). Blocking; the caller holds ``lock``."""
         deadline = time.monotonic() + timeout
-        self.allowance = self.policy.base()
+        self.allowance, self.cpu_used = self.policy.base(), None
         try:
             if self.health() != "ok":
                 raise _Unhealthy(self.health())
@@ -207,12 +235,14 @@ class _Slot:
         return None, why
 
 
-def log_validation_time(seconds: float, waited_s: float, allowance: Allowance | None = None) -> None:
+def log_validation_time(seconds: float, waited_s: float, allowance: Allowance | None = None,
+                        cpu_s: float | None = None) -> None:
     """The time a submission's parse took; a request that came while its validator was still starting (before
     /readyz answers 200) says how much of it was that start, paid once per validator; a large volume's allowance."""
     if allowance is not None and allowance.raised:
-        log.info("a %s volume was given %d MB and %g s to parse (sized from its header)", allowance.volume,
-                 allowance.memory_mb, allowance.timeout_s)
+        used = "" if cpu_s is None else f"; its read took {cpu_s:.1f} CPU s"
+        log.info("a %s volume was given %d MB and %s to parse (sized from its header)%s", allowance.volume,
+                 allowance.memory_mb, allowance.describe(), used)
     if waited_s >= 0.5:
         log.info("validation took %.2f s, %.2f s of it waiting for the validator to finish starting (imports and "
                  "parser warm-up, once per validator process: a request sent before /readyz answers 200 pays it)",
@@ -366,7 +396,7 @@ class ValidatorPool:
             slot.waited_s = 0.0
             reply, why = await asyncio.to_thread(self._run, slot, request)
             allowance = slot.allowance
-            log_validation_time(time.monotonic() - started, slot.waited_s, allowance)
+            log_validation_time(time.monotonic() - started, slot.waited_s, allowance, slot.cpu_used)
         finally:
             free.put_nowait(slot)
         if why is not None:
@@ -388,7 +418,7 @@ class ValidatorPool:
         if why == "timeout":
             given = f" (the time allowed for a {allowance.volume} volume)" if allowance.raised else ""
             return ValidationOutcome(ok=False, message=f"the inputs could not be parsed within "
-                                                       f"{allowance.timeout_s:g} s{given}",
+                                                       f"{allowance.describe()}{given}",
                                      field="volume" if allowance.raised else largest_input(request),
                                      accepted="smaller or simpler inputs")
         return ValidationOutcome(ok=False, message="the inputs crashed the parser on two fresh processes",

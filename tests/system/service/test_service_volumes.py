@@ -8,6 +8,7 @@ vessels in the window, or an unknown volume kind, is refused at submission with 
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -161,5 +162,8 @@ def test_a_volume_above_the_base_limits_is_accepted_with_the_default_volume_sett
     assert job["status"] == "succeeded", job
     assert job["result"]["volume"]["voxels_total"] == 75 * 75 * 95
     logs = small_base_server.logs()
-    assert "a 75x75x95 volume was given" in logs and "recycled after a volume's allowance" in logs, logs[-3000:]
+    given = re.search(r"a 75x75x95 volume was given (\d+) MB and ([\d.]+) CPU s \(600 s\) to parse .*its read took "
+                      r"([\d.]+) CPU s", logs)
+    assert given and float(given.group(3)) < float(given.group(2)), logs[-3000:]  # within its CPU seconds
+    assert int(given.group(1)) > int(SMALL_BASE_MB) and "recycled after a volume's allowance" in logs
     assert len(list((small_base_server.data_dir / "models").glob("*.npz"))) == 1

@@ -4,6 +4,7 @@ as the server, whichever thread started it."""
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 
 from service.intake.allowance import AllowancePolicy
 from service.intake.validator import ValidatorPool
@@ -208,3 +209,40 @@ def test_a_large_volumes_allowance_moves_the_requests_deadline_to_its_time():
     pool = ValidatorPool(1, timeout_seconds=0.4, memory_mb=512, volume_memory_mb=4096, volume_timeout_seconds=3.0)
     refused = pool._failed("timeout", {"inputs": []}, given)
     assert "within 3 s (the time allowed for a 512x512x440 volume)" in refused.message and refused.field == "volume"
+
+
+def test_a_large_volumes_time_is_counted_in_its_validators_cpu_seconds():
+    """Issue 41: on 2 cores loaded by other work the whole-head read's 40 CPU s took 235 s of wall-clock; its
+    allowance counts the validator's CPU seconds (the wall-clock bounded by the ceiling): a process that burns its
+    CPU seconds is cut once they are spent, long before its wall-clock."""
+    import multiprocessing as mp
+    import subprocess
+    import sys
+    import time
+
+    from service.intake.spawner import Spawner
+    from service.intake.validator import _Slot, process_cpu_seconds
+
+    ours, theirs = mp.Pipe(duplex=True)
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # the reader, burning CPU
+    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(512, 0.4, 4096, 120.0), 1, Spawner())
+    slot.process = SimpleNamespace(is_alive=lambda: busy.poll() is None, pid=busy.pid, kill=busy.kill,
+                                   join=lambda t: busy.wait(t))
+    slot.conn, slot.ready = ours, True
+
+    def validator_announcing():
+        theirs.recv()
+        theirs.send({"allowance": {"memory_mb": 2000, "timeout_s": 120.0, "volume": "512x512x440", "cpu_s": 0.5}})
+
+    helper = threading.Thread(target=validator_announcing)
+    helper.start()
+    started = time.monotonic()
+    try:
+        assert slot.call({"inputs": []}, timeout=0.4) == (None, "timeout")
+    finally:
+        helper.join()
+        busy.kill()
+        busy.wait()
+    assert time.monotonic() - started < 100  # cut by its CPU seconds, not the 120 s of wall-clock
+    assert slot.allowance.describe() == "0.5 CPU s (120 s)"
+    assert process_cpu_seconds(busy.pid) is None  # gone
