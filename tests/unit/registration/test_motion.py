@@ -85,3 +85,29 @@ def test_a_monoplane_pair_with_head_motion_is_never_ok_and_reports_a_pose_per_ru
         across = error - (error @ beam) * beam
         assert np.linalg.norm(across) < 0.5 and mean_distance_mm(pose, truth[name], points) < 2.0
     assert acquisition["motion"]["rotation_deg"] == pytest.approx(1.2, abs=0.4)
+
+
+def test_a_later_run_of_one_plane_is_tracked_without_per_run_poses(build, tmp_path):
+    """A single-plane track next to an earlier run of the other plane (sequential by their headers): the other run is
+    not refitted (no run_poses, no monoplane reason); the track says what one plane cannot measure."""
+    phantom = make_vessel_phantom(depth=2, seed=3)
+    previous = make_transform(rotation_about_axis(np.array([0.3, -0.5, 0.8]), np.radians(6.0)), np.array([3.0, -2.0, 3.5]))
+    now = make_transform(rotation_about_axis(np.array([0.2, 0.9, 0.4]), np.radians(1.0)), np.array([0.8, -0.6, 0.0])) @ previous
+    vertices, faces = phantom.torch(torch.float64)
+    files = {}
+    for (name, view), time, pose in zip(_views().items(), ("101705", "101500"), (now, previous)):
+        mask = render_hard_silhouette(vertices, faces, torch.as_tensor(view.world_to_view @ pose)[None],
+                                      Camera.from_view(view))[0].numpy().astype(bool)
+        files[name] = _xa(build, mask, name, time)
+    stl = trimesh.Trimesh(phantom.vertices, phantom.faces, process=False).export(file_type="stl")
+    case = load_case(mesh=stl, mesh_name="tree.stl", ap=files["ap"], lat=files["lat"])
+    assert case.acquisition is not None and case.acquisition.sequential
+    options = RegistrationOptions(mode="track", configuration="ap", initial_mesh_to_world=previous.tolist(),
+                                  mirror_check=False)
+    data = run_registration_case(case, options, tmp_path)
+    assert_result_contract(data)
+    assert "run_poses" not in data["acquisition"] and data["acquisition"]["sequential"]
+    reasons = data["metrics"]["confidence"]["reasons"]
+    assert not any("sequential runs" in reason for reason in reasons)
+    assert data["verdict"] == "check" and "single-plane track (AP only)" in reasons[-1]
+    assert data["metrics"]["tracking"]["views"] == ["ap"]
