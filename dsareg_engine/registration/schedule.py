@@ -51,8 +51,8 @@ class Stage:
         plateau_window: Adam only: > 0 stops when the mean best loss of the last this many steps is not
             WINDOW_TOLERANCE below the mean of the window before (0: the solver's patience rule).
         handover: the Levenberg–Marquardt stage at the last Adam level that hands the kept start to the
-            full-size fit (see HANDOVER_POSE_TOLERANCE): the starts are ranked as the final stage ranks them,
-            and the fine-stage work (border, partial check) waits for the final stage.
+            full-size fit (see HANDOVER_POSE_TOLERANCE): the fine-stage work (border, partial check) waits for
+            the final stage.
     """
 
     name: str
@@ -82,11 +82,15 @@ touch a new best: a draw moved by a few border pixels of the target (docs/benchm
 HANDOVER_BLUR_PX = 1.0
 HANDOVER_POSE_TOLERANCE = 0.03
 """Two-view ladders on the CPU (the Jacobian kernel, :mod:`.gauss_newton`) end with Levenberg–Marquardt instead of
-L-BFGS: first at the last Adam level, blurred by HANDOVER_BLUR_PX, stopped at this pose change (mm; the tracking
+L-BFGS: first at the last Adam level's size, blurred by HANDOVER_BLUR_PX, stopped at this pose change (mm; the tracking
 schedule's coarse stop), then at full size as sharp as L-BFGS was (FINAL_SIGMA_PX, float64, the same pose stop).
-The last Adam level hands over a pose 0.3–0.8 mm off on the paper's mesh at 800 px; L-BFGS took 14–17 full-size
+The last Adam level handed over a pose 0.3–0.8 mm off on the paper's mesh at 800 px; L-BFGS took 14–17 full-size
 evaluations from there (two or three of them overshooting line-search probes), Levenberg–Marquardt takes 2–3
-iterations at quarter size and 4 at full size, each about two L-BFGS evaluations' work; ADD the same to 4 decimals."""
+iterations at quarter size and 4 at full size, each about two L-BFGS evaluations' work; ADD the same to 4 decimals.
+The hand-over replaces that last Adam level (the level before it hands over directly, 1–3 mm off): Adam spent 9–23
+steps there (on every start still distinct, 1–4 on Table 1) to bring the pose within reach of the hand-over, which now
+takes 3–5 iterations (12 once) on the one start kept; the full-size fit's iterations and ADD the same (Table 1, 21
+poses; autoinit, paper and phantom)."""
 FINER_LEVEL_RATIO = 1.5
 """A level above a fractional coarsest one is kept when it is at least this much finer (else it nearly repeats it)."""
 
@@ -153,17 +157,18 @@ def _ladder(views: tuple[str, ...], scales: list[float], max_iterations: int, fi
                 plateau_window=PLATEAU_WINDOW if not last and len(set(scales)) > 1 else 0,
             )
         )
-    # Only after two Adam levels or more: a single (coarsest) level hands over a pose from its 2-px blur and 0.8-mm
-    # steps, from which Levenberg–Marquardt's σ-long full-size steps took longer than L-BFGS (the phantom at 512 px,
-    # no initial pose: 6 + 31 iterations against 27 L-BFGS evaluations, +10 % CPU).
+    # Only after two Adam levels or more (the last of them goes, the hand-over takes its size): a single (coarsest)
+    # level hands over a pose from its 2-px blur and 0.8-mm steps, from which Levenberg–Marquardt's σ-long full-size
+    # steps took longer than L-BFGS (the phantom at 512 px, no initial pose: 6 + 31 iterations against 27 L-BFGS
+    # evaluations, +10 % CPU).
     if final and jacobian and len(views) == 2 and sum(stage.optimizer == "adam" for stage in stages) >= 2:
-        stages[-1:] = _gauss_newton_finish(stages[-2], stages[-1], max_iterations)
+        stages[-2:] = _gauss_newton_finish(stages[-2], stages[-1], max_iterations)
     return stages
 
 
 def _gauss_newton_finish(adam: Stage, final: Stage, max_iterations: int) -> list[Stage]:
-    """The L-BFGS stage ``final`` replaced by Levenberg–Marquardt at ``adam``'s level, then at full size (see
-    HANDOVER_POSE_TOLERANCE)."""
+    """The last Adam level ``adam`` and the L-BFGS stage ``final`` replaced by Levenberg–Marquardt at ``adam``'s size,
+    then at full size (see HANDOVER_POSE_TOLERANCE)."""
     handover = Stage(
         name=f"{adam.name}:lm", scale=adam.scale, sigma_px=ADAM_SIGMA_PX, blur_px=HANDOVER_BLUR_PX, views=final.views,
         optimizer="gauss_newton", max_iterations=min(max_iterations, 60), learning_rate=adam.learning_rate,

@@ -40,11 +40,17 @@ def _initialize(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, opti
     return with_branch_starts(found, mesh, visible, rig)
 
 
-def _keep_best(problem: _Problem, stage: Stage, poses: np.ndarray) -> tuple[np.ndarray, int]:
-    """Keep the start with the lowest loss at ``stage``; count the starts that agree with it."""
+def _ranking_losses(problem: _Problem, stage: Stage, poses: np.ndarray) -> np.ndarray:
+    """``(B,)``: the starts' losses at ``stage`` (float32), which rank them."""
     with torch.no_grad():
-        losses = problem.loss(torch.as_tensor(poses), stage, torch.float32)
-    best = poses[int(torch.argmin(losses))]
+        return problem.loss(torch.as_tensor(poses), stage, torch.float32).numpy()
+
+
+def _keep_best(problem: _Problem, stage: Stage, poses: np.ndarray, losses: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """Keep the start with the lowest loss at ``stage`` (``losses``: :func:`_ranking_losses`, when already known);
+    count the starts that agree with it."""
+    losses = _ranking_losses(problem, stage, poses) if losses is None else losses
+    best = poses[int(np.argmin(losses))]
     return best[None], _agreeing(problem, poses, best)
 
 
@@ -62,10 +68,10 @@ def _agreeing(problem: _Problem, poses: np.ndarray, best: np.ndarray) -> int:
     return int(sum(mean_distance_mm(pose, best, problem.mesh.vertices) < AGREEMENT_ADD_MM for pose in poses))
 
 
-def _runner_up(problem: _Problem, stage: Stage, poses: np.ndarray) -> dict | None:
-    """The best start that ended elsewhere and how well it and the best fit, see :mod:`.confidence`."""
-    with torch.no_grad():
-        losses = problem.loss(torch.as_tensor(poses), stage, torch.float32).numpy()
+def _runner_up(problem: _Problem, stage: Stage, poses: np.ndarray, losses: np.ndarray | None = None) -> dict | None:
+    """The best start that ended elsewhere and how well it and the best fit, see :mod:`.confidence` (``losses``: as
+    :func:`_keep_best`'s)."""
+    losses = _ranking_losses(problem, stage, poses) if losses is None else losses
     found = runner_up(poses, losses, problem.mesh.vertices, max(AGREEMENT_ADD_MM, DISTINCT_RADIUS_FRACTION * problem.radius_mm))
     if found is None:
         return None

@@ -87,9 +87,10 @@ def test_two_view_pyramids_end_with_levenberg_marquardt_where_the_jacobian_kerne
     for configuration in ("simultaneous", "ap_then_lat"):
         lbfgs, lm = build_schedule(configuration, 800, 300), build_schedule(configuration, 800, 300, jacobian=True)
         handover, final = lm[-2:]
-        assert lm[:-2] == lbfgs[:-1]  # the Adam levels are untouched
+        assert lm[:-2] == lbfgs[:-2]  # the Adam levels before the last are untouched; the hand-over takes the last one's place
         assert handover.optimizer == final.optimizer == "gauss_newton" and handover.handover and not final.handover
-        assert handover.scale == lm[-3].scale and handover.blur_px > 0 and not handover.all_starts and not handover.float64
+        assert lbfgs[-2].optimizer == "adam" and handover.scale == lbfgs[-2].scale and handover.name == f"{lbfgs[-2].name}:lm"
+        assert handover.blur_px > 0 and not handover.all_starts and not handover.float64
         assert final.name == lbfgs[-1].name and final.scale == 1.0 and final.sigma_px == lbfgs[-1].sigma_px and final.float64
     assert build_schedule("ap", 800, 300, jacobian=True) == build_schedule("ap", 800, 300)  # one view: L-BFGS
     assert build_schedule("simultaneous", 150, 300, jacobian=True)[-1].optimizer == "lbfgs"  # no pyramid: L-BFGS
