@@ -28,6 +28,10 @@ def add_parser(which) -> None:
                                               "two jobs on it (the second takes the kept model)")
     sub.add_argument("--voxel", type=float, default=VOXEL_MM, help="voxel size, mm (isotropic)")
     sub.add_argument("--grid", default="x".join(map(str, GRID_VOX)), help="the scanner's grid, e.g. 512x512x440")
+    sub.add_argument("--intake", action="store_true",
+                     help="each job's read only, as the service's validator makes it (warmed up first): its address-"
+                          "space and RSS growth, CPU s and wall s (the costs dsareg_engine/io/volume_cost.py sizes "
+                          "a submission's allowance from)")
     sub.set_defaults(func=bench_whole_head)
 
 
@@ -78,6 +82,35 @@ def run_job(case_path: str, models: str) -> dict:
             "voxels_kept": loaded.volume.voxels_kept, "faces": loaded.mesh.n_faces}
 
 
+def read_as_validator(case_path: str, models: str) -> dict:
+    """The case read in this process as the service's validator reads it: warmed up as it is (the engine's case
+    loading imported, parsers run once), then ``load_case_files``; the growth of the address space (``VmPeak``
+    after − ``VmSize`` before, what its ``RLIMIT_AS`` meets) and of the RSS, CPU s and wall s of the read."""
+    import resource
+    import time
+
+    from dsareg_engine import api as engine
+    from dsareg_engine.io.case import load_case_files
+    from dsareg_engine.io.model_cache import DirectoryModelStore
+
+    engine.preload_case_loading()
+    engine.parse_without_network()
+    engine.warm_up_parsers()
+    case = pickle.loads(Path(case_path).read_bytes())  # the files in memory, as the validator holds the blobs
+    before, usage, wall = _vm(), resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    loaded = load_case_files(case.files, "auto", model_store=DirectoryModelStore(models))
+    after, done = _vm(), resource.getrusage(resource.RUSAGE_SELF)
+    return {"as_growth_mb": after["VmPeak"] - before["VmSize"], "rss_growth_mb": after["VmHWM"] - before["VmRSS"],
+            "cpu_s": done.ru_utime + done.ru_stime - usage.ru_utime - usage.ru_stime,
+            "wall_s": time.perf_counter() - wall, "voxels_kept": loaded.volume.voxels_kept}
+
+
+def _vm() -> dict[str, float]:
+    """This process's ``Vm*`` lines of ``/proc/self/status``, MB."""
+    lines = (line.split(":") for line in Path("/proc/self/status").read_text().splitlines() if line.startswith("Vm"))
+    return {key: int(value.split()[0]) / 1024 for key, value in lines}
+
+
 def peak_rss_kb() -> int:
     """This process's peak RSS (``VmHWM``): ``ru_maxrss`` carries the parent's peak across exec (the generator's GBs)."""
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -93,6 +126,8 @@ def bench_whole_head(args) -> int:
     with tempfile.TemporaryDirectory() as folder:
         print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} CTA at {args.voxel:g} mm ...", flush=True)
         case_path = _write_case(Path(folder), args.voxel, grid)
+        if getattr(args, "intake", False):
+            return _bench_intake(case_path, Path(folder) / "models")
         print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")
         print("|---|---|---|---|---|---|---|---|---|")
         for job in ("1: reads the volume", "2: the kept model"):
@@ -107,4 +142,19 @@ def bench_whole_head(args) -> int:
     return 0
 
 
-__all__ = ["add_parser", "bench_whole_head", "peak_rss_kb", "run_job"]
+def _bench_intake(case_path: Path, models: Path) -> int:
+    """Two reads (the first, then the kept model's), each in a fresh process: :func:`read_as_validator`."""
+    print("| read | address-space growth MB | RSS growth MB | CPU s | wall s | voxels kept |")
+    print("|---|---|---|---|---|---|")
+    for which in ("1: reads the volume", "2: the kept model"):
+        code = ("import json, sys; from benchmarks.engine.whole_head import read_as_validator; "
+                "print(json.dumps(read_as_validator(sys.argv[1], sys.argv[2])))")
+        out = subprocess.run([sys.executable, "-c", code, str(case_path), str(models)], capture_output=True, text=True,
+                             check=True)
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"| {which} | {row['as_growth_mb']:.0f} | {row['rss_growth_mb']:.0f} | {row['cpu_s']:.1f} | "
+              f"{row['wall_s']:.1f} | {row['voxels_kept']} |", flush=True)
+    return 0
+
+
+__all__ = ["add_parser", "bench_whole_head", "peak_rss_kb", "read_as_validator", "run_job"]

@@ -29,15 +29,23 @@ from .volume_kind import VolumeReading
 
 MEASURED: tuple[tuple[float, float, float], ...] = (
     # voxels, address-space growth MB, CPU s of the first read of a case (the volume's files already in memory, the
-    # process warmed up as the service's validator is); 2 CPU cores x86_64, loaded by other engineers
-    (0.0, 40.0, 0.4),  # headers and the volume reader's first imports (a kept model's case: 39 MB, 0.3 s)
-    (0.53e6, 49.0, 0.4),  # 75 x 75 x 95 at 1.2 mm (the service tests' small CTA)
+    # process warmed up as the service's validator is: ``python -m benchmarks.engine whole-head --intake``);
+    # 2 CPU cores x86_64, loaded by other engineers
+    (0.0, 40.0, 0.4),  # headers and the volume reader's first imports (a kept model's case: 39-42 MB, 0.3 s)
+    (0.53e6, 49.0, 0.4),  # 75 x 75 x 95 at 1.2 mm (the service tests' small CTA: a small head)
+    (3.6e6, 446.0, 7.4),  # 160 x 160 x 140 at 1.2 mm (a whole head, coarse voxels)
     (14.4e6, 665.0, 11.0),  # 256 x 256 x 220 at 0.9 mm
     (48.7e6, 956.0, 21.5),  # 384 x 384 x 330 at 0.6 mm
     (115.3e6, 1089.0, 40.4),  # 512 x 512 x 440 at 0.45 mm (whole-head CTA; 193 s of wall-clock on the loaded machine)
 )
-"""Measured first reads of the layered CTA head (:mod:`benchmarks.engine.whole_head`), one field of view at three
-voxel sizes: the plate/tube measure's working set is bounded (16 M voxels), so the cost per voxel falls."""
+"""Measured first reads of the layered CTA head (:mod:`benchmarks.engine.whole_head`): one field of view (a
+whole head) at five voxel sizes, and the service tests' small head. The cost is not proportional to the voxels:
+the plate/tube measure resamples the candidate mask's box to 0.5 mm, at most 16 M voxels
+(:mod:`.medial_shape`), so a coarse-voxel head costs as much working grid as a fine one and the cost per voxel
+falls as the voxels grow. Between two measured reads of whole heads the cost rises by at most 1.5 x in memory and
+2 x in CPU (446 → 665 MB, 11 → 21.5 s), so an interpolated estimate times the service's margins (1.5 x memory,
+3 x CPU: :mod:`service.intake.allowance`) covers every size between them; below 3.6 M voxels the estimate can be
+low for coarse voxels, where the service's base limits (512 MB, 60 s) hold the read anyway."""
 
 
 @dataclass(frozen=True)
