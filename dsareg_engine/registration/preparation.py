@@ -55,7 +55,8 @@ def _prepare(mesh: TriangleMesh, masks: dict[str, np.ndarray], rig: Rig, options
     if searched is not None:
         initial = searched.poses[0]
     problem = _Problem(mesh, targets, rig, options, device, initial)
-    problem.partial = searched is not None and searched.method.startswith("search+")
+    # the partial searches' starts (the model holds more than the images); not those placed for images holding more
+    problem.partial = searched is not None and searched.method.startswith("search+") and searched.method != "search+precise"
     if searched is not None and searched.fit_faces is not None:
         problem.fit_part(searched.fit_faces)
     longest = max(max(rig.views[name].image_size) for name in used_views)

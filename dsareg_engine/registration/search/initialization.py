@@ -17,7 +17,11 @@ pose, or ``search``). Steps:
 4. **All of the model shown?** Each start is placed again by the coverage search's shift
    (:func:`~.coverage_search.coverage_on`); when none has :data:`EXPLAINED` of its model pixels on
    the vessels in every view, the images show part of the model and the partial searches run
-   (:mod:`.coverage_search` here, :mod:`.branch_search` in the solver).
+   (:mod:`.coverage_search` here, :mod:`.branch_search` in the solver). When some do, but none of those also
+   reaches :data:`PARTIAL_RECALL` of the vessels in every view, the images hold more than the model (another
+   territory, small branches, background: the masks' centroids and extent do not place the model): the coverage
+   search runs with a score that weighs precision (model points on vessels) over recall (:data:`HOLDS_MORE`),
+   and its best distinct candidates, hill-climbed on a finer canvas, lead the starts (``search+precise``).
 
 Array shapes: ``B`` candidates, ``N`` surface points, ``(H, W)`` the search window.
 """
@@ -25,7 +29,7 @@ Array shapes: ``B`` candidates, ``N`` surface points, ``(H, W)`` the search wind
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numba
@@ -35,7 +39,7 @@ from ...geometry.rig import Rig, ViewGeometry
 from ...mesh import TriangleMesh
 from ...render.serial_kernels import KernelPair
 from . import search_kernels
-from .coverage_search import coverage_on, search_by_coverage
+from .coverage_search import coverage_on, refine_by_coverage, search_by_coverage
 from .rotation_grid import grid_spacing_deg, rotation_grid
 from .rotation_refine import distinct, hill_climb, poses_from
 from .settings import CENTROID, COVERAGE, SearchSettings
@@ -274,9 +278,14 @@ def search_initial_poses(
                            centroid_score=float(refined[chosen][0]))
     if coverage is None:
         return found
-    found.explained = explains_images(coverage_on(mesh, masks, rig, centre, points, rotations[chosen], coverage))
+    placed = coverage_on(mesh, masks, rig, centre, points, rotations[chosen], coverage)
+    found.explained = explains_images(placed)
     found.seconds = time.perf_counter() - started
     if not found.partial_search_needed:
+        found.explained["images_hold_more"] = images_hold_more(placed[1])
+        if found.explained["images_hold_more"]:
+            _with_precise_starts(found, mesh, masks, rig, centre, points, count, settings.distinct_deg)
+        found.seconds = time.perf_counter() - started
         return found
     return _with_coverage_starts(found, mesh, masks, rig, centre, points, count, settings, coverage, started)
 
@@ -319,6 +328,33 @@ def explains_images(candidates: tuple[np.ndarray, np.ndarray]) -> dict:
     return {"model_explained": bool(worst[best] >= EXPLAINED), "best_score": round(float(scores[best]), 4),
             "precision": [round(float(v), 3) for v in detail[best, :, 0]],
             "recall": [round(float(v), 3) for v in detail[best, :, 1]]}
+
+
+def images_hold_more(detail: np.ndarray) -> bool:
+    """From per-view (precision, recall) ``(B, V, 2)`` of whole-model starts placed by coverage: some start lies on
+    the vessels (:data:`EXPLAINED` in every view) but none of those reaches :data:`PARTIAL_RECALL` of the vessels in
+    every view. A fully visible model's right start reaches them all (0.98–1.0)."""
+    precision, recall = detail[:, :, 0].min(axis=1), detail[:, :, 1].min(axis=1)
+    explaining = precision >= EXPLAINED
+    return bool(explaining.any() and recall[explaining].max() < PARTIAL_RECALL)
+
+
+HOLDS_MORE = replace(COVERAGE, beta=0.5)
+"""The coverage search when the images hold more than the model: ``F_0.5``, precision weighing 4 times recall."""
+HOLDS_MORE_FINE = replace(HOLDS_MORE, window_px=96, refine_steps_deg=(3.0, 1.5, 0.75))
+"""... its best candidates hill-climbed again on canvases 96 px instead of 40 (as the branch search's fine pass)."""
+
+
+def _with_precise_starts(found: Initialization, mesh, masks, rig, centre, points, count: int, distinct_deg: float) -> None:
+    """The :data:`HOLDS_MORE` coverage search's :data:`PARTIAL_STARTS` best distinct candidates, refined on
+    :data:`HOLDS_MORE_FINE`, in front of ``found``'s starts (``method`` ``search+precise``)."""
+    searched = search_by_coverage(mesh, masks, rig, centre, points, PARTIAL_STARTS, distinct_deg, HOLDS_MORE)
+    poses, scores = refine_by_coverage(mesh, masks, rig, centre, points, searched.poses, HOLDS_MORE_FINE)
+    order = np.argsort(scores, kind="stable")
+    found.candidates_scored += searched.scored
+    found.poses = np.concatenate([poses[order], found.poses])[:count + PARTIAL_STARTS]
+    found.scores = np.concatenate([scores[order], found.scores])[:count + PARTIAL_STARTS]
+    found.method = "search+precise"
 
 
 PARTIAL_STARTS = 4

@@ -180,6 +180,10 @@ class WholeModelCoverage(BaseModel):
     best_score: float = Field(description="That start's 1 − F₂ of precision and recall, mean over the views (0 best, 1 worst).")
     precision: list[float] = Field(description="Per view (AP, LAT order): share (0–1) of the start's model points on or next to vessels.")
     recall: list[float] = Field(description="Per view: share (0–1) of the vessel pixels the start reaches.")
+    images_hold_more: bool | None = Field(None, description="True when some start lies on the vessels but none of those "
+                                          "reaches 70 % of them in every view: the images hold more than the model "
+                                          "(another territory, small branches, background), and the precision-weighted "
+                                          "coverage search's candidates lead the starts (method search+precise).")
 
 
 class BranchSearch(BaseModel):
@@ -205,10 +209,11 @@ class Initialization(BaseModel):
 
     model_config = CLOSED
 
-    method: Literal["given", "search", "search+coverage", "search+branch", "search+coverage+branch"] = Field(
+    method: Literal["given", "search", "search+coverage", "search+branch", "search+coverage+branch", "search+precise"] = Field(
         description="given: the geometry's / options' initial pose; search: the best candidates of a pose search; "
                     "+coverage / +branch: the images looked partial and the coverage search's / the branch search's "
-                    "candidates lead the starts (docs/concepts/verdict.md).")
+                    "candidates lead the starts; +precise: the images held more than the model and the "
+                    "precision-weighted coverage search's candidates lead (docs/concepts/verdict.md).")
     candidates_scored: int = Field(0, description="Rotations scored by the whole-model searches (0 when given).")
     seconds: float = Field(0.0, description="Time of the search, seconds.")
     best_score: float | None = Field(None, description="Search score of the best start (0 best, 1 worst).")

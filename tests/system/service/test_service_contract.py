@@ -140,7 +140,7 @@ def test_openapi_types_the_whole_result(contract_server):
         assert _schema(doc, closed_model).get("additionalProperties") is False, closed_model  # the closed contract
     initialization = _schema(doc, "Initialization")["properties"]
     assert _enum(doc, initialization["method"]) == ["given", "search", "search+coverage", "search+branch",
-                                                   "search+coverage+branch"]
+                                                   "search+coverage+branch", "search+precise"]
     assert {"$ref": "#/components/schemas/CoverageSearch"} in initialization["coverage"]["anyOf"]
     assert {"parts_searched", "best_score", "faces_fraction"} <= set(_schema(doc, "BranchSearch")["properties"])
     assert {"rotation_deg", "translation_mm"} <= set(_schema(doc, "Motion")["required"])
