@@ -61,8 +61,9 @@ def test_the_files_shutter_is_applied():
 def test_a_1024_image_runs_in_under_half_a_second():
     pixels, vessels, _ = unsubtracted_angiogram(size=1024, seed=5)
     load_network()
-    started = time.perf_counter()
+    started = time.process_time()  # CPU of every thread: what the segmentation costs, whatever else runs beside it
     mask = segment_angiogram(pixels).mask
-    seconds = time.perf_counter() - started
+    cpu_seconds = time.process_time() - started
     assert _dice(mask, vessels) > 0.5
-    assert seconds < 2.0  # 0.5 s on a quiet 2-core machine (docs/benchmarks/segmentation.md); slack for load
+    # 0.20 s wall on a quiet 2-core machine (docs/benchmarks/segmentation.md): ≤ 0.5 s wall is ≤ 1 CPU-s on 2 cores
+    assert cpu_seconds < 1.0, cpu_seconds
