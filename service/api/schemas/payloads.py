@@ -295,7 +295,9 @@ class ResultMetrics(BaseModel):
         None, description="True only when the final stage stopped on the pose-change rule and every view's Dice ≥ 0.5.")
     reason: str | None = Field(None, description="Why converged is what it is.")
     starts: int | None = Field(None, description="Initial poses tried.")
-    starts_agreeing: int | None = Field(None, description="Starts that ended within 2 mm ADD of the best.")
+    starts_agreeing: int | None = Field(None, description=(
+        "Starts within 2 mm ADD of the best where the starts were last compared (the coarse levels, where "
+        "agreeing starts still differ by 1-3 mm): a lower bound."))
     configuration: Literal["ap", "lat", "simultaneous", "ap_then_lat", "lat_then_ap"] | None = None
     border_shift_px: dict[str, float] | None = Field(
         None, description="Measured mask border offset per view, pixels (border correction).")
