@@ -101,3 +101,28 @@ def test_a_coarse_voxel_volume_is_measured_within_a_memory_bound():
     grown_kb, share = out.stdout.split()
     assert int(grown_kb) < 500_000, out.stdout  # the uncapped grid (77 M working voxels) needs GBs
     assert float(share) > 0.5
+
+
+@pytest.mark.parametrize("part_shape, spacing", [((40, 52, 30), (0.45, 0.45, 0.45)), ((33, 27, 19), (0.6, 0.6, 0.8)),
+                                                 ((25, 31, 12), (0.38, 0.42, 1.1)), ((30, 30, 30), (0.5, 0.5, 0.5))])
+def test_the_plate_goes_back_to_the_mask_as_a_whole_box_zoom_puts_it(part_shape, spacing):
+    """Issue 41: the plate voxels are interpolated back at the mask's voxels only, not over its whole box (a
+    whole-head box holds ~10 x as many): the same voxels as ``ndimage.zoom`` back, padded by its last plane and cut
+    to the box, at several voxel sizes (the mask touching the box's border, a zoomed grid one plane short)."""
+    from scipy import ndimage
+
+    from dsareg_engine.io.medial_shape import _back_on_mask, to_working_grid
+
+    rng = np.random.default_rng(len(part_shape) + int(100 * spacing[2]))
+    part = ndimage.binary_opening(rng.random(part_shape) < 0.6)
+    work, zoom = to_working_grid(part, spacing)
+    work_plate = work & ndimage.binary_opening(rng.random(work.shape) < 0.7)
+    for shape in (part.shape, tuple(n + 1 for n in part.shape)):  # the second: past the zoomed grid's end
+        box = np.zeros(shape, bool)
+        box[: part.shape[0], : part.shape[1], : part.shape[2]] = part
+        box[-1] = True  # its last plane in the mask
+        back = ndimage.zoom(work_plate.astype(np.float32), 1.0 / zoom, order=1, mode="nearest", grid_mode=True)
+        back = np.pad(back, [(0, max(0, p - s)) for p, s in zip(shape, back.shape)], mode="edge")[
+            : shape[0], : shape[1], : shape[2]]
+        expected = (back >= 0.5) & box
+        assert expected.any() and np.array_equal(_back_on_mask(work_plate, zoom, box), expected)
