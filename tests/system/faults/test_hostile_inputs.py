@@ -29,6 +29,7 @@ from tests.support.hostile_images import (
     with_dicom_value,
 )
 from tests.support.service_testkit import FAST_OPTIONS, Server, needs_engine, wait_for
+from tests.support.time_bounds import allowed
 
 pytestmark = [needs_engine, pytest.mark.slow]
 
@@ -241,7 +242,6 @@ BOUNDARY = "hostileXyZ"
 
 POLLER = """
 import http.client, json, os, sys, time
-from tests.support.time_bounds import allowed
 port, stop = int(sys.argv[1]), sys.argv[2]
 worst, polls, slow = 0.0, 0, []
 while not os.path.exists(stop):
