@@ -5,9 +5,15 @@ import pytest
 
 from dsareg_engine.geometry.vessel_tree import vessel_tree
 from dsareg_engine.registration import RegistrationOptions
-from dsareg_engine.registration.solver import register
 from dsareg_engine.registration.confidence import assess
-from dsareg_engine.registration.partial import explained_faces, looks_partial, match_fractions, refit_faces, trimmed_weight
+from dsareg_engine.registration.partial import (
+    explained_faces,
+    looks_partial,
+    match_fractions,
+    refit_faces,
+    trimmed_weight,
+)
+from dsareg_engine.registration.solver import register
 from dsareg_engine.simulation.clinical_rig import clinical_biplane_rig, random_visible_pose, render_masks
 from dsareg_engine.simulation.partial_filling import foreign_territory, selective_injection
 from dsareg_engine.simulation.phantom import make_vessel_phantom
@@ -141,30 +147,32 @@ def test_verdict_tells_partial_filling_from_a_wrong_pose_and_missing_vessels():
 
 
 def test_verdict_says_when_the_images_hold_vessels_the_model_lacks_even_with_a_high_dice():
-    # A model without its small branches: Dice 0.85 / 0.88 read ok before, with 18 % / 14 % of the vessels unexplained.
-    more = assess({**SIGNALS, "dice": {"ap": 0.85, "lat": 0.88},
-                   "unmatched_fraction": {"ap": 0.02, "lat": 0.03}, "uncovered_fraction": {"ap": 0.18, "lat": 0.14}})
+    # Another territory or background in both views: Dice 0.80 / 0.82 read ok before, with 31 % / 27 % unexplained.
+    more = assess({**SIGNALS, "dice": {"ap": 0.80, "lat": 0.82},
+                   "unmatched_fraction": {"ap": 0.02, "lat": 0.03}, "uncovered_fraction": {"ap": 0.31, "lat": 0.27}})
     assert more["verdict"] == "check" and len(more["reasons"]) == 1
-    assert more["reasons"][0].startswith("the images show vessels the model lacks (ap 18% / lat 14% of the vessels")
+    assert more["reasons"][0].startswith("the images show vessels the model lacks (ap 31% / lat 27% of the vessels")
     assert "do not show" not in more["reasons"][0]  # not read as partial filling (bench partial counts those)
-    # one view alone (a catheter filling one view: the grey-level phantom's 16 % / 8 %) or under 10 %: ok, as before
+    # a CTA model without its small branches (the whole-head CTA: 15 % / 17 % at ADD 0.095 mm), one view alone (a
+    # catheter filling one view: the grey-level phantom's 16 % / 8 %): ok, as before
+    assert assess({**SIGNALS, "uncovered_fraction": {"ap": 0.15, "lat": 0.17}})["verdict"] == "ok"
     assert assess({**SIGNALS, "uncovered_fraction": {"ap": 0.16, "lat": 0.08}})["verdict"] == "ok"
-    assert assess({**SIGNALS, "uncovered_fraction": {"ap": 0.09, "lat": 0.09}})["verdict"] == "ok"
+    assert assess({**SIGNALS, "uncovered_fraction": {"ap": 0.24, "lat": 0.3}})["verdict"] == "ok"
     one_view = {key: {"ap": value["ap"]} for key, value in SIGNALS.items() if key.endswith("_fraction")}
     assert assess({**SIGNALS, **one_view, "uncovered_fraction": {"ap": 0.3}})["verdict"] == "ok"  # two views needed
 
 
 def test_images_holding_another_vessel_read_check_with_the_reason_though_the_overlap_is_high(phantom):
-    # The images hold the model and, 30 mm away, a branch of two other copies of it (other vessels in the field,
-    # 17-25 % of the vessel pixels in each view): from a pose a few degrees off the fit is right and the overlap high
-    # (Dice ≈ 0.88), which read ok before.
+    # The images hold the model and, 25-30 mm away, branches of three other copies of it (other vessels in the field,
+    # over a quarter of the vessel pixels in each view): from a pose a few degrees off the fit is right and the
+    # overlap high (Dice > 0.7), which read ok before.
     from dsareg_engine.registration.parameterization import random_start_poses
 
     rig = clinical_biplane_rig(256)
     truth = random_visible_pose(phantom, rig, np.random.default_rng(2), 30.0)
     branch = selective_injection(phantom, 0.2, np.random.default_rng(1), vessel_tree(phantom)).visible
     masks = render_masks(phantom, rig, truth)
-    for shift in ([0.0, 30.0, 0.0], [25.0, 0.0, 25.0]):
+    for shift in ([0.0, 30.0, 0.0], [25.0, 0.0, 25.0], [-25.0, -25.0, 0.0]):
         elsewhere = truth.copy()
         elsewhere[:3, 3] += shift
         masks = {name: mask | render_masks(branch, rig, elsewhere)[name] for name, mask in masks.items()}
