@@ -103,8 +103,8 @@ def _summarise(rows: list[dict]) -> str:
     success = np.mean([r["add_mm"] < 1.0 for r in rows]) * 100
     return (f"{stat('rotation_error_deg', 50):.4f} / {stat('rotation_error_deg', 90):.4f} | "
             f"{stat('translation_error_mm', 50):.4f} / {stat('translation_error_mm', 90):.4f} | "
-            f"{stat('add_mm', 50):.4f} / {stat('add_mm', 90):.4f} | {success:.0f} % | {np.median([r['seconds'] for r in rows]):.1f} | "
-            f"{np.median([r['cpu_seconds'] for r in rows]):.1f}")
+            f"{stat('add_mm', 50):.4f} / {stat('add_mm', 90):.4f} | {success:.0f} % | {np.median([r['seconds'] for r in rows]):.2f} | "
+            f"{np.median([r['cpu_seconds'] for r in rows]):.2f}")
 
 
 def _run(mesh, rig, masks, initial, config: str, multistart: int, seed: int, extra: dict) -> dict:
