@@ -29,8 +29,20 @@ from typing import Any
 import httpx
 
 from dsareg_engine.warmup import phantom_case_files
-
 from tests.support.servers import free_port
+
+
+def wait_ready(url: str, timeout: float = 600.0, interval: float = 0.3) -> None:
+    """Until the server at ``url`` answers ``/readyz`` 200; RuntimeError after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(url + "/readyz", timeout=5).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(interval)
+    raise RuntimeError(f"the server was not ready after {timeout:g} s")
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -174,16 +186,7 @@ def run_for_workers(workers: int, case: dict, args: argparse.Namespace, root: Pa
     )
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            try:
-                if httpx.get(url + "/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.3)
-        else:
-            raise RuntimeError("server did not become ready")
+        wait_ready(url, 120.0)
         result = asyncio.run(_run_load(url, case, args))
         children = _children(server.pid)
         result["api_peak_rss_mb"] = _peak_rss_mb(server.pid)

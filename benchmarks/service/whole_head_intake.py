@@ -27,6 +27,7 @@ from pathlib import Path
 
 import httpx
 
+from benchmarks.service.load import wait_ready
 from tests.support.servers import free_port
 
 REPO = Path(__file__).resolve().parents[2]
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         watch.start()
         try:
             url = f"http://127.0.0.1:{port}"
-            _wait_ready(url)
+            wait_ready(url, interval=0.5)
             for which in ("first", "second"):
                 row = _submit(url, case, watch)
                 print(which, json.dumps(row), flush=True)
@@ -133,16 +134,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _wait_ready(url: str, timeout: float = 600.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(url + "/readyz", timeout=5).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.5)
-    raise RuntimeError(f"the server was not ready after {timeout:g} s")
 
 
 if __name__ == "__main__":
