@@ -6,6 +6,8 @@ from __future__ import annotations
 import threading
 from types import SimpleNamespace
 
+import pytest
+
 from service.intake.allowance import AllowancePolicy
 from service.intake.validator import ValidatorPool
 from service.storage.blobs import BlobStore
@@ -246,3 +248,50 @@ def test_a_large_volumes_time_is_counted_in_its_validators_cpu_seconds():
     assert time.monotonic() - started < 100  # cut by its CPU seconds, not the 120 s of wall-clock
     assert slot.allowance.describe() == "0.5 CPU s (120 s)"
     assert process_cpu_seconds(busy.pid) is None  # gone
+
+
+@pytest.mark.parametrize("fault", ["SIGSTOP", "SIGKILL"])
+def test_a_validator_frozen_or_killed_mid_read_under_a_volumes_allowance_is_answered_within_seconds(fault):
+    """Issue 41's allowance gives a large volume's read minutes (here 120 s of wall-clock, 100 CPU s): a reader frozen
+    (SIGSTOP: its CPU seconds stop, so the CPU budget never runs out) or killed in that state is still found by the
+    pool's watch within seconds, the request answered ``frozen`` / ``dead`` and the process gone (none left)."""
+    import multiprocessing as mp
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from service.intake.spawner import Spawner
+    from service.intake.validator import _Slot, process_cpu_seconds
+
+    ours, theirs = mp.Pipe(duplex=True)
+    reader = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # the validator mid-read
+
+    class Process:  # multiprocessing's view of the reader
+        pid = reader.pid
+        is_alive, kill = (lambda self: reader.poll() is None), (lambda self: reader.kill())
+        join = lambda self, timeout: reader.wait(timeout)
+        exitcode = property(lambda self: reader.poll())
+
+    slot = _Slot(mp.get_context("spawn"), AllowancePolicy(512, 0.4, 4096, 120.0), 1, Spawner())
+    slot.process, slot.conn, slot.ready = Process(), ours, True
+
+    def validator_announcing_then_hit():
+        theirs.recv()
+        theirs.send({"allowance": {"memory_mb": 2000, "timeout_s": 120.0, "volume": "512x512x440", "cpu_s": 100.0}})
+        time.sleep(0.5)  # reading under the allowance
+        reader.send_signal(getattr(signal, fault))
+
+    helper = threading.Thread(target=validator_announcing_then_hit)
+    helper.start()
+    started = time.monotonic()
+    try:
+        reply, why = slot.call({"inputs": []}, timeout=0.4)
+    finally:
+        helper.join()
+        reader.kill()
+        reader.wait()
+    assert (reply, why) == (None, "frozen" if fault == "SIGSTOP" else "dead")
+    assert time.monotonic() - started < 10  # not the allowance's 120 s
+    assert slot.allowance.raised and slot.process is None  # the slot let the process go; the pool starts a fresh one
+    assert process_cpu_seconds(reader.pid) is None  # none left
