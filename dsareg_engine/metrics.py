@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from .geometry.rig import ViewGeometry
@@ -13,6 +14,22 @@ def dice(mask_a: np.ndarray, mask_b: np.ndarray) -> float:
     a, b = np.asarray(mask_a, bool), np.asarray(mask_b, bool)
     total = a.sum() + b.sum()
     return 1.0 if total == 0 else float(2.0 * np.logical_and(a, b).sum() / total)
+
+
+def within_px(mask: np.ndarray, tolerance_px: float) -> np.ndarray:
+    """``(H, W)`` bool: the pixels whose centre lies within ``tolerance_px`` (Euclidean, inclusive) of a pixel of
+    ``mask`` (``(H, W)`` bool), the mask's own pixels included; none when the mask is empty.
+
+    A dilation by the disc of integer offsets ``dx² + dy² ≤ tolerance²``: the same pixels as thresholding the exact
+    Euclidean distance transform of the background (``tests/unit/test_metrics.py`` checks it against one), at a
+    small fraction of its cost for the few-pixel tolerances used here (~0.2 against ~14 CPU ms at 800 × 800)."""
+    if tolerance_px < 0:
+        return np.zeros(mask.shape, bool)
+    radius = int(np.floor(tolerance_px))
+    dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+    disc = (dx * dx + dy * dy <= tolerance_px * tolerance_px).astype(np.uint8)
+    return cv2.dilate(np.asarray(mask, bool).astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT,
+                      borderValue=0).astype(bool)
 
 
 def iou(mask_a: np.ndarray, mask_b: np.ndarray) -> float:

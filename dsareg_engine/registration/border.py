@@ -13,6 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..metrics import within_px
 from .targets import mask_box, shifted_mask, signed_border_distance
 
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
@@ -65,8 +66,7 @@ def update_border_shift(mask: np.ndarray, silhouette: np.ndarray, shift_px: floa
         return shift_px
     mask, silhouette, signed = mask[box], silhouette[box], signed[box]
     target = shifted_mask(mask, shift_px, signed)
-    outside = (~silhouette).astype(np.uint8)
-    near_silhouette = cv2.distanceTransform(outside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= BAND_PX
+    near_silhouette = within_px(silhouette, BAND_PX)
     near_target = signed <= shift_px + BAND_PX - 0.5  # within BAND_PX of a pixel of the shifted target
     boundary = silhouette & (cv2.erode(silhouette.astype(np.uint8), _CROSS, borderValue=0) == 0)
     if not boundary.any():

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.rig import ViewGeometry
-from ..metrics import mean_distance_mm
+from ..metrics import mean_distance_mm, within_px
 
 
 @dataclass(frozen=True)
@@ -96,15 +96,10 @@ def tolerant_f_score(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: flo
     Unlike Dice it forgives the pixel-level misfit of a pose not yet refined, so a coarse
     pose near the right answer reads near 1 and a wrong local minimum does not.
     """
-    import cv2
-
-    def near(a: np.ndarray) -> np.ndarray:
-        return cv2.distanceTransform((~a).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= tolerance_px
-
     if not silhouette.any() or not mask.any():
         return 0.0
-    precision = float((silhouette & near(mask)).sum() / silhouette.sum())
-    recall = float((mask & near(silhouette)).sum() / mask.sum())
+    precision = float((silhouette & within_px(mask, tolerance_px)).sum() / silhouette.sum())
+    recall = float((mask & within_px(silhouette, tolerance_px)).sum() / mask.sum())
     return 0.0 if precision + recall == 0 else 2.0 * precision * recall / (precision + recall)
 
 

@@ -22,6 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..metrics import within_px
+
 MATCH_TOLERANCE_PX = 2.0
 NEAR_VESSEL_PX = 2
 FAR_BACKGROUND_WEIGHT = 0.05
@@ -35,7 +37,7 @@ pose is fitted once more on the faces the images explain (:func:`refit_faces`)."
 
 
 def _near(mask: np.ndarray, tolerance_px: float) -> np.ndarray:
-    return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= tolerance_px
+    return within_px(mask, tolerance_px)
 
 
 def match_fractions(silhouette: np.ndarray, mask: np.ndarray, tolerance_px: float = MATCH_TOLERANCE_PX,
