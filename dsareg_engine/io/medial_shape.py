@@ -33,6 +33,8 @@ PLATE_RATIO = 1.7
 MEDIAL_SLOPE = 0.8  # |∇ depth| (mm per mm) below which a voxel is on the ridge of the depth
 MAX_SAMPLES = 4000  # medial points whose fill ratio is measured (the others take their nearest one's)
 MAX_WORK_VOXELS = 16_000_000  # the working grid's voxels at most (~1 GB at the peak of the measure)
+SHELL_R2 = 16  # depths up to √SHELL_R2 voxels are found shell by shell (the deeper ones are queries)
+SURE_STEPS = 2  # voxels per axis: a voxel this near a plate medial point and far from tube ones is plate
 
 
 @dataclass(frozen=True)
@@ -141,31 +143,86 @@ def _back_on_mask(work_plate: np.ndarray, zoom: np.ndarray, part: np.ndarray) ->
 
 def _depth_vox(work: np.ndarray) -> np.ndarray:
     """The distance (voxels) of each voxel of ``work`` to the nearest voxel outside it (the grid's border is
-    outside), 0 outside: the Euclidean distance transform, as nearest-point queries of the inside voxels against
-    the outside voxels that touch them (the nearest outside voxel always does), not a transform of the whole box."""
+    outside), 0 outside: the Euclidean distance transform of the inside voxels only, not of the whole box.
+
+    Shell by shell (:func:`_shells`): a voxel with an outside voxel at an offset of squared length ``r²`` and none
+    nearer is ``√r²`` deep (most voxels of a plate a few voxels thick are 1–3 deep: a few gathers each); the few
+    deeper than ``SHELL_R2`` are nearest-point queries against the outside voxels that touch the inside (the nearest
+    outside voxel always does). The same distances as the queries of every voxel."""
     from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    padded = np.pad(work, 1)
-    edge = ndimage.binary_dilation(padded) & ~padded
-    inside = np.argwhere(padded)
-    depth = np.zeros(padded.shape)
-    if len(inside):
-        depth[tuple(inside.T)] = cKDTree(np.argwhere(edge)).query(inside)[0]
-    return depth[1:-1, 1:-1, 1:-1]
+    pad = int(np.sqrt(SHELL_R2))
+    padded = np.pad(work, pad)
+    flat = padded.ravel()
+    depth = np.zeros(padded.size)
+    pending = np.flatnonzero(flat)
+    strides = np.array(padded.strides) // padded.itemsize
+    for r2, offsets in _shells(SHELL_R2):
+        if len(pending) == 0:
+            break
+        reached = np.zeros(len(pending), bool)
+        for offset in offsets @ strides:
+            reached |= ~flat[pending + offset]
+        depth[pending[reached]] = np.sqrt(float(r2))
+        pending = pending[~reached]
+    if len(pending):
+        edge = ndimage.binary_dilation(padded) & ~padded
+        deep = np.stack(np.unravel_index(pending, padded.shape), axis=1)
+        depth[pending] = cKDTree(np.argwhere(edge)).query(deep)[0]
+    inner = tuple(slice(pad, n - pad) for n in padded.shape)
+    return depth.reshape(padded.shape)[inner]
+
+
+def _shells(max_r2: int) -> list[tuple[int, np.ndarray]]:
+    """Integer offsets ``(N, 3)`` grouped by squared length ``r²``, for ``1 ≤ r² ≤ max_r2``, shortest first."""
+    reach = int(np.sqrt(max_r2))
+    grid = np.mgrid[-reach:reach + 1, -reach:reach + 1, -reach:reach + 1].reshape(3, -1).T
+    squared = (grid ** 2).sum(1)
+    return [(int(r2), grid[squared == r2]) for r2 in np.unique(squared) if 1 <= r2 <= max_r2]
 
 
 def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) -> np.ndarray:
-    """The voxels of ``work`` strictly nearer a plate medial point than a tube one (Euclidean, working voxels):
-    nearest-point queries of the mask's voxels only, not distance transforms of the whole box."""
+    """The voxels of ``work`` strictly nearer a plate medial point than a tube one (Euclidean, working voxels).
+
+    Most voxels of a skull's diploë lie within ``SURE_STEPS`` voxels (per axis) of a plate medial point, so within
+    ``SURE_STEPS × √3``, and farther than that from every tube point: plate for sure, decided on the grid (two
+    maximum filters). The others are nearest-point queries: the distance to the tube points first, then the plate
+    points searched no farther than it (a voxel amid the tree is about as far from every point of a skull around
+    it, which an unbounded search visits). The same voxels as comparing both unbounded distances."""
+    from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    voxels = np.argwhere(work)
-    to_plate = cKDTree(points[is_plate]).query(voxels)[0]
-    to_tube = cKDTree(points[~is_plate]).query(voxels)[0] if (~is_plate).any() else np.inf
-    out = np.zeros(work.shape, bool)
+    if not (~is_plate).any():
+        return work.copy()
+    reach = SURE_STEPS * np.sqrt(3.0)  # the farthest a plate point within SURE_STEPS voxels per axis lies
+    near_plate = ndimage.maximum_filter(_marked(work.shape, points[is_plate]), size=2 * SURE_STEPS + 1,
+                                        mode="constant").view(bool)
+    out = work & near_plate
+    tubes, steps = points[~is_plate], int(np.ceil(reach))
+    low, high = np.maximum(tubes.min(0) - steps, 0), np.minimum(tubes.max(0) + steps + 1, work.shape)
+    box = tuple(slice(a, b) for a, b in zip(low, high))  # every voxel within ``reach`` of a tube point (and more)
+    near_tube = ndimage.maximum_filter(_marked(high - low, tubes - low), size=2 * steps + 1, mode="constant")
+    out[box] &= ~near_tube.view(bool)
+    voxels = np.argwhere(work & ~out)
+    if len(voxels) == 0:
+        return out
+    to_tube = cKDTree(points[~is_plate]).query(voxels)[0]
+    to_plate = np.full(len(voxels), np.inf)
+    plates = cKDTree(points[is_plate])
+    bound = np.ceil(to_tube)
+    for limit in np.unique(bound):  # a plate point at to_tube or farther is not nearer: not looked for
+        chosen = bound == limit
+        to_plate[chosen] = plates.query(voxels[chosen], distance_upper_bound=float(limit))[0]
     out[tuple(voxels[to_plate < to_tube].T)] = True
     return out
+
+
+def _marked(shape, points: np.ndarray) -> np.ndarray:
+    """uint8 grid of ``shape``: 1 at ``points`` (``(N, 3)`` indices)."""
+    grid = np.zeros(shape, np.uint8)
+    grid[tuple(points.T)] = 1
+    return grid
 
 
 def _box(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
@@ -173,4 +230,4 @@ def _box(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
     return np.maximum(box.min(0) - margin, 0), np.minimum(box.max(0) + margin + 1, mask.shape)
 
 
-__all__ = ["MedialShape", "PLATE_RATIO", "WORK_MM", "medial_ratio", "medial_shape", "to_working_grid", "working_mm"]
+__all__ = ["PLATE_RATIO", "WORK_MM", "MedialShape", "medial_ratio", "medial_shape", "to_working_grid", "working_mm"]

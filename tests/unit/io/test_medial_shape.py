@@ -6,6 +6,7 @@ size (a crop of the real tree: 0.07 at 0.4 mm, 0.80 at 0.6 mm) and refused them 
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree as _KDTREE  # the real one, under the counting stand-in below
 
 from dsareg_engine.io.medial_shape import medial_shape
 
@@ -126,3 +127,96 @@ def test_the_plate_goes_back_to_the_mask_as_a_whole_box_zoom_puts_it(part_shape,
             : shape[0], : shape[1], : shape[2]]
         expected = (back >= 0.5) & box
         assert expected.any() and np.array_equal(_back_on_mask(work_plate, zoom, box), expected)
+
+
+def _nearer_plate_by_queries(work, points, is_plate):
+    """The reference: every voxel's nearest plate and tube medial points, compared (the measure before issue 41)."""
+    from scipy.spatial import cKDTree
+
+    voxels = np.argwhere(work)
+    to_plate = cKDTree(points[is_plate]).query(voxels)[0]
+    to_tube = cKDTree(points[~is_plate]).query(voxels)[0] if (~is_plate).any() else np.inf
+    out = np.zeros(work.shape, bool)
+    out[tuple(voxels[to_plate < to_tube].T)] = True
+    return out
+
+
+def _depth_by_queries(work):
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    padded = np.pad(work, 1)
+    edge = ndimage.binary_dilation(padded) & ~padded
+    depth = np.zeros(padded.shape)
+    inside = np.argwhere(padded)
+    if len(inside):
+        depth[tuple(inside.T)] = cKDTree(np.argwhere(edge)).query(inside)[0]
+    return depth[1:-1, 1:-1, 1:-1]
+
+
+class _CountedTree:
+    """``cKDTree`` counting the points it is asked about (``queried``)."""
+
+    queried = 0
+
+    def __init__(self, data, *args, **kwargs):
+        self._tree = _KDTREE(data, *args, **kwargs)
+
+    def query(self, x, *args, **kwargs):
+        _CountedTree.queried += len(x)
+        return self._tree.query(x, *args, **kwargs)
+
+
+def test_plate_voxels_are_the_same_as_every_voxel_queried():
+    """Issue 41: the plate parts are decided on the grid where sure, by bounded queries elsewhere: the same voxels as
+    both nearest distances of every voxel, on random masks and medial points (ties included)."""
+    from dsareg_engine.io.medial_shape import _nearer_plate
+
+    rng = np.random.default_rng(7)
+    for _ in range(150):
+        shape = tuple(rng.integers(3, 22, 3))
+        work = rng.random(shape) < rng.uniform(0.1, 0.9)
+        points = np.argwhere(work)
+        points = points[rng.random(len(points)) < rng.uniform(0.02, 0.6)]
+        is_plate = rng.random(len(points)) < rng.uniform(0.0, 1.0)
+        if is_plate.any():
+            assert np.array_equal(_nearer_plate(work, points, is_plate), _nearer_plate_by_queries(work, points, is_plate))
+
+
+def test_a_plate_amid_its_medial_points_is_not_queried_voxel_by_voxel(monkeypatch):
+    """A skull's diploë: most voxels lie next to a plate medial point and far from the tree's: decided on the grid,
+    not by nearest-point queries (whole-head CTA: 3 of 4 CPU s of the measure before issue 41's change)."""
+    from dsareg_engine.io import medial_shape as module
+
+    voxel = 0.5
+    vessel = tube(voxel, 1.5, length_mm=58.0, size_mm=60.0)
+    both = plate(voxel, 3.0, width_mm=60.0) | vessel
+    work, _ = module.to_working_grid(both, (voxel,) * 3)
+    points, ratio, _ = module.medial_ratio(work)
+    is_plate = ratio > module.PLATE_RATIO
+    monkeypatch.setattr("scipy.spatial.cKDTree", _CountedTree)
+    _CountedTree.queried = 0
+    parts = module._nearer_plate(work, points, is_plate)
+    assert _CountedTree.queried < 0.25 * work.sum(), (_CountedTree.queried, work.sum())
+    monkeypatch.undo()
+    assert np.array_equal(parts, _nearer_plate_by_queries(work, points, is_plate))
+
+
+def test_the_depth_is_the_distance_to_the_outside_and_shallow_voxels_are_not_queried(monkeypatch):
+    """Issue 41: depths up to √SHELL_R2 voxels are found shell by shell: the same distances as a nearest-point query
+    of every voxel (random masks, blobs deeper than the shells, the grid's border outside); a thin plate's voxels
+    are not queried one by one."""
+    from scipy import ndimage
+
+    from dsareg_engine.io import medial_shape as module
+
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        shape = tuple(rng.integers(2, 36, 3))
+        work = ndimage.binary_dilation(rng.random(shape) < rng.uniform(0.001, 0.3), iterations=int(rng.integers(0, 7)))
+        assert np.array_equal(module._depth_vox(work), _depth_by_queries(work))
+    monkeypatch.setattr("scipy.spatial.cKDTree", _CountedTree)
+    _CountedTree.queried = 0
+    thin = plate(0.5, 3.0)
+    module._depth_vox(thin)
+    assert _CountedTree.queried == 0
