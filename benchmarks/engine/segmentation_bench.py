@@ -124,15 +124,21 @@ def _pictures(rows: list[dict], images, masks: dict, out: Path) -> None:
               f"(Dice {rows[index]['network']['dice']:.3f})")
 
 
-def _agreement(item, network_mask: np.ndarray) -> tuple[float, float]:
-    """What ``auto`` compares: the ``dsa`` mask (inside the collimated field) against the network's: their Dice
-    and the share of the ``dsa`` mask within 2 px of the network's."""
+def _agreement(item, network_mask: np.ndarray, networks) -> tuple[float, float, bool]:
+    """What ``auto`` compares: the ``dsa`` mask (inside the collimated field) against the network's: their Dice,
+    the share of the ``dsa`` mask within 2 px of the network's, and whether that was the network's reading after the
+    flat-field correction (``segmentation_choice.judged``; the image's own fold network reads both)."""
+    from dsareg_engine.vision.angiogram.learned import vessel_probability
+    from dsareg_engine.vision.angiogram.vessel_mask import vessel_mask
     from dsareg_engine.vision.segmentation import segment_vessels
-    from dsareg_engine.vision.segmentation_choice import collimated_inside, dice, explained_share
+    from dsareg_engine.vision.segmentation_choice import collimated_inside, judged
     from dsareg_engine.vision.angiogram.field_of_view import estimate_field_of_view
 
-    dsa_mask = segment_vessels(item.pixels, "dsa") & collimated_inside(estimate_field_of_view(item.pixels))
-    return dice(dsa_mask, network_mask), explained_share(dsa_mask, network_mask)
+    model = next(model for held_out, model in networks if item.name in held_out)
+    field = estimate_field_of_view(item.pixels)
+    dsa_mask = segment_vessels(item.pixels, "dsa") & collimated_inside(field)
+    return judged(item.pixels, dsa_mask, network_mask, field,
+                  lambda image: vessel_mask(*vessel_probability(image, model=model))[0])
 
 
 def bench_segmentation(args: argparse.Namespace) -> int:
@@ -157,7 +163,7 @@ def bench_segmentation(args: argparse.Namespace) -> int:
             if method == "network":
                 network_masks[index] = mask
         if "network" in row and "dsa" in row:
-            row["agreement"] = _agreement(item, network_masks[index])
+            row["agreement"] = _agreement(item, network_masks[index], networks)
         rows.append(row)
         dices = " | ".join(f"{row[method]['dice']:.3f}" for method in args.methods)
         print(f"| {item.name} | {dices} |", flush=True)
@@ -168,11 +174,12 @@ def bench_segmentation(args: argparse.Namespace) -> int:
     for method in args.methods:
         print(_summary(rows, method))
     if rows and "agreement" in rows[0]:
-        agreement, explained = (np.array([row["agreement"][k] for row in rows]) for k in (0, 1))
+        agreement, explained, flat = (np.array([row["agreement"][k] for row in rows]) for k in (0, 1, 2))
         keeps_dsa = (agreement >= AGREEMENT_DICE) & (explained >= EXPLAINED_SHARE)
         print(f"\n`auto`'s dsa / network comparison (the network cross-validated): masks' Dice median "
               f"{np.median(agreement):.3f}, max {agreement.max():.3f}; share of the dsa mask within 2 px of the "
-              f"network's median {np.median(explained):.3f}, max {explained.max():.3f}; `auto` keeps dsa on "
+              f"network's median {np.median(explained):.3f}, max {explained.max():.3f} (the network's reading after "
+              f"the flat-field correction on {int(flat.sum())}); `auto` keeps dsa on "
               f"{int(keeps_dsa.sum())} of {len(rows)} (Dice >= {AGREEMENT_DICE} and share >= {EXPLAINED_SHARE})")
     if args.pictures and network_masks:
         _pictures(rows, images, network_masks, Path(args.pictures))

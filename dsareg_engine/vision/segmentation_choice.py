@@ -10,7 +10,12 @@ Two segmentations answer for grey images, each best where it was built for:
 
 ``auto`` runs both and keeps ``dsa`` where the two agree (Dice of the masks ≥ ``AGREEMENT_DICE`` and at least
 ``EXPLAINED_SHARE`` of the ``dsa`` mask within 2 px of the network's: the image is one the border model reads
-right, and its sub-pixel borders are kept), the network otherwise. Where the image
+right, and its sub-pixel borders are kept), the network otherwise. Where they do not agree on the image as it is,
+the network reads it once more after a flat-field correction (:mod:`.flat_field`: the smooth gain fitted on the
+pixels neither mask holds, removed) and the choice is made on that reading: the border model subtracts its local
+background and never sees such a gain, the network normalises the whole image and loses vessels where the field is
+darker (a vignetted image intensifier, the heel effect), so only after the correction are the two compared on the
+same image. The mask used when the network is chosen is the one of the image as it is. Where the image
 has a collimated field, ``dsa`` is kept only inside it (the network's field, less its edge margin). Images that are
 nearly two-level (≥ 90 % of the pixels within 10 % of the extremes: an anti-aliased or JPEG'd mask) keep the
 ``dsa`` path, whose histogram polarity reads masks of either polarity.
@@ -18,6 +23,7 @@ nearly two-level (≥ 90 % of the pixels within 10 % of the extremes: an anti-al
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -44,6 +50,8 @@ class AutoChoice:
         dsa_mask: the ``dsa`` mask (H, W) bool. angiogram: the angiogram segmentation, or None.
         dsa_found: ``(contrast, noise σ, unrestricted mask)`` of the ``dsa`` path, for its coverage.
         inside: where a vessel may be (:func:`collimated_inside` of the network's field), None where only ``dsa`` ran.
+        flat_field: ``agreement`` and ``explained`` are those of the network's reading after the flat-field
+            correction (the image as it is did not agree).
     """
 
     method: str
@@ -53,6 +61,7 @@ class AutoChoice:
     explained: float | None = None
     dsa_found: tuple | None = None
     inside: np.ndarray | None = None
+    flat_field: bool = False
 
 
 def is_mask_like(pixels: np.ndarray) -> bool:
@@ -82,16 +91,42 @@ def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np
     angiogram = segment_angiogram(pixels, field)
     inside = collimated_inside(angiogram.field)
     dsa_mask = dsa_mask & inside
-    agreement, explained = dice(dsa_mask, angiogram.mask), explained_share(dsa_mask, angiogram.mask)
-    keep_dsa = agreement >= AGREEMENT_DICE and explained >= EXPLAINED_SHARE
-    return AutoChoice("dsa" if keep_dsa else angiogram.method, round(agreement, 4), dsa_mask, angiogram,
-                      round(explained, 4), found, inside)
+    agreement, explained, flat = judged(pixels, dsa_mask, angiogram.mask, angiogram.field,
+                                        lambda image: segment_angiogram(image, field).mask)
+    method = "dsa" if agrees(agreement, explained) else angiogram.method
+    return AutoChoice(method, round(agreement, 4), dsa_mask, angiogram, round(explained, 4), found, inside, flat)
+
+
+def agrees(agreement: float, explained: float) -> bool:
+    """The masks agree enough for ``dsa`` to be kept: Dice ≥ :data:`AGREEMENT_DICE` and share ≥ :data:`EXPLAINED_SHARE`."""
+    return agreement >= AGREEMENT_DICE and explained >= EXPLAINED_SHARE
+
+
+def judged(pixels: np.ndarray, dsa_mask: np.ndarray, network_mask: np.ndarray, field: np.ndarray,
+           segment: Callable[[np.ndarray], np.ndarray]) -> tuple[float, float, bool]:
+    """``(Dice, explained share, flat-field)`` that ``auto`` decides on: those of ``network_mask`` (the network's
+    mask of ``pixels``) where they agree (:func:`agrees`), else those of ``segment(flat-fielded pixels)`` (the
+    network's mask of the image after :func:`~.flat_field.flat_fielded` on the pixels of ``field`` more than 2 px
+    from either mask), where a correction could be fitted. ``segment``: image → the network's mask."""
+    from .flat_field import flat_fielded
+
+    agreement, explained = dice(dsa_mask, network_mask), explained_share(dsa_mask, network_mask)
+    if agrees(agreement, explained):
+        return agreement, explained, False
+    corrected = flat_fielded(pixels, field & ~_near(dsa_mask | network_mask, 2), field)
+    if corrected is None:
+        return agreement, explained, False
+    second = segment(corrected)
+    return dice(dsa_mask, second), explained_share(dsa_mask, second), True
+
+
+def _near(mask: np.ndarray, px: int) -> np.ndarray:
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)).astype(bool)
 
 
 def explained_share(dsa_mask: np.ndarray, network_mask: np.ndarray) -> float:
     """The share of ``dsa_mask`` within 2 px of ``network_mask`` (both (H, W) bool)."""
-    near = cv2.dilate(network_mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    return float((dsa_mask & near).sum()) / max(int(dsa_mask.sum()), 1)
+    return float((dsa_mask & _near(network_mask, 2)).sum()) / max(int(dsa_mask.sum()), 1)
 
 
 def collimated_inside(field: np.ndarray) -> np.ndarray:
@@ -116,6 +151,7 @@ def segmentation_decision(name: str, choice: AutoChoice):
     from ..io.input_decisions import InputDecision
 
     chosen = "dsa border model" if choice.method == "dsa" else f"angiogram {choice.method}"
-    basis = (f"share of the dsa mask within 2 px of the network's (masks' Dice {choice.agreement:.2f}, "
+    reading = " after a flat-field correction" if choice.flat_field else ""
+    basis = (f"share of the dsa mask within 2 px of the network's{reading} (masks' Dice {choice.agreement:.2f}, "
              f"dsa kept from {AGREEMENT_DICE})")
     return InputDecision(name, "segmentation", chosen, basis, choice.explained, EXPLAINED_SHARE, EXPLAINED_BAND)
