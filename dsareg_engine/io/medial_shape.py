@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .voxel_steps import cube_maximum, grown
+
 WORK_MM = 0.5
 BALL_PER_RADIUS = 4.0
 MIN_BALL_MM = 3.0
@@ -74,21 +76,11 @@ def to_working_grid(mask: np.ndarray, spacing_mm, work_mm: float = WORK_MM) -> t
 def medial_ratio(work: np.ndarray, work_mm: float = WORK_MM) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Medial points ``(N, 3)`` (working-grid indices) of the mask ``work`` (voxels of ``work_mm``), their volume
     scaling exponent ``(N,)`` and their radius ``(N,)`` in working voxels."""
-    from scipy import ndimage
     from scipy.spatial import cKDTree
 
-    depth = _depth_vox(work) * work_mm
-    slope = np.gradient(depth, work_mm, axis=0) ** 2  # |∇ depth|, one axis at a time (a third of the memory)
-    for axis in (1, 2):
-        slope += np.gradient(depth, work_mm, axis=axis) ** 2
-    np.sqrt(slope, out=slope)
-    top = ndimage.maximum_filter(depth, size=5)
-    thin = ndimage.maximum_filter(depth, size=3) <= work_mm  # a structure two voxels across: all medial
-    medial = work & ((slope < MEDIAL_SLOPE) | thin) & (depth >= top - 0.75 * work_mm)
-    points = np.argwhere(medial)
+    points, radius_vox = _medial_points(work, work_mm)
     if len(points) == 0:
         return points, np.zeros(0), np.zeros(0)
-    radius_vox = top[medial] / work_mm - 0.25
     sample = np.arange(len(points))
     if len(points) > MAX_SAMPLES:
         sample = np.sort(np.random.default_rng(0).choice(len(points), MAX_SAMPLES, replace=False))
@@ -100,6 +92,44 @@ def medial_ratio(work: np.ndarray, work_mm: float = WORK_MM) -> tuple[np.ndarray
     if len(sample) < len(points):  # the others take their nearest measured neighbour's
         ratio = ratio[cKDTree(points[sample]).query(points)[1]]
     return points, ratio, radius_vox
+
+
+def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The medial points ``(N, 3)`` of ``work`` and their radius (working voxels): the voxels of ``work`` as deep as
+    the deepest within 2 voxels less 0.75 voxel, on the ridge of the depth (``|∇ depth|`` below ``MEDIAL_SLOPE``,
+    central differences as ``np.gradient``) or in a structure two voxels across. The depth's local tops are
+    filtered on its squared voxel lengths (integers: the same order as the millimetres); the slope is formed at the
+    voxels near a top only, with ``np.gradient``'s operations (the same points as over the whole grid)."""
+
+    squared = _depth_squared(work)
+    index = np.flatnonzero(work)
+    top = np.sqrt(cube_maximum(squared, 5).ravel()[index].astype(np.float64)) * work_mm
+    depth = np.sqrt(squared.ravel()[index].astype(np.float64)) * work_mm
+    near_top = depth >= top - 0.75 * work_mm
+    index, top = index[near_top], top[near_top]
+    thin = cube_maximum(squared, 3).ravel()[index] <= 1  # two voxels across: all medial
+    medial = thin.copy()
+    slope = _slope_at(squared, index[~thin], work_mm)
+    medial[~thin] = slope < MEDIAL_SLOPE
+    points = np.stack(np.unravel_index(index[medial], work.shape), axis=1)
+    return points, top[medial] / work_mm - 0.25
+
+
+def _slope_at(squared: np.ndarray, index: np.ndarray, work_mm: float) -> np.ndarray:
+    """``|∇ depth|`` (mm per mm) at the flat ``index`` of the grid whose depths are ``√squared × work_mm``: per axis
+    ``np.gradient``'s central difference ``(f[i+1] − f[i−1]) / (2 h)``, one-sided ``(f[1] − f[0]) / h`` at the ends;
+    the squares summed axis by axis, then the root."""
+    position = np.unravel_index(index, squared.shape)
+    flat = squared.ravel()
+    slope = np.zeros(len(index))
+    for axis, stride in enumerate(np.array(squared.strides) // squared.itemsize):
+        at, size = position[axis], squared.shape[axis]
+        up = np.where(at < size - 1, index + stride, index)
+        down = np.where(at > 0, index - stride, index)
+        step = np.where((at > 0) & (at < size - 1), 2.0 * work_mm, work_mm)
+        difference = np.sqrt(flat[up].astype(np.float64)) * work_mm - np.sqrt(flat[down].astype(np.float64)) * work_mm
+        slope += (difference / step) ** 2
+    return np.sqrt(slope)
 
 
 def medial_shape(mask: np.ndarray, spacing_mm, *, with_parts: bool = False) -> MedialShape:
@@ -141,21 +171,20 @@ def _back_on_mask(work_plate: np.ndarray, zoom: np.ndarray, part: np.ndarray) ->
     return out
 
 
-def _depth_vox(work: np.ndarray) -> np.ndarray:
-    """The distance (voxels) of each voxel of ``work`` to the nearest voxel outside it (the grid's border is
-    outside), 0 outside: the Euclidean distance transform of the inside voxels only, not of the whole box.
+def _depth_squared(work: np.ndarray) -> np.ndarray:
+    """int32, ``work``'s shape: the squared distance (voxels²) of each voxel of ``work`` to the nearest voxel outside
+    it (the grid's border is outside), 0 outside: the Euclidean distance transform of the inside voxels only.
 
     Shell by shell (:func:`_shells`): a voxel with an outside voxel at an offset of squared length ``r²`` and none
-    nearer is ``√r²`` deep (most voxels of a plate a few voxels thick are 1–3 deep: a few gathers each); the few
+    nearer is ``r²`` deep (most voxels of a plate a few voxels thick are 1–9 deep: a few gathers each); the few
     deeper than ``SHELL_R2`` are nearest-point queries against the outside voxels that touch the inside (the nearest
     outside voxel always does). The same distances as the queries of every voxel."""
-    from scipy import ndimage
     from scipy.spatial import cKDTree
 
     pad = int(np.sqrt(SHELL_R2))
     padded = np.pad(work, pad)
     flat = padded.ravel()
-    depth = np.zeros(padded.size)
+    squared = np.zeros(padded.size, np.int32)
     pending = np.flatnonzero(flat)
     strides = np.array(padded.strides) // padded.itemsize
     for r2, offsets in _shells(SHELL_R2):
@@ -164,14 +193,14 @@ def _depth_vox(work: np.ndarray) -> np.ndarray:
         reached = np.zeros(len(pending), bool)
         for offset in offsets @ strides:
             reached |= ~flat[pending + offset]
-        depth[pending[reached]] = np.sqrt(float(r2))
+        squared[pending[reached]] = r2
         pending = pending[~reached]
     if len(pending):
-        edge = ndimage.binary_dilation(padded) & ~padded
+        edge = grown(padded) & ~padded
         deep = np.stack(np.unravel_index(pending, padded.shape), axis=1)
-        depth[pending] = cKDTree(np.argwhere(edge)).query(deep)[0]
+        squared[pending] = np.rint(cKDTree(np.argwhere(edge)).query(deep)[0] ** 2)
     inner = tuple(slice(pad, n - pad) for n in padded.shape)
-    return depth.reshape(padded.shape)[inner]
+    return np.ascontiguousarray(squared.reshape(padded.shape)[inner])
 
 
 def _shells(max_r2: int) -> list[tuple[int, np.ndarray]]:
@@ -190,19 +219,17 @@ def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) ->
     maximum filters). The others are nearest-point queries: the distance to the tube points first, then the plate
     points searched no farther than it (a voxel amid the tree is about as far from every point of a skull around
     it, which an unbounded search visits). The same voxels as comparing both unbounded distances."""
-    from scipy import ndimage
     from scipy.spatial import cKDTree
 
     if not (~is_plate).any():
         return work.copy()
     reach = SURE_STEPS * np.sqrt(3.0)  # the farthest a plate point within SURE_STEPS voxels per axis lies
-    near_plate = ndimage.maximum_filter(_marked(work.shape, points[is_plate]), size=2 * SURE_STEPS + 1,
-                                        mode="constant").view(bool)
+    near_plate = cube_maximum(_marked(work.shape, points[is_plate]), 2 * SURE_STEPS + 1).view(bool)
     out = work & near_plate
     tubes, steps = points[~is_plate], int(np.ceil(reach))
     low, high = np.maximum(tubes.min(0) - steps, 0), np.minimum(tubes.max(0) + steps + 1, work.shape)
     box = tuple(slice(a, b) for a, b in zip(low, high))  # every voxel within ``reach`` of a tube point (and more)
-    near_tube = ndimage.maximum_filter(_marked(high - low, tubes - low), size=2 * steps + 1, mode="constant")
+    near_tube = cube_maximum(_marked(high - low, tubes - low), 2 * steps + 1)
     out[box] &= ~near_tube.view(bool)
     voxels = np.argwhere(work & ~out)
     if len(voxels) == 0:

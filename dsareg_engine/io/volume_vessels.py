@@ -42,6 +42,7 @@ from .volume_io import Volume, bounding_box, largest_components, surface_from_ma
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
+from .voxel_steps import cube_minimum, grown
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -228,7 +229,6 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     level was estimated (not given), it was estimated with their voxels among the vessels' (a cancellous skull
     base outweighs the vessels: the level lands above thin vessels, and the distal tree falls apart at coarse
     voxels): the reading is done again with the plates and their rim left out of the estimate."""
-    from scipy import ndimage
 
     ground = (_cta_ground if kind == "cta" else _mra_ground)(smooth, affine, spacing, reading, field_name)
 
@@ -248,7 +248,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside, box = np.zeros(plates.shape, bool), bounding_box(plates, margin=rim)
-        set_aside[box] = ndimage.binary_dilation(plates[box], iterations=rim)
+        set_aside[box] = grown(plates[box], rim)
         field, mask, levels, excluded = read(set_aside)
         read_mask = mask
         mask, more, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
@@ -275,13 +275,13 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     if not large.any():
         return mask, large, shape.plate_share
     box = bounding_box(mask, margin=1)
-    rest = mask[box] & ~ndimage.binary_dilation(large[box], iterations=1)
+    rest = mask[box] & ~grown(large[box])
     if rest.sum() < 8:
         return mask, np.zeros(mask.shape, bool), shape.plate_share  # nothing tube-like remains: refused
     # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
     labels, count = ndimage.label(rest)
     sizes = np.bincount(labels[labels > 0], minlength=count + 1)
-    near = ndimage.binary_dilation(large[box], iterations=max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
+    near = grown(large[box], max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
     touching = np.unique(labels[near & (labels > 0)])
     keep = np.ones(count + 1, bool)
     keep[0] = False
@@ -485,17 +485,16 @@ def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: fl
     """``core`` grown by ``steps`` voxels through ``window`` voxels with no tissue-level voxel within two (the
     minimum of their 5³ neighbourhood above ``level``), within ``core``'s box grown by ``steps`` (the growth cannot
     leave it; the minimum is taken with a 2-voxel halo, so it is the full grid's)."""
-    from scipy import ndimage
 
-    hits = np.argwhere(core)
-    low, high = np.maximum(hits.min(0) - steps, 0), np.minimum(hits.max(0) + steps + 1, core.shape)
+    hits = bounding_box(core)  # the core is never empty (its largest components)
+    low = np.maximum(np.array([h.start for h in hits]) - steps, 0)
+    high = np.minimum(np.array([h.stop for h in hits]) + steps, core.shape)
     outer_low, outer_high = np.maximum(low - 2, 0), np.minimum(high + 2, core.shape)
     inner = tuple(slice(a - b, c - b) for a, b, c in zip(low, outer_low, high))
     box, outer = (tuple(slice(a, b) for a, b in zip(lo, hi)) for lo, hi in ((low, high), (outer_low, outer_high)))
-    enclosed = ndimage.minimum_filter(smooth[outer] > level, size=5)[inner]  # no tissue within 2 voxels (all above)
-    grown = ndimage.binary_dilation(core[box], iterations=steps, mask=core[box] | (window[box] & enclosed))
+    enclosed = cube_minimum(smooth[outer] > level, 5)[inner]  # no tissue within 2 voxels (all above)
     mask = np.zeros(core.shape, bool)
-    mask[box] = grown
+    mask[box] = grown(core[box], steps, core[box] | (window[box] & enclosed))
     return mask
 
 

@@ -214,9 +214,9 @@ def test_the_depth_is_the_distance_to_the_outside_and_shallow_voxels_are_not_que
     for _ in range(100):
         shape = tuple(rng.integers(2, 36, 3))
         work = ndimage.binary_dilation(rng.random(shape) < rng.uniform(0.001, 0.3), iterations=int(rng.integers(0, 7)))
-        assert np.array_equal(module._depth_vox(work), _depth_by_queries(work))
+        assert np.array_equal(np.sqrt(module._depth_squared(work)), _depth_by_queries(work))
     monkeypatch.setattr("scipy.spatial.cKDTree", _CountedTree)
     _CountedTree.queried = 0
     thin = plate(0.5, 3.0)
-    module._depth_vox(thin)
+    module._depth_squared(thin)
     assert _CountedTree.queried == 0

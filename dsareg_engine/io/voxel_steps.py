@@ -1,0 +1,70 @@
+"""Morphology on voxel grids by shifted slices: the results of ``scipy.ndimage``'s ``binary_dilation`` (its default
+cross, ``iterations``, ``mask``) and ``maximum_filter`` / ``minimum_filter`` (a cube, ``mode="reflect"``), each a
+few whole-array operations per axis instead of a loop over every voxel's neighbourhood.
+
+On a whole-head CTA's boxes (30–50 M voxels, issue 41) one step of ``binary_dilation`` took ~0.25 s per 16 M voxels
+where six shifted ORs take ~0.015 s; a cube's maximum is separable (one axis after the other) and, in ``reflect``
+mode, the maximum over the window clipped to the grid (a reflected index lies inside the window).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) -> np.ndarray:
+    """bool: ``mask`` grown ``steps`` times by its face neighbours (``binary_dilation(mask, iterations=steps,
+    mask=within)``): with ``within``, a step adds only voxels of ``within``; the grid's outside is empty."""
+    out = np.array(mask, bool)
+    for _ in range(steps):
+        step = _face_neighbours(out)
+        if within is not None:
+            step &= within
+        step |= out
+        if np.array_equal(step, out):
+            break
+        out = step
+    return out
+
+
+def _face_neighbours(mask: np.ndarray) -> np.ndarray:
+    """``mask`` or a face neighbour in it (one step of the cross), the outside empty."""
+    out = mask.copy()
+    for axis in range(mask.ndim):
+        ahead = [slice(None)] * mask.ndim
+        behind = [slice(None)] * mask.ndim
+        ahead[axis], behind[axis] = slice(1, None), slice(None, -1)
+        out[tuple(ahead)] |= mask[tuple(behind)]
+        out[tuple(behind)] |= mask[tuple(ahead)]
+    return out
+
+
+def cube_maximum(values: np.ndarray, size: int) -> np.ndarray:
+    """``maximum_filter(values, size=size)`` (``size`` odd, ``mode="reflect"``): the maximum over the cube of
+    ``size`` voxels a side centred on each voxel, clipped to the grid; one axis after the other."""
+    return _cube_extreme(values, size, np.maximum)
+
+
+def cube_minimum(values: np.ndarray, size: int) -> np.ndarray:
+    """``minimum_filter(values, size=size)`` (``size`` odd, ``mode="reflect"``), as :func:`cube_maximum`."""
+    return _cube_extreme(values, size, np.minimum)
+
+
+def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
+    if size % 2 != 1:
+        raise ValueError(f"an odd cube side is needed, got {size}")
+    out = np.array(values)
+    for axis in range(values.ndim):
+        source = out.copy() if size > 1 else out
+        for shift in range(1, size // 2 + 1):
+            if shift >= out.shape[axis]:
+                break
+            ahead = [slice(None)] * out.ndim
+            behind = [slice(None)] * out.ndim
+            ahead[axis], behind[axis] = slice(shift, None), slice(None, -shift)
+            extreme(out[tuple(ahead)], source[tuple(behind)], out=out[tuple(ahead)])
+            extreme(out[tuple(behind)], source[tuple(ahead)], out=out[tuple(behind)])
+    return out
+
+
+__all__ = ["cube_maximum", "cube_minimum", "grown"]

@@ -1,0 +1,52 @@
+"""Morphology by shifted slices gives scipy.ndimage's results (issue 41: the whole-head CTA's boxes)."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from dsareg_engine.io.voxel_steps import cube_maximum, cube_minimum, grown
+
+
+def _masks(count, seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        shape = tuple(int(n) for n in rng.integers(1, 18, 3))
+        yield rng, rng.random(shape) < rng.uniform(0.0, 0.3)
+
+
+@pytest.mark.parametrize("steps", [1, 2, 5])
+def test_grown_is_binary_dilation_with_its_cross(steps):
+    for rng, mask in _masks(60, steps):
+        assert np.array_equal(grown(mask, steps), ndimage.binary_dilation(mask, iterations=steps))
+        within = rng.random(mask.shape) < 0.6
+        assert np.array_equal(grown(mask, steps, within), ndimage.binary_dilation(mask, iterations=steps, mask=within))
+
+
+@pytest.mark.parametrize("size", [1, 3, 5, 9])
+def test_a_cube_extreme_is_the_reflecting_filter(size):
+    for rng, mask in _masks(60, size):
+        values = rng.integers(0, 50, mask.shape).astype(np.int32)
+        assert np.array_equal(cube_maximum(values, size), ndimage.maximum_filter(values, size=size))
+        assert np.array_equal(cube_minimum(values, size), ndimage.minimum_filter(values, size=size))
+        assert np.array_equal(cube_minimum(mask, size), ndimage.minimum_filter(mask, size=size))
+        assert np.array_equal(cube_maximum(mask.view(np.uint8), size),
+                              ndimage.maximum_filter(mask.view(np.uint8), size=size, mode="constant"))
+
+
+def test_an_even_cube_is_refused():
+    with pytest.raises(ValueError):
+        cube_maximum(np.zeros((3, 3, 3)), 4)
+
+
+def test_shifted_slices_are_much_cheaper_than_the_neighbourhood_loops():
+    """The reason for the module: one dilation step and a 5-voxel maximum of a 16 M voxel grid, CPU s."""
+    import time
+
+    mask = np.zeros((256, 256, 256), bool)
+    mask[40:200, 40:200, 120:126] = True
+    start = time.process_time()
+    ours = grown(mask)
+    mine = time.process_time() - start
+    start = time.process_time()
+    theirs = ndimage.binary_dilation(mask)
+    assert np.array_equal(ours, theirs) and mine < 0.5 * (time.process_time() - start)
