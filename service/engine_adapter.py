@@ -16,6 +16,7 @@ imports :mod:`dsareg_engine`, and only its application API :mod:`dsareg_engine.a
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -208,11 +209,15 @@ def case_summary(case: Any) -> dict[str, Any]:
     return summary
 
 
-def job_case(identity: dict[str, Any] | None, source: str,
-             file_names: dict[str, list[str]] | None = None) -> tuple[dict[str, Any], str | None]:
+def job_case(identity: dict[str, Any] | None, source: str, file_names: dict[str, list[str]] | None = None, *,
+             carried: Mapping[str, str] | None = None) -> tuple[dict[str, Any], str | None]:
     """A job's case identity (``identity`` from the validator's summary, with its source and upload file
-    names set) and the text ``?q=`` searches."""
+    names set; ``carried``: a tracking job's planes not sent again → the job each image was sent with, as the
+    inputs' ``carried_from``) and the text ``?q=`` searches."""
     case = engine.with_source(identity, source=source, file_names=file_names)
+    for row in case.get("inputs", []):
+        if carried and row.get("role") in carried:
+            row["carried_from"] = carried[row["role"]]
     return case, engine.case_search_text(case)
 
 

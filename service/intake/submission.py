@@ -9,10 +9,12 @@ a :mod:`.refusals` error; the answer is a :class:`Submitted`.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import hashlib
 import json
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
@@ -226,6 +228,7 @@ class FileRequest:
     options: Any
     callback_url: str | None = None
     previous_id: str | None = None  # the job a tracking job follows
+    carried: Mapping[str, str] = dataclasses.field(default_factory=dict)  # a tracking job's plane not sent again → the job it was sent with
 
 
 async def submit_files(ctx: IntakeContext, request: FileRequest, who: str, key: str | None) -> Submitted:
@@ -243,7 +246,7 @@ async def submit_files(ctx: IntakeContext, request: FileRequest, who: str, key: 
     job = new_job(ctx, who, key, options_json=options_json, geometry=request.geometry, inputs=inputs,
                   warnings=warnings, request_hash=request_hash, input_bytes=sum(f.size for f in inputs),
                   callback_url=request.callback_url, previous_id=request.previous_id,
-                  case=job_case(identity, "upload", names))
+                  case=job_case(identity, "upload", names, carried=request.carried))
     submitted = await create_job(ctx, job)
     if submitted.created:
         await _restore_blobs(ctx, inputs, [upload for _, upload in _ordered(request.files)])

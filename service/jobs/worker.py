@@ -273,6 +273,7 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
                      models=model_cache(settings.storage))
     if control.lost:
         return "lost"
+    carried_images(result, job.case)
     export = export_target(pacs, dimse, after_review=settings.jobs.export_after_review)  # sent by the exporter
     if pacs is not None or dimse is not None:
         result.setdefault("dicom", {})["source"] = source_of(pacs, dimse)
@@ -284,6 +285,15 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
             if not blobs.exists(digest):
                 blobs.put_file(out_dir / name)
     return outcome
+
+
+def carried_images(result: dict[str, Any], case: dict[str, Any] | None) -> None:
+    """A tracking job's plane not sent again (``case.inputs[].carried_from``): its view in ``result`` names the
+    earlier job whose run its image is (``image_from_job``)."""
+    views = result.get("views") or {}
+    for row in (case or {}).get("inputs") or []:
+        if row.get("carried_from") and row.get("role") in views:
+            views[row["role"]]["image_from_job"] = row["carried_from"]
 
 
 def _record_case(store: Leases, job: JobRecord, files: Any, source: str, settings: ServiceSettings) -> None:

@@ -32,6 +32,10 @@ class CaseInput(BaseModel):
     series_number: Text = Field(None, description="Series Number (0020,0011). " + TEXT)
     series_description: Text = Field(None, description="Series Description (0008,103E). " + TEXT)
     instances: int = Field(0, ge=0, description="DICOM instances of this input (0: not DICOM).")
+    carried_from: str | None = Field(
+        None, description="An image not acquired for this job: a tracking job (POST …/track) sent the other plane only, "
+                          "and this plane's image is an earlier run's, carried along (shown in its view, not fitted). "
+                          "The id of the job it was sent with. Null: the image came with this job.")
 
 
 class CaseIdentity(BaseModel):

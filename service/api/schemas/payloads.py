@@ -342,6 +342,11 @@ class ViewResult(BaseModel):
     iou: float = Field(ge=0, le=1, description="Intersection over union of the same.")
     detector: DetectorGeometry | None = Field(None, description="Where the source and the detector stood "
                                                                 "(the review page's 3D scene; model.json repeats it).")
+    image_from_job: str | None = Field(
+        None, description="A tracking job sent one plane only (POST …/track): this view's image is not from this job's "
+                          "run but an earlier one's, carried along: the id of the job it was sent with. The view was "
+                          "not fitted (metrics.tracking.views); its overlay and Dice show the new pose on that earlier "
+                          "image. Null: the image came with this job.")
 
 
 class DicomInstance(BaseModel):

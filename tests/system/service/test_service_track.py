@@ -111,3 +111,57 @@ def test_track_one_plane_then_both_reports_the_motion_since_the_first_pose(serve
         true = np.asarray(later)[:3, :3] @ centre + later[:3, 3] - (np.asarray(first["result"]["mesh_to_world"])[:3, :3]
                                                                   @ centre + np.asarray(first["result"]["mesh_to_world"])[:3, 3])
         assert np.linalg.norm(np.subtract(tracking["since_reference"]["translation_vector_mm"], true)) < 0.5, tracking
+
+
+CAPTIONS = ("return Object.fromEntries([...document.querySelectorAll('#views figcaption')]"
+            ".map((c) => [c.dataset.view, c.innerText]))")
+
+
+@needs_engine
+def test_a_one_plane_track_says_which_image_is_from_an_earlier_run(server, example_case, tmp_path):
+    """Issue 42: a LAT-less track shows the earlier LAT image; the job's case, its result's views and the review
+    page name that image as carried from the job it was sent with (followed back through a second one-plane track),
+    the AP image as this run's."""
+    from tests.support.webdriver import Browser, browser_binaries
+
+    views, _ = small_views()
+    centre = example_case.vertices.mean(axis=0)
+    moved = random_start_poses(np.eye(4), centre, 2, 1.5, 1.5, seed=7)[1]
+    ap_mask = png_bytes(render_mask(example_case.vertices, example_case.faces, views["ap"], moved))
+    with server.client() as c:
+        first = wait_for(c, submit(c, example_case, options=FAST_OPTIONS).json()["id"], timeout=180)
+        jobs = [first]
+        for name in ("ap2.png", "ap3.png"):  # AP alone, twice: the LAT image stays the first job's
+            sent = c.post(f"/v1/registrations/{jobs[-1]['id']}/track", files=[("ap", (name, ap_mask, "image/png"))],
+                          data={"options": json.dumps({"max_iterations": 30})})
+            assert sent.status_code == 202, sent.text
+            jobs.append(wait_for(c, sent.json()["id"], timeout=180))
+            assert jobs[-1]["status"] == "succeeded", jobs[-1]
+    assert all(view.get("image_from_job") is None for view in first["result"]["views"].values())
+    for job in jobs[1:]:
+        carried = {row["role"]: row.get("carried_from") for row in job["case"]["inputs"]}
+        assert carried["lat"] == first["id"] and carried["ap"] is None and carried["mesh"] is None, carried
+        assert job["result"]["views"]["lat"]["image_from_job"] == first["id"]
+        assert job["result"]["views"]["ap"].get("image_from_job") is None
+    browser_binaries()
+    browser = Browser(tmp_path / "profile", width=1280, height=1000)
+    try:
+        browser.open(server.url + f"/ui/#/job/{jobs[2]['id']}")
+        browser.wait("const s = document.getElementById('views'); return s && s.dataset.ready === '1'", what="views")
+        captions = browser.run(CAPTIONS)
+        assert "earlier run" in captions["lat"] and first["id"][:12] in captions["lat"] and "not fitted" in captions["lat"]
+        assert "acquired for this job" in captions["ap"] and "earlier" not in captions["ap"], captions
+        note = browser.run("return document.getElementById('carried-note').innerText")
+        assert note.startswith("Only AP was acquired for this job") and first["id"][:12] in note, note
+        assert browser.run("return document.querySelector('#carried-note a').getAttribute('href')") == \
+            f"#/job/{first['id']}"
+        inputs = browser.run("return document.querySelector('#case li[data-role=\"lat\"]').innerText")
+        assert "carried from an earlier run" in inputs and first["id"][:12] in inputs, inputs
+        browser.resize(1280, 1500)  # the case, the note and both views with their captions in one picture
+        browser.screenshot(tmp_path / "tracked-one-plane.png")
+        browser.open(server.url + f"/ui/#/job/{first['id']}")  # a job of both planes says nothing of the kind
+        browser.wait("const s = document.getElementById('views'); return s && s.dataset.ready === '1'", what="views")
+        assert browser.run("return document.getElementById('carried-note')") is None
+        assert browser.run(CAPTIONS) == {"ap": "AP: the image registered", "lat": "LAT: the image registered"}
+    finally:
+        browser.close()

@@ -167,16 +167,52 @@ async function showList() {
 
 const SOURCE_WORDS = { upload: "uploaded files", dicomweb: "fetched by DICOMweb", dimse: "received over DIMSE" };
 
+// ---- which run each view's image is from: a tracking job sent one plane carries the other plane's image ----------
+
+function imageOrigins(job) {
+  // view -> the id of the earlier job whose run its image is (null: this job's own run)
+  const views = (job.result || {}).views || {};
+  const inputs = (job.case || {}).inputs || [];
+  return Object.fromEntries(["ap", "lat"].map((v) => {
+    const row = inputs.find((i) => i.role === v) || {};
+    return [v, (views[v] || {}).image_from_job || row.carried_from || null];
+  }));
+}
+
+function jobLink(id) {
+  return el("a", { href: "#/job/" + id, class: "job-link" }, el("code", {}, id.slice(0, 12)));
+}
+
+function viewCaption(v, origins, what) {
+  // the figure caption of view v: what is shown, and for a tracking job sent one plane, which run each image is
+  const name = v.toUpperCase();
+  if (origins[v]) return [`${name}: ${what} — the image of an earlier run (job `, jobLink(origins[v]),
+    "), carried along: not re-acquired for this job, not fitted"];
+  const otherCarried = Object.entries(origins).some(([other, id]) => other !== v && id);
+  return `${name}: ${what}` + (otherCarried ? " — acquired for this job (fitted)" : "");
+}
+
+function carriedNote(origins) {
+  const carried = Object.entries(origins).filter(([, id]) => id);
+  if (!carried.length) return null;
+  const fresh = Object.keys(origins).filter((v) => !origins[v]).map((v) => v.toUpperCase());
+  return el("p", { class: "notice", id: "carried-note", role: "note" },
+    fresh.length ? `Only ${fresh.join(" and ")} was acquired for this job (a single-plane tracking run). ` : "",
+    carried.map(([v, id], index) => [index ? " " : "", `The ${v.toUpperCase()} image is not from this run: it is job `,
+      jobLink(id), `'s, carried along; its outlines show this job's pose on that earlier image, and it was not fitted.`]));
+}
+
 function caseSection(job) {
   // whose case: every value is untrusted header text, so only ever text nodes (el() never parses markup)
   const c = job.case;
   if (!c) return el("section", { id: "case", class: "case" }, el("p", { class: "muted" }, "Case: not known yet (the inputs have not been read)."));
   const rows = [["Patient", casePatient(c)], ["Study", caseStudy(c)], ["Accession", shown(c.accession_number)],
     ["Source", SOURCE_WORDS[c.source] || c.source]].filter(([, v]) => v);
-  const inputs = (c.inputs || []).map((i) => el("li", {}, el("strong", {}, i.role.toUpperCase()), ": ",
+  const inputs = (c.inputs || []).map((i) => el("li", { "data-role": i.role }, el("strong", {}, i.role.toUpperCase()), ": ",
     [shown(i.modality), i.series_number ? `series ${shown(i.series_number)}` : null, shown(i.series_description),
       i.instances > 1 ? `${i.instances} instances` : null, i.file_names.length ? i.file_names.join(", ") : null]
-      .filter(Boolean).join(" · ") || "—"));
+      .filter(Boolean).join(" · ") || "—",
+    i.carried_from ? [" · carried from an earlier run, job ", jobLink(i.carried_from), " (not re-acquired)"] : null));
   return el("section", { id: "case", class: "case", "aria-label": "Case" },
     el("dl", { class: "case-facts" }, rows.map(([k, v]) => [el("dt", {}, k), el("dd", { "data-field": k.toLowerCase() }, v)])),
     inputs.length ? el("ul", { class: "case-inputs" }, inputs) : null,
@@ -228,9 +264,10 @@ function overlayViews(job) {
   const links = job.links;
   const views = ["ap", "lat"].filter((v) => links["overlay_" + v]);
   if (!views.length) return null;
+  const origins = imageOrigins(job);
   const figures = views.map((v) => {
     const img = el("img", { alt: `${v.toUpperCase()} view: overlay of the registered model on the DSA`, "data-view": v });
-    const caption = el("figcaption", {}, `${v.toUpperCase()}: overlay`);
+    const caption = el("figcaption", { "data-view": v }, viewCaption(v, origins, "overlay"));
     return { v, img, caption, figure: el("figure", {}, img, caption), urls: {} };
   });
   let showing = "overlay";
@@ -239,7 +276,7 @@ function overlayViews(job) {
     for (const f of figures) {
       if (f.urls[kind]) f.img.src = f.urls[kind];
       f.img.alt = `${f.v.toUpperCase()} view: ` + (kind === "overlay" ? "overlay of the registered model on the DSA" : "vessel mask used for the registration");
-      f.caption.textContent = `${f.v.toUpperCase()}: ${kind === "overlay" ? "overlay" : "vessel mask"}`;
+      f.caption.replaceChildren(...[viewCaption(f.v, origins, kind === "overlay" ? "overlay" : "vessel mask")].flat());
     }
     toggle.setAttribute("aria-pressed", kind === "mask" ? "true" : "false");
   };
@@ -255,7 +292,7 @@ function overlayViews(job) {
       .catch((e) => say(e.message, true));
     if (links["mask_" + f.v]) image(links["mask_" + f.v]).then((url) => { f.urls.mask = url; }).catch(() => {});
   }
-  return el("section", { "aria-labelledby": "views-h" }, el("h3", { id: "views-h" }, "Views"),
+  return el("section", { "aria-labelledby": "views-h" }, el("h3", { id: "views-h" }, "Views"), carriedNote(origins),
     el("div", { class: "toolbar" }, toggle, blink), el("div", { class: "views" }, figures.map((f) => f.figure)));
 }
 
@@ -267,10 +304,13 @@ function viewsSection(job) {
   if (!views.length || !links.model) return overlayViews(job);
   const state = viewsState();
   const model = api(links.model);
+  const origins = imageOrigins(job);
   const figures = views.map((v) => {
+    const earlier = origins[v] ? ` (an earlier run's image, job ${origins[v].slice(0, 12)}, carried along, not fitted)` : "";
     const canvas = el("canvas", { width: 400, height: 400, tabindex: 0, class: "view2d", "data-view": v,
-      "aria-label": `${v.toUpperCase()} view: the image registered under the outlines; drag to pan, wheel or + and - to zoom` });
-    return { v, canvas, figure: el("figure", {}, canvas, el("figcaption", {}, `${v.toUpperCase()}: the image registered`)) };
+      "aria-label": `${v.toUpperCase()} view: the image registered${earlier} under the outlines; drag to pan, wheel or + and - to zoom` });
+    return { v, canvas, figure: el("figure", {}, canvas,
+      el("figcaption", { "data-view": v }, viewCaption(v, origins, "the image registered"))) };
   });
   const scale = el("span", { class: "scalebar", id: "scalebar" });
   const scaleText = el("span", { id: "scale-text" });
@@ -290,6 +330,7 @@ function viewsSection(job) {
     return button;
   });
   const section = el("section", { "aria-labelledby": "views-h", id: "views" }, el("h3", { id: "views-h" }, "Views"),
+    carriedNote(origins),
     el("div", { class: "toolbar", role: "group", "aria-label": "Layers (the legend)" }, toggles),
     el("div", { class: "toolbar", role: "group", "aria-label": "Zoom" },
       el("button", { type: "button", id: "zoom-in", onclick: () => zoomBy(state, 1.25) }, "Zoom in"),

@@ -43,3 +43,25 @@ def test_review_page_shows_lists_as_text_never_markup():
     script = line + 'console.log(JSON.stringify([shown(["A", "B"]), shown("Doe, John"), shown(null)]));'
     out = subprocess.run(["node", "-e", script], capture_output=True, text=True, timeout=20, check=True).stdout
     assert json.loads(out) == ["A; B", "Doe, John", None]
+
+
+def test_an_image_carried_from_an_earlier_run_is_named_in_the_case_and_the_result():
+    """Issue 42: a tracking job sent AP only carries the LAT image of the job that LAT was sent with (followed back
+    through earlier one-plane tracks); its case and its result's LAT view name that job."""
+    from service.api.routes.tracking import carried_images as origins
+    from service.engine_adapter import job_case
+    from service.jobs.worker import carried_images
+    from service.storage.records import JobRecord
+
+    first = JobRecord(id="a" * 32, owner="o", status="succeeded", created_at=0.0, updated_at=0.0)
+    case, _ = job_case(None, "upload", {"ap": ["ap2.png"], "lat": ["lat.png"]}, carried=origins(first, ("lat",)))
+    assert [(row["role"], row.get("carried_from")) for row in case["inputs"]] == [("ap", None), ("lat", "a" * 32)]
+    assert case_model(case).inputs[1].carried_from == "a" * 32
+    second = JobRecord(id="b" * 32, owner="o", status="succeeded", created_at=0.0, updated_at=0.0, case=case)
+    assert origins(second, ("lat",)) == {"lat": "a" * 32}  # the job LAT was sent with, not the one before
+    assert origins(second, ("ap",)) == {"ap": "b" * 32}
+    result = {"views": {"ap": {"dice": 0.9}, "lat": {"dice": 0.8}}}
+    carried_images(result, case)
+    assert result["views"] == {"ap": {"dice": 0.9}, "lat": {"dice": 0.8, "image_from_job": "a" * 32}}
+    carried_images(result := {"views": {"ap": {}, "lat": {}}}, job_case(None, "upload", {"ap": ["x.png"]})[0])
+    assert result["views"] == {"ap": {}, "lat": {}}
