@@ -13,7 +13,8 @@ Methods:
 * ``"network"``: the U-Net trained on real X-ray angiograms (:mod:`.angiogram`): field of view, vessels dark by
   physics, background anatomy and the field's edge left out. ``"frangi"``: its classical fallback.
 * ``"auto"``: ``"mask"`` when the image has at most two values, else ``"dsa"`` where the ``dsa`` and
-  ``network`` masks agree and ``"network"`` where they do not (:mod:`.segmentation_choice`).
+  ``network`` masks agree (on the image as it is, or after a flat-field correction: :mod:`.flat_field`) and
+  ``"network"`` where they do not (:mod:`.segmentation_choice`).
 
 :func:`vessel_coverage` is what registration fits: for ``"dsa"`` a per-pixel vessel coverage in
 [0, 1] with sub-pixel borders (:mod:`.dsa_coverage`), for every other method the binary mask.
