@@ -123,7 +123,10 @@ def _write_dicom(sources: DicomSources, data: dict, out_dir: Path, *, required: 
         log.warning("the DICOM headers of the inputs could not be read; DICOM results start a new study")
         sources = DicomSources()
     try:
-        data["dicom"] = {"instances": write_dicom_outputs(out_dir, data["mesh_to_world"], sources, out_dir)}
+        tracked = (data.get("metrics", {}).get("tracking") or {}).get("views")
+        unfitted = tuple(view for view in ("ap", "lat") if tracked is not None and view not in tracked)
+        data["dicom"] = {"instances": write_dicom_outputs(out_dir, data["mesh_to_world"], sources, out_dir,
+                                                          unfitted=unfitted)}
         if "hemodynamics" in data:
             from .hemodynamics.dicom import write_parametric_dicom
 

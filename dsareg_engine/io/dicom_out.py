@@ -367,13 +367,16 @@ def to_bytes(ds) -> bytes:
     return buffer.getvalue()
 
 
-def overlay_derivation(view: str) -> str:
-    """Derivation Description of an overlay: the contour colours are those ``overlay.py`` draws."""
+def overlay_derivation(view: str, fitted: bool = True) -> str:
+    """Derivation Description of an overlay: the contour colours are those ``overlay.py`` draws; ``fitted`` False: a
+    single-plane track fitted the other plane only, and this view's image is not from the run tracked."""
     from ..overlay import FINAL_BGR, INITIAL_BGR
 
     initial, final = colour_name(INITIAL_BGR[::-1]), colour_name(FINAL_BGR[::-1])
+    unfitted = ("; this view was not fitted (a single-plane track of the other plane): its image is an earlier "
+                "run's, not this run's, shown under the new pose" if not fitted else "")
     return (f"dsareg overlay, {view.upper()} view: target vessel mask (grey), initial ({initial}) and "
-            f"registered ({final}) model silhouette contours")
+            f"registered ({final}) model silhouette contours{unfitted}")
 
 
 NAMED_COLOURS_RGB = {"red": (230, 30, 30), "orange": (255, 140, 0), "yellow": (240, 220, 0), "green": (30, 180, 30),
@@ -410,11 +413,13 @@ def write_dicom_outputs(
     dicom_dir: Path | None = None,
     *,
     model_frame_uid: str | None = None,
+    unfitted: tuple[str, ...] = (),
 ) -> dict[str, dict[str, str]]:
     """Write ``reg.dcm``, ``overlay_{ap,lat}.dcm`` (and ``loss.dcm``) from a finished ``out_dir``.
 
     ``out_dir`` holds the PNGs that :func:`dsareg_engine.pipeline.write_outputs` wrote;
-    the DICOM files go to ``dicom_dir`` (default ``out_dir``).
+    the DICOM files go to ``dicom_dir`` (default ``out_dir``). ``unfitted``: views a single-plane track did not fit
+    (their image an earlier run's), said so in their overlay's Derivation Description.
 
     Returns:
         ``{file name: {"sop_class_uid", "sop_instance_uid", "series_instance_uid", "study_instance_uid"}}``
@@ -439,7 +444,7 @@ def write_dicom_outputs(
             number += 1
             ds = build_secondary_capture(
                 _read_rgb(png), sources, study_uid=study_uid, series_uid=series_uid, instance_number=number,
-                derivation=overlay_derivation(view))
+                derivation=overlay_derivation(view, fitted=view not in unfitted))
             save(artifacts.overlay_dcm(view), ds)
     loss = out_dir / artifacts.LOSS_PNG
     if loss.is_file():

@@ -124,7 +124,12 @@ def test_overlay_derivation_names_the_drawn_colours(study, tmp_path):
     write_dicom_outputs(tmp_path, np.eye(4), read_sources(study.ap, study.lat, None), tmp_path / "d")
     for view in ("ap", "lat"):
         text = pydicom.dcmread(tmp_path / "d" / f"overlay_{view}.dcm").DerivationDescription
-        assert "initial (blue)" in text and "registered (orange)" in text, text
+        assert "initial (blue)" in text and "registered (orange)" in text and "not fitted" not in text, text
+    # a single-plane track of AP (issue 42): the LAT overlay shows an earlier run's image and says so
+    write_dicom_outputs(tmp_path, np.eye(4), read_sources(study.ap, study.lat, None), tmp_path / "t", unfitted=("lat",))
+    text = pydicom.dcmread(tmp_path / "t" / "overlay_lat.dcm").DerivationDescription
+    assert "not fitted" in text and "earlier run's, not this run's" in text and len(text) <= 1024, text
+    assert "not fitted" not in pydicom.dcmread(tmp_path / "t" / "overlay_ap.dcm").DerivationDescription
 
 
 def test_without_dicom_inputs_nothing_is_invented(dciodvfy, tmp_path):

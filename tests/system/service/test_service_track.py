@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import io
 import json
 
 import numpy as np
+import pydicom
 from tests.support.service_testkit import FAST_OPTIONS, needs_engine, png_bytes, render_mask, small_views, submit, wait_for
 
 from dsareg_engine.registration.parameterization import random_start_poses
@@ -137,6 +139,9 @@ def test_a_one_plane_track_says_which_image_is_from_an_earlier_run(server, examp
             assert sent.status_code == 202, sent.text
             jobs.append(wait_for(c, sent.json()["id"], timeout=180))
             assert jobs[-1]["status"] == "succeeded", jobs[-1]
+        derivations = {view: pydicom.dcmread(io.BytesIO(c.get(jobs[-1]["links"][f"dicom_overlay_{view}"]).content))
+                       .DerivationDescription for view in ("ap", "lat")}
+        assert "not fitted" in derivations["lat"] and "not fitted" not in derivations["ap"], derivations
     assert all(view.get("image_from_job") is None for view in first["result"]["views"].values())
     for job in jobs[1:]:
         carried = {row["role"]: row.get("carried_from") for row in job["case"]["inputs"]}
