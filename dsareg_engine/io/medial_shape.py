@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .voxel_steps import cube_maximum, grown
+from .voxel_steps import bounding_box, cube_maximum, grown
 
 WORK_MM = 0.5
 BALL_PER_RADIUS = 4.0
@@ -63,14 +63,31 @@ def working_mm(shape, spacing_mm) -> float:
 
 
 def to_working_grid(mask: np.ndarray, spacing_mm, work_mm: float = WORK_MM) -> tuple[np.ndarray, np.ndarray]:
-    """``mask`` (bool) resampled to ``work_mm`` voxels (trilinear, ≥ 0.5 inside); and the zoom per axis."""
+    """``mask`` (bool) resampled to ``work_mm`` voxels (trilinear, ≥ 0.5 inside); and the zoom per axis.
+
+    ``ndimage.zoom``'s grid (``grid_mode``, ``nearest`` at the borders) interpolated at the working voxels whose
+    eight neighbours on the mask's grid hold a mask voxel (the others are 0), with its coordinates and weights
+    (``map_coordinates``): the same voxels, without a float copy of the mask's whole box (a skull's: 50 M voxels)."""
     from scipy import ndimage
 
     zoom = np.asarray(spacing_mm, float) / work_mm
     if np.allclose(zoom, 1.0):
         return mask.astype(bool), zoom
-    work = ndimage.zoom(mask.astype(np.float32), zoom, order=1, mode="nearest", grid_mode=True)
-    return work >= 0.5, zoom
+    shape = np.round(np.asarray(mask.shape) * zoom).astype(int)
+    if (shape == 0).any():
+        return np.zeros(shape, bool), zoom
+    near, coordinates = np.asarray(mask, bool), []
+    for axis, (size, zoomed) in enumerate(zip(mask.shape, shape)):
+        at = (np.arange(zoomed) + 0.5) * (size / zoomed) - 0.5  # ndimage.zoom's coordinate (grid_mode)
+        below = np.floor(at).astype(np.intp)
+        near = np.take(near, np.clip(below, 0, size - 1), axis) | np.take(near, np.clip(below + 1, 0, size - 1), axis)
+        coordinates.append(at)
+    index = np.nonzero(near)
+    values = ndimage.map_coordinates(np.asarray(mask, bool).view(np.uint8), [at[i] for at, i in zip(coordinates, index)],
+                                     order=1, mode="nearest", output=np.float32)
+    work = np.zeros(near.shape, bool)
+    work[index] = values >= 0.5
+    return work, zoom
 
 
 def medial_ratio(work: np.ndarray, work_mm: float = WORK_MM) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -253,8 +270,8 @@ def _marked(shape, points: np.ndarray) -> np.ndarray:
 
 
 def _box(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
-    box = np.argwhere(mask)
-    return np.maximum(box.min(0) - margin, 0), np.minimum(box.max(0) + margin + 1, mask.shape)
+    box = bounding_box(mask, margin)  # not empty (the caller's check)
+    return np.array([b.start for b in box]), np.array([b.stop for b in box])
 
 
 __all__ = ["PLATE_RATIO", "WORK_MM", "MedialShape", "medial_ratio", "medial_shape", "to_working_grid", "working_mm"]

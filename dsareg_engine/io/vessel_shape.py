@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from .medial_shape import medial_shape
+from .voxel_steps import bounding_box
 
 SHAPE_GRID_MM = 1.0
 HESSIAN_SIGMA_MM = 1.5
@@ -50,11 +51,8 @@ def _coarse(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def crop_to(mask: np.ndarray, margin: int = 1) -> np.ndarray:
     """``mask`` cut to its bounding box plus ``margin`` voxels (the same components, holes and ridges)."""
-    box = np.argwhere(mask)
-    if len(box) == 0:
-        return mask
-    low, high = np.maximum(box.min(0) - margin, 0), box.max(0) + margin + 1
-    return mask[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+    box = bounding_box(mask, margin)
+    return mask if box is None else mask[box]
 
 
 def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, float]:
@@ -63,11 +61,10 @@ def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, floa
     vessels' calibre (the medial measure replaces it)."""
     from scipy import ndimage
 
-    box = np.argwhere(mask)
-    if len(box) == 0:
+    box = bounding_box(mask, 6)
+    if box is None:
         return 0.0, 0.0
-    low, high = np.maximum(box.min(0) - 6, 0), box.max(0) + 7
-    cropped = mask[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+    cropped = mask[box]
     grid, grid_spacing = _coarse(cropped, np.asarray(spacing, float))
     sigma = HESSIAN_SIGMA_MM / grid_spacing
     smooth = ndimage.gaussian_filter(grid, sigma)

@@ -46,6 +46,7 @@ from .volume_formats import (
 from .volume_formats import check_affine as _check_affine
 from .volume_formats import check_bytes as _check_bytes
 from .volume_series import pick_volume_series
+from .voxel_steps import bounding_box
 
 __all__ = ["RAS_TO_LPS", "Volume", "read_volume", "read_volume_identities", "volume_to_mesh"]
 
@@ -441,16 +442,6 @@ def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05,
     if mask.sum() < 8:
         raise DsaregInputError("only a few isolated voxels lie above the threshold", field=field_name)
     return mask
-
-
-def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
-    """The slices of ``mask``'s bounding box grown by ``margin`` voxels (clipped to the grid); None if empty.
-    Found from the projections of the mask on each axis (no index list of its voxels)."""
-    hits = [np.flatnonzero(mask.any(axis=tuple(b for b in range(mask.ndim) if b != a))) for a in range(mask.ndim)]
-    if any(len(h) == 0 for h in hits):
-        return None
-    return tuple(slice(max(int(h[0]) - margin, 0), min(int(h[-1]) + margin + 1, size))
-                 for h, size in zip(hits, mask.shape))
 
 
 def surface_from_mask(smooth: np.ndarray, mask: np.ndarray, level: float, affine: np.ndarray, *,

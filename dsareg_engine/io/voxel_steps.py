@@ -1,6 +1,7 @@
 """Morphology on voxel grids by shifted slices: the results of ``scipy.ndimage``'s ``binary_dilation`` (its default
 cross, ``iterations``, ``mask``) and ``maximum_filter`` / ``minimum_filter`` (a cube, ``mode="reflect"``), each a
-few whole-array operations per axis instead of a loop over every voxel's neighbourhood.
+few whole-array operations per axis instead of a loop over every voxel's neighbourhood; and a mask's bounding box
+from its projections on the axes (not from the index list of its voxels).
 
 On a whole-head CTA's boxes (30–50 M voxels, issue 41) one step of ``binary_dilation`` took ~0.25 s per 16 M voxels
 where six shifted ORs take ~0.015 s; a cube's maximum is separable (one axis after the other) and, in ``reflect``
@@ -12,6 +13,16 @@ from __future__ import annotations
 import numpy as np
 
 
+def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
+    """The slices of ``mask``'s bounding box grown by ``margin`` voxels (clipped to the grid); None if empty.
+    Found from the projections of the mask on each axis (no index list of its voxels)."""
+    hits = [np.flatnonzero(mask.any(axis=tuple(b for b in range(mask.ndim) if b != a))) for a in range(mask.ndim)]
+    if any(len(h) == 0 for h in hits):
+        return None
+    return tuple(slice(max(int(h[0]) - margin, 0), min(int(h[-1]) + margin + 1, size))
+                 for h, size in zip(hits, mask.shape))
+
+
 def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) -> np.ndarray:
     """bool: ``mask`` grown ``steps`` times by its face neighbours (``binary_dilation(mask, iterations=steps,
     mask=within)``): with ``within``, a step adds only voxels of ``within``; the grid's outside is empty."""
@@ -20,10 +31,7 @@ def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) ->
         step = _face_neighbours(out)
         if within is not None:
             step &= within
-        step |= out
-        if np.array_equal(step, out):
-            break
-        out = step
+        out = step | out
     return out
 
 
@@ -67,4 +75,4 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["cube_maximum", "cube_minimum", "grown"]
+__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "grown"]

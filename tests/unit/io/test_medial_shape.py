@@ -220,3 +220,28 @@ def test_the_depth_is_the_distance_to_the_outside_and_shallow_voxels_are_not_que
     thin = plate(0.5, 3.0)
     module._depth_squared(thin)
     assert _CountedTree.queried == 0
+
+
+def test_the_working_grid_is_the_zoom_of_the_mask_without_a_float_copy_of_its_box():
+    """Issue 41: the working grid is interpolated at the working voxels near the mask only: the same voxels as
+    ``ndimage.zoom`` of the mask as float32 (random masks, isotropic and anisotropic voxels, a capped grid); its
+    memory stays under the float copy of the box (a skull's box: 50 M voxels, 200 MB as float32)."""
+    import tracemalloc
+
+    from scipy import ndimage
+
+    from dsareg_engine.io.medial_shape import to_working_grid
+
+    rng = np.random.default_rng(9)
+    for k in range(120):
+        shape = tuple(int(n) for n in rng.integers(1, 28, 3))
+        mask = rng.random(shape) < 0.3 if k % 2 else ndimage.binary_opening(rng.random(shape) < 0.6)
+        spacing, work_mm = rng.choice([0.25, 0.3, 0.4, 0.45, 0.6, 0.8, 1.1], 3), float(rng.choice([0.5, 0.607]))
+        expected = ndimage.zoom(mask.astype(np.float32), spacing / work_mm, order=1, mode="nearest", grid_mode=True)
+        assert np.array_equal(to_working_grid(mask, spacing, work_mm)[0], expected >= 0.5), (shape, spacing)
+    shell = plate(0.45, 3.0, width_mm=90.0)  # 200³ voxels, a thin plate across it
+    tracemalloc.start()
+    to_working_grid(shell, (0.45,) * 3, 0.6)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 2 * shell.size, (peak, shell.size)

@@ -50,3 +50,16 @@ def test_shifted_slices_are_much_cheaper_than_the_neighbourhood_loops():
     start = time.process_time()
     theirs = ndimage.binary_dilation(mask)
     assert np.array_equal(ours, theirs) and mine < 0.5 * (time.process_time() - start)
+
+
+def test_the_bounding_box_is_that_of_the_voxels_grown_and_clipped():
+    from dsareg_engine.io.voxel_steps import bounding_box
+
+    for _, mask in _masks(40, 11):
+        hits = np.argwhere(mask)
+        box = bounding_box(mask, 2)
+        if len(hits) == 0:
+            assert box is None
+            continue
+        low, high = np.maximum(hits.min(0) - 2, 0), np.minimum(hits.max(0) + 3, mask.shape)
+        assert box == tuple(slice(int(a), int(b)) for a, b in zip(low, high))
