@@ -53,8 +53,10 @@ def fitted_surface(pixels: np.ndarray, background: np.ndarray) -> np.ndarray | N
         kept = np.abs(residual) <= 3.0 * max(spread, 1e-12)
         if kept.sum() < terms.shape[1] * 4:
             return None
-    grid_rows, grid_cols = np.mgrid[0:pixels.shape[0], 0:pixels.shape[1]].astype(np.float64)
-    return (_terms(grid_rows, grid_cols, pixels.shape) @ coefficients).astype(np.float32)
+    c0, cx, cy, cxx, cxy, cyy = coefficients  # evaluated by broadcasting: one (H, W) array, not six
+    y = _terms(np.arange(pixels.shape[0], dtype=np.float64), np.zeros(pixels.shape[0]), pixels.shape)[:, 2][:, None]
+    x = _terms(np.zeros(pixels.shape[1]), np.arange(pixels.shape[1], dtype=np.float64), pixels.shape)[:, 1][None, :]
+    return (c0 + cx * x + cy * y + cxx * x * x + cxy * x * y + cyy * y * y).astype(np.float32)
 
 
 def flat_fielded(pixels: np.ndarray, background: np.ndarray, field: np.ndarray | None = None) -> np.ndarray | None:
