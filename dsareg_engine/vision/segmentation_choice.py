@@ -98,7 +98,7 @@ def choose(pixels: np.ndarray, bright: np.ndarray, min_object_px: int, field: np
 
 
 def agrees(agreement: float, explained: float) -> bool:
-    """The masks agree enough for ``dsa`` to be kept: Dice ≥ :data:`AGREEMENT_DICE` and share ≥ :data:`EXPLAINED_SHARE`."""
+    """The masks agree enough to keep ``dsa``: Dice ≥ :data:`AGREEMENT_DICE`, share ≥ :data:`EXPLAINED_SHARE`."""
     return agreement >= AGREEMENT_DICE and explained >= EXPLAINED_SHARE
 
 

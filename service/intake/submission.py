@@ -228,7 +228,7 @@ class FileRequest:
     options: Any
     callback_url: str | None = None
     previous_id: str | None = None  # the job a tracking job follows
-    carried: Mapping[str, str] = dataclasses.field(default_factory=dict)  # a tracking job's plane not sent again → the job it was sent with
+    carried: Mapping[str, str] = dataclasses.field(default_factory=dict)  # plane not sent again → job it came with
 
 
 async def submit_files(ctx: IntakeContext, request: FileRequest, who: str, key: str | None) -> Submitted:

@@ -7,9 +7,9 @@ pose along (``options.reference_mesh_to_world``: the previous job's reference wh
 result pose). One plane sent: ``options.configuration`` is that plane, and the other plane's image is the previous
 job's (shown in that view's overlay and Dice, not fitted), named as carried from an earlier run wherever the new job
 describes its images: ``case.inputs[].carried_from`` and ``result.views[plane].image_from_job`` hold the id of the
-job that plane's image was sent with (followed back through earlier one-plane tracks), and the review page says so. The result carries ``metrics.motion`` (since the previous
-pose) and ``metrics.tracking`` (since the first pose, the planes fitted, and for one plane the beam direction whose
-motion cannot be measured: never ``ok``).
+job that plane's image was sent with (followed back through earlier one-plane tracks), and the review page says so.
+The result carries ``metrics.motion`` (since the previous pose) and ``metrics.tracking`` (since the first pose, the
+planes fitted, and for one plane the beam direction whose motion cannot be measured: never ``ok``).
 It runs as an ordinary job through the same queue and workers (the API process never loads the
 engine), so status, result, overlays, cancel and delete work as for any job.
 """
@@ -68,8 +68,9 @@ TRACK_DOC = {
     "description": (
         "multipart/form-data with `ap`, `lat` or both, and optional `options`. The job must have succeeded; its model "
         "and geometry are re-used and its result pose is the starting pose. One plane sent: only that plane is fitted "
-        "(the other view shows the previous job's image, named as carried from an earlier run: `case.inputs[].carried_from` "
-        "and `result.views[plane].image_from_job` give the job it was sent with). Answers 202 with the new job's `Location`; its result has "
+        "(the other view shows the previous job's image, named as carried from an earlier run: "
+        "`case.inputs[].carried_from` and `result.views[plane].image_from_job` give the job it was sent with). "
+        "Answers 202 with the new job's `Location`; its result has "
         "the new `mesh_to_world`, `metrics.motion` since the previous pose and `metrics.tracking` since the "
         "procedure's first pose (`since_reference`), with the planes fitted and, for one plane, "
         "`along_beam_measured: false` and the beam's direction (the verdict is then at most `check`)."
@@ -114,7 +115,7 @@ def _options(previous: JobRecord, form: Any, planes: tuple[str, ...]) -> Any:
     return parse_options_json(options)
 
 
-def carried_images(previous: JobRecord, planes: tuple[str, ...]) -> dict[str, str]:
+def carried_origins(previous: JobRecord, planes: tuple[str, ...]) -> dict[str, str]:
     """Plane not sent again → the job whose run its image is: the job it was first sent with (the previous job's
     own ``carried_from`` when it had carried that plane too, else the previous job)."""
     rows = {row.get("role"): row for row in ((previous.case or {}).get("inputs") or [])}
@@ -150,7 +151,7 @@ async def track(request: Request, ctx: Ctx, previous: OwnedJob, who: Principal) 
             raise InvalidInput("send the new run of a plane: ap, lat or both", field="ap", accepted="ap and/or lat")
         callback_url = form_callback_url(ctx, form)
         options = await asyncio.to_thread(_options, previous, form, tuple(sent))
-        carried = carried_images(previous, tuple(plane for plane in PLANES if plane not in sent))
+        carried = carried_origins(previous, tuple(plane for plane in PLANES if plane not in sent))
         files = checked_roles({**_stored_files(ctx, previous, ("mesh", "volume", *carried)), **sent})
         geometry = canonical_geometry(previous.geometry)  # the job's, as stored (parsed once at its submission)
         # the new job records its previous one: its status, result and 202 carry Link: rel="previous"

@@ -154,7 +154,8 @@ def test_a_one_plane_track_says_which_image_is_from_an_earlier_run(server, examp
         browser.open(server.url + f"/ui/#/job/{jobs[2]['id']}")
         browser.wait("const s = document.getElementById('views'); return s && s.dataset.ready === '1'", what="views")
         captions = browser.run(CAPTIONS)
-        assert "earlier run" in captions["lat"] and first["id"][:12] in captions["lat"] and "not fitted" in captions["lat"]
+        lat_caption = captions["lat"]
+        assert "earlier run" in lat_caption and first["id"][:12] in lat_caption and "not fitted" in lat_caption
         assert "acquired for this job" in captions["ap"] and "earlier" not in captions["ap"], captions
         note = browser.run("return document.getElementById('carried-note').innerText")
         assert note.startswith("Only AP was acquired for this job") and first["id"][:12] in note, note

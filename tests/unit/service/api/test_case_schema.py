@@ -48,7 +48,7 @@ def test_review_page_shows_lists_as_text_never_markup():
 def test_an_image_carried_from_an_earlier_run_is_named_in_the_case_and_the_result():
     """Issue 42: a tracking job sent AP only carries the LAT image of the job that LAT was sent with (followed back
     through earlier one-plane tracks); its case and its result's LAT view name that job."""
-    from service.api.routes.tracking import carried_images as origins
+    from service.api.routes.tracking import carried_origins as origins
     from service.engine_adapter import job_case
     from service.jobs.worker import carried_images
     from service.storage.records import JobRecord
