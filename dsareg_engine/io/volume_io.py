@@ -432,7 +432,7 @@ def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05,
     labels, count = ndimage.label(inside[box]) if box is not None else (None, 0)
     if count == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    sizes = np.bincount(labels[labels > 0], minlength=count + 1)[1:]
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]  # (0: the background)
     ranked = np.argsort(sizes)[::-1][:max_components]
     kept = [int(r) + 1 for r in ranked if sizes[r] >= min_component_fraction * sizes.max()]
     chosen = np.zeros(count + 1, bool)

@@ -280,9 +280,10 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
         return mask, np.zeros(mask.shape, bool), shape.plate_share  # nothing tube-like remains: refused
     # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
     labels, count = ndimage.label(rest)
-    sizes = np.bincount(labels[labels > 0], minlength=count + 1)
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    sizes[0] = 0  # the background
     near = grown(large[box], max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
-    touching = np.unique(labels[near & (labels > 0)])
+    touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
     keep = np.ones(count + 1, bool)
     keep[0] = False
     keep[touching[touching != int(np.argmax(sizes))]] = False
@@ -303,11 +304,11 @@ def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
     out = np.zeros(plate.shape, bool)
     box = bounding_box(plate, margin=1)  # a part's surface voxels' neighbours lie in it
     labels, count = ndimage.label(plate[box])
-    sizes_mm3 = np.bincount(labels[labels > 0], minlength=count + 1)[1:] * float(np.prod(spacing))
+    sizes_mm3 = np.bincount(labels.ravel(), minlength=count + 1)[1:] * float(np.prod(spacing))
     large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
     if len(large) == 0:
         return out
-    bone = bone_of(box)
+    bone = np.ascontiguousarray(bone_of(box))  # gathered at flat indices (:func:`_bone_contact`)
     boxes = ndimage.find_objects(labels)
     placed = np.zeros(count + 1, bool)
     for index in large:
@@ -335,18 +336,21 @@ def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacin
 
 def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
     """The share of plate part ``index``'s surface voxels (a face neighbour outside it) with a face neighbour in
-    ``bone``; ``box``: the part's bounding box (slices)."""
-    inside = np.nonzero(labels[box] == index)
-    voxels = [i + s.start for i, s in zip(inside, box)]
-    surface = np.zeros(len(voxels[0]), bool)
-    touching = np.zeros(len(voxels[0]), bool)
-    for axis in range(3):
+    ``bone``; ``box``: the part's bounding box (slices). Flat indices: one gather per neighbour (the grid's border
+    is no neighbour: a voxel there is its own)."""
+    part = labels[box] == index
+    position = [i + s.start for i, s in zip(np.nonzero(part), box)]
+    flat = np.ravel_multi_index(position, labels.shape)
+    flat_labels, flat_bone = labels.reshape(-1), np.ravel(bone)
+    surface = np.zeros(len(flat), bool)
+    touching = np.zeros(len(flat), bool)
+    for axis, stride in enumerate(np.cumprod((1,) + labels.shape[:0:-1])[::-1]):
         for step in (-1, 1):
-            neighbour = list(voxels)
-            neighbour[axis] = np.clip(voxels[axis] + step, 0, labels.shape[axis] - 1)
-            outside = labels[tuple(neighbour)] != index
+            inside = (position[axis] > 0) if step < 0 else (position[axis] < labels.shape[axis] - 1)
+            neighbour = np.where(inside, flat + step * stride, flat)
+            outside = flat_labels[neighbour] != index
             surface |= outside
-            touching |= outside & bone[tuple(neighbour)]
+            touching |= outside & flat_bone[neighbour]
     return float(touching.sum() / max(int(surface.sum()), 1))
 
 
@@ -500,15 +504,15 @@ def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: fl
 
 def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gradient_per_mm: float) -> np.ndarray:
     """The voxels of ``where`` whose gradient (central differences, per mm) is below ``max_gradient_per_mm``."""
-    index = np.nonzero(where)
-    squared = np.zeros(len(index[0]), np.float32)
-    for axis in range(3):
-        up, down = list(index), list(index)
-        up[axis] = np.minimum(index[axis] + 1, smooth.shape[axis] - 1)
-        down[axis] = np.maximum(index[axis] - 1, 0)
-        squared += ((smooth[tuple(up)] - smooth[tuple(down)]) / (2.0 * spacing[axis])) ** 2
+    index = np.flatnonzero(where)  # flat indices: one gather per neighbour, not three
+    position, values = np.unravel_index(index, smooth.shape), np.ravel(smooth)
+    squared = np.zeros(len(index), np.float32)
+    for axis, stride in enumerate(np.cumprod((1,) + smooth.shape[:0:-1])[::-1]):
+        up = np.where(position[axis] < smooth.shape[axis] - 1, index + stride, index)  # the border: its own value
+        down = np.where(position[axis] > 0, index - stride, index)
+        squared += ((values[up] - values[down]) / (2.0 * spacing[axis])) ** 2
     out = np.zeros(smooth.shape, bool)
-    out[index] = np.sqrt(squared) < max_gradient_per_mm
+    out.reshape(-1)[index] = np.sqrt(squared) < max_gradient_per_mm
     return out
 
 

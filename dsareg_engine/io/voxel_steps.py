@@ -28,10 +28,11 @@ def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) ->
     mask=within)``): with ``within``, a step adds only voxels of ``within``; the grid's outside is empty."""
     out = np.array(mask, bool)
     for _ in range(steps):
-        step = _face_neighbours(out)
+        step = _face_neighbours(out)  # out and its neighbours
         if within is not None:
             step &= within
-        out = step | out
+            step |= out
+        out = step
     return out
 
 
