@@ -1,13 +1,14 @@
 """Answer-time bounds that hold the service to account, not the machine's neighbours (issue 44, item 14).
 
-The timed tests (``pytest -m timed tests/system``) assert that real processes answer within bounds set for a
-quiet 2-core machine. On a machine other work keeps busy, every process gets a fraction of a core and a bound
-meant for the service fails on the neighbours. So a bound is given as its quiet value and read through
-:func:`allowed`: the quiet value times the **contention factor**, 1 / the share of a core a spinning thread of
-this process got over a short probe (:func:`probe_core_share`). A quiet machine gives a share of ~1: the factor
-is 1 exactly (no bound moves), the share must fall below ``QUIET_SHARE`` before any bound is relaxed, and the
-factor is capped (``MAX_FACTOR``) so a stuck process still fails. The probe is taken before each timed test
-(``tests/system/conftest.py``), when no server of this session runs: what it measures is the neighbours.
+The timed tests (``pytest -n 2 --dist loadfile -m timed tests/system``) assert that real processes answer within
+bounds set for a quiet 2-core machine. On a machine other work keeps busy, every process gets a fraction of a core
+and a bound meant for the service fails on the neighbours. So a bound is given as its quiet value and read through
+:func:`allowed`: the quiet value times the **contention factor**, 1 / the share of a core a spinning thread of this
+process got over a short probe (:func:`probe_core_share`). A quiet machine gives a share of ~1: the factor is 1
+exactly (no bound moves), the share must fall below ``QUIET_SHARE`` before any bound is relaxed, and the factor is
+capped (``MAX_FACTOR``) so a stuck process still fails. The probe is taken before each timed (or probed) test's
+fixtures start anything, a SOLO test's once it runs alone (``tests/system/conftest.py``): what it measures is the
+neighbours, the other timed test beside it included.
 
 ``DSAREG_TEST_TIME_FACTOR`` fixes the factor (``1`` holds every quiet bound on a loaded machine).
 """

@@ -34,7 +34,7 @@ def test_every_page_calls_dsareg_one_way():
 
 def test_one_test_command():
     command = _readme_test_command()
-    assert "dsareg warmup" in command and "python -m pytest -m timed tests/system" in command
+    assert "dsareg warmup" in command and "python -m pytest -n 2 --dist loadfile -m timed tests/system" in command
     assert command in (ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8")
     ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
     for step in re.findall(r"python -m pytest [^&\n]*", command):  # .ci/run runs the same pytest steps
