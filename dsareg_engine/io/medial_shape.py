@@ -102,7 +102,7 @@ def medial_ratio(work: np.ndarray, work_mm: float = WORK_MM) -> tuple[np.ndarray
     if len(points) > MAX_SAMPLES:
         sample = np.sort(np.random.default_rng(0).choice(len(points), MAX_SAMPLES, replace=False))
     ball_vox = np.maximum(BALL_PER_RADIUS * radius_vox[sample], MIN_BALL_MM / work_mm)
-    voxels = cKDTree(np.argwhere(work))
+    voxels = cKDTree(np.argwhere(work), balanced_tree=False, compact_nodes=False)  # counts: any tree's, built 3x faster
     inside = voxels.query_ball_point(points[sample], ball_vox, return_length=True)
     half = voxels.query_ball_point(points[sample], ball_vox / 2.0, return_length=True)
     ratio = np.log2(inside / np.maximum(half, 1))
