@@ -30,7 +30,7 @@ def regional_noise(smooth: np.ndarray, floor: float) -> np.ndarray:
     the robust spread of the frame-to-frame changes before contrast arrives (vessels do not change then),
     interpolated between block centres; ``floor`` everywhere when fewer than two such frames exist."""
     frames, height, width = smooth.shape
-    before = baseline_frames(smooth.reshape(frames, -1).T)
+    before = baseline_frames(smooth.mean(axis=(1, 2))[None])  # the mean curve of all pixels, in image order
     if before < 2:
         return np.full((height, width), floor, np.float32)
     changes = np.abs(np.diff(smooth[:before], axis=0))
