@@ -35,6 +35,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
+from .bone_plates import bone_plates
 from .input_decisions import InputDecision
 from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
@@ -42,7 +43,7 @@ from .volume_io import Volume, bounding_box, largest_components, surface_from_ma
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
-from .voxel_steps import cube_minimum, grown
+from .voxel_steps import cube_minimum, grown, label_sizes
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -54,8 +55,6 @@ LOCAL_PEAK_MM = 5.0
 SMOOTHING_SIGMA_VOX = 0.5
 VESSEL_CONTRAST_MIN = {"cta": 100.0, "mra": 6.0}  # vessel over tissue: HU (CTA), noise spreads (MRA)
 VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast than this: a close call
-PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
-BONE_CONTACT_SHARE = 0.5  # CTA/MRA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
 DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spreads: bone, air (CSF too)
 VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the way from the noise floor to the tissue
 PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
@@ -237,7 +236,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
             return _cta(smooth, spacing, reading, field_name, ground, not_vessels)
         return _mra(smooth, spacing, reading, field_name, ground, not_vessels)
 
-    def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`_bone_plates`), in a box
+    def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`.bone_plates.bone_plates`), in a box
         if kind == "cta":
             return lambda box: excluded[box]
         return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
@@ -259,7 +258,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
 
 
 def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone_of):
-    """``mask`` without its bone plates (:func:`_bone_plates`), its largest tube components kept; what was set
+    """``mask`` without its bone plates (:func:`.bone_plates.bone_plates`), its largest tube components kept; what was set
     aside; and the plate share of the mask returned when it is ``mask`` itself (else None: measure it again).
     Unchanged when the plate share is below the close-call band (vessels alone) or no plate part is bone.
     ``bone_of(box)``: what bone plates lie against, within ``box`` (CTA: bone and its partial-volume band
@@ -271,7 +270,7 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     plate = shape.plate
     if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not plate.any():  # vessels: left as read
         return mask, np.zeros(mask.shape, bool), shape.plate_share
-    large = _bone_plates(plate, spacing, bone_of)
+    large = bone_plates(plate, spacing, bone_of)
     if not large.any():
         return mask, large, shape.plate_share
     box = bounding_box(mask, margin=1)
@@ -280,7 +279,7 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
         return mask, np.zeros(mask.shape, bool), shape.plate_share  # nothing tube-like remains: refused
     # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
     labels, count = ndimage.label(rest)
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    sizes = label_sizes(labels, count)
     sizes[0] = 0  # the background
     near = grown(large[box], max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
     touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
@@ -290,31 +289,6 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     kept = np.zeros(mask.shape, bool)
     kept[box] = keep[labels]
     return largest_components(kept, field_name=field_name), large, None
-
-
-def _bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
-    """The plate parts (connected) that are not vessels: bone-sized (at least ``PLATE_PART_MM3``) and
-    bone-placed: at least ``BONE_CONTACT_SHARE`` of the part's surface voxels touch ``bone``. In a CTA, bone and
-    its partial-volume band (cancellous bone in the vessels' HU window, a diploë or a skull-base core, lies between
-    cortical plates); in a TOF-MRA, dark voxels or the scalp shell (marrow and fat lie inside dark cortical bone,
-    or under the skin). A close-packed or bulging stretch of a vessel tree can read plate-like on the medial
-    measure; it lies in tissue (or against bone on one side: a vessel in a bony groove), so it stays with its tree."""
-    from scipy import ndimage
-
-    out = np.zeros(plate.shape, bool)
-    box = bounding_box(plate, margin=1)  # a part's surface voxels' neighbours lie in it
-    labels, count = ndimage.label(plate[box])
-    sizes_mm3 = np.bincount(labels.ravel(), minlength=count + 1)[1:] * float(np.prod(spacing))
-    large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
-    if len(large) == 0:
-        return out
-    bone = np.ascontiguousarray(bone_of(box))  # gathered at flat indices (:func:`_bone_contact`)
-    boxes = ndimage.find_objects(labels)
-    placed = np.zeros(count + 1, bool)
-    for index in large:
-        placed[index] = _bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE
-    out[box] = placed[labels]
-    return out
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
@@ -332,26 +306,6 @@ def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacin
     dark = shell[grown] | (smooth[grown] < void)
     inner = tuple(slice(b.start - g.start, b.stop - g.start) for b, g in zip(box, grown))
     return within_mm(dark, spacing, band)[inner]
-
-
-def _bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
-    """The share of plate part ``index``'s surface voxels (a face neighbour outside it) with a face neighbour in
-    ``bone``; ``box``: the part's bounding box (slices). Flat indices: one gather per neighbour (the grid's border
-    is no neighbour: a voxel there is its own)."""
-    part = labels[box] == index
-    position = [i + s.start for i, s in zip(np.nonzero(part), box)]
-    flat = np.ravel_multi_index(position, labels.shape)
-    flat_labels, flat_bone = labels.reshape(-1), np.ravel(bone)
-    surface = np.zeros(len(flat), bool)
-    touching = np.zeros(len(flat), bool)
-    for axis, stride in enumerate(np.cumprod((1,) + labels.shape[:0:-1])[::-1]):
-        for step in (-1, 1):
-            inside = (position[axis] > 0) if step < 0 else (position[axis] < labels.shape[axis] - 1)
-            neighbour = np.where(inside, flat + step * stride, flat)
-            outside = flat_labels[neighbour] != index
-            surface |= outside
-            touching |= outside & flat_bone[neighbour]
-    return float(touching.sum() / max(int(surface.sum()), 1))
 
 
 def _decisions(readout: VolumeReadout, reading: VolumeReading, air: float, levels: dict) -> list[InputDecision]:

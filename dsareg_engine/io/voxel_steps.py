@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+LABEL_SLAB = 1 << 22  # voxels counted at a time by :func:`label_sizes` (32 MB of 64-bit labels)
+
 
 def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
     """The slices of ``mask``'s bounding box grown by ``margin`` voxels (clipped to the grid); None if empty.
@@ -21,6 +23,16 @@ def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
         return None
     return tuple(slice(max(int(h[0]) - margin, 0), min(int(h[-1]) + margin + 1, size))
                  for h, size in zip(hits, mask.shape))
+
+
+def label_sizes(labels: np.ndarray, count: int) -> np.ndarray:
+    """Voxels per label ``0..count`` of an integer ``labels`` grid (``ndimage.label``'s), counted slab by slab: a
+    whole-grid ``np.bincount`` holds a 64-bit copy of the grid (a skull's box: 400 MB)."""
+    sizes = np.zeros(count + 1, np.int64)
+    flat = labels.reshape(-1)
+    for start in range(0, flat.size, LABEL_SLAB):
+        sizes += np.bincount(flat[start:start + LABEL_SLAB], minlength=count + 1)
+    return sizes
 
 
 def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) -> np.ndarray:
@@ -76,4 +88,4 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "grown"]
+__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "grown", "label_sizes"]

@@ -63,3 +63,22 @@ def test_the_bounding_box_is_that_of_the_voxels_grown_and_clipped():
             continue
         low, high = np.maximum(hits.min(0) - 2, 0), np.minimum(hits.max(0) + 3, mask.shape)
         assert box == tuple(slice(int(a), int(b)) for a, b in zip(low, high))
+
+
+def test_label_sizes_are_the_counts_without_a_64_bit_copy_of_the_grid(monkeypatch):
+    """Issue 41: ``np.bincount`` of a whole label grid holds it as 64-bit integers (400 MB for a skull's box)."""
+    import tracemalloc
+
+    from dsareg_engine.io import voxel_steps
+    from dsareg_engine.io.voxel_steps import label_sizes
+
+    for rng, mask in _masks(30, 5):
+        labels, count = ndimage.label(mask)
+        assert np.array_equal(label_sizes(labels, count), np.bincount(labels.ravel(), minlength=count + 1))
+    monkeypatch.setattr(voxel_steps, "LABEL_SLAB", 1 << 16)
+    labels, count = ndimage.label(np.random.default_rng(0).random((128, 128, 128)) < 0.3)
+    tracemalloc.start()
+    sizes = label_sizes(labels, count)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert sizes.sum() == labels.size and peak < 2 * labels.nbytes / 4, (peak, labels.nbytes)
