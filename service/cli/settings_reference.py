@@ -1,7 +1,7 @@
 """The settings reference (``docs/settings.md``), generated from the settings' own descriptions.
 
 ``python -m service.cli.settings_reference > docs/settings.md`` rewrites it; a test fails when the
-committed page differs from what this prints, so the page cannot drift from ``service/settings.py``.
+committed page differs from what this prints, so the page cannot drift from ``service/settings/``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from ..settings import GROUPS, env_name
 
 HEADER = """# Settings reference
 
-Generated from `service/settings.py` by `python -m service.cli.settings_reference > docs/settings.md`
+Generated from `service/settings/` by `python -m service.cli.settings_reference > docs/settings.md`
 (a test keeps it current). Every setting is an environment variable `DSAREG_<NAME>`, or the same key
 in lower case in a JSON/TOML file named by `DSAREG_CONFIG` (or `dsareg serve --config`); the
 environment wins over the file, command-line options over both. Lists take JSON (`["a","b"]`) or

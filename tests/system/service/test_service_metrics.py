@@ -1,4 +1,4 @@
-"""``GET /metrics`` behind ``DSAREG_METRICS_PUBLIC`` (service/api/operations.py, service/settings.py): with API
+"""``GET /metrics`` behind ``DSAREG_METRICS_PUBLIC`` (service/api/operations.py, service/settings/): with API
 keys configured it needs a valid key unless made public; without keys it is public unless turned off; what it
 shows is service-wide (no key, owner, job id or raw path), whoever asks."""
 
