@@ -20,4 +20,4 @@ def _results_hold_the_contract(tmp_path_factory):
     broken = sweep_results(tmp_path_factory.getbasetemp())
     lines = [f"{path}: {error}" for path, errors in broken.items() for error in errors]
     assert not lines, "result.json files break the result contract (declare the fields in " \
-                      "service/api/schemas/payloads.py):\n" + "\n".join(lines[:40])
+                      "service/api/schemas/, docs/api/result-contract.md):\n" + "\n".join(lines[:40])

@@ -28,7 +28,7 @@ def contract_errors(result: dict[str, Any]) -> list[str]:
 
 def assert_result_contract(result: dict[str, Any], where: str = "result") -> None:
     errors = contract_errors(result)
-    assert not errors, f"{where} breaks the result contract (declare the field in service/api/schemas/payloads.py):\n" + \
+    assert not errors, f"{where} breaks the result contract (declare the field in service/api/schemas/: docs/api/result-contract.md):\n" + \
         "\n".join(errors)
 
 

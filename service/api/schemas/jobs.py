@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ...engine_adapter import engine
 from ...problems import ProblemDetails
 from .closed import CLOSED
-from .payloads import Verdict
+from .confidence import Verdict
 from ...storage.store import JobRecord
 from .case import CaseIdentity, case_model
 from .review import ExportState, Review, export_model, review_model
