@@ -13,6 +13,7 @@ import numpy as np
 from .voxel_steps import bounding_box, label_sizes
 
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
+GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
 BONE_CONTACT_SHARE = 0.5  # CTA/MRA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
 
 
@@ -43,22 +44,26 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
 
 def bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
     """The share of plate part ``index``'s surface voxels (a face neighbour outside it) with a face neighbour in
-    ``bone``; ``box``: the part's bounding box (slices). Flat indices: one gather per neighbour (the grid's border
-    is no neighbour: a voxel there is its own)."""
-    part = labels[box] == index
-    position = [i + s.start for i, s in zip(np.nonzero(part), box)]
-    flat = np.ravel_multi_index(position, labels.shape)
+    ``bone``; ``box``: the part's bounding box (slices). Flat indices, ``GATHER_CHUNK`` voxels at a time: one gather
+    per neighbour (the grid's border is no neighbour: a voxel there is its own)."""
+    inside = np.nonzero(labels[box] == index)
     flat_labels, flat_bone = labels.reshape(-1), np.ravel(bone)
-    surface = np.zeros(len(flat), bool)
-    touching = np.zeros(len(flat), bool)
-    for axis, stride in enumerate(np.cumprod((1,) + labels.shape[:0:-1])[::-1]):
-        for step in (-1, 1):
-            inside = (position[axis] > 0) if step < 0 else (position[axis] < labels.shape[axis] - 1)
-            neighbour = np.where(inside, flat + step * stride, flat)
-            outside = flat_labels[neighbour] != index
-            surface |= outside
-            touching |= outside & flat_bone[neighbour]
-    return float(touching.sum() / max(int(surface.sum()), 1))
+    strides = np.cumprod((1,) + labels.shape[:0:-1])[::-1]
+    surface = touching = 0
+    for start in range(0, len(inside[0]), GATHER_CHUNK):
+        position = [i[start:start + GATHER_CHUNK] + s.start for i, s in zip(inside, box)]
+        flat = np.ravel_multi_index(position, labels.shape)
+        on_surface = np.zeros(len(flat), bool)
+        against = np.zeros(len(flat), bool)
+        for axis, stride in enumerate(strides):
+            for step in (-1, 1):
+                within = (position[axis] > 0) if step < 0 else (position[axis] < labels.shape[axis] - 1)
+                neighbour = np.where(within, flat + step * stride, flat)
+                outside = flat_labels[neighbour] != index
+                on_surface |= outside
+                against |= outside & flat_bone[neighbour]
+        surface, touching = surface + int(on_surface.sum()), touching + int(against.sum())
+    return float(touching / max(surface, 1))
 
 
 __all__ = ["BONE_CONTACT_SHARE", "PLATE_PART_MM3", "bone_contact", "bone_plates"]

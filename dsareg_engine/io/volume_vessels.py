@@ -59,6 +59,7 @@ DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spre
 VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the way from the noise floor to the tissue
 PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
+GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
 HEAD_MARGIN_VOX = 6  # CTA: the head's box (above air) grown by this: past the smoothing (2 voxels) and the skin
 
 
@@ -248,7 +249,9 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside, box = np.zeros(plates.shape, bool), bounding_box(plates, margin=rim)
         set_aside[box] = grown(plates[box], rim)
+        del field, mask, excluded, read_mask  # the first reading's: not held through the second
         field, mask, levels, excluded = read(set_aside)
+        del set_aside
         read_mask = mask
         mask, more, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
         plates |= more
@@ -288,6 +291,7 @@ def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone
     keep[touching[touching != int(np.argmax(sizes))]] = False
     kept = np.zeros(mask.shape, bool)
     kept[box] = keep[labels]
+    del labels, near, rest  # the box's labels (int32) are not held through the next labelling
     return largest_components(kept, field_name=field_name), large, None
 
 
@@ -399,7 +403,7 @@ def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
 def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _CtaGround,
          not_vessels: np.ndarray | None = None):
     """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
-    bone_hu, tissue, bone, near_bone = ground.bone_hu, ground.tissue, ground.bone, ground.near_bone
+    bone_hu, tissue, near_bone = ground.bone_hu, ground.tissue, ground.near_bone
     candidates = (smooth > tissue + 100.0) & (smooth < bone_hu) & ~near_bone
     if not_vessels is not None:
         candidates &= ~not_vessels
@@ -412,6 +416,7 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
                               field_name, "CTA")
         vessel = float(np.percentile(smooth[candidates], 75))
         level = (tissue + vessel) / 2.0
+    del candidates  # (memory: a head's box)
     window = (smooth > level) & (smooth < bone_hu)
     if (window & ~near_bone).sum() < 8:
         raise _no_vessels(f"no voxels in the window {level:.0f} to {bone_hu:.0f} HU away from bone", field_name, "CTA")
@@ -421,19 +426,22 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     seeds = window & ~near_bone
     seeds |= _plateau(smooth, window & near_bone, spacing, PLATEAU_FRACTION * (peak - tissue))
     core = largest_components(seeds, field_name=field_name)
+    del seeds
     # regrow into the band only through voxels with no tissue-level voxel near: the lumen and wall of a vessel
     # in a bony canal (vessel and bone around), not the partial-volume layer of a bone surface (tissue beside)
     steps = int(np.ceil(PV_BAND_MM / float(spacing.min()))) + 1  # the wall beside bone: the lumen is seeded
     mask = _regrown(core, window, smooth, level, steps)
     # the surface's field: :func:`_cta_field` (made by the caller once the reading is final)
-    return None, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, (near_bone | bone) & ~mask
+    return None, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, near_bone & ~mask  # (⊇ bone)
 
 
 def _cta_field(smooth: np.ndarray, ground: _CtaGround, read_mask: np.ndarray, levels: dict) -> np.ndarray:
     """The field a CTA's surface is marched in: :func:`_partial_volume_field`, and no surface at bone and its band
-    outside the voxels the reading kept (``read_mask``, before plates were set aside)."""
-    near = ground.near_bone | ground.bone
-    field = _partial_volume_field(smooth, near, levels["tissue"], levels["vessel"], ground.bone, levels["max"])
+    outside the voxels the reading kept (``read_mask``, before plates were set aside). Made in ``smooth`` itself: its
+    last use (a whole head's float32 box, 0.23 GB, is not copied at the reading's peak)."""
+    near = ground.near_bone  # bone is in its own band
+    field = _partial_volume_field(smooth, near, levels["tissue"], levels["vessel"], ground.bone, levels["max"],
+                                  in_place=True)
     outside = near & ~read_mask
     field[outside] = np.minimum(field[outside], levels["tissue"])  # no surface there
     return field
@@ -458,24 +466,29 @@ def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: fl
 
 def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gradient_per_mm: float) -> np.ndarray:
     """The voxels of ``where`` whose gradient (central differences, per mm) is below ``max_gradient_per_mm``."""
-    index = np.flatnonzero(where)  # flat indices: one gather per neighbour, not three
-    position, values = np.unravel_index(index, smooth.shape), np.ravel(smooth)
-    squared = np.zeros(len(index), np.float32)
-    for axis, stride in enumerate(np.cumprod((1,) + smooth.shape[:0:-1])[::-1]):
-        up = np.where(position[axis] < smooth.shape[axis] - 1, index + stride, index)  # the border: its own value
-        down = np.where(position[axis] > 0, index - stride, index)
-        squared += ((values[up] - values[down]) / (2.0 * spacing[axis])) ** 2
-    out = np.zeros(smooth.shape, bool)
-    out.reshape(-1)[index] = np.sqrt(squared) < max_gradient_per_mm
+    values, out = np.ravel(smooth), np.zeros(smooth.shape, bool)
+    strides = np.cumprod((1,) + smooth.shape[:0:-1])[::-1]
+    every = np.flatnonzero(where)  # flat indices: one gather per neighbour, not three
+    for start in range(0, len(every), GATHER_CHUNK):  # a chunk at a time: its index arrays stay small
+        index = every[start:start + GATHER_CHUNK]
+        position = np.unravel_index(index, smooth.shape)
+        squared = np.zeros(len(index), np.float32)
+        for axis, stride in enumerate(strides):
+            up = np.where(position[axis] < smooth.shape[axis] - 1, index + stride, index)  # the border: its own value
+            down = np.where(position[axis] > 0, index - stride, index)
+            squared += ((values[up] - values[down]) / (2.0 * spacing[axis])) ** 2
+        out.reshape(-1)[index] = np.sqrt(squared) < max_gradient_per_mm
     return out
 
 
-def _partial_volume_field(smooth, near_bone, tissue: float, vessel: float, bone: np.ndarray, bone_hu: float):
+def _partial_volume_field(smooth, near_bone, tissue: float, vessel: float, bone: np.ndarray, bone_hu: float,
+                          in_place: bool = False):
     """Near bone, a voxel brighter than the vessels is read as vessel blended with bone: its vessel fraction
-    mapped back onto the tissue → vessel scale; bone itself reads as tissue (it makes no surface)."""
+    mapped back onto the tissue → vessel scale; bone itself reads as tissue (it makes no surface). ``in_place``:
+    written into ``smooth`` (else a copy)."""
     bone_level = float(np.median(smooth[bone])) if bone.any() else bone_hu
-    field = smooth.copy()
     blend = near_bone & (smooth > vessel)
+    field = smooth if in_place else smooth.copy()
     bone_fraction = np.clip((smooth[blend] - vessel) / max(bone_level - vessel, 1.0), 0.0, 1.0)
     field[blend] = tissue + (1.0 - bone_fraction) * (vessel - tissue)
     return field

@@ -22,7 +22,11 @@ def _contact_by_index_lists(labels, index, box, bone):
     return float(touching.sum() / max(int(surface.sum()), 1))
 
 
-def test_the_contact_share_is_that_of_the_index_lists():
+def test_the_contact_share_is_that_of_the_index_lists(monkeypatch):
+    """Flat indices, a few voxels at a time (``GATHER_CHUNK``, small here): the reference's share."""
+    from dsareg_engine.io import bone_plates as module
+
+    monkeypatch.setattr(module, "GATHER_CHUNK", 7)
     rng = np.random.default_rng(4)
     for _ in range(60):
         shape = tuple(int(n) for n in rng.integers(1, 18, 3))
