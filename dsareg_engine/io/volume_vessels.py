@@ -528,10 +528,22 @@ class _MraGround:
     air: float
 
 
+def _mra_interior(head: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """The head deeper than ``MRA_SHELL_MM`` under its surface (the scalp's bright fat lies in that shell).
+
+    Where the volume's faces cut the head, the cut is surface too (a whole head cut at the neck: its face holds the
+    bottom of the scalp), unless measuring from the faces leaves less than half of the interior measured from the
+    air alone: a TOF slab, whose faces cut through the brain across the whole head."""
+    from_air = head & ~within_mm(~head, spacing, MRA_SHELL_MM)
+    outside = np.pad(~head, 1, constant_values=True)
+    from_faces = head & ~within_mm(outside, spacing, MRA_SHELL_MM)[1:-1, 1:-1, 1:-1]
+    return from_faces if from_faces.sum() >= 0.5 * from_air.sum() else from_air
+
+
 def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
                 field_name: str) -> _MraGround:
     head = _head_mask(smooth, affine)
-    interior = head & ~within_mm(~head, spacing, MRA_SHELL_MM)  # deeper than the shell under the surface
+    interior = _mra_interior(head, spacing)
     if interior.sum() < 1000:
         raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
     tissue, spread = _mode_and_upper_spread(smooth[interior])

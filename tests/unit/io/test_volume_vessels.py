@@ -145,3 +145,30 @@ def test_a_released_volume_reads_the_same_and_lets_its_grid_go():
     assert np.array_equal(a.mesh.vertices, b.mesh.vertices) and np.array_equal(a.mesh.faces, b.mesh.faces)
     assert a.readout.to_dict() == b.readout.to_dict() and a.readout.decisions == b.readout.decisions
     assert b.kept.shape == shape and np.array_equal(a.kept, b.kept)
+
+
+def _ball_head(shape: tuple[int, int, int], centre_z: float) -> np.ndarray:
+    """A 1-mm-voxel ball of radius 40 mm, centred in x, y and at ``centre_z`` along z (so the grid may cut it)."""
+    z, y, x = np.indices(shape, dtype=np.float32)
+    return (x - shape[2] / 2) ** 2 + (y - shape[1] / 2) ** 2 + (z - centre_z) ** 2 <= 40.0 ** 2
+
+
+def test_an_mra_heads_interior_keeps_its_shell_from_a_face_that_cuts_it_at_the_neck():
+    """A whole head cut by the grid's bottom face (its scalp's bottom lies in that face): the interior stays the shell's
+    depth away from the cut as well as from the air (on 7a41475 it reached the face, with the scalp's fat in it)."""
+    from dsareg_engine.io.volume_vessels import MRA_SHELL_MM, _mra_interior
+
+    head = _ball_head((70, 90, 90), centre_z=32.0)  # the ball's bottom 8 mm are cut away by the face z = 0
+    interior = _mra_interior(head, np.ones(3))
+    assert head[0].any() and interior.any()
+    assert not interior[: int(MRA_SHELL_MM)].any()
+
+
+def test_an_mra_slab_measures_its_interior_from_the_air_alone():
+    """A 12-mm TOF slab through the head: measured from its faces too, nothing would be left; from the air, the
+    slab's middle is interior."""
+    from dsareg_engine.io.volume_vessels import _mra_interior
+
+    head = _ball_head((12, 90, 90), centre_z=6.0)
+    interior = _mra_interior(head, np.ones(3))
+    assert interior[0].sum() > 0.25 * head[0].sum()
