@@ -535,6 +535,8 @@ def _mra_interior(head: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     bottom of the scalp), unless measuring from the faces leaves less than half of the interior measured from the
     air alone: a TOF slab, whose faces cut through the brain across the whole head."""
     from_air = head & ~within_mm(~head, spacing, MRA_SHELL_MM)
+    if not any(face.any() for axis in range(3) for face in (head.take(0, axis), head.take(-1, axis))):
+        return from_air  # no face cuts the head: measuring from the faces too changes nothing
     outside = np.pad(~head, 1, constant_values=True)
     from_faces = head & ~within_mm(outside, spacing, MRA_SHELL_MM)[1:-1, 1:-1, 1:-1]
     return from_faces if from_faces.sum() >= 0.5 * from_air.sum() else from_air

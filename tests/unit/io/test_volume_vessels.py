@@ -172,3 +172,12 @@ def test_an_mra_slab_measures_its_interior_from_the_air_alone():
     head = _ball_head((12, 90, 90), centre_z=6.0)
     interior = _mra_interior(head, np.ones(3))
     assert interior[0].sum() > 0.25 * head[0].sum()
+
+
+def test_an_mra_head_no_face_cuts_has_the_interior_measured_from_the_air():
+    """No face cuts the head: the faces add nothing, so the interior is the air-measured one (computed once)."""
+    from dsareg_engine.io.volume_vessels import MRA_SHELL_MM, _mra_interior
+    from dsareg_engine.io.voxel_band import within_mm
+
+    head = _ball_head((90, 90, 90), centre_z=45.0)
+    assert np.array_equal(_mra_interior(head, np.ones(3)), head & ~within_mm(~head, np.ones(3), MRA_SHELL_MM))
