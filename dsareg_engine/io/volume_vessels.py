@@ -244,55 +244,79 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
 
     field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
     read_mask = mask
-    mask, plates, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
+    found = _plates_found(mask, spacing, bone_of(smooth, excluded, levels))
+    plates = found.plates
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside, box = np.zeros(plates.shape, bool), bounding_box(plates, margin=rim)
         set_aside[box] = grown(plates[box], rim)
-        del field, mask, excluded, read_mask  # the first reading's: not held through the second
+        del field, mask, excluded, read_mask, found  # the first reading's: not held through the second
         field, mask, levels, excluded = read(set_aside)
         del set_aside
         read_mask = mask
-        mask, more, plate_share = _without_plates(mask, spacing, field_name, bone_of(smooth, excluded, levels))
-        plates |= more
+        found = _plates_found(mask, spacing, bone_of(smooth, excluded, levels))
+        plates = plates | found.plates
+    mask, plate_share = _without_plates(mask, found, field_name)
+    del found  # its rest (the mask's box): not held through the surface's field
     if field is None:  # CTA: the surface's field, of the last reading, made once the plate measure's peak is over
         field = _cta_field(smooth, ground, read_mask, levels)
     return field, mask, levels, excluded | plates, plate_share
 
 
-def _without_plates(mask: np.ndarray, spacing: np.ndarray, field_name: str, bone_of):
-    """``mask`` without its bone plates (:func:`.bone_plates.bone_plates`), its largest tube components kept; what was set
-    aside; and the plate share of the mask returned when it is ``mask`` itself (else None: measure it again).
-    Unchanged when the plate share is below the close-call band (vessels alone) or no plate part is bone.
-    ``bone_of(box)``: what bone plates lie against, within ``box`` (CTA: bone and its partial-volume band
-    beyond the kept voxels; MRA: :func:`_dark_or_surface`), computed only when the pass runs. Worked in the mask's
-    box (the plates, their rim and the rest lie in it)."""
-    from scipy import ndimage
+@dataclass(frozen=True)
+class _PlatesFound:
+    """What :func:`_plates_found` measured of a reading's mask: its ``plates`` (bool, the mask's shape; none when
+    the mask is left as read), the plate share (``None``: measure the kept mask again) and, when plates are set
+    aside, the mask's ``box`` and what is left of it there (``rest``: the plates and their neighbours removed)."""
 
+    plates: np.ndarray
+    share: float | None
+    box: tuple[slice, ...] | None = None
+    rest: np.ndarray | None = None
+    rim_steps: int = 1
+
+
+def _plates_found(mask: np.ndarray, spacing: np.ndarray, bone_of) -> _PlatesFound:
+    """The bone plates of ``mask`` (:func:`.bone_plates.bone_plates`). None when the plate share is below the
+    close-call band (vessels alone) or no plate part is bone, or when nothing tube-like (< 8 voxels) would remain
+    (the reading is then refused as it is). ``bone_of(box)``: what bone plates lie against, within ``box`` (CTA:
+    bone and its partial-volume band beyond the kept voxels; MRA: :func:`_dark_or_surface`), computed only when
+    the measure finds plate parts. Worked in the mask's box (the plates, their rim and the rest lie in it)."""
     shape = medial_shape(mask, spacing, with_parts=True)
-    plate = shape.plate
-    if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not plate.any():  # vessels: left as read
-        return mask, np.zeros(mask.shape, bool), shape.plate_share
-    large = bone_plates(plate, spacing, bone_of)
+    none = np.zeros(mask.shape, bool)
+    if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not shape.plate.any():  # vessels: left as read
+        return _PlatesFound(none, shape.plate_share)
+    large = bone_plates(shape.plate, spacing, bone_of)
     if not large.any():
-        return mask, large, shape.plate_share
+        return _PlatesFound(large, shape.plate_share)
     box = bounding_box(mask, margin=1)
     rest = mask[box] & ~grown(large[box])
     if rest.sum() < 8:
-        return mask, np.zeros(mask.shape, bool), shape.plate_share  # nothing tube-like remains: refused
-    # what the plate leaves behind (its rim, fragments) touches it; a vessel apart from the largest does not
-    labels, count = ndimage.label(rest)
+        return _PlatesFound(none, shape.plate_share)  # nothing tube-like remains: refused
+    return _PlatesFound(large, None, box, rest, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
+
+
+def _without_plates(mask: np.ndarray, found: _PlatesFound, field_name: str) -> tuple[np.ndarray, float | None]:
+    """``mask`` without the plates ``found`` in it, its largest tube components kept, and the plate share of the
+    mask returned when it is ``mask`` itself (else None: measure it again). What the plate leaves behind (its rim,
+    fragments) touches it; a vessel apart from the largest does not."""
+    from scipy import ndimage
+
+    if found.rest is None:
+        return mask, found.share
+    box, large = found.box, found.plates
+    labels, count = ndimage.label(found.rest)
     sizes = label_sizes(labels, count)
     sizes[0] = 0  # the background
-    near = grown(large[box], max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
+    near = grown(large[box], found.rim_steps)
     touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
     keep = np.ones(count + 1, bool)
     keep[0] = False
     keep[touching[touching != int(np.argmax(sizes))]] = False
     kept = np.zeros(mask.shape, bool)
     kept[box] = keep[labels]
-    del labels, near, rest  # the box's labels (int32) are not held through the next labelling
-    return largest_components(kept, field_name=field_name), large, None
+    del labels, near  # the box's labels (int32) are not held through the next labelling
+    return largest_components(kept, field_name=field_name), None
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
