@@ -30,7 +30,8 @@ from .volume_kind import VolumeReading
 MEASURED: tuple[tuple[float, float, float], ...] = (
     # voxels, address-space growth MB, CPU s of the first read of a case (the volume's files already in memory, the
     # process warmed up as the service's validator is: ``python -m benchmarks.engine whole-head --intake``);
-    # 2 CPU cores x86_64, loaded by other engineers
+    # 2 CPU cores x86_64, loaded by other engineers, at 7a41475. Reads at 49c1c15 cost 60-86 % of these in memory and
+    # 44-49 % in CPU (docs/benchmarks/clinical.md): kept as upper bounds for costlier heads and slower CPUs
     (0.0, 40.0, 0.4),  # headers and the volume reader's first imports (a kept model's case: 39-42 MB, 0.3 s)
     (0.53e6, 49.0, 0.4),  # 75 x 75 x 95 at 1.2 mm (the service tests' small CTA: a small head)
     (3.6e6, 446.0, 7.4),  # 160 x 160 x 140 at 1.2 mm (a whole head, coarse voxels)
