@@ -4,17 +4,27 @@ The medial measure (:mod:`.medial_shape`) finds the plate-shaped parts of the vo
 set aside as bone when it is bone-sized (at least ``PLATE_PART_MM3``) and bone-placed (at least
 ``BONE_CONTACT_SHARE`` of its surface voxels touch what bone lies against). A vessel tree's plate-like stretches
 (close-packed loops, a bulge) are smaller or lie in tissue, and stay with the tree.
+
+A reading's mask is measured by :func:`plates_found` and cleaned by :func:`without_plates` (the plates, their rim
+and fragments removed, the largest tube components kept); the reading that is read again (its level estimated
+without the plates) cleans only its last mask.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from .voxel_steps import bounding_box, label_sizes
+from .medial_shape import medial_shape
+from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND
+from .volume_io import largest_components
+from .voxel_steps import bounding_box, grown, label_sizes
 
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
 BONE_CONTACT_SHARE = 0.5  # CTA/MRA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
+PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 
 
 def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
@@ -66,4 +76,61 @@ def bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -
     return float(touching / max(surface, 1))
 
 
-__all__ = ["BONE_CONTACT_SHARE", "PLATE_PART_MM3", "bone_contact", "bone_plates"]
+@dataclass(frozen=True)
+class PlatesFound:
+    """What :func:`plates_found` measured of a reading's mask: its ``plates`` (bool, the mask's shape; none when
+    the mask is left as read), the plate share (``None``: measure the kept mask again) and, when plates are set
+    aside, the mask's ``box`` and what is left of it there (``rest``: the plates and their neighbours removed)."""
+
+    plates: np.ndarray
+    share: float | None
+    box: tuple[slice, ...] | None = None
+    rest: np.ndarray | None = None
+    rim_steps: int = 1
+
+
+def plates_found(mask: np.ndarray, spacing: np.ndarray, bone_of) -> PlatesFound:
+    """The bone plates of ``mask`` (:func:`bone_plates`). None when the plate share is below the
+    close-call band (vessels alone) or no plate part is bone, or when nothing tube-like (< 8 voxels) would remain
+    (the reading is then refused as it is). ``bone_of(box)``: what bone plates lie against, within ``box`` (CTA:
+    bone and its partial-volume band beyond the kept voxels; MRA: :func:`.volume_vessels._dark_or_surface`), computed only when
+    the measure finds plate parts. Worked in the mask's box (the plates, their rim and the rest lie in it)."""
+    shape = medial_shape(mask, spacing, with_parts=True)
+    none = np.zeros(mask.shape, bool)
+    if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not shape.plate.any():  # vessels: left as read
+        return PlatesFound(none, shape.plate_share)
+    large = bone_plates(shape.plate, spacing, bone_of)
+    if not large.any():
+        return PlatesFound(large, shape.plate_share)
+    box = bounding_box(mask, margin=1)
+    rest = mask[box] & ~grown(large[box])
+    if rest.sum() < 8:
+        return PlatesFound(none, shape.plate_share)  # nothing tube-like remains: refused
+    return PlatesFound(large, None, box, rest, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
+
+
+def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tuple[np.ndarray, float | None]:
+    """``mask`` without the plates ``found`` in it, its largest tube components kept, and the plate share of the
+    mask returned when it is ``mask`` itself (else None: measure it again). What the plate leaves behind (its rim,
+    fragments) touches it; a vessel apart from the largest does not."""
+    from scipy import ndimage
+
+    if found.rest is None:
+        return mask, found.share
+    box, large = found.box, found.plates
+    labels, count = ndimage.label(found.rest)
+    sizes = label_sizes(labels, count)
+    sizes[0] = 0  # the background
+    near = grown(large[box], found.rim_steps)
+    touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
+    keep = np.ones(count + 1, bool)
+    keep[0] = False
+    keep[touching[touching != int(np.argmax(sizes))]] = False
+    kept = np.zeros(mask.shape, bool)
+    kept[box] = keep[labels]
+    del labels, near  # the box's labels (int32) are not held through the next labelling
+    return largest_components(kept, field_name=field_name), None
+
+
+__all__ = ["BONE_CONTACT_SHARE", "PLATE_PART_MM3", "PLATE_RIM_MM", "PlatesFound", "bone_contact", "bone_plates",
+           "plates_found", "without_plates"]

@@ -35,15 +35,14 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
-from .bone_plates import bone_plates
+from .bone_plates import PLATE_RIM_MM, plates_found, without_plates
 from .input_decisions import InputDecision
-from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
-from .voxel_steps import cube_minimum, grown, label_sizes
+from .voxel_steps import cube_minimum, grown
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -57,7 +56,6 @@ VESSEL_CONTRAST_MIN = {"cta": 100.0, "mra": 6.0}  # vessel over tissue: HU (CTA)
 VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast than this: a close call
 DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spreads: bone, air (CSF too)
 VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the way from the noise floor to the tissue
-PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
 HEAD_MARGIN_VOX = 6  # CTA: the head's box (above air) grown by this: past the smoothing (2 voxels) and the skin
@@ -225,7 +223,7 @@ def _labelled(volume: Volume, voxels: np.ndarray, labels: LabelMap, field_name: 
 def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
            field_name: str):
     """CTA / MRA: ``(field, mask, levels, excluded, plate_share)``. Bone in the window (a diploë, a cancellous skull
-    base, marrow fat) is a plate: set aside (:func:`_without_plates`). When plates were set aside and the vessel
+    base, marrow fat) is a plate: set aside (:func:`.bone_plates.without_plates`). When plates were set aside and the vessel
     level was estimated (not given), it was estimated with their voxels among the vessels' (a cancellous skull
     base outweighs the vessels: the level lands above thin vessels, and the distal tree falls apart at coarse
     voxels): the reading is done again with the plates and their rim left out of the estimate."""
@@ -244,7 +242,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
 
     field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
     read_mask = mask
-    found = _plates_found(mask, spacing, bone_of(smooth, excluded, levels))
+    found = plates_found(mask, spacing, bone_of(smooth, excluded, levels))
     plates = found.plates
     if plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
@@ -254,69 +252,13 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
         field, mask, levels, excluded = read(set_aside)
         del set_aside
         read_mask = mask
-        found = _plates_found(mask, spacing, bone_of(smooth, excluded, levels))
+        found = plates_found(mask, spacing, bone_of(smooth, excluded, levels))
         plates = plates | found.plates
-    mask, plate_share = _without_plates(mask, found, field_name)
+    mask, plate_share = without_plates(mask, found, field_name)
     del found  # its rest (the mask's box): not held through the surface's field
     if field is None:  # CTA: the surface's field, of the last reading, made once the plate measure's peak is over
         field = _cta_field(smooth, ground, read_mask, levels)
     return field, mask, levels, excluded | plates, plate_share
-
-
-@dataclass(frozen=True)
-class _PlatesFound:
-    """What :func:`_plates_found` measured of a reading's mask: its ``plates`` (bool, the mask's shape; none when
-    the mask is left as read), the plate share (``None``: measure the kept mask again) and, when plates are set
-    aside, the mask's ``box`` and what is left of it there (``rest``: the plates and their neighbours removed)."""
-
-    plates: np.ndarray
-    share: float | None
-    box: tuple[slice, ...] | None = None
-    rest: np.ndarray | None = None
-    rim_steps: int = 1
-
-
-def _plates_found(mask: np.ndarray, spacing: np.ndarray, bone_of) -> _PlatesFound:
-    """The bone plates of ``mask`` (:func:`.bone_plates.bone_plates`). None when the plate share is below the
-    close-call band (vessels alone) or no plate part is bone, or when nothing tube-like (< 8 voxels) would remain
-    (the reading is then refused as it is). ``bone_of(box)``: what bone plates lie against, within ``box`` (CTA:
-    bone and its partial-volume band beyond the kept voxels; MRA: :func:`_dark_or_surface`), computed only when
-    the measure finds plate parts. Worked in the mask's box (the plates, their rim and the rest lie in it)."""
-    shape = medial_shape(mask, spacing, with_parts=True)
-    none = np.zeros(mask.shape, bool)
-    if shape.plate_share < MAX_PLATE_FRACTION - PLATE_BAND or not shape.plate.any():  # vessels: left as read
-        return _PlatesFound(none, shape.plate_share)
-    large = bone_plates(shape.plate, spacing, bone_of)
-    if not large.any():
-        return _PlatesFound(large, shape.plate_share)
-    box = bounding_box(mask, margin=1)
-    rest = mask[box] & ~grown(large[box])
-    if rest.sum() < 8:
-        return _PlatesFound(none, shape.plate_share)  # nothing tube-like remains: refused
-    return _PlatesFound(large, None, box, rest, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
-
-
-def _without_plates(mask: np.ndarray, found: _PlatesFound, field_name: str) -> tuple[np.ndarray, float | None]:
-    """``mask`` without the plates ``found`` in it, its largest tube components kept, and the plate share of the
-    mask returned when it is ``mask`` itself (else None: measure it again). What the plate leaves behind (its rim,
-    fragments) touches it; a vessel apart from the largest does not."""
-    from scipy import ndimage
-
-    if found.rest is None:
-        return mask, found.share
-    box, large = found.box, found.plates
-    labels, count = ndimage.label(found.rest)
-    sizes = label_sizes(labels, count)
-    sizes[0] = 0  # the background
-    near = grown(large[box], found.rim_steps)
-    touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
-    keep = np.ones(count + 1, bool)
-    keep[0] = False
-    keep[touching[touching != int(np.argmax(sizes))]] = False
-    kept = np.zeros(mask.shape, bool)
-    kept[box] = keep[labels]
-    del labels, near  # the box's labels (int32) are not held through the next labelling
-    return largest_components(kept, field_name=field_name), None
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
