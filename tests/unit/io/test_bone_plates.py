@@ -49,3 +49,40 @@ def test_a_large_plate_against_bone_is_bone_and_one_in_tissue_or_a_small_one_is_
     found = bone_plates(plate, spacing, lambda box: bone[box])
     assert found[5:55, 5:25, 10:14].all()
     assert not found[5:55, 35:55, 25:29].any() and not found[28:31, 28:31, 32:35].any()
+
+
+def _diploe_and_a_vessel():
+    """A 30 x 30 x 2.5 mm diploë between two cortical tables (bone) and a 1-mm vessel running beside it, 0.5 mm
+    voxels; the vessel passes 1 mm from the plate at one end (its rim) and is the largest tube."""
+    spacing = np.array([0.5, 0.5, 0.5])
+    mask = np.zeros((70, 70, 50), bool)
+    mask[5:65, 5:65, 10:15] = True  # the diploë: 60 x 60 x 5 voxels
+    bone = np.zeros(mask.shape, bool)
+    bone[:, :, 9] = bone[:, :, 15] = True
+    z, y = np.ogrid[:50, :70]
+    tube = (z - 30) ** 2 + (y - 35) ** 2 <= 4  # radius 2 voxels, along the first axis
+    mask[2:68] |= tube[None].transpose(0, 2, 1)
+    return mask, bone, spacing
+
+
+def test_a_reading_s_plates_are_found_and_its_tube_kept():
+    from dsareg_engine.io.bone_plates import plates_found, without_plates
+
+    mask, bone, spacing = _diploe_and_a_vessel()
+    found = plates_found(mask, spacing, lambda box: bone[box])
+    assert found.share is None and found.plates[20:50, 20:50, 11:14].all()  # the diploë's inside is set aside
+    assert not (found.plates & ~mask).any()
+    kept, share = without_plates(mask, found, "volume")
+    assert share is None  # measure the kept mask again
+    assert kept[10:60, 35, 30].all() and not kept[20:50, 20:50, 10:15].any()  # the vessel, not the plate
+
+
+def test_a_mask_of_tubes_is_left_as_read():
+    from dsareg_engine.io.bone_plates import plates_found, without_plates
+
+    mask, bone, spacing = _diploe_and_a_vessel()
+    mask[:, :, 10:15] = False  # the vessel alone
+    found = plates_found(mask, spacing, lambda box: bone[box])
+    assert not found.plates.any() and found.share is not None and found.share < 0.5
+    kept, share = without_plates(mask, found, "volume")
+    assert kept is mask and share == found.share
