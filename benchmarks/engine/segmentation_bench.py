@@ -15,6 +15,10 @@ it. Methods:
 Per image: Dice, precision, recall, coverage (mask / image), and the share of the mask within
 ``max(3, 1.2 % of the side)`` px of the field of view's edge (the field found from the image). ``--pictures DIR``
 writes image | label | mask strips for the worst, median and best network images.
+
+``--emulate second-site`` scores the same methods on the images made second-site-like by
+:func:`benchmarks.engine.site_emulation.second_site` (512 px, a square crop inside the round field, a rectangular
+collimator, only the main arteries labelled; ``--seed``), against the main-artery label and the whole-tree label.
 """
 
 from __future__ import annotations
@@ -110,17 +114,23 @@ def _summary(rows: list[dict], method: str) -> str:
             f"{np.median(values['seconds']):.3f} |")
 
 
-def _pictures(rows: list[dict], images, masks: dict, out: Path) -> None:
+def _pictures(rows: list[dict], images, masks: dict, out: Path, wholes: list | None = None) -> None:
+    """Image | label | network mask strips; with ``wholes`` (the emulated second site) the label panel shows the
+    main arteries white and the rest of the whole tree grey."""
     from PIL import Image
 
     out.mkdir(parents=True, exist_ok=True)
+    prefix = "segmentation-site2" if wholes is not None else "segmentation"
     order = sorted(range(len(rows)), key=lambda i: rows[i]["network"]["dice"])
     for tag, index in (("worst", order[0]), ("median", order[len(order) // 2]), ("best", order[-1])):
         item = images[index]
         grey = np.clip(item.pixels, 0, 255).astype(np.uint8)
-        strip = np.concatenate([grey, item.label.astype(np.uint8) * 255, masks[index].astype(np.uint8) * 255], axis=1)
-        Image.fromarray(strip).save(out / f"segmentation-{tag}-{item.name}.png")
-        print(f"{out}/segmentation-{tag}-{item.name}.png: image | label | network mask "
+        label = item.label.astype(np.uint8) * 255
+        if wholes is not None:
+            label = np.where(item.label, 255, np.where(wholes[index], 110, 0)).astype(np.uint8)
+        strip = np.concatenate([grey, label, masks[index].astype(np.uint8) * 255], axis=1)
+        Image.fromarray(strip).save(out / f"{prefix}-{tag}-{item.name}.png")
+        print(f"{out}/{prefix}-{tag}-{item.name}.png: image | label | network mask "
               f"(Dice {rows[index]['network']['dice']:.3f})")
 
 
@@ -151,28 +161,49 @@ def bench_segmentation(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     images = labelled_images(Path(args.data))
     networks = fold_networks(images, args) if "network" in args.methods else []
-    rows, network_masks = [], {}
-    print("| image | " + " | ".join(f"{method} Dice" for method in args.methods) + " |")
-    print(f"|---|{'---|' * len(args.methods)}")
+    wholes = None
+    if args.emulate == "second-site":
+        images, wholes, true_fields = _second_site(images, args.seed)
+    rows, whole_rows, network_masks = [], [], {}
+    columns = [f"{method} Dice" for method in args.methods]
+    if wholes is not None:
+        columns = [f"{c} (main)" for c in columns] + [f"{c} (whole)" for c in columns]
+    print("| image | " + " | ".join(columns) + " |")
+    print(f"|---|{'---|' * len(columns)}")
     for index, item in enumerate(images):
         field = estimate_field_of_view(item.pixels)
-        row = {}
+        row, whole_row = {}, {}
         for method in args.methods:
             mask, seconds = _segment(method, item, networks)
             row[method] = {**scores(mask, item.label, field), "seconds": seconds}
+            if wholes is not None:
+                row[method]["edge_true"] = scores(mask, item.label, true_fields[index])["edge"]
+                whole_row[method] = {**scores(mask, wholes[index], field), "seconds": seconds}
             if method == "network":
                 network_masks[index] = mask
         if "network" in row and "dsa" in row:
             row["agreement"] = _agreement(item, network_masks[index], networks)
         rows.append(row)
+        whole_rows.append(whole_row)
         dices = " | ".join(f"{row[method]['dice']:.3f}" for method in args.methods)
+        if wholes is not None:
+            dices += " | " + " | ".join(f"{whole_row[method]['dice']:.3f}" for method in args.methods)
         print(f"| {item.name} | {dices} |", flush=True)
     print(f"\n{len(images)} images, {args.folds}-fold cross-validation for the network\n")
-    print("| method | Dice median | Dice p10 | Dice mean | precision median | recall median | coverage % median / max "
-          "| on the field's edge % median / max | s per image median |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for method in args.methods:
-        print(_summary(rows, method))
+    for title, table in (("main-artery label", rows), ("whole-tree label", whole_rows)) if wholes is not None \
+            else (("label", rows),):
+        if wholes is not None:
+            print(f"\nagainst the {title}:\n")
+        print("| method | Dice median | Dice p10 | Dice mean | precision median | recall median | coverage % median / "
+              "max | on the field's edge % median / max | s per image median |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for method in args.methods:
+            print(_summary(table, method))
+    if wholes is not None:
+        print("\nshare of the mask on the collimator's true edge (the same band around the blades' penumbra middle, "
+              "semi-transparent blades included), % median / max: " + "; ".join(
+                  f"{method} {np.median([r[method]['edge_true'] for r in rows]) * 100:.2f} / "
+                  f"{max(r[method]['edge_true'] for r in rows) * 100:.2f}" for method in args.methods))
     if rows and "agreement" in rows[0]:
         agreement, explained, flat = (np.array([row["agreement"][k] for row in rows]) for k in (0, 1, 2))
         keeps_dsa = (agreement >= AGREEMENT_DICE) & (explained >= EXPLAINED_SHARE)
@@ -182,8 +213,23 @@ def bench_segmentation(args: argparse.Namespace) -> int:
               f"the flat-field correction on {int(flat.sum())}); `auto` keeps dsa on "
               f"{int(keeps_dsa.sum())} of {len(rows)} (Dice >= {AGREEMENT_DICE} and share >= {EXPLAINED_SHARE})")
     if args.pictures and network_masks:
-        _pictures(rows, images, network_masks, Path(args.pictures))
+        _pictures(rows, images, network_masks, Path(args.pictures), wholes)
     return 0
+
+
+def _second_site(images, seed: int) -> tuple[list, list, list]:
+    """The images made second-site-like (:mod:`.site_emulation`): ``(images with the main-artery label, the
+    whole-tree labels, the collimators' true fields)``; names kept, so each stays in its fold."""
+    from dsareg_engine.vision.angiogram.training import LabelledImage
+
+    from .site_emulation import second_site
+
+    sites = [second_site(item.name, item.pixels, item.label, seed) for item in images]
+    for site in sites:
+        print(f"# {site.name}: crop (row, col, side) {site.framing['crop']}, x{site.framing['scale']}, blades "
+              f"(side, px, transmission, penumbra px) {site.framing['blades']}")
+    return ([LabelledImage(site.name, site.pixels, site.label) for site in sites],
+            [site.whole for site in sites], [site.inside for site in sites])
 
 
 def add_parser(which) -> None:
@@ -197,4 +243,7 @@ def add_parser(which) -> None:
     sub.add_argument("--iterations", type=int, default=1000, help="optimiser steps per fold network")
     sub.add_argument("--pictures", metavar="DIR", help="write image | label | mask strips here")
     sub.add_argument("--threads", type=int, default=2, help="torch threads")
+    sub.add_argument("--emulate", choices=("second-site",), help="score on the images made second-site-like "
+                     "(512 px, square crop, rectangular collimator, main arteries labelled: site_emulation.py)")
+    sub.add_argument("--seed", type=int, default=0, help="seed of --emulate (default 0)")
     sub.set_defaults(func=bench_segmentation)
