@@ -18,15 +18,31 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 GRID_VOX = (512, 512, 440)
 VOXEL_MM = 0.45
 HEAD_MM = (70.0, 85.0, 70.0)  # the skull's inner half-extents (a head, not the tree's box)
+SWEEP = (  # (kind, voxel mm per axis, scanner grid): the issue's 512² × 300–600 slices at 0.3–0.6 mm, anisotropic
+    ("cta", (0.4, 0.4, 0.3), (512, 512, 600)),
+    ("cta", (0.4, 0.4, 0.45), (512, 512, 400)),
+    ("cta", (0.4, 0.4, 0.6), (512, 512, 300)),
+    ("cta", (0.5, 0.5, 0.3), (512, 512, 600)),
+    ("cta", (0.5, 0.5, 0.45), (512, 512, 400)),
+    ("cta", (0.5, 0.5, 0.6), (512, 512, 300)),
+    ("mra", (0.4, 0.4, 0.5), (512, 512, 160)),  # a TOF slab: 80 mm from the skull base up, the head cut above
+    ("mra", (0.35, 0.35, 0.3), (512, 512, 300)),  # 90 mm
+)
+"""The ``--sweep`` cells: whole-head CTAs 180 mm tall (a 205 or 256 mm field), TOF-MRA slabs through the head."""
 
 
 def add_parser(which) -> None:
     sub = which.add_parser("whole-head", help="a whole-head CTA (512 x 512 x 440 at 0.45 mm): CPU s and peak RSS of "
                                               "two jobs on it (the second takes the kept model)")
     sub.add_argument("--voxel", type=float, default=VOXEL_MM, help="voxel size, mm (isotropic)")
+    sub.add_argument("--sweep", action="store_true",
+                     help="the first job of each cell of SWEEP (whole-head CTAs 512² × 300–600 slices at 0.3–0.6 "
+                          "mm, TOF-MRA slabs): CPU s and peak RSS per cell")
     sub.add_argument("--grid", default="x".join(map(str, GRID_VOX)), help="the scanner's grid, e.g. 512x512x440")
     sub.add_argument("--intake", action="store_true",
                      help="each job's read only, as the service's validator makes it (warmed up first): its address-"
@@ -35,15 +51,16 @@ def add_parser(which) -> None:
     sub.set_defaults(func=bench_whole_head)
 
 
-def _write_case(folder: Path, voxel_mm: float, grid: tuple[int, int, int]) -> Path:
+def _write_case(folder: Path, voxel_mm, grid: tuple[int, int, int], kind: str = "cta") -> Path:
     from dsareg_engine.io.case import CaseFiles
-    from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head
+    from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
     from dsareg_engine.simulation.synthetic_volumes import fitting_pixel_spacing_mm, vessel_tree, volume_case_of
 
     from .clinical_volumes import TREE_DEPTH, VolumeCaseFiles
 
     tree = vessel_tree(TREE_DEPTH, 3)
-    volume = make_layered_cta_head(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid)
+    make = make_layered_cta_head if kind == "cta" else make_layered_mra_head
+    volume = make(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid)
     case = volume_case_of(volume, image_px=256, pixel_spacing_mm=fitting_pixel_spacing_mm(tree, 256))
     files = CaseFiles(ap=case.ap, ap_name="ap.dcm", lat=case.lat, lat_name="lat.dcm", volume=volume.parts,
                       volume_name="series.dcm")
@@ -134,6 +151,8 @@ def peak_rss_kb() -> int:
 
 
 def bench_whole_head(args) -> int:
+    if getattr(args, "sweep", False):
+        return _bench_sweep()
     grid = tuple(int(v) for v in args.grid.lower().split("x"))
     with tempfile.TemporaryDirectory() as folder:
         print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} CTA at {args.voxel:g} mm ...", flush=True)
@@ -143,14 +162,42 @@ def bench_whole_head(args) -> int:
         print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")
         print("|---|---|---|---|---|---|---|---|---|")
         for job in ("1: reads the volume", "2: the kept model"):
-            code = ("import json, sys; from benchmarks.engine.whole_head import run_job; "
-                    "print(json.dumps(run_job(sys.argv[1], sys.argv[2])))")
-            out = subprocess.run([sys.executable, "-c", code, str(case_path), str(Path(folder) / "models")],
-                                 capture_output=True, text=True, check=True)
-            row = json.loads(out.stdout.strip().splitlines()[-1])
+            row = _job_row(case_path, Path(folder) / "models")
+            if "error" in row:
+                raise SystemExit(row["error"])
             print(f"| {job} | {row['read_cpu_s']:.1f} | {row['cpu_s']:.1f} | {row['wall_s']:.1f} | "
                   f"{row['peak_rss_gb']:.2f} | {row['add_mm']:.3f} | {row['verdict']} | {row['voxels_kept']} | "
                   f"{row['faces']} |", flush=True)
+    return 0
+
+
+def _job_row(case_path: Path, models: Path) -> dict:
+    """:func:`run_job` in a fresh process (its peak RSS is its own)."""
+    code = ("import json, sys; from benchmarks.engine.whole_head import run_job; "
+            "print(json.dumps(run_job(sys.argv[1], sys.argv[2])))")
+    out = subprocess.run([sys.executable, "-c", code, str(case_path), str(models)], capture_output=True, text=True,
+                         check=False)
+    if out.returncode != 0:  # a refusal (DsaregInputError) or a crash: its last line, in the table
+        return {"error": (out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[-1]}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _bench_sweep() -> int:
+    """The first job of each :data:`SWEEP` cell (a fresh model store each): read + registration with no pose."""
+    print("| kind | grid | voxel mm | voxels M | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | "
+          "voxels kept |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for kind, voxel, grid in SWEEP:
+        with tempfile.TemporaryDirectory() as folder:
+            case_path = _write_case(Path(folder), voxel, grid, kind)
+            row = _job_row(case_path, Path(folder) / "models")
+        size = " × ".join(map(str, grid))
+        cell = f"| {kind} | {size} | {' × '.join(f'{v:g}' for v in voxel)} | {np.prod(grid) / 1e6:.0f} | "
+        if "error" in row:
+            print(cell + f"{row['error'][:160]} | | | | | | |", flush=True)
+            continue
+        print(cell + f"{row['read_cpu_s']:.1f} | {row['cpu_s']:.1f} | {row['wall_s']:.1f} | {row['peak_rss_gb']:.2f} | "
+              f"{row['add_mm']:.3f} | {row['verdict']} | {row['voxels_kept']} |", flush=True)
     return 0
 
 
