@@ -4,7 +4,7 @@ comparison, and the mask's clean-up.
 
 * :mod:`.field_of_view` — where the detector sees the patient (the file's shutter, or flat border regions);
 * :mod:`.prepare` — polarity, working scale (≤ 512 px), normalisation inside the field;
-* :mod:`.unet`, :mod:`.learned` — the network and its inference (weights in ``weights/``);
+* :mod:`.unet`, :mod:`.learned` — the network and its inference at two scales (weights in ``weights/``);
 * :mod:`.augment`, :mod:`.training` — how the shipped weights were made (``python -m benchmarks.engine
   segmentation-train``);
 * :mod:`.classical` — black top-hat + Frangi + quantile hysteresis;
