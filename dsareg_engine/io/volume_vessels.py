@@ -503,9 +503,21 @@ def _mra_interior(head: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     from_air = head & ~within_mm(~head, spacing, MRA_SHELL_MM)
     if not any(face.any() for axis in range(3) for face in (head.take(0, axis), head.take(-1, axis))):
         return from_air  # no face cuts the head: measuring from the faces too changes nothing
-    outside = np.pad(~head, 1, constant_values=True)
-    from_faces = head & ~within_mm(outside, spacing, MRA_SHELL_MM)[1:-1, 1:-1, 1:-1]
+    from_faces = from_air & ~_near_faces(head.shape, spacing, MRA_SHELL_MM)
     return from_faces if from_faces.sum() >= 0.5 * from_air.sum() else from_air
+
+
+def _near_faces(shape, spacing: np.ndarray, band_mm: float) -> np.ndarray:
+    """bool, ``shape``: the voxels within ``band_mm`` of the grid's faces, a face being the layer of voxels just
+    outside the grid (``d × spacing ≤ band_mm``, ``d`` = 1 for a voxel on the border): what
+    :func:`.voxel_band.within_mm` adds to the air's band when the grid is padded by one outside layer (the nearest
+    voxel of a whole face layer is the one straight across, at an offset along one axis only)."""
+    out = np.zeros(shape, bool)
+    for axis, size in enumerate(shape):
+        steps = np.arange(1, size + 1, dtype=np.float64) * float(spacing[axis])  # to the face before index 0
+        near = (steps <= band_mm) | (steps[::-1] <= band_mm)
+        out |= near.reshape([-1 if b == axis else 1 for b in range(3)])
+    return out
 
 
 def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,

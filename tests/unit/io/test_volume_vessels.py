@@ -181,3 +181,19 @@ def test_an_mra_head_no_face_cuts_has_the_interior_measured_from_the_air():
 
     head = _ball_head((90, 90, 90), centre_z=45.0)
     assert np.array_equal(_mra_interior(head, np.ones(3)), head & ~within_mm(~head, np.ones(3), MRA_SHELL_MM))
+
+
+def test_the_band_of_the_faces_is_that_of_a_padded_grid():
+    """The faces' band (:func:`_near_faces`) added to the air's is the band of the grid padded with one outside
+    layer (the measure before): the same voxels, for anisotropic voxels and bands dilated or transformed."""
+    from dsareg_engine.io.volume_vessels import _near_faces
+    from dsareg_engine.io.voxel_band import within_mm
+
+    rng = np.random.default_rng(7)
+    for spacing, band in (((1.0, 1.0, 1.0), 7.0), ((0.5, 0.4, 0.4), 3.0), ((0.6, 0.3, 0.3), 2.1), ((0.3, 0.3, 0.3), 1.2),
+                          ((0.5, 0.5, 0.5), 5.0)):  # the last: a band too wide to dilate (transformed by slabs)
+        spacing = np.asarray(spacing)
+        shape = tuple(int(n) for n in rng.integers(12, 30, 3))
+        air = rng.random(shape) < 0.02
+        padded = within_mm(np.pad(air, 1, constant_values=True), spacing, band)[1:-1, 1:-1, 1:-1]
+        assert np.array_equal(padded, within_mm(air, spacing, band) | _near_faces(shape, spacing, band))
