@@ -70,10 +70,13 @@ def _occupancy(tree: TriangleMesh, affine: np.ndarray, shape) -> np.ndarray:
     # the fine occupancy sampled at each coarse voxel, averaged over the voxel (box filter, then trilinear)
     box = np.maximum(1, np.round(spacing / fine).astype(int))
     smooth = ndimage.uniform_filter(grid, size=tuple(box))
+    # an even box's mean at index i is centred half a fine voxel before it (its window is i - box//2 … i + box//2 - 1):
+    # sampled half a voxel later, every axis's box is centred on the coarse voxel's centre (0.1 mm at 0.4-mm voxels)
+    centring = box // 2 - (box - 1) / 2.0
     first = np.maximum(np.floor((tree.vertices.min(0) - affine[:3, 3]) / spacing).astype(int) - 2, 0)
     last = np.minimum(np.ceil((tree.vertices.max(0) - affine[:3, 3]) / spacing).astype(int) + 3, shape)
     ijk = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(first, last)], indexing="ij"), -1)
-    where = (ijk.reshape(-1, 3) * spacing + affine[:3, 3] - origin) / fine
+    where = (ijk.reshape(-1, 3) * spacing + affine[:3, 3] - origin) / fine + centring
     out = np.zeros(tuple(shape), np.float32)
     box_values = ndimage.map_coordinates(smooth, where.T, order=1, mode="constant").reshape(ijk.shape[:3])
     out[first[0]:last[0], first[1]:last[1], first[2]:last[2]] = box_values
