@@ -103,8 +103,7 @@ def vessel_probability(pixels: np.ndarray, field: np.ndarray | None = None, *, v
     probability = network_probability(model, work.network_input)
     probability[~work.field] = 0.0
     if reading is not None and reading.factor > 1 and min(work.field.shape) >= reading.factor * reading.min_side_px:
-        small = shrunk(np.asarray(pixels, np.float32), work.factor)
-        coarse_pixels = shrunk(small, reading.factor)
+        coarse_pixels = shrunk(work.pixels, reading.factor)
         coarse_field = shrunk(work.field.astype(np.float32), reading.factor) >= 0.5
         coarse = network_probability(model, normalized(coarse_pixels, coarse_field, vessels_dark=vessels_dark))
         coarse[~coarse_field] = 0.0

@@ -70,12 +70,14 @@ def normalized(pixels: np.ndarray, field: np.ndarray, *, vessels_dark: bool = Tr
 @dataclass(frozen=True)
 class WorkingImage:
     """An image at the working scale. Attributes: network_input (h, w) float32 (:func:`normalized`); field (h, w)
-    bool, the field of view there; factor: the averaging factor; shape: the original (H, W)."""
+    bool, the field of view there; factor: the averaging factor; shape: the original (H, W); pixels (h, w) float32:
+    the averaged image before normalising (a coarser reading starts from it)."""
 
     network_input: np.ndarray
     field: np.ndarray
     factor: int
     shape: tuple[int, int]
+    pixels: np.ndarray | None = None
 
     def back(self, values: np.ndarray) -> np.ndarray:
         """``values (h, w)`` on the original pixels (bilinear), clipped to [0, 1]."""
@@ -94,4 +96,5 @@ def working_image(pixels: np.ndarray, field: np.ndarray | None = None, *, vessel
     small = shrunk(image, factor)
     small_file_field = None if field is None else shrunk(field.astype(np.float32), factor) >= 0.5
     small_field = combined_field_of_view(estimate_field_of_view(small), small_file_field)
-    return WorkingImage(normalized(small, small_field, vessels_dark=vessels_dark), small_field, factor, image.shape)
+    return WorkingImage(normalized(small, small_field, vessels_dark=vessels_dark), small_field, factor, image.shape,
+                        small)
