@@ -134,21 +134,26 @@ def _pictures(rows: list[dict], images, masks: dict, out: Path, wholes: list | N
               f"(Dice {rows[index]['network']['dice']:.3f})")
 
 
-def _agreement(item, network_mask: np.ndarray, networks) -> tuple[float, float, bool]:
+def _agreement(item, network_mask: np.ndarray, networks) -> tuple[float, float, bool, bool]:
     """What ``auto`` compares: the ``dsa`` mask (inside the collimated field) against the network's: their Dice,
-    the share of the ``dsa`` mask within 2 px of the network's, and whether that was the network's reading after the
-    flat-field correction (``segmentation_choice.judged``; the image's own fold network reads both)."""
+    the share of the ``dsa`` mask within 2 px of the network's, whether that was the network's reading after the
+    flat-field correction (``segmentation_choice.judged_reading``; the image's own fold network reads both), and
+    whether ``auto`` keeps ``dsa`` (``segmentation_choice.keeps_dsa``, its sparse-tree rule included)."""
     from dsareg_engine.vision.angiogram.learned import vessel_probability
     from dsareg_engine.vision.angiogram.vessel_mask import vessel_mask
     from dsareg_engine.vision.segmentation import segment_vessels
-    from dsareg_engine.vision.segmentation_choice import collimated_inside, judged
     from dsareg_engine.vision.angiogram.field_of_view import estimate_field_of_view
+    from dsareg_engine.vision.segmentation_choice import (agrees, collimated_inside, judged_reading, keeps_dsa,
+                                                          sparse_and_attached)
 
     model = next(model for held_out, model in networks if item.name in held_out)
     field = estimate_field_of_view(item.pixels)
-    dsa_mask = segment_vessels(item.pixels, "dsa") & collimated_inside(field)
-    return judged(item.pixels, dsa_mask, network_mask, field,
-                  lambda image: vessel_mask(*vessel_probability(image, model=model))[0])
+    inside = collimated_inside(field)
+    dsa_mask = segment_vessels(item.pixels, "dsa") & inside
+    agreement, explained, flat, decided = judged_reading(
+        item.pixels, dsa_mask, network_mask, field, lambda image: vessel_mask(*vessel_probability(image, model=model))[0])
+    coverage, attached = (None, None) if agrees(agreement, explained) else sparse_and_attached(dsa_mask, decided, inside)
+    return agreement, explained, flat, keeps_dsa(agreement, explained, coverage, attached)
 
 
 def bench_segmentation(args: argparse.Namespace) -> int:
@@ -205,13 +210,13 @@ def bench_segmentation(args: argparse.Namespace) -> int:
                   f"{method} {np.median([r[method]['edge_true'] for r in rows]) * 100:.2f} / "
                   f"{max(r[method]['edge_true'] for r in rows) * 100:.2f}" for method in args.methods))
     if rows and "agreement" in rows[0]:
-        agreement, explained, flat = (np.array([row["agreement"][k] for row in rows]) for k in (0, 1, 2))
-        keeps_dsa = (agreement >= AGREEMENT_DICE) & (explained >= EXPLAINED_SHARE)
+        agreement, explained, flat, keeps_dsa = (np.array([row["agreement"][k] for row in rows]) for k in (0, 1, 2, 3))
         print(f"\n`auto`'s dsa / network comparison (the network cross-validated): masks' Dice median "
               f"{np.median(agreement):.3f}, max {agreement.max():.3f}; share of the dsa mask within 2 px of the "
               f"network's median {np.median(explained):.3f}, max {explained.max():.3f} (the network's reading after "
               f"the flat-field correction on {int(flat.sum())}); `auto` keeps dsa on "
-              f"{int(keeps_dsa.sum())} of {len(rows)} (Dice >= {AGREEMENT_DICE} and share >= {EXPLAINED_SHARE})")
+              f"{int(keeps_dsa.sum())} of {len(rows)} (Dice >= {AGREEMENT_DICE} and share >= {EXPLAINED_SHARE}, or its "
+              "mask a sparse tree joined to the shared part: segmentation_choice.keeps_dsa)")
     if args.pictures and network_masks:
         _pictures(rows, images, network_masks, Path(args.pictures), wholes)
     return 0
