@@ -19,7 +19,7 @@ import numpy as np
 from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND
 from .volume_io import largest_components
-from .voxel_steps import bounding_box, grown, label_sizes
+from .voxel_steps import bounding_box, grown, label_sizes, labelled, map_labels
 
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
@@ -38,8 +38,8 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
 
     out = np.zeros(plate.shape, bool)
     box = bounding_box(plate, margin=1)  # a part's surface voxels' neighbours lie in it
-    labels, count = ndimage.label(plate[box])
-    sizes_mm3 = label_sizes(labels, count)[1:] * float(np.prod(spacing))
+    labels, count = labelled(plate[box])
+    sizes_mm3 = label_sizes(labels, count, plate[box])[1:] * float(np.prod(spacing))
     large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
     if len(large) == 0:
         return out
@@ -48,7 +48,7 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
     placed = np.zeros(count + 1, bool)
     for index in large:
         placed[index] = bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE
-    out[box] = placed[labels]
+    map_labels(out[box], placed, labels)
     return out
 
 
@@ -56,12 +56,14 @@ def bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -
     """The share of plate part ``index``'s surface voxels (a face neighbour outside it) with a face neighbour in
     ``bone``; ``box``: the part's bounding box (slices). Flat indices, ``GATHER_CHUNK`` voxels at a time: one gather
     per neighbour (the grid's border is no neighbour: a voxel there is its own)."""
-    inside = np.nonzero(labels[box] == index)
+    every = np.flatnonzero(labels[box] == index)  # flat in the part's box (8 bytes a voxel, not 3 × 8)
+    part_shape = tuple(s.stop - s.start for s in box)
     flat_labels, flat_bone = labels.reshape(-1), np.ravel(bone)
     strides = np.cumprod((1,) + labels.shape[:0:-1])[::-1]
     surface = touching = 0
-    for start in range(0, len(inside[0]), GATHER_CHUNK):
-        position = [i[start:start + GATHER_CHUNK] + s.start for i, s in zip(inside, box)]
+    for start in range(0, len(every), GATHER_CHUNK):
+        inside = np.unravel_index(every[start:start + GATHER_CHUNK], part_shape)
+        position = [i + s.start for i, s in zip(inside, box)]
         flat = np.ravel_multi_index(position, labels.shape)
         on_surface = np.zeros(len(flat), bool)
         against = np.zeros(len(flat), bool)
@@ -113,22 +115,21 @@ def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tup
     """``mask`` without the plates ``found`` in it, its largest tube components kept, and the plate share of the
     mask returned when it is ``mask`` itself (else None: measure it again). What the plate leaves behind (its rim,
     fragments) touches it; a vessel apart from the largest does not."""
-    from scipy import ndimage
-
     if found.rest is None:
         return mask, found.share
     box, large = found.box, found.plates
-    labels, count = ndimage.label(found.rest)
-    sizes = label_sizes(labels, count)
+    labels, count = labelled(found.rest)
+    sizes = label_sizes(labels, count, found.rest)
     sizes[0] = 0  # the background
     near = grown(large[box], found.rim_steps)
     touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
+    del near  # (memory: the box's masks are the reading's peak on a whole head)
     keep = np.ones(count + 1, bool)
     keep[0] = False
     keep[touching[touching != int(np.argmax(sizes))]] = False
     kept = np.zeros(mask.shape, bool)
-    kept[box] = keep[labels]
-    del labels, near  # the box's labels (int32) are not held through the next labelling
+    map_labels(kept[box], keep, labels)
+    del labels  # the box's labels are not held through the next labelling
     return largest_components(kept, field_name=field_name), None
 
 

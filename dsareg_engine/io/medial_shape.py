@@ -36,6 +36,7 @@ MEDIAL_SLOPE = 0.8  # |∇ depth| (mm per mm) below which a voxel is on the ridg
 MAX_SAMPLES = 4000  # medial points whose fill ratio is measured (the others take their nearest one's)
 MAX_WORK_VOXELS = 16_000_000  # the working grid's voxels at most (~1 GB at the peak of the measure)
 SHELL_R2 = 16  # depths up to √SHELL_R2 voxels are found shell by shell (the deeper ones are queries)
+BACK_CHUNK = 1 << 22  # mask voxels whose plate value is interpolated at a time
 SURE_STEPS = 2  # voxels per axis: a voxel this near a plate medial point and far from tube ones is plate
 
 
@@ -178,13 +179,14 @@ def _back_on_mask(work_plate: np.ndarray, zoom: np.ndarray, part: np.ndarray) ->
     as many): the same coordinates and weights as ``ndimage.zoom``'s, the same voxels."""
     from scipy import ndimage
 
-    inside = np.nonzero(part)
+    every = np.flatnonzero(part)
     zoomed = np.round(np.asarray(work_plate.shape) / np.asarray(zoom, float)).astype(int)
-    coordinates = [(np.minimum(index, zoomed[axis] - 1) + 0.5) * (work_plate.shape[axis] / zoomed[axis]) - 0.5
-                   for axis, index in enumerate(inside)]
-    values = ndimage.map_coordinates(work_plate.astype(np.float32), coordinates, order=1, mode="nearest")
-    out = np.zeros(part.shape, bool)
-    out[inside] = values >= 0.5
+    plate, out = work_plate.astype(np.float32), np.zeros(part.shape, bool)
+    for start in range(0, len(every), BACK_CHUNK):  # a chunk at a time: its coordinates (24 bytes a voxel) stay small
+        inside = np.unravel_index(every[start:start + BACK_CHUNK], part.shape)
+        coordinates = [(np.minimum(index, zoomed[axis] - 1) + 0.5) * (work_plate.shape[axis] / zoomed[axis]) - 0.5
+                       for axis, index in enumerate(inside)]
+        out[inside] = ndimage.map_coordinates(plate, coordinates, order=1, mode="nearest") >= 0.5
     return out
 
 

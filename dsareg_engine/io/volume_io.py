@@ -46,7 +46,7 @@ from .volume_formats import (
 from .volume_formats import check_affine as _check_affine
 from .volume_formats import check_bytes as _check_bytes
 from .volume_series import pick_volume_series
-from .voxel_steps import bounding_box, label_sizes
+from .voxel_steps import bounding_box, label_sizes, labelled, map_labels
 
 __all__ = ["RAS_TO_LPS", "Volume", "read_volume", "read_volume_identities", "volume_to_mesh"]
 
@@ -426,19 +426,18 @@ def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05,
                        field_name: str = "volume") -> np.ndarray:
     """The connected components of ``inside`` (6-connected) bigger than ``min_component_fraction`` of the
     largest, at most ``max_components`` of them."""
-    from scipy import ndimage
-
     box = bounding_box(inside)
-    labels, count = ndimage.label(inside[box]) if box is not None else (None, 0)
+    labels, count = labelled(inside[box]) if box is not None else (None, 0)
     if count == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    sizes = label_sizes(labels, count)[1:]  # (0: the background)
+    sizes = label_sizes(labels, count, inside[box])[1:]  # (0: the background)
     ranked = np.argsort(sizes)[::-1][:max_components]
     kept = [int(r) + 1 for r in ranked if sizes[r] >= min_component_fraction * sizes.max()]
     chosen = np.zeros(count + 1, bool)
     chosen[kept] = True
     mask = np.zeros(inside.shape, bool)
-    mask[box] = chosen[labels]
+    map_labels(mask[box], chosen, labels)
+    del labels
     if mask.sum() < 8:
         raise DsaregInputError("only a few isolated voxels lie above the threshold", field=field_name)
     return mask

@@ -254,10 +254,11 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
         read_mask = mask
         found = plates_found(mask, spacing, bone_of(smooth, excluded, levels))
         plates = plates | found.plates
-    mask, plate_share = without_plates(mask, found, field_name)
-    del found  # its rest (the mask's box): not held through the surface's field
-    if field is None:  # CTA: the surface's field, of the last reading, made once the plate measure's peak is over
+    if field is None:  # CTA: the surface's field, of the last reading, made in ``smooth`` (no longer read)
         field = _cta_field(smooth, ground, read_mask, levels)
+    read_mask = ground = None  # (memory: bone and its band are not held through the last labelling)
+    mask, plate_share = without_plates(mask, found, field_name)
+    del found
     return field, mask, levels, excluded | plates, plate_share
 
 

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 LABEL_SLAB = 1 << 22  # voxels counted at a time by :func:`label_sizes` (32 MB of 64-bit labels)
+LABEL16_VOXELS = 80_000_000  # grids this large are labelled in 16 bits where they can be (:func:`labelled`)
+MAP_CHUNK = 1 << 23  # voxels mapped through a label table at a time by :func:`map_labels`
 
 
 def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
@@ -25,10 +27,39 @@ def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
                  for h, size in zip(hits, mask.shape))
 
 
-def label_sizes(labels: np.ndarray, count: int) -> np.ndarray:
-    """Voxels per label ``0..count`` of an integer ``labels`` grid (``ndimage.label``'s), counted slab by slab: a
-    whole-grid ``np.bincount`` holds a 64-bit copy of the grid (a skull's box: 400 MB)."""
+def labelled(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """``ndimage.label(mask)`` (face neighbours); on a grid of more than ``LABEL16_VOXELS`` in 16-bit labels where the
+    components fit (up to 65,535), else 32-bit. 16 bits take 2 bytes a voxel, not 4 (0.25 GB less on a 600-slice
+    head's box), and ~30 % more time (scipy labels a narrower type more slowly): on smaller grids, time wins."""
+    from scipy import ndimage
+
+    if mask.size > LABEL16_VOXELS:
+        try:
+            return ndimage.label(mask, output=np.uint16)
+        except RuntimeError:  # scipy: "insufficient bit-depth in requested output type"
+            pass
+    return ndimage.label(mask)
+
+
+def map_labels(out: np.ndarray, table: np.ndarray, labels: np.ndarray) -> None:
+    """``out[...] = table[labels]`` a slab of ``MAP_CHUNK`` voxels at a time (no temporary of ``labels``' size):
+    ``out`` a view of ``labels``' shape (a box of a larger grid)."""
+    step = max(1, MAP_CHUNK // max(labels[0].size, 1))
+    for start in range(0, len(labels), step):
+        out[start:start + step] = table[labels[start:start + step]]
+
+
+def label_sizes(labels: np.ndarray, count: int, inside: np.ndarray | None = None) -> np.ndarray:
+    """Voxels per label ``0..count`` of an integer ``labels`` grid (``ndimage.label``'s). With ``inside`` (the mask
+    that was labelled), counted over its voxels only (a whole head's box is mostly background: ~4 x faster); else
+    slab by slab: a whole-grid ``np.bincount`` holds a 64-bit copy of the grid (a skull's box: 400 MB)."""
     sizes = np.zeros(count + 1, np.int64)
+    if inside is not None:  # slab by slab too: a skull's voxels as 64-bit labels would be ~100 MB
+        step = max(1, LABEL_SLAB // max(labels[0].size, 1))
+        for start in range(0, len(labels), step):
+            sizes += np.bincount(labels[start:start + step][inside[start:start + step]], minlength=count + 1)
+        sizes[0] = inside.size - int(sizes[1:].sum())
+        return sizes
     flat = labels.reshape(-1)
     for start in range(0, flat.size, LABEL_SLAB):
         sizes += np.bincount(flat[start:start + LABEL_SLAB], minlength=count + 1)
@@ -88,4 +119,4 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "grown", "label_sizes"]
+__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "grown", "label_sizes", "labelled", "map_labels"]

@@ -106,13 +106,18 @@ def test_a_coarse_voxel_volume_is_measured_within_a_memory_bound():
 
 @pytest.mark.parametrize("part_shape, spacing", [((40, 52, 30), (0.45, 0.45, 0.45)), ((33, 27, 19), (0.6, 0.6, 0.8)),
                                                  ((25, 31, 12), (0.38, 0.42, 1.1)), ((30, 30, 30), (0.5, 0.5, 0.5))])
-def test_the_plate_goes_back_to_the_mask_as_a_whole_box_zoom_puts_it(part_shape, spacing):
+@pytest.mark.parametrize("chunk", [97, 1 << 22])
+def test_the_plate_goes_back_to_the_mask_as_a_whole_box_zoom_puts_it(part_shape, spacing, chunk, monkeypatch):
     """Issue 41: the plate voxels are interpolated back at the mask's voxels only, not over its whole box (a
-    whole-head box holds ~10 x as many): the same voxels as ``ndimage.zoom`` back, padded by its last plane and cut
-    to the box, at several voxel sizes (the mask touching the box's border, a zoomed grid one plane short)."""
+    whole-head box holds ~10 x as many), a chunk of them at a time (``BACK_CHUNK``; 97: many chunks): the same voxels
+    as ``ndimage.zoom`` back, padded by its last plane and cut to the box, at several voxel sizes (the mask touching
+    the box's border, a zoomed grid one plane short)."""
     from scipy import ndimage
 
+    from dsareg_engine.io import medial_shape
     from dsareg_engine.io.medial_shape import _back_on_mask, to_working_grid
+
+    monkeypatch.setattr(medial_shape, "BACK_CHUNK", chunk)
 
     rng = np.random.default_rng(len(part_shape) + int(100 * spacing[2]))
     part = ndimage.binary_opening(rng.random(part_shape) < 0.6)
