@@ -235,31 +235,34 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
             return _cta(smooth, spacing, reading, field_name, ground, not_vessels)
         return _mra(smooth, spacing, reading, field_name, ground, not_vessels)
 
-    def bone_of(smooth, excluded, levels):  # what a plate of bone lies against (:func:`.bone_plates.bone_plates`), in a box
-        if kind == "cta":
-            return lambda box: excluded[box]
+    def bone_of(excluded, levels, mask):  # what a plate of bone lies against (:func:`.bone_plates.bone_plates`), in a box
+        if kind == "cta":  # bone and its band beyond the reading's voxels (not held as a grid of its own)
+            return lambda box: ground.near_bone[box] & ~mask[box]
         return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
 
-    field, mask, levels, excluded = read(None)  # CTA: excluded = bone and its band; MRA: the scalp shell
-    read_mask = mask
-    found = plates_found(mask, spacing, bone_of(smooth, excluded, levels))
-    plates = found.plates
-    if plates.any() and reading.vessel_min is None:
+    field, mask, levels, excluded = read(None)  # CTA: excluded None; MRA: the scalp shell
+    found = plates_found(mask, spacing, bone_of(excluded, levels, mask))
+    earlier = None  # the first reading's plates, packed 8 to a byte: only the picture needs them (``excluded``)
+    if found.plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
-        set_aside, box = np.zeros(plates.shape, bool), bounding_box(plates, margin=rim)
-        set_aside[box] = grown(plates[box], rim)
-        del field, mask, excluded, read_mask, found  # the first reading's: not held through the second
+        set_aside, box = np.zeros(mask.shape, bool), bounding_box(found.plates, margin=rim)
+        set_aside[box] = grown(found.plates[box], rim)
+        earlier = np.packbits(found.plates)
+        del field, mask, excluded, found  # the first reading's: not held through the second
         field, mask, levels, excluded = read(set_aside)
         del set_aside
-        read_mask = mask
-        found = plates_found(mask, spacing, bone_of(smooth, excluded, levels))
-        plates = plates | found.plates
+        found = plates_found(mask, spacing, bone_of(excluded, levels, mask))
     if field is None:  # CTA: the surface's field, of the last reading, made in ``smooth`` (no longer read)
-        field = _cta_field(smooth, ground, read_mask, levels)
-    read_mask = ground = None  # (memory: bone and its band are not held through the last labelling)
+        field = _cta_field(smooth, ground, mask, levels)
+        excluded = ground.near_bone & ~mask  # bone and its band beyond the reading's voxels (⊇ bone)
+    ground = None  # (memory: bone's band is not held through the last labelling)
+    excluded |= found.plates
+    if earlier is not None:
+        excluded |= np.unpackbits(earlier, count=excluded.size).reshape(excluded.shape).view(bool)
+    del earlier
     mask, plate_share = without_plates(mask, found, field_name)
     del found
-    return field, mask, levels, excluded | plates, plate_share
+    return field, mask, levels, excluded, plate_share
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
@@ -350,8 +353,7 @@ class _CtaGround:
 
     bone_hu: float
     tissue: float
-    bone: np.ndarray
-    near_bone: np.ndarray
+    near_bone: np.ndarray  # (bone itself, ``smooth > bone_hu``, is not held: :func:`_cta_field` takes it again)
 
 
 def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
@@ -364,7 +366,7 @@ def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
                           "(is this a CT in HU?)", field_name, "CTA")
     tissue = float(np.median(smooth[soft]))
     near_bone = within_mm(bone, spacing, PV_BAND_MM + float(spacing.max()))
-    return _CtaGround(bone_hu, tissue, bone, near_bone)
+    return _CtaGround(bone_hu, tissue, near_bone)
 
 
 def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _CtaGround,
@@ -399,7 +401,7 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     steps = int(np.ceil(PV_BAND_MM / float(spacing.min()))) + 1  # the wall beside bone: the lumen is seeded
     mask = _regrown(core, window, smooth, level, steps)
     # the surface's field: :func:`_cta_field` (made by the caller once the reading is final)
-    return None, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, near_bone & ~mask  # (⊇ bone)
+    return None, mask, {"min": level, "max": bone_hu, "tissue": tissue, "vessel": peak}, None  # (excluded: the caller's)
 
 
 def _cta_field(smooth: np.ndarray, ground: _CtaGround, read_mask: np.ndarray, levels: dict) -> np.ndarray:
@@ -407,8 +409,8 @@ def _cta_field(smooth: np.ndarray, ground: _CtaGround, read_mask: np.ndarray, le
     outside the voxels the reading kept (``read_mask``, before plates were set aside). Made in ``smooth`` itself: its
     last use (a whole head's float32 box, 0.23 GB, is not copied at the reading's peak)."""
     near = ground.near_bone  # bone is in its own band
-    field = _partial_volume_field(smooth, near, levels["tissue"], levels["vessel"], ground.bone, levels["max"],
-                                  in_place=True)
+    field = _partial_volume_field(smooth, near, levels["tissue"], levels["vessel"], smooth > ground.bone_hu,
+                                  levels["max"], in_place=True)
     outside = near & ~read_mask
     field[outside] = np.minimum(field[outside], levels["tissue"])  # no surface there
     return field

@@ -27,13 +27,14 @@ def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
                  for h, size in zip(hits, mask.shape))
 
 
-def labelled(mask: np.ndarray) -> tuple[np.ndarray, int]:
-    """``ndimage.label(mask)`` (face neighbours); on a grid of more than ``LABEL16_VOXELS`` in 16-bit labels where the
-    components fit (up to 65,535), else 32-bit. 16 bits take 2 bytes a voxel, not 4 (0.25 GB less on a 600-slice
-    head's box), and ~30 % more time (scipy labels a narrower type more slowly): on smaller grids, time wins."""
+def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.ndarray, int]:
+    """``ndimage.label(mask)`` (face neighbours); on a grid of more than ``narrow_above`` (``LABEL16_VOXELS``) voxels
+    in 16-bit labels where the components fit (up to 65,535), else 32-bit. 16 bits take 2 bytes a voxel, not 4
+    (0.25 GB less on a 600-slice head's box), and ~30 % more time (scipy labels a narrower type more slowly): on
+    smaller grids time wins, unless the caller labels at its reading's memory peak (:func:`.bone_plates.bone_plates`)."""
     from scipy import ndimage
 
-    if mask.size > LABEL16_VOXELS:
+    if mask.size > (LABEL16_VOXELS if narrow_above is None else narrow_above):
         try:
             return ndimage.label(mask, output=np.uint16)
         except RuntimeError:  # scipy: "insufficient bit-depth in requested output type"

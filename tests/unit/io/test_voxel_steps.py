@@ -96,6 +96,7 @@ def test_labels_are_scipy_s_in_16_bits_where_they_fit_and_32_where_not(monkeypat
 
     mask = next(_masks(1, 7))[1]
     assert labelled(mask)[0].dtype == np.int32  # a small grid
+    assert labelled(mask, narrow_above=0)[0].dtype == np.uint16  # asked for (a caller at its memory peak)
     monkeypatch.setattr(voxel_steps, "LABEL16_VOXELS", 0)
     for rng, mask in _masks(30, 7):
         labels, count = labelled(mask)
