@@ -205,7 +205,11 @@ def _dicom_pixels(parsed: tuple, field_name: str) -> np.ndarray:
         raise DsaregInputError(f"DICOM pixel data is unreadable ({str(exc)[:200]})", field=field_name) from None
     slope = dicom_number(dataset, "RescaleSlope", 1.0, field_name, kind=float)
     intercept = dicom_number(dataset, "RescaleIntercept", 0.0, field_name, kind=float)
-    return pixels * slope + intercept
+    if slope != 1.0:  # in place: the same float32 values as ``pixels * slope + intercept``, no temporaries
+        pixels *= slope
+    if intercept != 0.0:
+        pixels += intercept
+    return pixels
 
 
 def _nested(dataset, keyword: str, frame: int | None = None):

@@ -323,10 +323,12 @@ def _finite(data: np.ndarray, field_name: str) -> np.ndarray:
     voxels = np.asarray(data, dtype=np.float32)
     if voxels.ndim != 3 or min(voxels.shape) < 2:
         raise DsaregInputError(f"needs a 3D volume, got shape {list(voxels.shape)}", field=field_name)
-    if not np.all(np.isfinite(voxels)):
+    high, low = float(voxels.max()), float(voxels.min())
+    if not (np.isfinite(high) and np.isfinite(low)):  # NaN and ±inf reach the extremes
         fill = float(np.nanmin(voxels)) if np.isfinite(voxels).any() else 0.0
         voxels = np.nan_to_num(voxels, nan=fill, posinf=0.0, neginf=0.0)
-    if float(voxels.max()) - float(voxels.min()) <= 0:
+        high, low = float(voxels.max()), float(voxels.min())
+    if high - low <= 0:
         raise DsaregInputError("is constant: no vessels in it", field=field_name,
                                accepted="a CTA, TOF-MRA or 3D-DSA volume (vessels brighter than their surroundings)")
     return voxels

@@ -197,3 +197,23 @@ def test_the_band_of_the_faces_is_that_of_a_padded_grid():
         air = rng.random(shape) < 0.02
         padded = within_mm(np.pad(air, 1, constant_values=True), spacing, band)[1:-1, 1:-1, 1:-1]
         assert np.array_equal(padded, within_mm(air, spacing, band) | _near_faces(shape, spacing, band))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_voxels_are_filled_and_a_constant_volume_is_refused(bad):
+    """NaN (the volume's lowest finite value) and ±inf (0) are filled before any reading, found from the extremes
+    alone (one pass fewer over a whole head); a volume with one value left is refused by name."""
+    from dsareg_engine.io.volume_vessels import _finite
+
+    voxels = np.arange(4 * 5 * 6, dtype=np.float32).reshape(4, 5, 6) + 10.0
+    voxels[1, 2, 3] = bad
+    filled = _finite(voxels, "volume")
+    assert np.isfinite(filled).all() and filled[1, 2, 3] == (10.0 if np.isnan(bad) else 0.0)
+    assert np.array_equal(np.delete(filled.ravel(), 1 * 30 + 2 * 6 + 3), np.delete(voxels.ravel(), 1 * 30 + 2 * 6 + 3))
+    constant = np.full((4, 5, 6), 7.0, np.float32)
+    constant[0, 0, 0] = bad
+    if not np.isnan(bad):  # ±inf filled by 0: two values left
+        assert _finite(constant, "volume")[0, 0, 0] == 0.0
+    else:
+        with pytest.raises(DsaregInputError, match="is constant"):
+            _finite(constant, "volume")
