@@ -55,15 +55,13 @@ def label_sizes(labels: np.ndarray, count: int, inside: np.ndarray | None = None
     that was labelled), counted over its voxels only (a whole head's box is mostly background: ~4 x faster); else
     slab by slab: a whole-grid ``np.bincount`` holds a 64-bit copy of the grid (a skull's box: 400 MB)."""
     sizes = np.zeros(count + 1, np.int64)
-    if inside is not None:  # slab by slab too: a skull's voxels as 64-bit labels would be ~100 MB
-        step = max(1, LABEL_SLAB // max(labels[0].size, 1))
-        for start in range(0, len(labels), step):
-            sizes += np.bincount(labels[start:start + step][inside[start:start + step]], minlength=count + 1)
+    step = max(1, LABEL_SLAB // max(labels[0].size, 1))  # a slab of planes at a time
+    for start in range(0, len(labels), step):
+        slab = labels[start:start + step]
+        sizes += np.bincount((slab if inside is None else slab[inside[start:start + step]]).reshape(-1),
+                             minlength=count + 1)
+    if inside is not None:
         sizes[0] = inside.size - int(sizes[1:].sum())
-        return sizes
-    flat = labels.reshape(-1)
-    for start in range(0, flat.size, LABEL_SLAB):
-        sizes += np.bincount(flat[start:start + LABEL_SLAB], minlength=count + 1)
     return sizes
 
 

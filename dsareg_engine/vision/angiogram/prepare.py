@@ -77,7 +77,7 @@ class WorkingImage:
     field: np.ndarray
     factor: int
     shape: tuple[int, int]
-    pixels: np.ndarray | None = None
+    pixels: np.ndarray
 
     def back(self, values: np.ndarray) -> np.ndarray:
         """``values (h, w)`` on the original pixels (bilinear), clipped to [0, 1]."""
