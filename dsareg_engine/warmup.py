@@ -11,7 +11,8 @@ functions in one process so no two processes write one function's cache index at
 ``forward`` and ``backward`` are what a registration job needs (:func:`warm_up_kernels` compiles
 ``backward`` in a helper process while this one compiles ``forward``: two cores, half the wall time);
 ``tracking`` (the Gauss-Newton Jacobian, more than half of all the compile), ``search`` (the
-initial-pose search) and ``hemodynamics`` (the ray-stretch kernels of ``options.hemodynamics``) are compiled
+initial-pose search), ``hemodynamics`` (the ray-stretch kernels of ``options.hemodynamics``) and ``volumes`` (the
+distance transform of a volume reading's wide bands: a TOF-MRA's scalp) are compiled
 afterwards by a background helper (:func:`compile_later_groups`),
 so a worker is ready without them; a job that needs one before the helper is done compiles it itself.
 ``python -m dsareg_engine.warmup --threads N GROUP...`` is the helper.
@@ -84,7 +85,7 @@ __all__ = ["KERNEL_GROUPS", "WARM_UP_ITERATIONS", "WARM_UP_SIZE_PX", "compile_la
            "warm_up_job", "warm_up_kernels", "warm_up_renderer"]
 
 JOB_GROUPS = ("forward", "backward")
-LATER_GROUPS = ("tracking", "search", "hemodynamics")
+LATER_GROUPS = ("tracking", "search", "hemodynamics", "volumes")
 HELPER_WAIT_SECONDS = 600.0
 
 
@@ -200,8 +201,18 @@ def _compile_hemodynamics() -> None:
     ray_stretches(vertices, faces, (8.0, 8.0), (3.5, 3.5), (8, 8))
 
 
+def _compile_volumes() -> None:
+    """The distance transform of a volume reading's wide bands (:func:`.io.voxel_band.within_mm`), with the
+    argument types it passes: a C-ordered bool grid, three spacings, a float64 grid."""
+    import numpy as np
+
+    from .io.distance_kernels import squared_distances
+
+    squared_distances(np.ones((2, 2, 2), bool), 1.0, 1.0, 1.0, np.empty((2, 2, 2)))
+
+
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
-                 "search": _compile_search, "hemodynamics": _compile_hemodynamics}
+                 "search": _compile_search, "hemodynamics": _compile_hemodynamics, "volumes": _compile_volumes}
 """Kernel groups: name → the function that compiles them (each group's numba functions belong to it alone)."""
 
 
@@ -218,6 +229,10 @@ def _group_dispatchers(name: str) -> list:
         from .render.ray_layers import _hits, _pair
 
         return [_hits, _pair]
+    if name == "volumes":
+        from .io.distance_kernels import squared_distances
+
+        return [squared_distances]
     if name == "tracking":
         from .render import jacobian_numba
 

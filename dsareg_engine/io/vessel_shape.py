@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from .medial_shape import medial_shape
-from .voxel_steps import bounding_box
+from .voxel_steps import bounding_box, filled_holes
 
 SHAPE_GRID_MM = 1.0
 HESSIAN_SIGMA_MM = 1.5
@@ -87,10 +87,8 @@ def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, floa
 
 def shape_measures(mask: np.ndarray, spacing, plate_share: float | None = None) -> dict[str, float]:
     """The measures above (``plate_share``: the medial plate share of this same mask, if already measured)."""
-    from scipy import ndimage
-
     kept = int(mask.sum())
-    filled = int(ndimage.binary_fill_holes(crop_to(mask)).sum()) if kept else 0
+    filled = int(filled_holes(crop_to(mask)).sum()) if kept else 0
     solid = curvature_shares(mask, np.asarray(spacing, float))[1]
     plate = medial_shape(mask, spacing).plate_share if plate_share is None else float(plate_share)
     return {"kept_fraction": kept / mask.size, "enclosed_ratio": filled / max(kept, 1), "plate_fraction": plate,

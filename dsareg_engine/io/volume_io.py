@@ -46,7 +46,7 @@ from .volume_formats import (
 from .volume_formats import check_affine as _check_affine
 from .volume_formats import check_bytes as _check_bytes
 from .volume_series import pick_volume_series
-from .voxel_steps import bounding_box, label_sizes, labelled, map_labels
+from .voxel_steps import bounding_box, filled_holes, label_sizes, labelled, map_labels
 
 __all__ = ["RAS_TO_LPS", "Volume", "read_volume", "read_volume_identities", "volume_to_mesh"]
 
@@ -460,7 +460,7 @@ def surface_from_mask(smooth: np.ndarray, mask: np.ndarray, level: float, affine
     padded = tuple(slice(b.start + 1, b.stop + 1) for b in box)
     field = np.full([n + 2 for n in mask.shape], floor, np.result_type(smooth, floor))  # padded by one voxel
     field[padded] = np.where(ndimage.binary_dilation(mask[box], iterations=2), smooth[box], floor)
-    cavities = ndimage.binary_fill_holes(mask[box]) & ~mask[box]  # a vessel lumen has no enclosed voids
+    cavities = filled_holes(mask[box]) & ~mask[box]  # a vessel lumen has no enclosed voids
     field[padded][cavities] = max(float(smooth.max()), level + 1.0)
     vertices, faces, _, _ = marching_cubes(field, level=level, allow_degenerate=False)
     if len(faces) == 0:

@@ -42,7 +42,7 @@ from .volume_io import Volume, bounding_box, largest_components, surface_from_ma
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
-from .voxel_steps import cube_minimum, grown
+from .voxel_steps import cube_minimum, filled_holes, grown
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -480,10 +480,10 @@ def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
     padded = np.pad(smooth > 0.5 * level, pad, mode="edge")
     head = ndimage.binary_closing(padded, iterations=pad)[pad:-pad, pad:-pad, pad:-pad]
     axial = int(np.argmax(np.abs(affine[2, :3])))  # the voxel axis closest to patient z
-    filled = ndimage.binary_fill_holes(head)
+    filled = filled_holes(head)
     moved = np.moveaxis(filled, axial, 0)
     for index in range(moved.shape[0]):
-        moved[index] = ndimage.binary_fill_holes(moved[index])
+        moved[index] = filled_holes(moved[index])
     return filled
 
 

@@ -14,9 +14,11 @@ int32 index grid, their float64 difference), 5 GB for a 0.3 mm head. Here:
   slices (and one more) on both sides. A voxel within the band of the mask has its nearest mask voxel within the halo, so its
   slab's distance is the true one; a voxel beyond the band is at least as far from the slab's mask voxels. The
   set is therefore identical to the full transform's;
-* the distance is formed from the feature transform axis by axis, with the same float64 operations in the same
-  order as scipy's (``(feature - index) × spacing``, squared, summed over the axes, square root), so ties at the
-  band's edge fall the same way.
+* a slab's distances are the separable exact transform of :mod:`.distance_kernels` (numba; ~4 × faster than
+  scipy's feature transform, 8 bytes a voxel), summed with the same float64 operations in the same order as
+  scipy's (``(feature - index) × spacing``, squared, summed over the axes, square root), so the band's edge falls
+  where it does there (a voxel exactly as far from two mask voxels, the two sums differing in the last bit and
+  the band between them, is the only way to differ; none in the tests' ties).
 """
 
 from __future__ import annotations
@@ -99,17 +101,13 @@ def _ball_within(mask: np.ndarray, rows: list[tuple[int, int, int]]) -> np.ndarr
 
 
 def _slab_within(part: np.ndarray, spacing: np.ndarray, band_mm: float) -> np.ndarray:
-    """``distance_transform_edt(~part, sampling=spacing) <= band_mm``, one axis of the feature transform at a time."""
-    from scipy import ndimage
+    """``distance_transform_edt(~part, sampling=spacing) <= band_mm``: the squared distances of
+    :func:`.distance_kernels.squared_distances` (scipy's sums, in its order), their root compared."""
+    from .distance_kernels import squared_distances
 
-    features = ndimage.distance_transform_edt(~part, sampling=spacing, return_distances=False, return_indices=True)
-    squared = None
-    for axis in range(3):
-        index = np.arange(part.shape[axis], dtype=np.int32).reshape([-1 if b == axis else 1 for b in range(3)])
-        step = (features[axis] - index).astype(np.float64)
-        step *= spacing[axis]
-        np.multiply(step, step, step)
-        squared = step if squared is None else np.add(squared, step, out=squared)
+    squared = np.empty(part.shape)
+    squared_distances(np.ascontiguousarray(part, bool), float(spacing[0]), float(spacing[1]), float(spacing[2]),
+                      squared)
     return np.sqrt(squared, out=squared) <= band_mm
 
 

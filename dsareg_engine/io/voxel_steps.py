@@ -90,6 +90,23 @@ def _face_neighbours(mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def filled_holes(mask: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_fill_holes(mask)`` (its default structure: face neighbours, 2D or 3D): ``mask`` and the
+    background voxels that no path of face-neighbouring background voxels joins to the grid's border. One labelling
+    of the background, not a dilation repeated until nothing changes (~10 × faster on a head: a slab's fill took
+    seconds)."""
+    background = ~np.asarray(mask, bool)
+    labels, count = labelled(background, narrow_above=0)  # 16 bits where they fit: a head's grid is labelled whole
+    if count == 0:
+        return ~background
+    outside = np.zeros(count + 1, bool)
+    for axis in range(labels.ndim):  # the components with a voxel on a face of the grid
+        outside[np.unique(labels.take(0, axis))] = True
+        outside[np.unique(labels.take(-1, axis))] = True
+    outside[0] = False
+    return ~outside[labels]
+
+
 def cube_maximum(values: np.ndarray, size: int) -> np.ndarray:
     """``maximum_filter(values, size=size)`` (``size`` odd, ``mode="reflect"``): the maximum over the cube of
     ``size`` voxels a side centred on each voxel, clipped to the grid; one axis after the other."""
@@ -118,4 +135,4 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "grown", "label_sizes", "labelled", "map_labels"]
+__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "filled_holes", "grown", "label_sizes", "labelled", "map_labels"]

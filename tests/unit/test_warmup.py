@@ -205,6 +205,37 @@ def test_the_hemodynamics_group_holds_the_kernels_a_hemodynamics_job_traces_with
     assert report == {"cached": True, "covered": True, "hits": 2, "misses": 0}, report
 
 
+def test_the_volumes_group_holds_the_distance_transform_a_tof_reading_takes(tmp_path):
+    """A TOF-MRA reading's scalp band (7 mm: the wide path of ``within_mm``) loads the distance transform the
+    background helper compiled (another process), instead of compiling it in the job."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    compiled = _python("""
+        from dsareg_engine import warmup
+        assert "volumes" in warmup.LATER_GROUPS
+        warmup.compile_group("volumes")
+    """, env)
+    assert compiled.returncode == 0, compiled.stderr[-3000:]
+    done = _python("""
+        import json
+        import numpy as np
+        from dsareg_engine import warmup
+        from dsareg_engine.io.voxel_band import within_mm
+        cached = warmup.group_cached("volumes")
+        from scipy import ndimage
+        air = np.ones((30, 80, 80), bool)
+        air[:, 5:75, 5:75] = False  # a head's section (21 mm square), the slab's faces cut through it
+        band = within_mm(air, (0.6, 0.3, 0.3), 7.0)
+        same = bool(np.array_equal(band, ndimage.distance_transform_edt(~air, sampling=(0.6, 0.3, 0.3)) <= 7.0))
+        kernels = warmup._group_dispatchers("volumes")
+        print(json.dumps({"cached": cached, "same": same, "interior": int((~band).sum()),
+                          "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
+                          "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels)}))
+    """, env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report == {"cached": True, "same": True, "interior": 30 * 24 * 24, "hits": 1, "misses": 0}, report
+
+
 def test_a_kernel_helper_dies_with_the_process_that_started_it(tmp_path):
     """A killed worker leaves no compile behind (fault tests count every process of the service)."""
     import os

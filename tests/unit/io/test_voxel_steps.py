@@ -124,3 +124,22 @@ def test_labels_are_mapped_into_a_box_a_slab_at_a_time(monkeypatch):
             expected = np.zeros(out.shape, bool)
             expected[box] = table[labels]
             assert np.array_equal(out, expected)
+
+
+@pytest.mark.parametrize("shape", [(40, 37), (1, 9), (18, 21, 16), (1, 12, 14), (9, 1, 11)])
+def test_filled_holes_are_scipys(shape):
+    """One labelling of the background gives what ``binary_fill_holes``' repeated dilation gives: random masks
+    (holes, cavities, pockets open at a face), shells, and the empty and full grids."""
+    from dsareg_engine.io.voxel_steps import filled_holes
+
+    rng = np.random.default_rng(sum(shape))
+    cases = [rng.random(shape) < share for share in (0.2, 0.45, 0.6, 0.8)]
+    cases += [np.zeros(shape, bool), np.ones(shape, bool)]
+    shell = np.zeros(shape, bool)
+    inner = tuple(slice(1, max(n - 1, 1)) for n in shape)
+    shell[inner] = True
+    shell[tuple(slice(2, max(n - 2, 2)) for n in shape)] = False  # a closed shell: its inside is a hole
+    cases.append(shell)
+    for mask in cases:
+        assert np.array_equal(filled_holes(mask), ndimage.binary_fill_holes(mask))
+    assert filled_holes(shell).sum() >= shell.sum()
