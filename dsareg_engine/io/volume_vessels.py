@@ -471,14 +471,14 @@ def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
     The volume's faces are not the head's surface: a TOF slab or a crop cuts through the head, so the closing
     runs on the mask continued past its faces (padded with its edge) and does not erode the head from them; only
     real air makes an outside (the MRA scalp shell is measured from it)."""
-    from scipy import ndimage
     from skimage.filters import threshold_otsu
 
     sample = smooth[::2, ::2, ::2]
     level = float(threshold_otsu(sample[sample < np.percentile(sample, 99.0)]))
     pad = 2  # the closing's reach (its iterations)
     padded = np.pad(smooth > 0.5 * level, pad, mode="edge")
-    head = ndimage.binary_closing(padded, iterations=pad)[pad:-pad, pad:-pad, pad:-pad]
+    closed = ~grown(~grown(padded, pad), pad)  # binary_closing's voxels pad and more inside the grid's faces
+    head = closed[pad:-pad, pad:-pad, pad:-pad]
     axial = int(np.argmax(np.abs(affine[2, :3])))  # the voxel axis closest to patient z
     filled = filled_holes(head)
     moved = np.moveaxis(filled, axial, 0)
