@@ -42,7 +42,7 @@ from .volume_io import Volume, bounding_box, largest_components, surface_from_ma
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
-from .voxel_steps import cube_minimum, filled_holes, grown
+from .voxel_steps import cube_minimum, filled_holes, grown, labelled, map_labels
 
 DEFAULT_BONE_HU = 700.0
 PV_BAND_MM = 1.0
@@ -540,8 +540,6 @@ def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
 def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _MraGround,
          not_vessels: np.ndarray | None = None):
     """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
-    from scipy import ndimage
-
     interior, tissue, spread = ground.interior, ground.tissue, ground.spread
     values = smooth[interior]
     if not_vessels is not None:
@@ -555,23 +553,34 @@ def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
                               f"({6 * spread:.0f})", field_name, "MRA")
         vessel = float(np.percentile(bright, 75))
         level = (tissue + vessel) / 2.0
+    del values, bright  # (memory: the interior's values, 4 bytes a voxel of it, are not held through the labelling)
     low = level if reading.vessel_min is not None else tissue + MRA_EXTENT * (vessel - tissue)
     candidates = interior & (smooth > low)
     if candidates.sum() < 8:
         raise _no_vessels(f"no voxels above {low:.0f} inside the head", field_name, "MRA")
     peak = vessel if vessel is not None else float(np.percentile(smooth[candidates], 75))
     seeds = candidates & (smooth > tissue + 0.75 * (peak - tissue))
-    labels, _ = ndimage.label(candidates)
-    seeded = np.isin(labels, np.unique(labels[seeds & (labels > 0)]))
-    mask = largest_components(seeded, field_name=field_name)
+    mask = largest_components(_seeded(candidates, seeds), field_name=field_name)
+    del candidates  # (memory: a 300-slice slab's grids are the reading's peak here)
     if reading.vessel_min is not None:
         return smooth, mask, {"min": level, "tissue": tissue, "vessel": peak, "spread": spread}, ~interior
     field = _local_half_maximum(smooth, mask, tissue, spacing, level)
     # what crosses its own half maximum, connected to the bright vessels: drops texture blobs that reached
     # the vessels through voxels below half the vessels' own contrast
-    labels, _ = ndimage.label(mask & (field > level))
-    mask = largest_components(np.isin(labels, np.unique(labels[seeds & (labels > 0)])), field_name=field_name)
+    mask = largest_components(_seeded(mask & (field > level), seeds), field_name=field_name)
     return field, mask, {"min": level, "low": low, "tissue": tissue, "vessel": peak, "spread": spread}, ~interior
+
+
+def _seeded(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """The components of ``mask`` (face neighbours) that hold a voxel of ``seeds``: labels in 16 bits where they
+    fit, a table over them (not ``np.isin`` of the labels: a grid of int32 and its sort)."""
+    labels, count = labelled(mask, narrow_above=0)
+    keep = np.zeros(count + 1, bool)
+    keep[labels[seeds]] = True
+    keep[0] = False
+    out = np.zeros(mask.shape, bool)
+    map_labels(out, keep, labels)
+    return out
 
 
 def _mode_and_upper_spread(values: np.ndarray) -> tuple[float, float]:
@@ -599,11 +608,18 @@ def _local_half_maximum(smooth: np.ndarray, mask: np.ndarray, tissue: float, spa
     low, high = np.maximum(box.min(0) - pad, 0), np.minimum(box.max(0) + pad + 1, mask.shape)
     region = tuple(slice(a, b) for a, b in zip(low, high))
     size = np.maximum(3, np.round(LOCAL_PEAK_MM / spacing).astype(int) | 1)
-    local = ndimage.maximum_filter(np.where(mask[region], smooth[region], tissue), size=tuple(size))
-    local = ndimage.maximum_filter(local, size=3)  # reach the voxels just outside the kept ones
+    scale = np.where(mask[region], smooth[region], tissue)
+    local = ndimage.maximum_filter(scale, size=tuple(size))
+    ndimage.maximum_filter(local, size=3, output=scale)  # reach the voxels just outside the kept ones
+    del local  # (memory: two of the region's float grids at a time, not five)
+    np.maximum(np.subtract(scale, tissue, out=scale), 1e-3, out=scale)
     field = np.full(smooth.shape, tissue, np.float32)
-    scale = np.maximum(local - tissue, 1e-3)
-    field[region] = tissue + (smooth[region] - tissue) / scale * 2.0 * (level - tissue)
+    part = field[region]  # tissue + (smooth - tissue) / scale * 2 * (level - tissue), in place, in that order
+    np.subtract(smooth[region], tissue, out=part)
+    part /= scale
+    part *= 2.0
+    part *= level - tissue
+    part += tissue
     return field
 
 

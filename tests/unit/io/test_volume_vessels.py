@@ -217,3 +217,29 @@ def test_non_finite_voxels_are_filled_and_a_constant_volume_is_refused(bad):
     else:
         with pytest.raises(DsaregInputError, match="is constant"):
             _finite(constant, "volume")
+
+
+def test_the_seeded_components_and_the_local_half_maximum_are_the_expressions_they_replace():
+    """The MRA reading's memory steps (issue 41, a 300-slice TOF: 2.46 → 1.81 GB) give the same voxels and the same
+    float32 bits as the whole-grid expressions: ``np.isin`` of the labels, and the field in one expression."""
+    from scipy import ndimage
+
+    from dsareg_engine.io import volume_vessels as vv
+
+    rng = np.random.default_rng(11)
+    for _ in range(8):
+        smooth = ndimage.gaussian_filter(rng.random((24, 30, 28)), 1.0).astype(np.float32) * 600
+        mask = smooth > np.percentile(smooth, 70)
+        seeds = mask & (smooth > np.percentile(smooth, 97))
+        seeds[0, 0, 0] = True  # a seed outside the mask: no component
+        labels, _ = ndimage.label(mask)
+        assert np.array_equal(vv._seeded(mask, seeds), np.isin(labels, np.unique(labels[seeds & (labels > 0)])))
+        spacing, tissue, level = np.array([0.4, 0.4, 0.5]), float(np.median(smooth)), float(np.percentile(smooth, 80))
+        box = tuple(slice(max(a - 4, 0), b + 5) for a, b in zip(np.argwhere(mask).min(0), np.argwhere(mask).max(0)))
+        size = np.maximum(3, np.round(vv.LOCAL_PEAK_MM / spacing).astype(int) | 1)
+        local = ndimage.maximum_filter(np.where(mask[box], smooth[box], tissue), size=tuple(size))
+        local = ndimage.maximum_filter(local, size=3)
+        expected = np.full(smooth.shape, tissue, np.float32)
+        expected[box] = tissue + (smooth[box] - tissue) / np.maximum(local - tissue, 1e-3) * 2.0 * (level - tissue)
+        got = vv._local_half_maximum(smooth, mask, tissue, spacing, level)
+        assert got.dtype == np.float32 and np.array_equal(got, expected)
