@@ -103,8 +103,10 @@ def _ball_within(mask: np.ndarray, rows: list[tuple[int, int, int]]) -> np.ndarr
 def _slab_within(part: np.ndarray, spacing: np.ndarray, band_mm: float) -> np.ndarray:
     """``distance_transform_edt(~part, sampling=spacing) <= band_mm``: the squared distances of
     :func:`.distance_kernels.squared_distances` (scipy's sums, in its order), their root compared."""
+    from ..render.compile_lock import wait_for_group
     from .distance_kernels import squared_distances
 
+    wait_for_group("volumes")  # a worker's background helper may be compiling it right now (once a process)
     squared = np.empty(part.shape)
     squared_distances(np.ascontiguousarray(part, bool), float(spacing[0]), float(spacing[1]), float(spacing[2]),
                       squared)
