@@ -39,7 +39,10 @@ SWEEP = (  # (kind, voxel mm per axis, scanner grid): the issue's 512² × 300�
 def add_parser(which) -> None:
     sub = which.add_parser("whole-head", help="a whole-head CTA (512 x 512 x 440 at 0.45 mm): CPU s and peak RSS of "
                                               "two jobs on it (the second takes the kept model)")
-    sub.add_argument("--voxel", type=float, default=VOXEL_MM, help="voxel size, mm (isotropic)")
+    sub.add_argument("--voxel", default=str(VOXEL_MM),
+                     help="voxel size, mm: isotropic (0.45) or per axis (0.4x0.4x0.5)")
+    sub.add_argument("--kind", choices=("cta", "mra"), default="cta",
+                     help="a CTA head (default) or a TOF-MRA slab through it (generator B's layered heads)")
     sub.add_argument("--sweep", action="store_true",
                      help="the first job of each cell of SWEEP (whole-head CTAs 512² × 300–600 slices at 0.3–0.6 "
                           "mm, TOF-MRA slabs): CPU s and peak RSS per cell")
@@ -154,9 +157,11 @@ def bench_whole_head(args) -> int:
     if getattr(args, "sweep", False):
         return _bench_sweep()
     grid = tuple(int(v) for v in args.grid.lower().split("x"))
+    voxel = tuple(float(v) for v in str(args.voxel).lower().split("x"))
+    kind = getattr(args, "kind", "cta")
     with tempfile.TemporaryDirectory() as folder:
-        print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} CTA at {args.voxel:g} mm ...", flush=True)
-        case_path = _write_case(Path(folder), args.voxel, grid)
+        print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} {kind.upper()} at {args.voxel} mm ...", flush=True)
+        case_path = _write_case(Path(folder), voxel[0] if len(voxel) == 1 else voxel, grid, kind)
         if getattr(args, "intake", False):
             return _bench_intake(case_path, Path(folder) / "models")
         print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")

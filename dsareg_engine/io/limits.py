@@ -48,3 +48,4 @@ class DeclaredShape(Exception):  # noqa: N818 - a result carried out of the read
     def __init__(self, shape: tuple[int, ...], itemsize: int):
         super().__init__(shape, itemsize)
         self.shape, self.itemsize = tuple(int(s) for s in shape), int(itemsize)
+        self.modality = ""  # a DICOM series' Modality (CT, MR, …) where its reader knows it: the reading's kind

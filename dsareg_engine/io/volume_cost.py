@@ -49,6 +49,19 @@ falls as the voxels grow. Between two measured reads of whole heads the cost ris
 low for coarse voxels, where the service's base limits (512 MB, 60 s) hold the read anyway."""
 
 
+MEASURED_MRA: tuple[tuple[float, float, float], ...] = (
+    # the same, of TOF-MRA slabs of generator B's layered head (``whole-head --intake --kind mra``: read by
+    # :func:`benchmarks.engine.whole_head.read_as_validator`; here the ``--sweep`` cells' cases), 2 cores, at 8ff4d22
+    (0.0, 40.0, 0.4),
+    (41.9e6, 1382.0, 24.7),  # 512 x 512 x 160 at 0.4 x 0.4 x 0.5 mm (a TOF slab, 80 mm)
+    (78.6e6, 1969.0, 39.0),  # 512 x 512 x 300 at 0.35 x 0.35 x 0.3 mm
+)
+"""A TOF-MRA read takes more address space per voxel than a CTA's (the head's interior and its 7-mm scalp band
+over the whole grid, numba's runtime for the band's distance transform: ~190 MB of address space, 100 MB resident):
+the 160-slice slab 1.4 GB where a CTA of its voxels takes 0.9. A DICOM series' Modality (MR) or ``volume_kind``
+tells which curve a volume's read follows (:func:`expected_read_cost`)."""
+
+
 @dataclass(frozen=True)
 class VolumeCost:
     """A volume's declared ``shape`` and its first read's expected ``memory_mb`` (address-space growth) and
@@ -69,17 +82,39 @@ def declared_volume(data: bytes | list[bytes], name: str | None = None, limits: 
     """The volume's declared shape, from its header (no voxel decoded); ``None`` when its reader declared none
     before decoding (then it was read whole). Raises ``DsaregInputError`` as :func:`.volume_io.read_volume` does
     for everything it checks before the shape (format, series, declared size above ``limits``)."""
+    declared = _declared(data, name, limits, field_name)
+    return None if declared is None else declared.shape
+
+
+def _declared(data, name, limits: InputLimits, field_name: str = "volume") -> DeclaredShape | None:
     try:
         read_volume(data, name, ShapeProbe(**asdict(limits)), field_name=field_name)
     except DeclaredShape as declared:
-        return declared.shape
+        return declared
     return None
 
 
-def expected_read_cost(voxels: int) -> tuple[float, float]:
-    """``(memory MB, CPU s)`` the first read of ``voxels`` voxels is expected to take (:data:`MEASURED`)."""
-    points = np.array(MEASURED)
+def expected_read_cost(voxels: int, kind: str | None = None) -> tuple[float, float]:
+    """``(memory MB, CPU s)`` the first read of ``voxels`` voxels is expected to take: a TOF-MRA's
+    (:data:`MEASURED_MRA`) for ``kind`` ``"mra"``, a CTA's (:data:`MEASURED`) for any other kind; for a kind not
+    known (``None``: no DICOM Modality, ``volume_kind`` auto) the larger of the CTA's and the largest TOF read
+    measured (TOF is acquired as a slab: its curve is not extrapolated for a volume that may be a whole-head CTA).
+    Each interpolated, past its largest measure at its last slope."""
     n = float(max(0, voxels))
+    if kind == "mra":
+        return _interpolated(np.array(MEASURED_MRA), n)
+    cta = _interpolated(np.array(MEASURED), n)
+    if kind is not None:
+        return cta
+    tof = _interpolated(np.array(MEASURED_MRA), min(n, MEASURED_MRA[-1][0]))
+    return max(cta[0], tof[0]), max(cta[1], tof[1])
+
+
+KIND_OF_MODALITY = {"CT": "cta", "MR": "mra"}
+"""A DICOM series' Modality → the reading's kind, for its expected cost (an XA/3D-RA volume reads as a CTA does)."""
+
+
+def _interpolated(points: np.ndarray, n: float) -> tuple[float, float]:
     if n <= points[-1, 0]:
         return float(np.interp(n, points[:, 0], points[:, 1])), float(np.interp(n, points[:, 0], points[:, 2]))
     (n0, m0, c0), (n1, m1, c1) = points[-2], points[-1]
@@ -89,13 +124,16 @@ def expected_read_cost(voxels: int) -> tuple[float, float]:
 def volume_read_cost(volume: bytes | list[bytes], name: str | None, limits: InputLimits = DEFAULT_LIMITS,
                      reading: VolumeReading | None = None, store: ModelStore | None = None) -> VolumeCost | None:
     """What reading ``volume`` (a case's volume files) will cost; ``None`` when its header declares no shape."""
-    shape = declared_volume(volume, name, limits)
-    if shape is None:
+    declared = _declared(volume, name, limits)
+    if declared is None:
         return None
+    shape = declared.shape
+    given = reading.kind if reading is not None and reading.kind != "auto" else None
+    kind = given or KIND_OF_MODALITY.get(declared.modality.upper(), "cta" if declared.modality else None)
     if store is not None and store.get(model_key(volume, name, reading, limits.working_faces)) is not None:
-        return VolumeCost(shape, *expected_read_cost(0), cached=True)
+        return VolumeCost(shape, *expected_read_cost(0, "cta"), cached=True)
     voxels = int(np.prod(shape, dtype=np.int64))
-    return VolumeCost(shape, *expected_read_cost(voxels))
+    return VolumeCost(shape, *expected_read_cost(voxels, kind))
 
 
-__all__ = ["MEASURED", "VolumeCost", "declared_volume", "expected_read_cost", "volume_read_cost"]
+__all__ = ["MEASURED", "MEASURED_MRA", "VolumeCost", "declared_volume", "expected_read_cost", "volume_read_cost"]
