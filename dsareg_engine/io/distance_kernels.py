@@ -30,18 +30,20 @@ def squared_distances(mask, s0, s1, s2, out):
     line, result = np.empty(size), np.empty(size)
     where, bounds = np.empty(size, np.int64), np.empty(size + 1)
     for i in range(n0):
-        for k in range(n2):
-            for j in range(n1):
-                line[j] = out[i, j, k]
-            _envelope(line, n1, s1, where, bounds, result)
-            for j in range(n1):
-                out[i, j, k] = result[j]
-        for j in range(n1):
-            for k in range(n2):
-                line[k] = out[i, j, k]
-            _envelope(line, n2, s2, where, bounds, result)
-            for k in range(n2):
-                out[i, j, k] = result[k]
+        _rows(out[i].T, s1, line, result, where, bounds)  # along axis 1
+        _rows(out[i], s2, line, result, where, bounds)  # along axis 2
+
+
+@njit(cache=True)
+def _rows(plane, s, line, result, where, bounds):
+    """Each row of ``plane`` (2D) replaced by its lower envelope (:func:`_envelope`), ``s`` mm between its values."""
+    rows, n = plane.shape
+    for r in range(rows):
+        for q in range(n):
+            line[q] = plane[r, q]
+        _envelope(line, n, s, where, bounds, result)
+        for q in range(n):
+            plane[r, q] = result[q]
 
 
 @njit(cache=True)

@@ -172,67 +172,60 @@ def test_the_search_group_holds_the_coverage_searchs_splat(tmp_path):
     assert report == {"cached": True, "hits": 1, "misses": 0}, report
 
 
+def _later_group_used_from_the_cache(group: str, use: str, tmp_path) -> dict:
+    """Compile the later ``group`` in one process (as the background helper does), then run ``use`` (code that
+    sets ``report``, a dict) in another with the same cache: ``report`` with the group's cache hits and misses
+    there and whether it was found cached before the use."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    compiled = _python(f"""
+        from dsareg_engine import warmup
+        assert {group!r} in warmup.LATER_GROUPS
+        warmup.compile_group({group!r})
+    """, env)
+    assert compiled.returncode == 0, compiled.stderr[-3000:]
+    done = _python(f"""
+        import json
+        import numpy as np
+        from dsareg_engine import warmup
+        cached = warmup.group_cached({group!r})
+        {textwrap.indent(textwrap.dedent(use), " " * 8).strip()}
+        kernels = warmup._group_dispatchers({group!r})
+        print(json.dumps({{**report, "cached": cached,
+                          "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
+                          "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels)}}))
+    """, env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def test_the_hemodynamics_group_holds_the_kernels_a_hemodynamics_job_traces_with(tmp_path):
     """A worker's first hemodynamics job loads the ray-stretch kernels from the cache the background helper filled
     (another process), at a job's size and types, instead of compiling them."""
-    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
-    compiled = _python("""
-        from dsareg_engine import warmup
-        assert "hemodynamics" in warmup.LATER_GROUPS
-        warmup.compile_group("hemodynamics")
-    """, env)
-    assert compiled.returncode == 0, compiled.stderr[-3000:]
-    done = _python("""
-        import json
-        from dsareg_engine import warmup
-        from dsareg_engine.geometry.rig import Rig
+    report = _later_group_used_from_the_cache("hemodynamics", """
         from dsareg_engine.hemodynamics.measure import model_stretches
         from dsareg_engine.simulation.native_run import Plane
         from dsareg_engine.simulation.phantom import make_vessel_phantom
-        import numpy as np
-        cached = warmup.group_cached("hemodynamics")
         mesh = make_vessel_phantom(seed=0, depth=2)
         pose = np.eye(4)
         pose[:3, 3] = -mesh.centroid
         stretches = model_stretches(mesh, Plane(0.0, 0.0, 1200.0, 800.0, 1.2).view(64), pose)
-        kernels = warmup._group_dispatchers("hemodynamics")
-        print(json.dumps({"cached": cached, "covered": bool(stretches.covered.any()),
-                          "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
-                          "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels)}))
-    """, env)
-    assert done.returncode == 0, done.stderr[-3000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
+        report = {"covered": bool(stretches.covered.any())}
+    """, tmp_path)
     assert report == {"cached": True, "covered": True, "hits": 2, "misses": 0}, report
 
 
 def test_the_volumes_group_holds_the_distance_transform_a_tof_reading_takes(tmp_path):
     """A TOF-MRA reading's scalp band (7 mm: the wide path of ``within_mm``) loads the distance transform the
     background helper compiled (another process), instead of compiling it in the job."""
-    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
-    compiled = _python("""
-        from dsareg_engine import warmup
-        assert "volumes" in warmup.LATER_GROUPS
-        warmup.compile_group("volumes")
-    """, env)
-    assert compiled.returncode == 0, compiled.stderr[-3000:]
-    done = _python("""
-        import json
-        import numpy as np
-        from dsareg_engine import warmup
-        from dsareg_engine.io.voxel_band import within_mm
-        cached = warmup.group_cached("volumes")
+    report = _later_group_used_from_the_cache("volumes", """
         from scipy import ndimage
+        from dsareg_engine.io.voxel_band import within_mm
         air = np.ones((30, 80, 80), bool)
         air[:, 5:75, 5:75] = False  # a head's section (21 mm square), the slab's faces cut through it
         band = within_mm(air, (0.6, 0.3, 0.3), 7.0)
         same = bool(np.array_equal(band, ndimage.distance_transform_edt(~air, sampling=(0.6, 0.3, 0.3)) <= 7.0))
-        kernels = warmup._group_dispatchers("volumes")
-        print(json.dumps({"cached": cached, "same": same, "interior": int((~band).sum()),
-                          "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels),
-                          "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels)}))
-    """, env)
-    assert done.returncode == 0, done.stderr[-3000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
+        report = {"same": same, "interior": int((~band).sum())}
+    """, tmp_path)
     assert report == {"cached": True, "same": True, "interior": 30 * 24 * 24, "hits": 1, "misses": 0}, report
 
 
