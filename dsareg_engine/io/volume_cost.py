@@ -10,8 +10,9 @@ allows refused at once, not after a minute of work).
   decodes a voxel, got by running the reader itself under a :class:`~.limits.ShapeProbe` (the same parsing and the
   same refusals as a full read, up to that point: a broken header is refused here already).
 * :func:`expected_read_cost`: address-space growth (MB) and CPU s of the first read of ``voxels`` voxels,
-  interpolated in :data:`MEASURED` (a warmed-up process, as the service's validator is; measured with
-  ``python -m benchmarks.engine whole-head --intake``), extrapolated past the largest at its last slope.
+  interpolated in :data:`MEASURED` (CTA) or :data:`MEASURED_MRA` (TOF-MRA), by the volume's kind (a warmed-up
+  process, as the service's validator is; measured with ``python -m benchmarks.engine whole-head --intake
+  [--kind mra]``), extrapolated past the largest at its last slope.
 * :func:`volume_read_cost`: both for a case's volume files, zero when its model is already kept
   (:mod:`.model_cache`: a hit reads headers only).
 """
@@ -62,6 +63,10 @@ the 160-slice slab 1.4 GB where a CTA of its voxels takes 0.9. A DICOM series' M
 tells which curve a volume's read follows (:func:`expected_read_cost`)."""
 
 
+KIND_OF_MODALITY = {"CT": "cta", "MR": "mra"}
+"""A DICOM series' Modality → the reading's kind, for its expected cost (an XA/3D-RA volume reads as a CTA does)."""
+
+
 @dataclass(frozen=True)
 class VolumeCost:
     """A volume's declared ``shape`` and its first read's expected ``memory_mb`` (address-space growth) and
@@ -108,10 +113,6 @@ def expected_read_cost(voxels: int, kind: str | None = None) -> tuple[float, flo
         return cta
     tof = _interpolated(np.array(MEASURED_MRA), min(n, MEASURED_MRA[-1][0]))
     return max(cta[0], tof[0]), max(cta[1], tof[1])
-
-
-KIND_OF_MODALITY = {"CT": "cta", "MR": "mra"}
-"""A DICOM series' Modality → the reading's kind, for its expected cost (an XA/3D-RA volume reads as a CTA does)."""
 
 
 def _interpolated(points: np.ndarray, n: float) -> tuple[float, float]:

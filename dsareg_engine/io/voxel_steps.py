@@ -93,8 +93,8 @@ def _face_neighbours(mask: np.ndarray) -> np.ndarray:
 def filled_holes(mask: np.ndarray) -> np.ndarray:
     """``ndimage.binary_fill_holes(mask)`` (its default structure: face neighbours, 2D or 3D): ``mask`` and the
     background voxels that no path of face-neighbouring background voxels joins to the grid's border. One labelling
-    of the background, not a dilation repeated until nothing changes (~10 × faster on a head: a slab's fill took
-    seconds)."""
+    of the background, not a dilation repeated until nothing changes (a 160-slice TOF's head mask, filled in 3D and
+    slice by slice: 2.9 → 1.6 CPU s)."""
     background = ~np.asarray(mask, bool)
     labels, count = labelled(background, narrow_above=0)  # 16 bits where they fit: a head's grid is labelled whole
     if count == 0:
@@ -135,4 +135,5 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "filled_holes", "grown", "label_sizes", "labelled", "map_labels"]
+__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "filled_holes", "grown", "label_sizes", "labelled",
+           "map_labels"]
