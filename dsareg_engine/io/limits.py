@@ -43,9 +43,10 @@ class ShapeProbe(InputLimits):
 
 
 class DeclaredShape(Exception):  # noqa: N818 - a result carried out of the reader, not an error
-    """A volume's declared ``shape`` and sample size (``itemsize``, bytes), raised under a :class:`ShapeProbe`."""
+    """A volume's declared ``shape``, sample size (``itemsize``, bytes) and DICOM ``modality`` (empty where the
+    format has none), raised under a :class:`ShapeProbe`."""
 
-    def __init__(self, shape: tuple[int, ...], itemsize: int):
+    def __init__(self, shape: tuple[int, ...], itemsize: int, modality: str = ""):
         super().__init__(shape, itemsize)
         self.shape, self.itemsize = tuple(int(s) for s in shape), int(itemsize)
-        self.modality = ""  # a DICOM series' Modality (CT, MR, …) where its reader knows it: the reading's kind
+        self.modality = modality  # a DICOM series' Modality (CT, MR, …) where its reader knows it: the reading's kind

@@ -96,8 +96,9 @@ def _named_data(header: bytes, fmt: str, field_name: str) -> bytes:
     return pattern.sub(lambda m: m.group(1) + b"volume.data", header[:65536], count=1) + header[65536:]
 
 
-def check_bytes(shape, itemsize: int, limits: InputLimits, field_name: str) -> None:
-    """Refuse a declared shape × sample size above ``limits.max_volume_bytes`` (before any voxel is decoded)."""
+def check_bytes(shape, itemsize: int, limits: InputLimits, field_name: str, modality: str = "") -> None:
+    """Refuse a declared shape × sample size above ``limits.max_volume_bytes`` (before any voxel is decoded);
+    ``modality``: a DICOM series' Modality, carried by a header probe's :class:`.limits.DeclaredShape`."""
     shape = [int(s) for s in shape]
     if any(s < 1 for s in shape):
         raise DsaregInputError(f"declares an empty shape {shape}", field=field_name)
@@ -109,7 +110,7 @@ def check_bytes(shape, itemsize: int, limits: InputLimits, field_name: str) -> N
             field=field_name,
         )
     if isinstance(limits, ShapeProbe):  # the header alone was asked for: stop before any voxel is decoded
-        raise DeclaredShape(tuple(shape), int(itemsize))
+        raise DeclaredShape(tuple(shape), int(itemsize), modality)
 
 
 def check_affine(affine: np.ndarray, field_name: str) -> np.ndarray:

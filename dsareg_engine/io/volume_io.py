@@ -33,7 +33,7 @@ from ..mesh import TriangleMesh
 from . import rad as rad_format
 from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
 from .image_io import dicom_number
-from .limits import DEFAULT_LIMITS, DeclaredShape, InputLimits
+from .limits import DEFAULT_LIMITS, InputLimits
 from .volume_formats import ACCEPTED as _ACCEPTED
 from .volume_formats import (
     RAS_TO_LPS,
@@ -278,16 +278,6 @@ def _series_affine(positions: np.ndarray, row_dir, col_dir, spacing, field_name:
     return _check_affine(affine, field_name)
 
 
-def _declared_with_modality(shape, itemsize: int, limits: InputLimits, field_name: str, first) -> None:
-    """:func:`.volume_formats.check_bytes`; a header probe's :class:`.limits.DeclaredShape` carries the series'
-    Modality (a TOF-MRA's read costs more than a CTA's of its voxels: :mod:`.volume_cost`)."""
-    try:
-        _check_bytes(shape, itemsize, limits, field_name)
-    except DeclaredShape as declared:
-        declared.modality = str(getattr(first, "Modality", "") or "")
-        raise
-
-
 def read_dicom_series(
     parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
 ) -> Volume:
@@ -309,8 +299,9 @@ def read_dicom_series(
     if rows < 1 or cols < 1:
         raise DsaregInputError("DICOM file has no Rows/Columns (not an image)", field=field_name)
     n_frames = int(getattr(first, "NumberOfFrames", 1) or 1)
+    modality = str(getattr(first, "Modality", "") or "")  # a header probe's: the reading's kind (:mod:`.volume_cost`)
     if len(parts) == 1 and n_frames > 1:
-        _declared_with_modality((cols, rows, n_frames), max(4, bits // 8), limits, field_name, first)
+        _check_bytes((cols, rows, n_frames), max(4, bits // 8), limits, field_name, modality)
         if "PerFrameFunctionalGroupsSequence" not in first:
             raise DsaregInputError("multi-frame DICOM lacks per-frame positions (not a volume)", field=field_name)
         geometry = [_frame_geometry(first, f, field_name) for f in range(n_frames)]
@@ -326,7 +317,7 @@ def read_dicom_series(
                 field=field_name,
                 accepted="all files of a DICOM series, or an enhanced multi-frame file",
             )
-        _declared_with_modality((cols, rows, len(parts)), max(4, bits // 8), limits, field_name, first)
+        _check_bytes((cols, rows, len(parts)), max(4, bits // 8), limits, field_name, modality)
         for header in headers[1:]:
             if (int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)) != (rows, cols):
                 raise DsaregInputError("DICOM slices differ in size", field=field_name)
