@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 SLAB_VOXELS = 2_000_000  # voxels of a slab's core (its halo comes on top): ~30 bytes each at the peak
+KERNEL_WAIT_S = 20.0  # at most this long behind another process compiling the transform (it takes ~3 s; ~10 loaded)
 MAX_BALL_ROWS = 160  # a band of at most this many rows of voxels across is dilated directly (a few voxels wide)
 
 
@@ -106,7 +107,9 @@ def _slab_within(part: np.ndarray, spacing: np.ndarray, band_mm: float) -> np.nd
     from ..render.compile_lock import wait_for_group
     from .distance_kernels import squared_distances
 
-    wait_for_group("volumes")  # a worker's background helper may be compiling it right now (once a process)
+    # a worker's background helper may be compiling it right now (once a process); a submission's check reads
+    # volumes too, so a frozen helper holds a read up to KERNEL_WAIT_S, not the lock's 300 s: then it compiles itself
+    wait_for_group("volumes", wait_limit_s=KERNEL_WAIT_S)
     squared = np.empty(part.shape)
     squared_distances(np.ascontiguousarray(part, bool), float(spacing[0]), float(spacing[1]), float(spacing[2]),
                       squared)

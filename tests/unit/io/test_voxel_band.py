@@ -57,3 +57,19 @@ def test_a_bone_band_costs_a_few_bytes_per_voxel():
     tracemalloc.stop()
     assert band.sum() > 2 * shell.sum()
     assert peak < 8 * shell.size, f"{peak / shell.size:.1f} bytes per voxel"  # measured 3.7; the transform 49
+
+
+def test_a_wide_band_waits_for_a_compiling_helper_only_briefly(monkeypatch):
+    """The transform's kernel group is waited for (a background helper may be compiling it) with the band's own
+    limit: a submission's check reads volumes, and a frozen helper holds a read at most ``KERNEL_WAIT_S`` (the
+    bounded wait itself, against a real SIGSTOPped holder: tests/unit/render/test_compile_lock.py)."""
+    from dsareg_engine.render import compile_lock
+
+    waits = []
+    monkeypatch.setattr(compile_lock, "wait_for_group",
+                        lambda name, wait_limit_s=None: waits.append((name, wait_limit_s)))
+    mask = np.zeros((30, 30, 30), bool)
+    mask[15, 15, 15] = True
+    monkeypatch.setattr(voxel_band, "MAX_BALL_ROWS", 0)  # the slabs of distance transforms
+    within_mm(mask, (0.5, 0.5, 0.5), 5.0)
+    assert waits and set(waits) == {("volumes", voxel_band.KERNEL_WAIT_S)} and voxel_band.KERNEL_WAIT_S <= 30
