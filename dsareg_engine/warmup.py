@@ -1,10 +1,11 @@
 """Warm-up of a worker process: one tiny registration through every step a job takes.
 
 A fresh process pays ~1.5 CPU-s on its first job for lazy imports and first-use set-up that
-the renderer's warm-up does not reach: torch's optimizers import ``torch._dynamo``, the loss
+the renderer's warm-up does not reach: the loss
 plot imports matplotlib and builds its font cache, the DICOM writer imports pydicom, the image
 readers their codecs. Measured on 2 cores: first job 2.1 CPU-s, the next ones 0.5 CPU-s (128 px
-phantom, 60 iterations). :func:`warm_up_job` pays this before the worker takes its first job.
+phantom, 60 iterations; then, torch's optimizers also imported ``torch._dynamo``, which
+:mod:`.registration.optim` no longer does). :func:`warm_up_job` pays this before the worker takes its first job.
 
 The kernels (numba, cached on disk) are compiled in **groups** (:data:`KERNEL_GROUPS`), each group's
 functions in one process so no two processes write one function's cache index at once:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .optim import Adam, lbfgs
 from .gauss_newton import levenberg_marquardt
 from .schedule import WINDOW_TOLERANCE
 
@@ -29,7 +30,7 @@ class _StageOutcome:
 
 
 def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
-    optimizer = torch.optim.Adam([delta], lr=stage.learning_rate)
+    optimizer = Adam(delta, lr=stage.learning_rate)  # not torch.optim's (:mod:`.optim`)
     losses: list[float] = []
     best, since_best = float("inf"), 0
     start = time.perf_counter()
@@ -66,8 +67,8 @@ def _window_plateau(losses: list[float], window: int) -> bool:
 
 
 def _run_lbfgs(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
-    optimizer = torch.optim.LBFGS(
-        [delta], lr=1.0, max_iter=stage.max_iterations, max_eval=stage.max_iterations,
+    optimizer = lbfgs(  # torch's, built without importing its compiler (:mod:`.optim`)
+        delta, lr=1.0, max_iter=stage.max_iterations, max_eval=stage.max_iterations,
         tolerance_grad=1e-12, tolerance_change=LBFGS_POSE_TOLERANCE if stage.pose_tolerance is None else stage.pose_tolerance,
         history_size=10, line_search_fn="strong_wolfe",
     )
@@ -79,7 +80,7 @@ def _run_lbfgs(problem, stage, increment, delta, dtype, report) -> _StageOutcome
     pixels = float(first.numel())
 
     def closure():
-        optimizer.zero_grad()
+        delta.grad = None  # (``optimizer.zero_grad`` would import the compiler)
         mean_loss = problem.loss(increment(delta), stage, dtype).sum()
         (mean_loss * pixels).backward()
         losses.append(float(mean_loss.detach()))
