@@ -1,9 +1,11 @@
 """A whole-head CTA submitted to a server with its default settings, twice (issue 41; a command, not a test).
 
-    python -m benchmarks.service.whole_head_intake [--grid 512x512x440] [--voxel 0.45] [--fixed]
+    python -m benchmarks.service.whole_head_intake [--grid 512x512x440] [--voxel 0.45] [--kind cta|mra] [--fixed]
+                                                   [--case CASE.pickle]
 
-Writes the whole-head CTA of ``python -m benchmarks.engine whole-head`` (a DICOM series of 440 slices beside its
-XA pair), starts ``python -m service serve`` with no ``DSAREG_*`` setting but its data folder (``--fixed``: the
+Writes the whole-head CTA (``--kind mra``: the TOF-MRA slab) of ``python -m benchmarks.engine whole-head`` (a DICOM
+series of 440 slices beside its XA pair; ``--voxel 0.4x0.4x0.5`` for anisotropic voxels; ``--case``: a case that
+command's ``--sweep`` or an earlier run wrote, not written again), starts ``python -m service serve`` with no ``DSAREG_*`` setting but its data folder (``--fixed``: the
 fixed limits of before, ``DSAREG_VALIDATION_VOLUME_MEMORY_MB=0`` and ``..._TIMEOUT_SECONDS=0``), submits it with
 no initial pose, waits for the job, then submits it again. Per submission: the seconds to the answer (the
 upload and the validator's read), the answer, the job's seconds queued-to-finished, ADD and verdict; the peak RSS
@@ -104,15 +106,22 @@ def _submit(url: str, case, watch: PeakWatch) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--grid", default="512x512x440")
-    parser.add_argument("--voxel", type=float, default=0.45)
+    parser.add_argument("--voxel", default="0.45", help="mm, one value or AxBxC")
+    parser.add_argument("--kind", choices=("cta", "mra"), default="cta")
+    parser.add_argument("--case", type=Path, help="a case pickle written before (its grid, voxel and kind)")
     parser.add_argument("--fixed", action="store_true", help="the fixed validator limits of before (no allowance)")
     args = parser.parse_args(argv)
     from benchmarks.engine.whole_head import _write_case
 
     grid = tuple(int(v) for v in args.grid.lower().split("x"))
+    voxel = tuple(float(v) for v in str(args.voxel).lower().split("x"))
     with tempfile.TemporaryDirectory() as folder:
-        print(f"writing a {args.grid} CTA at {args.voxel:g} mm ...", flush=True)
-        case = pickle.loads(_write_case(Path(folder), args.voxel, grid).read_bytes())
+        if args.case is not None:
+            case = pickle.loads(args.case.read_bytes())
+        else:
+            print(f"writing a {args.grid} {args.kind.upper()} at {args.voxel} mm ...", flush=True)
+            case = pickle.loads(_write_case(Path(folder), voxel[0] if len(voxel) == 1 else voxel, grid,
+                                            args.kind).read_bytes())
         port, data_dir = free_port(), Path(folder) / "data"
         server, watch = _serve(data_dir, port, args.fixed), PeakWatch()
         watch.start()
