@@ -106,7 +106,7 @@ def plates_found(mask: np.ndarray, spacing: np.ndarray, bone_of) -> PlatesFound:
         return PlatesFound(large, shape.plate_share)
     box = bounding_box(mask, margin=1)
     rest = mask[box] & ~grown(large[box])
-    if rest.sum() < 8:
+    if np.count_nonzero(rest) < 8:
         return PlatesFound(none, shape.plate_share)  # nothing tube-like remains: refused
     return PlatesFound(large, None, box, rest, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
 

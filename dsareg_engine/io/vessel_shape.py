@@ -71,7 +71,7 @@ def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, floa
     ridge = (smooth >= RIDGE_TOLERANCE * ndimage.maximum_filter(smooth, 3)) & (smooth > 0.2)
     if not ridge.any():
         return 0.0, 0.0
-    hessian = np.empty((int(ridge.sum()), 3, 3), np.float32)
+    hessian = np.empty((np.count_nonzero(ridge), 3, 3), np.float32)
     for a in range(3):
         for b in range(a, 3):
             order = [0, 0, 0]
@@ -87,8 +87,8 @@ def curvature_shares(mask: np.ndarray, spacing: np.ndarray) -> tuple[float, floa
 
 def shape_measures(mask: np.ndarray, spacing, plate_share: float | None = None) -> dict[str, float]:
     """The measures above (``plate_share``: the medial plate share of this same mask, if already measured)."""
-    kept = int(mask.sum())
-    filled = int(filled_holes(crop_to(mask)).sum()) if kept else 0
+    kept = int(np.count_nonzero(mask))
+    filled = int(np.count_nonzero(filled_holes(crop_to(mask)))) if kept else 0
     solid = curvature_shares(mask, np.asarray(spacing, float))[1]
     plate = medial_shape(mask, spacing).plate_share if plate_share is None else float(plate_share)
     return {"kept_fraction": kept / mask.size, "enclosed_ratio": filled / max(kept, 1), "plate_fraction": plate,
@@ -105,10 +105,10 @@ def check_vessel_shape(mask: np.ndarray, spacing, readout, *, field_name: str = 
                 "(options.volume_vessel_min / options.volume_vessel_max) to what the volume is")
     if kind == "labels":
         accepted = "a label map of vessels: choose its vessel labels with options.volume_labels"
-    if int(mask.sum()) < MIN_KEPT_VOXELS:
+    if np.count_nonzero(mask) < MIN_KEPT_VOXELS:
         raise DsaregInputError(f"no vessels in the window: {what}", field=field_name, accepted=accepted)
     limit = MAX_KEPT_FRACTION.get(kind, 0.5)
-    kept_fraction = int(mask.sum()) / (total_voxels or mask.size)
+    kept_fraction = np.count_nonzero(mask) / (total_voxels or mask.size)
     if kept_fraction > limit:  # before the shape measures: on a third of a head they cost ~0.5 GB and seconds
         raise DsaregInputError(
             f"keeps {100 * kept_fraction:.1f}% of the volume, far more than vessels "
@@ -140,7 +140,7 @@ def spacing_hint(mask: np.ndarray, spacing) -> str:
 
     spacing = np.asarray(spacing, float)
     coarse = crop_to(mask)[::2, ::2, ::2]
-    if int(coarse.sum()) < MIN_KEPT_VOXELS:
+    if np.count_nonzero(coarse) < MIN_KEPT_VOXELS:
         return ""
     depth = ndimage.distance_transform_edt(np.pad(coarse, 1), sampling=2 * spacing)[1:-1, 1:-1, 1:-1][coarse]
     width_mm = 2.0 * float(np.percentile(depth, 90))

@@ -443,7 +443,7 @@ def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05,
     mask = np.zeros(inside.shape, bool)
     map_labels(mask[box], chosen, labels)
     del labels
-    if mask.sum() < 8:
+    if np.count_nonzero(mask) < 8:
         raise DsaregInputError("only a few isolated voxels lie above the threshold", field=field_name)
     return mask
 

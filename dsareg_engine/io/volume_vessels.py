@@ -163,7 +163,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
-                            levels.get("tissue"), levels.get("vessel"), int(mask.sum()), total, labels_count,
+                            levels.get("tissue"), levels.get("vessel"), int(np.count_nonzero(mask)), total, labels_count,
                             "local half maximum" if "low" in levels else "level")
     measures = check_vessel_shape(mask, spacing, readout, field_name=field_name, plate_share=plate_share,
                                   total_voxels=total)
@@ -363,7 +363,7 @@ def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
     bone_hu = float(reading.vessel_max) if reading.vessel_max is not None else DEFAULT_BONE_HU
     bone = smooth > bone_hu
     soft = (smooth > SOFT_TISSUE_HU[0]) & (smooth < SOFT_TISSUE_HU[1])
-    if soft.sum() < 100:
+    if np.count_nonzero(soft) < 100:
         raise _no_vessels(f"no soft tissue between {SOFT_TISSUE_HU[0]:.0f} and {SOFT_TISSUE_HU[1]:.0f} HU "
                           "(is this a CT in HU?)", field_name, "CTA")
     tissue = float(np.median(smooth[soft]))
@@ -382,14 +382,14 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
         level = float(reading.vessel_min)
         vessel = None
     else:
-        if candidates.sum() < 8:
+        if np.count_nonzero(candidates) < 8:
             raise _no_vessels(f"no voxels between {tissue + 100:.0f} and {bone_hu:.0f} HU away from bone",
                               field_name, "CTA")
         vessel = float(np.percentile(smooth[candidates], 75))
         level = (tissue + vessel) / 2.0
     del candidates  # (memory: a head's box)
     window = (smooth > level) & (smooth < bone_hu)
-    if (window & ~near_bone).sum() < 8:
+    if np.count_nonzero(window & ~near_bone) < 8:
         raise _no_vessels(f"no voxels in the window {level:.0f} to {bone_hu:.0f} HU away from bone", field_name, "CTA")
     peak = vessel if vessel is not None else float(np.percentile(smooth[window & ~near_bone], 75))
     # near bone, only a plateau in the window is a lumen (a vessel in a bony canal); a partial-volume voxel
@@ -509,7 +509,7 @@ def _mra_interior(head: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     if not any(face.any() for axis in range(3) for face in (head.take(0, axis), head.take(-1, axis))):
         return from_air  # no face cuts the head: measuring from the faces too changes nothing
     from_faces = from_air & ~_near_faces(head.shape, spacing, MRA_SHELL_MM)
-    return from_faces if from_faces.sum() >= 0.5 * from_air.sum() else from_air
+    return from_faces if np.count_nonzero(from_faces) >= 0.5 * np.count_nonzero(from_air) else from_air
 
 
 def _near_faces(shape, spacing: np.ndarray, band_mm: float) -> np.ndarray:
@@ -529,7 +529,7 @@ def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
                 field_name: str) -> _MraGround:
     head = _head_mask(smooth, affine)
     interior = _mra_interior(head, spacing)
-    if interior.sum() < 1000:
+    if np.count_nonzero(interior) < 1000:
         raise _no_vessels(f"no head interior deeper than {MRA_SHELL_MM:.0f} mm under the surface", field_name, "MRA")
     tissue, spread = _mode_and_upper_spread(smooth[interior])
     outside = smooth[::2, ::2, ::2][~head[::2, ::2, ::2]]
@@ -556,7 +556,7 @@ def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     del values, bright  # (memory: the interior's values, 4 bytes a voxel of it, are not held through the labelling)
     low = level if reading.vessel_min is not None else tissue + MRA_EXTENT * (vessel - tissue)
     candidates = interior & (smooth > low)
-    if candidates.sum() < 8:
+    if np.count_nonzero(candidates) < 8:
         raise _no_vessels(f"no voxels above {low:.0f} inside the head", field_name, "MRA")
     peak = vessel if vessel is not None else float(np.percentile(smooth[candidates], 75))
     seeds = candidates & (smooth > tissue + 0.75 * (peak - tissue))
