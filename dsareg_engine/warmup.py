@@ -12,8 +12,8 @@ functions in one process so no two processes write one function's cache index at
 ``forward`` and ``backward`` are what a registration job needs (:func:`warm_up_kernels` compiles
 ``backward`` in a helper process while this one compiles ``forward``: two cores, half the wall time);
 ``tracking`` (the Gauss-Newton Jacobian, more than half of all the compile), ``search`` (the
-initial-pose search), ``hemodynamics`` (the ray-stretch kernels of ``options.hemodynamics``) and ``volumes`` (the
-distance transform of a volume reading's wide bands: a TOF-MRA's scalp) are compiled
+initial-pose search), ``hemodynamics`` (the ray-stretch kernels of ``options.hemodynamics``) and ``volumes`` (a
+volume reading's smoothing, the distance transform of its wide bands, the medial measure's local tops) are compiled
 afterwards by a background helper (:func:`compile_later_groups`),
 so a worker is ready without them; a job that needs one before the helper is done compiles it itself.
 ``python -m dsareg_engine.warmup --threads N GROUP...`` is the helper.
@@ -203,13 +203,23 @@ def _compile_hemodynamics() -> None:
 
 
 def _compile_volumes() -> None:
-    """The distance transform of a volume reading's wide bands (:func:`.io.voxel_band.within_mm`), with the
-    argument types it passes: a C-ordered bool grid, three spacings, a float64 grid."""
+    """The kernels of a volume reading, with the argument types it passes: the distance transform of its wide bands
+    (:func:`.io.voxel_band.within_mm`: a C-ordered bool grid, three spacings, a float64 grid), the smoothing
+    (:func:`.io.smoothing_kernels.smoothed`: a float32 grid as series, NIfTI and MetaImage volumes store it, whole or
+    a box of it) and the medial measure's local tops (:func:`.io.cube_kernels.maxima_at`: an int32 grid, int64 flat
+    indices)."""
     import numpy as np
 
+    from .io.cube_kernels import maxima_at
     from .io.distance_kernels import squared_distances
+    from .io.smoothing_kernels import SMOOTHED_SIGMA_VOX, smoothed
 
     squared_distances(np.ones((2, 2, 2), bool), 1.0, 1.0, 1.0, np.empty((2, 2, 2)))
+    for order in "FC":
+        grid = np.zeros((4, 4, 4), np.float32, order=order)
+        smoothed(grid, SMOOTHED_SIGMA_VOX)
+        smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
+    maxima_at(np.zeros((2, 2, 2), np.int32), np.flatnonzero(np.ones(8, bool)), 2, 1)
 
 
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
@@ -231,9 +241,12 @@ def _group_dispatchers(name: str) -> list:
 
         return [_hits, _pair]
     if name == "volumes":
+        from .io import smoothing_kernels
+        from .io.cube_kernels import maxima_at
         from .io.distance_kernels import squared_distances
 
-        return [squared_distances]
+        return [squared_distances, maxima_at, smoothing_kernels._first_axis_fortran, smoothing_kernels._first_axis,
+                smoothing_kernels._second_axis, smoothing_kernels._third_axis]
     if name == "tracking":
         from .render import jacobian_numba
 
@@ -256,8 +269,8 @@ def group_cached(name: str) -> bool:
 
 
 def compile_group(name: str) -> None:
-    """Compile the kernel group ``name`` into the cache (under its lock, see :mod:`.render.compile_lock`)."""
-    from .render.compile_lock import compiling_group
+    """Compile the kernel group ``name`` into the cache (under its lock, see :mod:`.compile_lock`)."""
+    from .compile_lock import compiling_group
 
     with compiling_group(name):
         KERNEL_GROUPS[name]()

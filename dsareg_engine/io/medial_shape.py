@@ -116,21 +116,37 @@ def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.nda
     """The medial points ``(N, 3)`` of ``work`` and their radius (working voxels): the voxels of ``work`` as deep as
     the deepest within 2 voxels less 0.75 voxel, on the ridge of the depth (``|∇ depth|`` below ``MEDIAL_SLOPE``,
     central differences as ``np.gradient``) or in a structure two voxels across. The depth's local tops are
-    filtered on its squared voxel lengths (integers: the same order as the millimetres); the slope is formed at the
-    voxels near a top only, with ``np.gradient``'s operations (the same points as over the whole grid)."""
+    filtered on its squared voxel lengths (integers: the same order as the millimetres), at the inside voxels only
+    (:func:`.cube_kernels.maxima_at`: ``maximum_filter``'s values there); the slope is formed at the voxels near a
+    top only, with ``np.gradient``'s operations (the same points as over the whole grid)."""
 
     squared = _depth_squared(work)
     index = np.flatnonzero(work)
-    top = np.sqrt(cube_maximum(squared, 5).ravel()[index].astype(np.float64)) * work_mm
+    within_two, within_one = _local_maxima(squared, index)
+    top = np.sqrt(within_two.astype(np.float64)) * work_mm
     depth = np.sqrt(squared.ravel()[index].astype(np.float64)) * work_mm
     near_top = depth >= top - 0.75 * work_mm
     index, top = index[near_top], top[near_top]
-    thin = cube_maximum(squared, 3).ravel()[index] <= 1  # two voxels across: all medial
+    thin = within_one[near_top] <= 1  # two voxels across: all medial
     medial = thin.copy()
     slope = _slope_at(squared, index[~thin], work_mm)
     medial[~thin] = slope < MEDIAL_SLOPE
     points = np.stack(np.unravel_index(index[medial], work.shape), axis=1)
     return points, top[medial] / work_mm - 0.25
+
+
+def _local_maxima(squared: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The maxima of ``squared`` over the 5³ and the 3³ cube around each flat ``index`` (``maximum_filter``'s values
+    there): :func:`.cube_kernels.maxima_at` where this process has numba loaded
+    (:func:`.voxel_band.volume_kernels_here`), else two whole-grid filters."""
+    from .voxel_band import volume_kernels_here, volume_kernels_ready
+
+    if not volume_kernels_here():
+        return cube_maximum(squared, 5).ravel()[index], cube_maximum(squared, 3).ravel()[index]
+    from .cube_kernels import maxima_at
+
+    volume_kernels_ready()
+    return maxima_at(squared, index, 2, 1)
 
 
 def _slope_at(squared: np.ndarray, index: np.ndarray, work_mm: float) -> np.ndarray:

@@ -41,7 +41,7 @@ from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, cr
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
-from .voxel_band import within_mm
+from .voxel_band import volume_kernels_here, volume_kernels_ready, within_mm
 from .voxel_steps import cube_minimum, filled_holes, grown, labelled, map_labels
 
 DEFAULT_BONE_HU = 700.0
@@ -151,7 +151,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     spacing, shape, air = np.asarray(volume.spacing_mm), voxels.shape, _air_share(voxels)
     head = _head_box(voxels) if kind == "cta" else tuple(slice(0, n) for n in voxels.shape)
     affine = _cropped_affine(volume.affine, head)
-    smooth = ndimage.gaussian_filter(voxels[head], SMOOTHING_SIGMA_VOX)
+    smooth = _smoothed(voxels[head])
     if release:
         volume.data = voxels = None  # type: ignore[assignment]
     if kind == "3d-dsa":
@@ -174,6 +174,19 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     readout.faces = mesh.n_faces
     kept = _uncropped(mask, head, shape)
     return VesselExtraction(mesh, readout, kept, None if excluded is None else _uncropped(excluded, head, shape))
+
+
+def _smoothed(voxels: np.ndarray) -> np.ndarray:
+    """``ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)``: the numba kernel's bits where this process has numba
+    loaded (:func:`.voxel_band.volume_kernels_here`, :mod:`.smoothing_kernels`), else scipy's."""
+    if not volume_kernels_here():
+        from scipy import ndimage
+
+        return ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
+    from .smoothing_kernels import smoothed
+
+    volume_kernels_ready()
+    return smoothed(voxels, SMOOTHING_SIGMA_VOX)
 
 
 def _air_share(voxels: np.ndarray) -> float:
