@@ -5,9 +5,9 @@
 
 Writes the whole-head CTA (``--kind mra``: the TOF-MRA slab) of ``python -m benchmarks.engine whole-head`` (a DICOM
 series of 440 slices beside its XA pair; ``--voxel 0.4x0.4x0.5`` for anisotropic voxels; ``--case``: a case that
-command's ``--sweep`` or an earlier run wrote, not written again), starts ``python -m service serve`` with no ``DSAREG_*`` setting but its data folder (``--fixed``: the
-fixed limits of before, ``DSAREG_VALIDATION_VOLUME_MEMORY_MB=0`` and ``..._TIMEOUT_SECONDS=0``), submits it with
-no initial pose, waits for the job, then submits it again. Per submission: the seconds to the answer (the
+command's ``--sweep`` or an earlier run wrote, not written again), starts ``python -m service serve`` with no
+``DSAREG_*`` setting but its data folder (``--fixed``: the fixed limits of before,
+``DSAREG_VALIDATION_VOLUME_MEMORY_MB=0`` and ``..._TIMEOUT_SECONDS=0``), submits it with no initial pose, waits for the job, then submits it again. Per submission: the seconds to the answer (the
 upload and the validator's read), the answer, the job's seconds queued-to-finished, ADD and verdict; the peak RSS
 (``VmHWM``) of the validator and worker processes seen meanwhile (sampled every 0.2 s); the allowance the
 validator logged; the machine's load average.

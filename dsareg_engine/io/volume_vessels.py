@@ -163,8 +163,8 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     unit = "HU" if kind == "cta" else "intensity"
     labels_count = int(ndimage.label(crop_to(mask))[1])
     readout = VolumeReadout(kind, source, unit, levels.get("low", levels["min"]), levels.get("max"),
-                            levels.get("tissue"), levels.get("vessel"), int(np.count_nonzero(mask)), total, labels_count,
-                            "local half maximum" if "low" in levels else "level")
+                            levels.get("tissue"), levels.get("vessel"), int(np.count_nonzero(mask)), total,
+                            labels_count, "local half maximum" if "low" in levels else "level")
     measures = check_vessel_shape(mask, spacing, readout, field_name=field_name, plate_share=plate_share,
                                   total_voxels=total)
     readout.plate_share = measures["plate_fraction"]
