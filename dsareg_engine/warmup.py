@@ -269,8 +269,8 @@ def group_cached(name: str) -> bool:
 
 
 def compile_group(name: str) -> None:
-    """Compile the kernel group ``name`` into the cache (under its lock, see :mod:`.compile_lock`)."""
-    from .compile_lock import compiling_group
+    """Compile the kernel group ``name`` into the cache (under its lock, see :mod:`.kernels.compile_lock`)."""
+    from .kernels.compile_lock import compiling_group
 
     with compiling_group(name):
         KERNEL_GROUPS[name]()

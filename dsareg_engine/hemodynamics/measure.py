@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry.rig import Rig, ViewGeometry
 from ..mesh import TriangleMesh
-from ..compile_lock import wait_for_group
+from ..kernels.compile_lock import wait_for_group
 from ..render.ray_layers import RayStretches, ray_stretches
 from .combine import ViewMeasure, combine
 from .model_points import VesselPoints, vessel_points

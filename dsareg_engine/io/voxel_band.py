@@ -117,7 +117,7 @@ def volume_kernels_ready() -> None:
     the medial measure's local tops): a worker's background helper may be compiling the group right now (once a
     process); a submission's check reads volumes too, so a frozen helper holds a read up to ``KERNEL_WAIT_S``, not
     the lock's 300 s: then this process compiles what it uses itself."""
-    from ..compile_lock import wait_for_group
+    from ..kernels.compile_lock import wait_for_group
 
     wait_for_group("volumes", wait_limit_s=KERNEL_WAIT_S)
 

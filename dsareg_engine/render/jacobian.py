@@ -29,7 +29,7 @@ def jacobian_kernel(name: str) -> tuple:
     from .silhouette import _threads
 
     if name not in _KERNEL_PAIRS:
-        from ..compile_lock import wait_for_group
+        from ..kernels.compile_lock import wait_for_group
 
         wait_for_group("tracking")  # a background helper may be compiling them right now
         _KERNEL_PAIRS[name] = KernelPair(getattr(jacobian_numba, name))

@@ -83,7 +83,7 @@ def _placement(view: ViewGeometry, rotations: np.ndarray, centres: np.ndarray):
 
 
 def _splats(canvas: CoverageView, rotations: np.ndarray, centre: np.ndarray, points: np.ndarray, reach: int) -> np.ndarray:
-    from ...compile_lock import wait_for_group
+    from ...kernels.compile_lock import wait_for_group
 
     wait_for_group("search")  # the splat belongs to the search group (a background helper may be compiling it)
     size = canvas.view.width

@@ -200,7 +200,7 @@ def _view_placement(window: _Window, rotations: np.ndarray, centres: np.ndarray)
 
 def _search_kernel(name: str):
     """The search kernel ``name`` for this thread budget (after any background compile of it is done)."""
-    from ...compile_lock import wait_for_group
+    from ...kernels.compile_lock import wait_for_group
 
     wait_for_group("search")
     return _SEARCH_KERNELS[name].pick(numba.get_num_threads())

@@ -62,8 +62,8 @@ def test_a_bone_band_costs_a_few_bytes_per_voxel():
 def test_a_wide_band_waits_for_a_compiling_helper_only_briefly(monkeypatch):
     """The transform's kernel group is waited for (a background helper may be compiling it) with the band's own
     limit: a submission's check reads volumes, and a frozen helper holds a read at most ``KERNEL_WAIT_S`` (the
-    bounded wait itself, against a real SIGSTOPped holder: tests/unit/test_compile_lock.py)."""
-    from dsareg_engine import compile_lock
+    bounded wait itself, against a real SIGSTOPped holder: tests/unit/kernels/test_compile_lock.py)."""
+    from dsareg_engine.kernels import compile_lock
 
     waits = []
     monkeypatch.setattr(compile_lock, "wait_for_group",

@@ -10,13 +10,13 @@ import time
 
 import pytest
 
-from dsareg_engine import compile_lock
+from dsareg_engine.kernels import compile_lock
 
 # The lock module alone, from its file (so the same install key and lock path): the package's __init__ loads torch and
 # the renderer, which holding a lock does not need (1.2 -> 0.35 CPU-s a holder, load 7).
 HOLDER = textwrap.dedent("""
     import importlib.util, sys, time
-    spec = importlib.util.spec_from_file_location("dsareg_engine.compile_lock", sys.argv[3])
+    spec = importlib.util.spec_from_file_location("dsareg_engine.kernels.compile_lock", sys.argv[3])
     compile_lock = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(compile_lock)
     with compile_lock.compiling_group(sys.argv[1]):

@@ -22,7 +22,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-_PACKAGE = Path(__file__).resolve().parent  # the installed package (its lock files: one install's)
+_PACKAGE = Path(__file__).resolve().parents[1]  # the installed package (its lock files: one install's)
 _LOG = logging.getLogger(__name__)
 WAIT_LIMIT_S = 300.0
 """Longest wait for another process's compile of a group (a cold group takes 20–70 s on 2 loaded cores)."""
