@@ -241,12 +241,11 @@ def _group_dispatchers(name: str) -> list:
 
         return [_hits, _pair]
     if name == "volumes":
-        from .io import smoothing_kernels
         from .io.cube_kernels import maxima_at
         from .io.distance_kernels import squared_distances
+        from .io.smoothing_kernels import KERNELS
 
-        return [squared_distances, maxima_at, smoothing_kernels._first_axis_fortran, smoothing_kernels._first_axis,
-                smoothing_kernels._second_axis, smoothing_kernels._third_axis]
+        return [squared_distances, maxima_at, *KERNELS]
     if name == "tracking":
         from .render import jacobian_numba
 

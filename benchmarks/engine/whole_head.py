@@ -54,6 +54,12 @@ def add_parser(which) -> None:
     sub.set_defaults(func=bench_whole_head)
 
 
+def voxel_argument(text) -> float | tuple[float, float, float]:
+    """``--voxel``: one size (isotropic, ``0.45``) or one per axis (``0.4x0.4x0.5``)."""
+    sizes = tuple(float(v) for v in str(text).lower().split("x"))
+    return sizes[0] if len(sizes) == 1 else sizes
+
+
 def _write_case(folder: Path, voxel_mm, grid: tuple[int, int, int], kind: str = "cta") -> Path:
     from dsareg_engine.io.case import CaseFiles
     from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
@@ -157,11 +163,11 @@ def bench_whole_head(args) -> int:
     if getattr(args, "sweep", False):
         return _bench_sweep()
     grid = tuple(int(v) for v in args.grid.lower().split("x"))
-    voxel = tuple(float(v) for v in str(args.voxel).lower().split("x"))
+    voxel = voxel_argument(args.voxel)
     kind = getattr(args, "kind", "cta")
     with tempfile.TemporaryDirectory() as folder:
         print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} {kind.upper()} at {args.voxel} mm ...", flush=True)
-        case_path = _write_case(Path(folder), voxel[0] if len(voxel) == 1 else voxel, grid, kind)
+        case_path = _write_case(Path(folder), voxel, grid, kind)
         if getattr(args, "intake", False):
             return _bench_intake(case_path, Path(folder) / "models")
         print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")
@@ -221,4 +227,4 @@ def _bench_intake(case_path: Path, models: Path) -> int:
     return 0
 
 
-__all__ = ["add_parser", "bench_whole_head", "peak_rss_kb", "read_as_validator", "run_job"]
+__all__ = ["add_parser", "bench_whole_head", "peak_rss_kb", "read_as_validator", "run_job", "voxel_argument"]

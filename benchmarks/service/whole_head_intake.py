@@ -7,10 +7,11 @@ Writes the whole-head CTA (``--kind mra``: the TOF-MRA slab) of ``python -m benc
 series of 440 slices beside its XA pair; ``--voxel 0.4x0.4x0.5`` for anisotropic voxels; ``--case``: a case that
 command's ``--sweep`` or an earlier run wrote, not written again), starts ``python -m service serve`` with no
 ``DSAREG_*`` setting but its data folder (``--fixed``: the fixed limits of before,
-``DSAREG_VALIDATION_VOLUME_MEMORY_MB=0`` and ``..._TIMEOUT_SECONDS=0``), submits it with no initial pose, waits for the job, then submits it again. Per submission: the seconds to the answer (the
-upload and the validator's read), the answer, the job's seconds queued-to-finished, ADD and verdict; the peak RSS
-(``VmHWM``) of the validator and worker processes seen meanwhile (sampled every 0.2 s); the allowance the
-validator logged; the machine's load average.
+``DSAREG_VALIDATION_VOLUME_MEMORY_MB=0`` and ``..._TIMEOUT_SECONDS=0``), submits it with no initial pose, waits
+for the job, then submits it again. Per submission: the seconds to the answer (the upload and the validator's
+read), the answer, the job's seconds queued-to-finished, ADD and verdict; the peak RSS (``VmHWM``) of the validator
+and worker processes seen meanwhile (sampled every 0.2 s); the allowance the validator logged; the machine's load
+average.
 """
 
 from __future__ import annotations
@@ -111,17 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--case", type=Path, help="a case pickle written before (its grid, voxel and kind)")
     parser.add_argument("--fixed", action="store_true", help="the fixed validator limits of before (no allowance)")
     args = parser.parse_args(argv)
-    from benchmarks.engine.whole_head import _write_case
+    from benchmarks.engine.whole_head import _write_case, voxel_argument
 
     grid = tuple(int(v) for v in args.grid.lower().split("x"))
-    voxel = tuple(float(v) for v in str(args.voxel).lower().split("x"))
     with tempfile.TemporaryDirectory() as folder:
         if args.case is not None:
             case = pickle.loads(args.case.read_bytes())
         else:
             print(f"writing a {args.grid} {args.kind.upper()} at {args.voxel} mm ...", flush=True)
-            case = pickle.loads(_write_case(Path(folder), voxel[0] if len(voxel) == 1 else voxel, grid,
-                                            args.kind).read_bytes())
+            case = pickle.loads(_write_case(Path(folder), voxel_argument(args.voxel), grid, args.kind).read_bytes())
         port, data_dir = free_port(), Path(folder) / "data"
         server, watch = _serve(data_dir, port, args.fixed), PeakWatch()
         watch.start()

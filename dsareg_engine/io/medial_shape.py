@@ -138,14 +138,14 @@ def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.nda
 def _local_maxima(squared: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The maxima of ``squared`` over the 5³ and the 3³ cube around each flat ``index`` (``maximum_filter``'s values
     there): :func:`.cube_kernels.maxima_at` where this process has numba loaded
-    (:func:`.voxel_band.volume_kernels_here`), else two whole-grid filters."""
-    from .voxel_band import volume_kernels_here, volume_kernels_ready
+    (:mod:`.volume_kernels`), else two whole-grid filters."""
+    from .volume_kernels import kernels_here, kernels_ready
 
-    if not volume_kernels_here():
+    if not kernels_here():
         return cube_maximum(squared, 5).ravel()[index], cube_maximum(squared, 3).ravel()[index]
     from .cube_kernels import maxima_at
 
-    volume_kernels_ready()
+    kernels_ready()
     return maxima_at(squared, index, 2, 1)
 
 

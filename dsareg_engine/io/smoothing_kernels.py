@@ -137,4 +137,7 @@ def _third_axis(grid, w0, w1, w2):
             _line(line, n2, w0, w1, w2, grid[i, j])
 
 
-__all__ = ["SMOOTHED_SIGMA_VOX", "smoothed"]
+KERNELS = (_first_axis_fortran, _first_axis, _second_axis, _third_axis)
+"""The dispatchers :func:`smoothed` calls (the warm-up's ``volumes`` group checks they are cached)."""
+
+__all__ = ["KERNELS", "SMOOTHED_SIGMA_VOX", "smoothed"]

@@ -41,7 +41,8 @@ from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, cr
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
-from .voxel_band import volume_kernels_here, volume_kernels_ready, within_mm
+from .volume_kernels import kernels_here, kernels_ready
+from .voxel_band import within_mm
 from .voxel_steps import cube_minimum, filled_holes, grown, labelled, map_labels
 
 DEFAULT_BONE_HU = 700.0
@@ -178,14 +179,14 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
 
 def _smoothed(voxels: np.ndarray) -> np.ndarray:
     """``ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)``: the numba kernel's bits where this process has numba
-    loaded (:func:`.voxel_band.volume_kernels_here`, :mod:`.smoothing_kernels`), else scipy's."""
-    if not volume_kernels_here():
+    loaded (:mod:`.volume_kernels`, :mod:`.smoothing_kernels`), else scipy's."""
+    if not kernels_here():
         from scipy import ndimage
 
         return ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
     from .smoothing_kernels import smoothed
 
-    volume_kernels_ready()
+    kernels_ready()
     return smoothed(voxels, SMOOTHING_SIGMA_VOX)
 
 

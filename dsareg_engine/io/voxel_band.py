@@ -23,12 +23,9 @@ int32 index grid, their float64 difference), 5 GB for a 0.3 mm head. Here:
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 
 SLAB_VOXELS = 2_000_000  # voxels of a slab's core (its halo comes on top): ~30 bytes each at the peak
-KERNEL_WAIT_S = 20.0  # at most this long behind another process compiling the transform (it takes ~3 s; ~10 loaded)
 MAX_BALL_ROWS = 160  # a band of at most this many rows of voxels across is dilated directly (a few voxels wide)
 
 
@@ -103,35 +100,17 @@ def _ball_within(mask: np.ndarray, rows: list[tuple[int, int, int]]) -> np.ndarr
     return out
 
 
-def volume_kernels_here() -> bool:
-    """Whether this process smooths and measures with the volume kernels (numba; the same values as scipy's, so
-    only the time differs): where numba's runtime is loaded already (a worker and ``dsareg register``: the renderer's
-    kernels). A process without it (the service's validator) keeps scipy's: loading numba for a CTA would add
-    190 MB of address space and 0.5 CPU s to a reading whose allowance (:mod:`.volume_cost`) does not count them.
-    (A TOF reading's wide band loads it in any process: :func:`within_mm`.)"""
-    return "numba" in sys.modules
-
-
-def volume_kernels_ready() -> None:
-    """Before a reading first uses a kernel of the ``volumes`` group (the distance transform here, the smoothing,
-    the medial measure's local tops): a worker's background helper may be compiling the group right now (once a
-    process); a submission's check reads volumes too, so a frozen helper holds a read up to ``KERNEL_WAIT_S``, not
-    the lock's 300 s: then this process compiles what it uses itself."""
-    from ..kernels.compile_lock import wait_for_group
-
-    wait_for_group("volumes", wait_limit_s=KERNEL_WAIT_S)
-
-
 def _slab_within(part: np.ndarray, spacing: np.ndarray, band_mm: float) -> np.ndarray:
     """``distance_transform_edt(~part, sampling=spacing) <= band_mm``: the squared distances of
     :func:`.distance_kernels.squared_distances` (scipy's sums, in its order), their root compared."""
     from .distance_kernels import squared_distances
+    from .volume_kernels import kernels_ready
 
-    volume_kernels_ready()
+    kernels_ready()
     squared = np.empty(part.shape)
     squared_distances(np.ascontiguousarray(part, bool), float(spacing[0]), float(spacing[1]), float(spacing[2]),
                       squared)
     return np.sqrt(squared, out=squared) <= band_mm
 
 
-__all__ = ["KERNEL_WAIT_S", "volume_kernels_here", "volume_kernels_ready", "within_mm"]
+__all__ = ["within_mm"]

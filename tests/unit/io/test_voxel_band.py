@@ -63,6 +63,7 @@ def test_a_wide_band_waits_for_a_compiling_helper_only_briefly(monkeypatch):
     """The transform's kernel group is waited for (a background helper may be compiling it) with the band's own
     limit: a submission's check reads volumes, and a frozen helper holds a read at most ``KERNEL_WAIT_S`` (the
     bounded wait itself, against a real SIGSTOPped holder: tests/unit/kernels/test_compile_lock.py)."""
+    from dsareg_engine.io.volume_kernels import KERNEL_WAIT_S
     from dsareg_engine.kernels import compile_lock
 
     waits = []
@@ -72,4 +73,4 @@ def test_a_wide_band_waits_for_a_compiling_helper_only_briefly(monkeypatch):
     mask[15, 15, 15] = True
     monkeypatch.setattr(voxel_band, "MAX_BALL_ROWS", 0)  # the slabs of distance transforms
     within_mm(mask, (0.5, 0.5, 0.5), 5.0)
-    assert waits and set(waits) == {("volumes", voxel_band.KERNEL_WAIT_S)} and voxel_band.KERNEL_WAIT_S <= 30
+    assert waits and set(waits) == {("volumes", KERNEL_WAIT_S)} and KERNEL_WAIT_S <= 30

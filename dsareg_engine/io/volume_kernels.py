@@ -1,0 +1,33 @@
+"""When and how a volume reading uses the ``volumes`` kernel group (numba, :mod:`dsareg_engine.warmup`): the
+distance transform of its wide bands (:mod:`.distance_kernels`), its smoothing (:mod:`.smoothing_kernels`) and the
+medial measure's local tops (:mod:`.cube_kernels`).
+
+The smoothing and the local tops give scipy's values to the bit, so only the time differs: they run where numba's
+runtime is loaded already (a worker and ``dsareg register``: the renderer's kernels, :func:`kernels_here`). A
+process without it (the service's validator) keeps scipy's: loading numba for a CTA would add 190 MB of address
+space and 0.5 CPU s to a reading whose allowance (:mod:`.volume_cost`) does not count them. The transform has no
+scipy twin that fits a TOF slab's memory: a TOF reading loads numba in any process.
+"""
+
+from __future__ import annotations
+
+import sys
+
+KERNEL_WAIT_S = 20.0  # at most this long behind another process compiling the group (~9 s; more on a loaded machine)
+
+
+def kernels_here() -> bool:
+    """Whether this process smooths and measures with the group's kernels: numba is loaded already."""
+    return "numba" in sys.modules
+
+
+def kernels_ready() -> None:
+    """Before a reading first uses a kernel of the group: a worker's background helper may be compiling it right now
+    (once a process); a submission's check reads volumes too, so a frozen helper holds a read up to
+    ``KERNEL_WAIT_S``, not the lock's 300 s: then this process compiles what it uses itself."""
+    from ..kernels.compile_lock import wait_for_group
+
+    wait_for_group("volumes", wait_limit_s=KERNEL_WAIT_S)
+
+
+__all__ = ["KERNEL_WAIT_S", "kernels_here", "kernels_ready"]
