@@ -206,12 +206,12 @@ def _compile_volumes() -> None:
     """The kernels of a volume reading, with the argument types it passes: the distance transform of its wide bands
     (:func:`.io.voxel_band.within_mm`: a C-ordered bool grid, three spacings, a float64 grid), the smoothing
     (:func:`.io.smoothing_kernels.smoothed`: a float32 grid as series, NIfTI and MetaImage volumes store it, whole or
-    a box of it) and the medial measure's local tops (:func:`.io.cube_kernels.maxima_at`: an int32 grid, int64 flat
-    indices)."""
+    a box of it) and the medial measure's local tops and depths (:mod:`.io.medial_kernels`: an int32 / a bool
+    grid, int64 flat indices, an int64 offset table)."""
     import numpy as np
 
-    from .io.cube_kernels import maxima_at
     from .io.distance_kernels import squared_distances
+    from .io.medial_kernels import ball_counts, corner_agreement, maxima_at, nearer_marks, shell_depths
     from .io.smoothing_kernels import SMOOTHED_SIGMA_VOX, smoothed
 
     squared_distances(np.ones((2, 2, 2), bool), 1.0, 1.0, 1.0, np.empty((2, 2, 2)))
@@ -220,6 +220,13 @@ def _compile_volumes() -> None:
         smoothed(grid, SMOOTHED_SIGMA_VOX)
         smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
     maxima_at(np.zeros((2, 2, 2), np.int32), np.flatnonzero(np.ones(8, bool)), 2, 1)
+    table = (np.zeros((1, 3), np.int64), np.ones(1, np.int64))
+    shell_depths(np.ones((2, 2, 2), bool), np.flatnonzero(np.ones(8, bool)), *table)
+    nearer_marks(np.ones((2, 2, 2), np.int8), np.flatnonzero(np.ones(8, bool)), *table)
+    corners = np.zeros(2, np.int64)
+    corner_agreement(np.ones((2, 2, 2), np.uint8), np.flatnonzero(np.ones(8, bool)), np.full(3, 2, np.int64),
+                     corners, corners, corners)
+    ball_counts(np.ones((2, 2, 2), bool), np.zeros((1, 3), np.int64), np.ones(1), np.ones(1))
 
 
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
@@ -241,11 +248,11 @@ def _group_dispatchers(name: str) -> list:
 
         return [_hits, _pair]
     if name == "volumes":
-        from .io.cube_kernels import maxima_at
         from .io.distance_kernels import squared_distances
+        from .io.medial_kernels import MEDIAL_KERNELS
         from .io.smoothing_kernels import KERNELS
 
-        return [squared_distances, maxima_at, *KERNELS]
+        return [squared_distances, *MEDIAL_KERNELS, *KERNELS]
     if name == "tracking":
         from .render import jacobian_numba
 

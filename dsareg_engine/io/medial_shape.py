@@ -23,6 +23,7 @@ belong to plate parts (nearer a plate medial point than a tube one), on the mask
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -36,6 +37,7 @@ MEDIAL_SLOPE = 0.8  # |∇ depth| (mm per mm) below which a voxel is on the ridg
 MAX_SAMPLES = 4000  # medial points whose fill ratio is measured (the others take their nearest one's)
 MAX_WORK_VOXELS = 16_000_000  # the working grid's voxels at most (~1 GB at the peak of the measure)
 SHELL_R2 = 16  # depths up to √SHELL_R2 voxels are found shell by shell (the deeper ones are queries)
+KERNEL_SHELL_R2 = 64  # the same with numba (:func:`.medial_kernels.shell_depths`): one voxel's offsets at a time
 BACK_CHUNK = 1 << 22  # mask voxels whose plate value is interpolated at a time
 SURE_STEPS = 2  # voxels per axis: a voxel this near a plate medial point and far from tube ones is plate
 
@@ -103,13 +105,30 @@ def medial_ratio(work: np.ndarray, work_mm: float = WORK_MM) -> tuple[np.ndarray
     if len(points) > MAX_SAMPLES:
         sample = np.sort(np.random.default_rng(0).choice(len(points), MAX_SAMPLES, replace=False))
     ball_vox = np.maximum(BALL_PER_RADIUS * radius_vox[sample], MIN_BALL_MM / work_mm)
-    voxels = cKDTree(np.argwhere(work), balanced_tree=False, compact_nodes=False)  # counts: any tree's, built 3x faster
-    inside = voxels.query_ball_point(points[sample], ball_vox, return_length=True)
-    half = voxels.query_ball_point(points[sample], ball_vox / 2.0, return_length=True)
+    inside, half = _ball_counts(work, points[sample], ball_vox)
     ratio = np.log2(inside / np.maximum(half, 1))
     if len(sample) < len(points):  # the others take their nearest measured neighbour's
         ratio = ratio[cKDTree(points[sample]).query(points)[1]]
     return points, ratio, radius_vox
+
+
+def _ball_counts(work: np.ndarray, centres: np.ndarray, ball_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The voxels of ``work`` within ``ball_vox`` and within half of it (distance ≤ radius) of each of ``centres``:
+    :func:`.medial_kernels.ball_counts` where numba is loaded (:mod:`.volume_kernels`; rows under 65,535 voxels),
+    else ``cKDTree.query_ball_point`` (the same counts)."""
+    from scipy.spatial import cKDTree
+
+    from .volume_kernels import kernels_here, kernels_ready
+
+    if kernels_here() and work.shape[2] < np.iinfo(np.uint16).max:
+        from .medial_kernels import ball_counts
+
+        kernels_ready()
+        return ball_counts(np.ascontiguousarray(work, bool), np.ascontiguousarray(centres, np.int64),
+                           np.asarray(ball_vox, np.float64), np.asarray(ball_vox, np.float64) / 2.0)
+    voxels = cKDTree(np.argwhere(work), balanced_tree=False, compact_nodes=False)  # counts: any tree's, built 3x faster
+    return (voxels.query_ball_point(centres, ball_vox, return_length=True),
+            voxels.query_ball_point(centres, ball_vox / 2.0, return_length=True))
 
 
 def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -117,7 +136,7 @@ def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.nda
     the deepest within 2 voxels less 0.75 voxel, on the ridge of the depth (``|∇ depth|`` below ``MEDIAL_SLOPE``,
     central differences as ``np.gradient``) or in a structure two voxels across. The depth's local tops are
     filtered on its squared voxel lengths (integers: the same order as the millimetres), at the inside voxels only
-    (:func:`.cube_kernels.maxima_at`: ``maximum_filter``'s values there); the slope is formed at the voxels near a
+    (:func:`.medial_kernels.maxima_at`: ``maximum_filter``'s values there); the slope is formed at the voxels near a
     top only, with ``np.gradient``'s operations (the same points as over the whole grid)."""
 
     squared = _depth_squared(work)
@@ -137,13 +156,13 @@ def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.nda
 
 def _local_maxima(squared: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The maxima of ``squared`` over the 5³ and the 3³ cube around each flat ``index`` (``maximum_filter``'s values
-    there): :func:`.cube_kernels.maxima_at` where this process has numba loaded
+    there): :func:`.medial_kernels.maxima_at` where this process has numba loaded
     (:mod:`.volume_kernels`), else two whole-grid filters."""
     from .volume_kernels import kernels_here, kernels_ready
 
     if not kernels_here():
         return cube_maximum(squared, 5).ravel()[index], cube_maximum(squared, 3).ravel()[index]
-    from .cube_kernels import maxima_at
+    from .medial_kernels import maxima_at
 
     kernels_ready()
     return maxima_at(squared, index, 2, 1)
@@ -192,16 +211,29 @@ def _back_on_mask(work_plate: np.ndarray, zoom: np.ndarray, part: np.ndarray) ->
     """The working grid's plate voxels back on the mask ``part`` (its box): ``work_plate`` zoomed back by ``1 / zoom``
     (trilinear, ``grid_mode``, ``nearest`` at the borders, as ``ndimage.zoom``), its last plane repeated where the
     zoomed grid is short, ≥ 0.5 and in ``part``. Interpolated at ``part``'s voxels only (a whole-head box holds ~10 ×
-    as many): the same coordinates and weights as ``ndimage.zoom``'s, the same voxels."""
+    as many): the same coordinates and weights as ``ndimage.zoom``'s, the same voxels. Where numba is loaded
+    (:mod:`.volume_kernels`), a voxel whose eight corners on the working grid agree takes their value
+    (:func:`.medial_kernels.corner_agreement`; the weights sum to 1): only the others are interpolated."""
     from scipy import ndimage
+
+    from .volume_kernels import kernels_here, kernels_ready
 
     every = np.flatnonzero(part)
     zoomed = np.round(np.asarray(work_plate.shape) / np.asarray(zoom, float)).astype(int)
-    plate, out = np.asarray(work_plate, bool).view(np.uint8), np.zeros(part.shape, bool)  # (no float copy)
+    plate, out = np.ascontiguousarray(work_plate, bool).view(np.uint8), np.zeros(part.shape, bool)  # (no float copy)
+    tables = [(np.minimum(np.arange(size), zoomed[axis] - 1) + 0.5) * (work_plate.shape[axis] / zoomed[axis]) - 0.5
+              for axis, size in enumerate(part.shape)]  # ``ndimage.zoom``'s coordinate of each index, per axis
+    if kernels_here():
+        from .medial_kernels import corner_agreement
+
+        kernels_ready()
+        corners = [np.clip(np.floor(table), 0, n - 1).astype(np.int64) for table, n in zip(tables, plate.shape)]
+        agreed = corner_agreement(plate, every, np.array(part.shape, np.int64), *corners)
+        out.ravel()[every[agreed == 1]] = True
+        every = every[agreed < 0]
     for start in range(0, len(every), BACK_CHUNK):  # a chunk at a time: its coordinates (24 bytes a voxel) stay small
         inside = np.unravel_index(every[start:start + BACK_CHUNK], part.shape)
-        coordinates = [(np.minimum(index, zoomed[axis] - 1) + 0.5) * (work_plate.shape[axis] / zoomed[axis]) - 0.5
-                       for axis, index in enumerate(inside)]
+        coordinates = [table[index] for table, index in zip(tables, inside)]
         out[inside] = ndimage.map_coordinates(plate, coordinates, order=1, mode="nearest", output=np.float32) >= 0.5
     return out
 
@@ -210,17 +242,39 @@ def _depth_squared(work: np.ndarray) -> np.ndarray:
     """int32, ``work``'s shape: the squared distance (voxels²) of each voxel of ``work`` to the nearest voxel outside
     it (the grid's border is outside), 0 outside: the Euclidean distance transform of the inside voxels only.
 
-    Shell by shell (:func:`_shells`): a voxel with an outside voxel at an offset of squared length ``r²`` and none
-    nearer is ``r²`` deep (most voxels of a plate a few voxels thick are 1–9 deep: a few gathers each); the few
-    deeper than ``SHELL_R2`` are nearest-point queries against the outside voxels that touch the inside (the nearest
-    outside voxel always does). The same distances as the queries of every voxel."""
-    from scipy.spatial import cKDTree
+    Shell by shell: a voxel with an outside voxel at an offset of squared length ``r²`` and none nearer is ``r²``
+    deep (most voxels of a plate a few voxels thick are 1–9 deep); the few deeper than the shells are nearest-point
+    queries against the outside voxels that touch the inside (the nearest outside voxel always does). Where numba is
+    loaded (:mod:`.volume_kernels`), :func:`.medial_kernels.shell_depths` visits each voxel's offsets up to
+    ``KERNEL_SHELL_R2``; else every pending voxel is gathered once per offset up to ``SHELL_R2``. The same
+    distances as the queries of every voxel, either way."""
+    from .volume_kernels import kernels_here, kernels_ready
 
+    index = np.flatnonzero(work)
+    squared = np.zeros(work.shape, np.int32)
+    if kernels_here():
+        from .medial_kernels import shell_depths
+
+        kernels_ready()
+        offsets, lengths = _shell_table(KERNEL_SHELL_R2)
+        found = shell_depths(np.ascontiguousarray(work, bool), index, offsets, lengths)
+        pending = index[found < 0]
+        squared.ravel()[index] = found
+    else:
+        pending = _shell_depths_gathered(work, index, squared.ravel())
+    if len(pending):
+        squared.ravel()[pending] = _queried_depths(work, pending)
+    return squared
+
+
+def _shell_depths_gathered(work: np.ndarray, index: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """The shells up to ``SHELL_R2`` over the flat ``index`` (C order) of ``work``, every pending voxel gathered once
+    per offset (on the grid padded with outside voxels): the depths written to ``out`` (flat, ``work``'s size), the
+    flat indices of the voxels deeper than the shells returned."""
     pad = int(np.sqrt(SHELL_R2))
     padded = np.pad(work, pad)
     flat = padded.ravel()
-    squared = np.zeros(padded.size, np.int32)
-    pending = np.flatnonzero(flat)
+    pending = np.ravel_multi_index([i + pad for i in np.unravel_index(index, work.shape)], padded.shape)
     strides = np.array(padded.strides) // padded.itemsize
     for r2, offsets in _shells(SHELL_R2):
         if len(pending) == 0:
@@ -228,14 +282,31 @@ def _depth_squared(work: np.ndarray) -> np.ndarray:
         reached = np.zeros(len(pending), bool)
         for offset in offsets @ strides:
             reached |= ~flat[pending + offset]
-        squared[pending[reached]] = r2
+        out[np.ravel_multi_index([i - pad for i in np.unravel_index(pending[reached], padded.shape)],
+                                 work.shape)] = r2
         pending = pending[~reached]
-    if len(pending):
-        edge = grown(padded) & ~padded
-        deep = np.stack(np.unravel_index(pending, padded.shape), axis=1)
-        squared[pending] = np.rint(cKDTree(np.argwhere(edge)).query(deep)[0] ** 2)
-    inner = tuple(slice(pad, n - pad) for n in padded.shape)
-    return np.ascontiguousarray(squared.reshape(padded.shape)[inner])
+    return np.ravel_multi_index([i - pad for i in np.unravel_index(pending, padded.shape)], work.shape)
+
+
+def _queried_depths(work: np.ndarray, pending: np.ndarray) -> np.ndarray:
+    """The squared distances (int32) of the flat ``pending`` voxels of ``work`` to the nearest outside voxel that
+    touches the inside (the grid's border outside): nearest-point queries."""
+    from scipy.spatial import cKDTree
+
+    padded = np.pad(work, 1)
+    edge = grown(padded) & ~padded
+    deep = np.stack(np.unravel_index(pending, work.shape), axis=1) + 1
+    return np.rint(cKDTree(np.argwhere(edge)).query(deep)[0] ** 2).astype(np.int32)
+
+
+@lru_cache(maxsize=2)
+def _shell_table(max_r2: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_shells` as one table: offsets ``(M, 3)`` int64, C-contiguous, and their squared lengths ``(M,)``,
+    shortest first (the kernel's order)."""
+    shells = _shells(max_r2)
+    offsets = np.ascontiguousarray(np.concatenate([o for _, o in shells]), np.int64)
+    lengths = np.concatenate([np.full(len(o), r2, np.int64) for r2, o in shells])
+    return offsets, lengths
 
 
 def _shells(max_r2: int) -> list[tuple[int, np.ndarray]]:
@@ -251,10 +322,10 @@ def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) ->
 
     Most voxels of a skull's diploë lie within ``SURE_STEPS`` voxels (per axis) of a plate medial point, so within
     ``SURE_STEPS × √3``, and farther than that from every tube point: plate for sure, decided on the grid (two
-    maximum filters). The others are nearest-point queries: the distance to the tube points first, then the plate
-    points searched no farther than it (a voxel amid the tree is about as far from every point of a skull around
-    it, which an unbounded search visits). The same voxels as comparing both unbounded distances."""
-    from scipy.spatial import cKDTree
+    maximum filters). The others: where numba is loaded (:mod:`.volume_kernels`), each voxel's offsets in order of
+    length up to ``KERNEL_SHELL_R2`` (:func:`.medial_kernels.nearer_marks`); the rest nearest-point queries
+    (:func:`_queried_nearer`). The same voxels as comparing both unbounded distances."""
+    from .volume_kernels import kernels_here, kernels_ready
 
     if not (~is_plate).any():
         return work.copy()
@@ -266,9 +337,28 @@ def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) ->
     box = tuple(slice(a, b) for a, b in zip(low, high))  # every voxel within ``reach`` of a tube point (and more)
     near_tube = cube_maximum(_marked(high - low, tubes - low), 2 * steps + 1)
     out[box] &= ~near_tube.view(bool)
-    voxels = np.argwhere(work & ~out)
-    if len(voxels) == 0:
-        return out
+    undecided = np.flatnonzero(work & ~out)
+    if len(undecided) and kernels_here():
+        from .medial_kernels import nearer_marks
+
+        kernels_ready()
+        marks = _marked(work.shape, points[is_plate]).view(np.int8)
+        marks[tuple(tubes.T)] = 2
+        nearer = nearer_marks(marks, undecided, *_shell_table(KERNEL_SHELL_R2))
+        out.ravel()[undecided[nearer == 1]] = True
+        undecided = undecided[nearer < 0]
+    if len(undecided):
+        voxels = np.stack(np.unravel_index(undecided, work.shape), axis=1)
+        out.ravel()[undecided[_queried_nearer(voxels, points, is_plate)]] = True
+    return out
+
+
+def _queried_nearer(voxels: np.ndarray, points: np.ndarray, is_plate: np.ndarray) -> np.ndarray:
+    """Whether each voxel ``(N, 3)`` is strictly nearer a plate point than a tube one: nearest-point queries, the
+    distance to the tube points first, then the plate points searched no farther than it (a voxel amid the tree is
+    about as far from every point of a skull around it, which an unbounded search visits)."""
+    from scipy.spatial import cKDTree
+
     to_tube = cKDTree(points[~is_plate]).query(voxels)[0]
     to_plate = np.full(len(voxels), np.inf)
     plates = cKDTree(points[is_plate])
@@ -276,8 +366,7 @@ def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) ->
     for limit in np.unique(bound):  # a plate point at to_tube or farther is not nearer: not looked for
         chosen = bound == limit
         to_plate[chosen] = plates.query(voxels[chosen], distance_upper_bound=float(limit))[0]
-    out[tuple(voxels[to_plate < to_tube].T)] = True
-    return out
+    return to_plate < to_tube
 
 
 def _marked(shape, points: np.ndarray) -> np.ndarray:

@@ -1,8 +1,8 @@
 """When and how a volume reading uses the ``volumes`` kernel group (numba, :mod:`dsareg_engine.warmup`): the
 distance transform of its wide bands (:mod:`.distance_kernels`), its smoothing (:mod:`.smoothing_kernels`) and the
-medial measure's local tops (:mod:`.cube_kernels`).
+medial measure's local tops, depths, nearer points, corners and ball counts (:mod:`.medial_kernels`).
 
-The smoothing and the local tops give scipy's values to the bit, so only the time differs: they run where numba's
+The smoothing and the medial measure's kernels give the numpy / scipy values to the bit, so only the time differs: they run where numba's
 runtime is loaded already (a worker and ``dsareg register``: the renderer's kernels, :func:`kernels_here`). A
 process without it (the service's validator) keeps scipy's: loading numba for a CTA would add 190 MB of address
 space and 0.5 CPU s to a reading whose allowance (:mod:`.volume_cost`) does not count them. The transform has no

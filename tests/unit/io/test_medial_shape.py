@@ -13,6 +13,14 @@ from dsareg_engine.io.medial_shape import medial_shape
 VOXELS_MM = (0.3, 0.5, 0.6, 0.8, 1.0)
 
 
+@pytest.fixture(params=[False, True], ids=["numpy", "kernels"])
+def kernels(request, monkeypatch):
+    """Both ways of the measure: numpy / scipy (a process without numba: the service's validator) and the
+    ``volumes`` group's kernels (:mod:`dsareg_engine.io.medial_kernels`, where numba is loaded)."""
+    monkeypatch.setattr("dsareg_engine.io.volume_kernels.kernels_here", lambda: request.param)
+    return request.param
+
+
 def _points(voxel_mm, size_mm):
     count = int(np.ceil(size_mm / voxel_mm))
     axis = (np.arange(count) - count / 2 + 0.5) * voxel_mm
@@ -107,7 +115,7 @@ def test_a_coarse_voxel_volume_is_measured_within_a_memory_bound():
 @pytest.mark.parametrize("part_shape, spacing", [((40, 52, 30), (0.45, 0.45, 0.45)), ((33, 27, 19), (0.6, 0.6, 0.8)),
                                                  ((25, 31, 12), (0.38, 0.42, 1.1)), ((30, 30, 30), (0.5, 0.5, 0.5))])
 @pytest.mark.parametrize("chunk", [97, 1 << 22])
-def test_the_plate_goes_back_to_the_mask_as_a_whole_box_zoom_puts_it(part_shape, spacing, chunk, monkeypatch):
+def test_the_plate_goes_back_to_the_mask_as_a_whole_box_zoom_puts_it(part_shape, spacing, chunk, monkeypatch, kernels):
     """Issue 41: the plate voxels are interpolated back at the mask's voxels only, not over its whole box (a
     whole-head box holds ~10 x as many), a chunk of them at a time (``BACK_CHUNK``; 97: many chunks): the same voxels
     as ``ndimage.zoom`` back, padded by its last plane and cut to the box, at several voxel sizes (the mask touching
@@ -172,7 +180,7 @@ class _CountedTree:
         return self._tree.query(x, *args, **kwargs)
 
 
-def test_plate_voxels_are_the_same_as_every_voxel_queried():
+def test_plate_voxels_are_the_same_as_every_voxel_queried(kernels):
     """Issue 41: the plate parts are decided on the grid where sure, by bounded queries elsewhere: the same voxels as
     both nearest distances of every voxel, on random masks and medial points (ties included)."""
     from dsareg_engine.io.medial_shape import _nearer_plate
@@ -188,7 +196,7 @@ def test_plate_voxels_are_the_same_as_every_voxel_queried():
             assert np.array_equal(_nearer_plate(work, points, is_plate), _nearer_plate_by_queries(work, points, is_plate))
 
 
-def test_a_plate_amid_its_medial_points_is_not_queried_voxel_by_voxel(monkeypatch):
+def test_a_plate_amid_its_medial_points_is_not_queried_voxel_by_voxel(monkeypatch, kernels):
     """A skull's diploë: most voxels lie next to a plate medial point and far from the tree's: decided on the grid,
     not by nearest-point queries (whole-head CTA: 3 of 4 CPU s of the measure before issue 41's change)."""
     from dsareg_engine.io import medial_shape as module
@@ -207,7 +215,7 @@ def test_a_plate_amid_its_medial_points_is_not_queried_voxel_by_voxel(monkeypatc
     assert np.array_equal(parts, _nearer_plate_by_queries(work, points, is_plate))
 
 
-def test_the_depth_is_the_distance_to_the_outside_and_shallow_voxels_are_not_queried(monkeypatch):
+def test_the_depth_is_the_distance_to_the_outside_and_shallow_voxels_are_not_queried(monkeypatch, kernels):
     """Issue 41: depths up to √SHELL_R2 voxels are found shell by shell: the same distances as a nearest-point query
     of every voxel (random masks, blobs deeper than the shells, the grid's border outside); a thin plate's voxels
     are not queried one by one."""

@@ -248,7 +248,7 @@ def test_the_seeded_components_and_the_local_half_maximum_are_the_expressions_th
 def test_a_process_without_numba_reads_without_it_and_one_with_it_reads_the_same(tmp_path):
     """The service's validator reads a CTA without numba (its allowance does not count numba's runtime: 190 MB of
     address space); a worker, which has numba loaded for the renderer, smooths and measures with the volume kernels
-    (:mod:`dsareg_engine.io.smoothing_kernels`, :mod:`dsareg_engine.io.cube_kernels`): the same model to the bit."""
+    (:mod:`dsareg_engine.io.smoothing_kernels`, :mod:`dsareg_engine.io.medial_kernels`): the same model to the bit."""
     import pickle
     import subprocess
     import sys

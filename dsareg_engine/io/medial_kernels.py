@@ -1,0 +1,175 @@
+"""The medial measure's kernels (:mod:`.medial_shape`; numba, cached on disk), each giving the values of the numpy /
+scipy computation it replaces, at the voxels inside the measured mask only (a twentieth of its working grid on a
+skull's diploë):
+
+* :func:`maxima_at`: the values of ``scipy.ndimage.maximum_filter(values, size, mode="reflect")`` at chosen voxels
+  (a reflected index lies inside the window, so the window clipped to the grid holds the same values): the depth's
+  local tops, two cube sides in one visit of each voxel's neighbourhood (two whole-grid filters took ~2.4 × as long);
+* :func:`shell_depths`: the squared distance of each inside voxel to the nearest voxel outside the mask or the grid,
+  by offsets in order of length: the depth shell by shell, one voxel at a time (the numpy shells gather every
+  pending voxel once per offset; a diploë 6 mm thick sends ~10 % of its voxels past them to nearest-point queries);
+* :func:`nearer_marks`: whether a voxel's nearest medial point is a plate point (and no tube point as near), by the
+  same offsets: the plate parts' undecided voxels (nearest-point queries of two trees before);
+* :func:`corner_agreement`: whether a mask voxel's eight interpolation corners on the working grid agree: the
+  plate back on the mask is interpolated (``map_coordinates``) only where they do not;
+* :func:`ball_counts`: the mask voxels within a ball around each sampled medial point (``cKDTree.query_ball_point``'s
+  counts, distance ≤ radius), each of the ball's rows from the grid's running sums along its last axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def maxima_at(values, index, half_outer, half_inner):
+    """For each flat ``index`` (C order) of ``values`` (3D, C order): the maximum over the cube of
+    ``2 half_outer + 1`` voxels a side centred on it and over the cube of ``2 half_inner + 1`` (``half_inner ≤
+    half_outer``), each clipped to the grid. Two arrays of ``values``' type, ``index``'s length."""
+    n0, n1, n2 = values.shape
+    outer = np.empty(len(index), values.dtype)
+    inner = np.empty(len(index), values.dtype)
+    for n in range(len(index)):
+        flat = index[n]
+        i, rest = flat // (n1 * n2), flat % (n1 * n2)
+        j, k = rest // n2, rest % n2
+        best_outer = values[i, j, k]
+        best_inner = best_outer
+        for a in range(max(i - half_outer, 0), min(i + half_outer + 1, n0)):
+            near_a = abs(a - i) <= half_inner
+            for b in range(max(j - half_outer, 0), min(j + half_outer + 1, n1)):
+                near_b = near_a and abs(b - j) <= half_inner
+                for c in range(max(k - half_outer, 0), min(k + half_outer + 1, n2)):
+                    value = values[a, b, c]
+                    best_outer = max(best_outer, value)
+                    if near_b and abs(c - k) <= half_inner:
+                        best_inner = max(best_inner, value)
+        outer[n] = best_outer
+        inner[n] = best_inner
+    return outer, inner
+
+
+@njit(cache=True)
+def shell_depths(inside, index, offsets, squared_lengths):
+    """For each flat ``index`` (C order) of the bool grid ``inside`` (3D, C order): the squared length of its
+    shortest offset (``offsets`` ``(M, 3)``, sorted by ``squared_lengths`` ``(M,)``, shortest first) that lands
+    outside ``inside`` or outside the grid; ``-1`` where every offset lands inside. int32, ``index``'s length."""
+    n0, n1, n2 = inside.shape
+    out = np.full(len(index), -1, np.int32)
+    for n in range(len(index)):
+        flat = index[n]
+        i, rest = flat // (n1 * n2), flat % (n1 * n2)
+        j, k = rest // n2, rest % n2
+        for m in range(len(offsets)):
+            a, b, c = i + offsets[m, 0], j + offsets[m, 1], k + offsets[m, 2]
+            if a < 0 or a >= n0 or b < 0 or b >= n1 or c < 0 or c >= n2 or not inside[a, b, c]:
+                out[n] = squared_lengths[m]
+                break
+    return out
+
+
+
+@njit(cache=True)
+def nearer_marks(marks, index, offsets, squared_lengths):
+    """For each flat ``index`` (C order) of the int8 grid ``marks`` (3D, C order; 1: a plate medial point, 2: a
+    tube one, 0: none): 1 where its nearest marked voxel (itself, else by ``offsets`` ``(M, 3)`` in order of
+    ``squared_lengths``, shortest first; outside the grid is unmarked) is a plate point and no tube point is as near, 0 where a tube point
+    is at least as near, ``-1`` where no offset reaches a mark. int8, ``index``'s length."""
+    n0, n1, n2 = marks.shape
+    out = np.full(len(index), -1, np.int8)
+    for n in range(len(index)):
+        flat = index[n]
+        i, rest = flat // (n1 * n2), flat % (n1 * n2)
+        j, k = rest // n2, rest % n2
+        if marks[i, j, k] != 0:  # a medial point itself: its own mark is the nearest
+            out[n] = 1 if marks[i, j, k] == 1 else 0
+            continue
+        found, plate, tube = -1, False, False
+        for m in range(len(offsets)):
+            if found >= 0 and squared_lengths[m] > found:
+                break
+            a, b, c = i + offsets[m, 0], j + offsets[m, 1], k + offsets[m, 2]
+            if a < 0 or a >= n0 or b < 0 or b >= n1 or c < 0 or c >= n2:
+                continue
+            mark = marks[a, b, c]
+            if mark == 0:
+                continue
+            found = squared_lengths[m]
+            plate |= mark == 1
+            tube |= mark == 2
+        if found >= 0:
+            out[n] = 1 if plate and not tube else 0
+    return out
+
+
+
+
+@njit(cache=True)
+def corner_agreement(grid, index, shape, corners_0, corners_1, corners_2):
+    """For each flat ``index`` (C order) of a box of ``shape`` whose voxels interpolate the 0/1 ``grid`` (3D) between
+    the corners ``corners_a[i] … corners_a[i] + 1`` on axis ``a`` (an index past the grid's last clamped to it):
+    1 where all eight corners are 1, 0 where none is, ``-1`` where they differ. int8, ``index``'s length."""
+    n0, n1, n2 = grid.shape
+    out = np.empty(len(index), np.int8)
+    for n in range(len(index)):
+        flat = index[n]
+        i, rest = flat // (shape[1] * shape[2]), flat % (shape[1] * shape[2])
+        j, k = rest // shape[2], rest % shape[2]
+        a, b, c = corners_0[i], corners_1[j], corners_2[k]
+        ones = 0
+        for a_ in (a, min(a + 1, n0 - 1)):
+            for b_ in (b, min(b + 1, n1 - 1)):
+                for c_ in (c, min(c + 1, n2 - 1)):
+                    ones += 1 if grid[a_, b_, c_] else 0
+        out[n] = 1 if ones == 8 else (0 if ones == 0 else -1)
+    return out
+
+
+
+@njit(cache=True)
+def ball_counts(inside, points, radii, half_radii):
+    """The voxels of the bool grid ``inside`` (3D, C order) within ``radii`` and within ``half_radii`` (Euclidean,
+    voxels; distance ≤ radius, squared distances against the radius squared) of each point ``(N, 3)`` (integer
+    voxel indices): each row of a ball is counted from the row's running sums (uint16: rows shorter than 65,535
+    voxels). Two int64 arrays of ``N``."""
+    n0, n1, n2 = inside.shape
+    running = np.zeros((n0, n1, n2 + 1), np.uint16)
+    for a in range(n0):
+        for b in range(n1):
+            for c in range(n2):
+                running[a, b, c + 1] = running[a, b, c] + (1 if inside[a, b, c] else 0)
+    outer = _counts_within(running, points, radii)
+    return outer, _counts_within(running, points, half_radii)
+
+
+@njit(cache=True)
+def _counts_within(running, points, radii):
+    n0, n1, n2 = running.shape[0], running.shape[1], running.shape[2] - 1
+    counts = np.zeros(len(points), np.int64)
+    for n in range(len(points)):
+        i, j, k = points[n, 0], points[n, 1], points[n, 2]
+        limit = radii[n] * radii[n]
+        reach = int(np.floor(radii[n]))
+        total = 0
+        for a in range(max(i - reach, 0), min(i + reach + 1, n0)):
+            for b in range(max(j - reach, 0), min(j + reach + 1, n1)):
+                across = (a - i) * (a - i) + (b - j) * (b - j)  # exact integers, compared as scipy does
+                if float(across) > limit:
+                    continue
+                half = int(np.sqrt(max(limit - across, 0.0)))
+                while float(across + (half + 1) * (half + 1)) <= limit:
+                    half += 1
+                while half > 0 and float(across + half * half) > limit:
+                    half -= 1
+                low, high = max(k - half, 0), min(k + half + 1, n2)
+                if high > low:
+                    total += running[a, b, high] - running[a, b, low]
+        counts[n] = total
+    return counts
+
+
+MEDIAL_KERNELS = (maxima_at, shell_depths, nearer_marks, corner_agreement, ball_counts)
+"""The dispatchers of this module (the warm-up's ``volumes`` group)."""
+
+__all__ = ["MEDIAL_KERNELS", "ball_counts", "corner_agreement", "maxima_at", "nearer_marks", "shell_depths"]
