@@ -206,12 +206,11 @@ def _compile_volumes() -> None:
     """The kernels of a volume reading, with the argument types it passes: the distance transform of its wide bands
     (:func:`.io.voxel_band.within_mm`: a C-ordered bool grid, three spacings, a float64 grid), the smoothing
     (:func:`.io.smoothing_kernels.smoothed`: a float32 grid as series, NIfTI and MetaImage volumes store it, whole or
-    a box of it) and the medial measure's local tops and depths (:mod:`.io.medial_kernels`: an int32 / a bool
-    grid, int64 flat indices, an int64 offset table)."""
+    a box of it) and the plate search's kernels (:func:`.io.medial_kernels.compile_medial_kernels`)."""
     import numpy as np
 
     from .io.distance_kernels import squared_distances
-    from .io.medial_kernels import ball_counts, corner_agreement, maxima_at, nearer_marks, shell_depths
+    from .io.medial_kernels import compile_medial_kernels
     from .io.smoothing_kernels import SMOOTHED_SIGMA_VOX, smoothed
 
     squared_distances(np.ones((2, 2, 2), bool), 1.0, 1.0, 1.0, np.empty((2, 2, 2)))
@@ -219,14 +218,7 @@ def _compile_volumes() -> None:
         grid = np.zeros((4, 4, 4), np.float32, order=order)
         smoothed(grid, SMOOTHED_SIGMA_VOX)
         smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
-    maxima_at(np.zeros((2, 2, 2), np.int32), np.flatnonzero(np.ones(8, bool)), 2, 1)
-    table = (np.zeros((1, 3), np.int64), np.ones(1, np.int64))
-    shell_depths(np.ones((2, 2, 2), bool), np.flatnonzero(np.ones(8, bool)), *table)
-    nearer_marks(np.ones((2, 2, 2), np.int8), np.flatnonzero(np.ones(8, bool)), *table)
-    corners = np.zeros(2, np.int64)
-    corner_agreement(np.ones((2, 2, 2), np.uint8), np.flatnonzero(np.ones(8, bool)), np.full(3, 2, np.int64),
-                     corners, corners, corners)
-    ball_counts(np.ones((2, 2, 2), bool), np.zeros((1, 3), np.int64), np.ones(1), np.ones(1))
+    compile_medial_kernels()
 
 
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,

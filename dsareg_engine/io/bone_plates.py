@@ -54,8 +54,19 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
 
 def bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
     """The share of plate part ``index``'s surface voxels (a face neighbour outside it) with a face neighbour in
-    ``bone``; ``box``: the part's bounding box (slices). Flat indices, ``GATHER_CHUNK`` voxels at a time: one gather
-    per neighbour (the grid's border is no neighbour: a voxel there is its own)."""
+    ``bone``; ``box``: the part's bounding box (slices). Where numba is loaded (:mod:`.volume_kernels`): one visit of
+    the box (:func:`.medial_kernels.surface_contact`); else flat indices, ``GATHER_CHUNK`` voxels at a time, one
+    gather per neighbour (the grid's border is no neighbour: a voxel there is its own)."""
+    from .volume_kernels import kernels_here, kernels_ready
+
+    if kernels_here():
+        from .medial_kernels import surface_contact
+
+        kernels_ready()
+        low, high = (np.array([getattr(s, end) for s in box], np.int64) for end in ("start", "stop"))
+        surface, touching = surface_contact(np.ascontiguousarray(labels), int(index), low, high,
+                                            np.ascontiguousarray(bone, bool))
+        return float(touching / max(surface, 1))
     every = np.flatnonzero(labels[box] == index)  # flat in the part's box (8 bytes a voxel, not 3 × 8)
     part_shape = tuple(s.stop - s.start for s in box)
     flat_labels, flat_bone = labels.reshape(-1), np.ravel(bone)

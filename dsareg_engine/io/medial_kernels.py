@@ -1,6 +1,6 @@
-"""The medial measure's kernels (:mod:`.medial_shape`; numba, cached on disk), each giving the values of the numpy /
-scipy computation it replaces, at the voxels inside the measured mask only (a twentieth of its working grid on a
-skull's diploë):
+"""The plate search's kernels (:mod:`.medial_shape`, :mod:`.bone_plates`; numba, cached on disk), each giving the
+values of the numpy / scipy computation it replaces, at the voxels inside the measured mask only (a twentieth of its
+working grid on a skull's diploë):
 
 * :func:`maxima_at`: the values of ``scipy.ndimage.maximum_filter(values, size, mode="reflect")`` at chosen voxels
   (a reflected index lies inside the window, so the window clipped to the grid holds the same values): the depth's
@@ -13,7 +13,9 @@ skull's diploë):
 * :func:`corner_agreement`: whether a mask voxel's eight interpolation corners on the working grid agree: the
   plate back on the mask is interpolated (``map_coordinates``) only where they do not;
 * :func:`ball_counts`: the mask voxels within a ball around each sampled medial point (``cKDTree.query_ball_point``'s
-  counts, distance ≤ radius), each of the ball's rows from the grid's running sums along its last axis.
+  counts, distance ≤ radius), each of the ball's rows from the grid's running sums along its last axis;
+* :func:`surface_contact`: a plate part's surface voxels and those touching bone, one visit of its box (a gather of
+  the part's voxels per face neighbour before).
 """
 
 from __future__ import annotations
@@ -169,7 +171,57 @@ def _counts_within(running, points, radii):
     return counts
 
 
-MEDIAL_KERNELS = (maxima_at, shell_depths, nearer_marks, corner_agreement, ball_counts)
+
+@njit(cache=True)
+def surface_contact(labels, index, low, high, bone):
+    """Part ``index`` of ``labels`` (3D, C order; its box ``low`` … ``high``, three ints each): its surface voxels (a
+    face neighbour outside the part; the grid's border is no neighbour) and those of them with a face neighbour
+    outside the part in ``bone`` (bool, ``labels``' shape). Two ints."""
+    shape = labels.shape
+    surface = touching = 0
+    for i in range(low[0], high[0]):
+        for j in range(low[1], high[1]):
+            for k in range(low[2], high[2]):
+                if labels[i, j, k] != index:
+                    continue
+                on_surface = against = False
+                for axis in range(3):
+                    for step in (-1, 1):
+                        a, b, c = i, j, k
+                        if axis == 0:
+                            a += step
+                        elif axis == 1:
+                            b += step
+                        else:
+                            c += step
+                        if a < 0 or b < 0 or c < 0 or a >= shape[0] or b >= shape[1] or c >= shape[2]:
+                            continue
+                        if labels[a, b, c] != index:
+                            on_surface = True
+                            against |= bone[a, b, c]
+                surface += on_surface
+                touching += against
+    return surface, touching
+
+
+def compile_medial_kernels() -> None:
+    """Every kernel here compiled (or loaded from numba's cache) with the argument types the readings pass: int32
+    depths, int64 flat indices and offset tables, int8 marks, a uint8 plate grid, float64 radii, 16- and 32-bit
+    labels (:func:`.voxel_steps.labelled`)."""
+    index, cube = np.flatnonzero(np.ones(8, bool)), np.ones((2, 2, 2), bool)
+    maxima_at(np.zeros((2, 2, 2), np.int32), index, 2, 1)
+    table = (np.zeros((1, 3), np.int64), np.ones(1, np.int64))
+    shell_depths(cube, index, *table)
+    nearer_marks(np.ones((2, 2, 2), np.int8), index, *table)
+    corners = np.zeros(2, np.int64)
+    corner_agreement(np.ones((2, 2, 2), np.uint8), index, np.full(3, 2, np.int64), corners, corners, corners)
+    ball_counts(cube, np.zeros((1, 3), np.int64), np.ones(1), np.ones(1))
+    for labels in (np.uint16, np.int32):
+        surface_contact(np.ones((2, 2, 2), labels), 1, np.zeros(3, np.int64), np.full(3, 2, np.int64), cube)
+
+
+MEDIAL_KERNELS = (maxima_at, shell_depths, nearer_marks, corner_agreement, ball_counts, surface_contact)
 """The dispatchers of this module (the warm-up's ``volumes`` group)."""
 
-__all__ = ["MEDIAL_KERNELS", "ball_counts", "corner_agreement", "maxima_at", "nearer_marks", "shell_depths"]
+__all__ = ["MEDIAL_KERNELS", "ball_counts", "compile_medial_kernels", "corner_agreement", "maxima_at", "nearer_marks", "shell_depths",
+           "surface_contact"]

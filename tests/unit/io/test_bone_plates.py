@@ -1,6 +1,7 @@
 """Which plate parts are bone: bone-sized and bone-placed (moved out of volume_vessels, issue 41)."""
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from dsareg_engine.io.bone_plates import PLATE_PART_MM3, bone_contact, bone_plates
@@ -22,15 +23,20 @@ def _contact_by_index_lists(labels, index, box, bone):
     return float(touching.sum() / max(int(surface.sum()), 1))
 
 
-def test_the_contact_share_is_that_of_the_index_lists(monkeypatch):
-    """Flat indices, a few voxels at a time (``GATHER_CHUNK``, small here): the reference's share."""
+@pytest.mark.parametrize("kernels", [False, True], ids=["numpy", "kernels"])
+@pytest.mark.parametrize("bits", [16, 32])
+def test_the_contact_share_is_that_of_the_index_lists(monkeypatch, kernels, bits):
+    """Flat indices, a few voxels at a time (``GATHER_CHUNK``, small here), or the ``volumes`` group's kernel
+    (:func:`dsareg_engine.io.medial_kernels.surface_contact`, where numba is loaded), on 16- and 32-bit labels: the
+    reference's share."""
     from dsareg_engine.io import bone_plates as module
 
     monkeypatch.setattr(module, "GATHER_CHUNK", 7)
+    monkeypatch.setattr("dsareg_engine.io.volume_kernels.kernels_here", lambda: kernels)
     rng = np.random.default_rng(4)
     for _ in range(60):
         shape = tuple(int(n) for n in rng.integers(1, 18, 3))
-        labels, _ = ndimage.label(rng.random(shape) < 0.5)
+        labels, _ = ndimage.label(rng.random(shape) < 0.5, output=np.uint16 if bits == 16 else np.int32)
         bone = rng.random(shape) < 0.3
         for index, box in enumerate(ndimage.find_objects(labels), start=1):
             assert bone_contact(labels, index, box, bone) == _contact_by_index_lists(labels, index, box, bone)
