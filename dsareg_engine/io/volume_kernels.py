@@ -2,23 +2,35 @@
 distance transform of its wide bands (:mod:`.distance_kernels`), its smoothing (:mod:`.smoothing_kernels`) and the
 medial measure's local tops, depths, nearer points, corners and ball counts (:mod:`.medial_kernels`).
 
-The smoothing and the medial measure's kernels give the numpy / scipy values to the bit, so only the time differs: they run where numba's
-runtime is loaded already (a worker and ``dsareg register``: the renderer's kernels, :func:`kernels_here`). A
-process without it (the service's validator) keeps scipy's: loading numba for a CTA would add 190 MB of address
-space and 0.5 CPU s to a reading whose allowance (:mod:`.volume_cost`) does not count them. The transform has no
-scipy twin that fits a TOF slab's memory: a TOF reading loads numba in any process.
+The smoothing and the medial measure's kernels give the numpy / scipy values to the bit, so only the time differs:
+they run where numba's runtime is loaded already (a worker and ``dsareg register``: the renderer's kernels,
+:func:`kernels_here`), and for a grid of at least ``KERNEL_VOXELS`` voxels in any process (:func:`load_kernels_for`:
+the service's validator reading a whole head). A smaller volume read without numba keeps scipy's: loading numba
+adds 190 MB of address space and 0.5 CPU s, more than a small CTA's allowance (:mod:`.volume_cost`) holds and more
+than its reading saves. The transform has no scipy twin that fits a TOF slab's memory: a TOF reading loads numba in
+any process.
 """
 
 from __future__ import annotations
 
 import sys
 
+KERNEL_VOXELS = 30_000_000
+"""A grid this large is read with the kernels in any process. The whole-head CTA (512 × 512 × 440) read as the
+validator reads it: 11.2 → 8.4 CPU s, address space 712 → 894 MB (its allowance: 1,633 MB), resident 668 → 771 MB."""
 KERNEL_WAIT_S = 20.0  # at most this long behind another process compiling the group (~9 s; more on a loaded machine)
 
 
 def kernels_here() -> bool:
     """Whether this process smooths and measures with the group's kernels: numba is loaded already."""
     return "numba" in sys.modules
+
+
+def load_kernels_for(voxels: int) -> None:
+    """Before reading a grid of ``voxels`` voxels: numba loaded when the grid holds at least ``KERNEL_VOXELS`` (then
+    :func:`kernels_here` holds for the whole reading)."""
+    if voxels >= KERNEL_VOXELS and not kernels_here():
+        import numba  # noqa: F401 - its runtime, for the kernels of this reading
 
 
 def kernels_ready() -> None:
@@ -30,4 +42,4 @@ def kernels_ready() -> None:
     wait_for_group("volumes", wait_limit_s=KERNEL_WAIT_S)
 
 
-__all__ = ["KERNEL_WAIT_S", "kernels_here", "kernels_ready"]
+__all__ = ["KERNEL_VOXELS", "KERNEL_WAIT_S", "kernels_here", "kernels_ready", "load_kernels_for"]

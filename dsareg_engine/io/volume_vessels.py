@@ -39,9 +39,9 @@ from .bone_plates import PLATE_RIM_MM, plates_found, without_plates
 from .input_decisions import InputDecision
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
+from .volume_kernels import kernels_here, kernels_ready, load_kernels_for
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
-from .volume_kernels import kernels_here, kernels_ready
 from .voxel_band import within_mm
 from .voxel_steps import cube_minimum, filled_holes, grown, labelled, map_labels
 
@@ -141,6 +141,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     from scipy import ndimage
 
     reading = reading or VolumeReading()
+    load_kernels_for(int(np.size(volume.data)))  # a whole head: the kernels in any process (:mod:`.volume_kernels`)
     voxels = _finite(volume.data, field_name)
     labels = label_map(voxels, reading, field_name)
     if labels is not None:

@@ -246,9 +246,11 @@ def test_the_seeded_components_and_the_local_half_maximum_are_the_expressions_th
 
 
 def test_a_process_without_numba_reads_without_it_and_one_with_it_reads_the_same(tmp_path):
-    """The service's validator reads a CTA without numba (its allowance does not count numba's runtime: 190 MB of
-    address space); a worker, which has numba loaded for the renderer, smooths and measures with the volume kernels
-    (:mod:`dsareg_engine.io.smoothing_kernels`, :mod:`dsareg_engine.io.medial_kernels`): the same model to the bit."""
+    """The service's validator reads a CTA below ``KERNEL_VOXELS`` without numba (a small CTA's allowance does not
+    count numba's runtime: 190 MB of address space); a worker, which has numba loaded for the renderer, smooths and
+    measures with the volume kernels (:mod:`dsareg_engine.io.smoothing_kernels`,
+    :mod:`dsareg_engine.io.medial_kernels`), and so does any process reading a grid of ``KERNEL_VOXELS`` or more (a
+    whole head: its reading loads numba itself; the bound lowered here): the same model to the bit."""
     import pickle
     import subprocess
     import sys
@@ -257,6 +259,7 @@ def test_a_process_without_numba_reads_without_it_and_one_with_it_reads_the_same
     (tmp_path / "parts.pickle").write_bytes(pickle.dumps(list(_case("cta", "b").volume.parts)))
     script = (
         "import hashlib, json, pickle, sys\n"
+        "from dsareg_engine.io import volume_kernels\n"
         "from dsareg_engine.io.volume_io import read_volume\n"
         "from dsareg_engine.io.volume_vessels import extract_vessels\n"
         "parts = pickle.loads(open(sys.argv[1], 'rb').read())\n"
@@ -264,13 +267,15 @@ def test_a_process_without_numba_reads_without_it_and_one_with_it_reads_the_same
         "    mesh = extract_vessels(read_volume(parts)).mesh\n"
         "    return hashlib.sha256(mesh.vertices.tobytes() + mesh.faces.tobytes()).hexdigest()\n"
         "without = model(); loaded = 'numba' in sys.modules\n"
-        "import numba  # as a worker has it\n"
-        "kernels = 'dsareg_engine.io.smoothing_kernels' in sys.modules\n"
-        "print(json.dumps([without, loaded, kernels, model(), 'dsareg_engine.io.smoothing_kernels' in sys.modules]))\n"
+        "kernels = 'dsareg_engine.io.medial_kernels' in sys.modules\n"
+        "volume_kernels.KERNEL_VOXELS = 1000  # this grid now counts as a whole head's\n"
+        "print(json.dumps([without, loaded, kernels, model(), 'numba' in sys.modules,\n"
+        "                  'dsareg_engine.io.medial_kernels' in sys.modules]))\n"
     )
     done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "parts.pickle")], capture_output=True, check=False,
                           text=True, timeout=300, cwd=Path(__file__).resolve().parents[3])
     assert done.returncode == 0, done.stderr[-2000:]
-    without, loaded, kernels_before, with_numba, kernels_after = json.loads(done.stdout.strip().splitlines()[-1])
-    assert not loaded and not kernels_before and kernels_after
+    without, loaded, kernels_before, with_numba, loaded_after, kernels_after = json.loads(
+        done.stdout.strip().splitlines()[-1])
+    assert not loaded and not kernels_before and loaded_after and kernels_after
     assert with_numba == without
