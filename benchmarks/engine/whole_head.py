@@ -47,6 +47,9 @@ def add_parser(which) -> None:
                      help="the first job of each cell of SWEEP (whole-head CTAs 512² × 300–600 slices at 0.3–0.6 "
                           "mm, TOF-MRA slabs): CPU s and peak RSS per cell")
     sub.add_argument("--grid", default="x".join(map(str, GRID_VOX)), help="the scanner's grid, e.g. 512x512x440")
+    sub.add_argument("--diploe", type=float, default=None,
+                     help="the CTA skull's diploë, mm (2-8 in adults; default 3): cancellous bone in the vessels' "
+                          "window, what a whole head's plate search measures")
     sub.add_argument("--intake", action="store_true",
                      help="each job's read only, as the service's validator makes it (warmed up first): its address-"
                           "space and RSS growth, CPU s and wall s (the costs dsareg_engine/io/volume_cost.py sizes "
@@ -60,16 +63,20 @@ def voxel_argument(text) -> float | tuple[float, float, float]:
     return sizes[0] if len(sizes) == 1 else sizes
 
 
-def _write_case(folder: Path, voxel_mm, grid: tuple[int, int, int], kind: str = "cta") -> Path:
+def _write_case(folder: Path, voxel_mm, grid: tuple[int, int, int], kind: str = "cta",
+                diploe_mm: float | None = None) -> Path:
     from dsareg_engine.io.case import CaseFiles
-    from dsareg_engine.simulation.synthetic_heads_layered import make_layered_cta_head, make_layered_mra_head
+    from dsareg_engine.simulation.synthetic_heads_layered import DIPLOE_MM, make_layered_cta_head, make_layered_mra_head
     from dsareg_engine.simulation.synthetic_volumes import fitting_pixel_spacing_mm, vessel_tree, volume_case_of
 
     from .clinical_volumes import TREE_DEPTH, VolumeCaseFiles
 
     tree = vessel_tree(TREE_DEPTH, 3)
-    make = make_layered_cta_head if kind == "cta" else make_layered_mra_head
-    volume = make(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid)
+    if kind == "cta":
+        volume = make_layered_cta_head(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid,
+                                       diploe_mm=DIPLOE_MM if diploe_mm is None else diploe_mm)
+    else:
+        volume = make_layered_mra_head(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid)
     case = volume_case_of(volume, image_px=256, pixel_spacing_mm=fitting_pixel_spacing_mm(tree, 256))
     files = CaseFiles(ap=case.ap, ap_name="ap.dcm", lat=case.lat, lat_name="lat.dcm", volume=volume.parts,
                       volume_name="series.dcm")
@@ -167,7 +174,7 @@ def bench_whole_head(args) -> int:
     kind = getattr(args, "kind", "cta")
     with tempfile.TemporaryDirectory() as folder:
         print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} {kind.upper()} at {args.voxel} mm ...", flush=True)
-        case_path = _write_case(Path(folder), voxel, grid, kind)
+        case_path = _write_case(Path(folder), voxel, grid, kind, getattr(args, "diploe", None))
         if getattr(args, "intake", False):
             return _bench_intake(case_path, Path(folder) / "models")
         print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")

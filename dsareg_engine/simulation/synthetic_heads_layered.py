@@ -31,7 +31,8 @@ BASE_MM, BASE_CORTEX_MM = 8.0, 1.5
 FINE_MM = 0.15  # the finest grid the tree is filled on
 
 
-def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.0), grid_vox=None):
+def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.0), grid_vox=None,
+          diploe_mm: float = DIPLOE_MM):
     """The head's grid around the tree: its LPS mm coordinates per axis (three arrays shaped to broadcast over the
     grid: (X, 1, 1), (1, Y, 1), (1, 1, Z); a full (X, Y, Z, 3) array is GBs at 0.3 mm), the depth under the
     skull's inner surface (mm, outward positive), the affine, and the tree's occupancy on the grid.
@@ -40,7 +41,7 @@ def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.
     low, high = tree.vertices.min(0), tree.vertices.max(0)
     inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
     centre = (low + high) / 2.0 + np.array([0.0, 0.0, 8.0])
-    outer = inner + 2 * TABLE_MM + DIPLOE_MM + SCALP_MM + 6.0
+    outer = inner + 2 * TABLE_MM + diploe_mm + SCALP_MM + 6.0
     origin = np.array([centre[0] - outer[0], centre[1] - outer[1], low[2] - 8.0])
     shape = np.ceil((np.array([2 * outer[0], 2 * outer[1], centre[2] + outer[2] - origin[2]])) / voxel_mm).astype(int)
     if grid_vox is not None:
@@ -110,20 +111,21 @@ def _fill_cisterns(volume, brain, occupancy, spacing, z, floor_z_mm: float, cist
 
 def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, seed: int = 3,
                           min_head_mm=(45.0, 55.0, 45.0), cisterns: Cisterns | None = None,
-                          grid_vox=None) -> SyntheticVolume:
-    """A CTA series of ``tree`` (default: the phantom's) in a skull with diploë and a cancellous skull base; CSF
-    cisterns around its proximal part when ``cisterns`` is given."""
+                          grid_vox=None, diploe_mm: float = DIPLOE_MM) -> SyntheticVolume:
+    """A CTA series of ``tree`` (default: the phantom's) in a skull with diploë (``diploe_mm`` thick: 2–8 mm in
+    adults, most of a whole head's voxels in the vessels' window) and a cancellous skull base; CSF cisterns around
+    its proximal part when ``cisterns`` is given."""
     from .synthetic_volume_dicom import cta_series
 
     rng = np.random.default_rng(seed + 303)
     tree = tree if tree is not None else vessel_tree(3, seed)
     spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
-    axes, depth, affine, occupancy, (low, _) = _grid(tree, spacing, min_head_mm, grid_vox)
+    axes, depth, affine, occupancy, (low, _) = _grid(tree, spacing, min_head_mm, grid_vox, diploe_mm)
     level = CTA_LEVELS
     volume = np.full(depth.shape, level["air"], np.float32)
-    volume[depth < 2 * TABLE_MM + DIPLOE_MM + SCALP_MM] = level["scalp"]
-    volume[(depth >= 0) & (depth < 2 * TABLE_MM + DIPLOE_MM)] = level["table"]
-    diploe = (depth >= TABLE_MM) & (depth < TABLE_MM + DIPLOE_MM)
+    volume[depth < 2 * TABLE_MM + diploe_mm + SCALP_MM] = level["scalp"]
+    volume[(depth >= 0) & (depth < 2 * TABLE_MM + diploe_mm)] = level["table"]
+    diploe = (depth >= TABLE_MM) & (depth < TABLE_MM + diploe_mm)
     texture = _smooth_field(rng, depth.shape, 1.0 / float(spacing.mean()))
     volume[diploe] = level["diploe"] + 80.0 * texture[diploe]
     brain = depth < 0
