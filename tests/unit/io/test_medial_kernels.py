@@ -63,6 +63,27 @@ def test_the_depth_is_the_nearest_voxel_outside_the_mask_or_the_grid(max_r2):
         assert np.array_equal(shell_depths(np.ascontiguousarray(inside), index, offsets, lengths), expected), shape
 
 
+def test_deep_voxels_and_far_marks_read_as_the_brute_force():
+    """A solid block with a few holes (depths past 7 voxels) and sparse marks (the nearest past 7 voxels away): the
+    long offsets of the table, every value the brute force's."""
+    rng = np.random.default_rng(21)
+    offsets, lengths = _shell_table(100)
+    inside = np.ones((20, 22, 24), bool)
+    inside[tuple(rng.integers(0, 20, (3, 4)))] = False
+    index = np.flatnonzero(inside)
+    expected = _nearest_squared(inside.shape, index, np.argwhere(~np.pad(inside, 1)) - 1)
+    assert expected.max() >= 49
+    assert np.array_equal(shell_depths(inside, index, offsets, lengths), np.where(expected <= 100, expected, -1))
+    marks = np.zeros((20, 22, 24), np.int8)
+    marks[tuple(rng.integers(0, 20, (3, 6)))] = rng.integers(1, 3, 6)
+    index = np.flatnonzero(np.ones(marks.shape, bool))
+    to_plate = _nearest_squared(marks.shape, index, np.argwhere(marks == 1))
+    to_tube = _nearest_squared(marks.shape, index, np.argwhere(marks == 2))
+    expected = np.where(np.minimum(to_plate, to_tube) > 100, -1, (to_plate < to_tube).astype(int))
+    assert np.minimum(to_plate, to_tube).max() >= 49
+    assert np.array_equal(nearer_marks(marks, index, offsets, lengths), expected)
+
+
 def test_a_voxel_is_plate_when_its_nearest_medial_point_is_a_plate_point_and_no_tube_point_is_as_near():
     """Random marks (plate 1, tube 2), every voxel: 1 when the nearest plate point is strictly nearer than every
     tube point (a voxel that is a point: its own mark), 0 when not, −1 when no mark lies within the table."""
