@@ -26,27 +26,45 @@ from numba import njit
 
 @njit(cache=True)
 def maxima_at(values, index, half_outer, half_inner):
-    """For each flat ``index`` (C order) of ``values`` (3D, C order): the maximum over the cube of
+    """For each flat ``index`` (C order, ascending) of ``values`` (3D, C order): the maximum over the cube of
     ``2 half_outer + 1`` voxels a side centred on it and over the cube of ``2 half_inner + 1`` (``half_inner ≤
-    half_outer``), each clipped to the grid. Two arrays of ``values``' type, ``index``'s length."""
+    half_outer``), each clipped to the grid. Two arrays of ``values``' type, ``index``'s length. Each cube is the
+    maximum of its columns along the last axis (a column: the maximum over the cube's square across the first two
+    axes at one position of the last); a run of chosen voxels along the last axis reuses the columns it shares, so
+    each voxel of a run reads one new column, not the whole cube."""
     n0, n1, n2 = values.shape
     outer = np.empty(len(index), values.dtype)
     inner = np.empty(len(index), values.dtype)
+    width = 2 * half_outer + 1
+    outer_columns = np.empty(width, values.dtype)  # by position of the last axis modulo ``width``
+    inner_columns = np.empty(width, values.dtype)
+    row, first, last = -1, 0, -1  # the row (flat index over the first two axes) whose columns first … last are made
     for n in range(len(index)):
         flat = index[n]
-        i, rest = flat // (n1 * n2), flat % (n1 * n2)
-        j, k = rest // n2, rest % n2
-        best_outer = values[i, j, k]
-        best_inner = best_outer
-        for a in range(max(i - half_outer, 0), min(i + half_outer + 1, n0)):
-            near_a = abs(a - i) <= half_inner
-            for b in range(max(j - half_outer, 0), min(j + half_outer + 1, n1)):
-                near_b = near_a and abs(b - j) <= half_inner
-                for c in range(max(k - half_outer, 0), min(k + half_outer + 1, n2)):
+        here_row, k = flat // n2, flat % n2
+        i, j = here_row // n1, here_row % n1
+        start, stop = max(k - half_outer, 0), min(k + half_outer + 1, n2)
+        if here_row != row or start < max(first, last - width + 1) or start > last + 1:
+            row, first, last = here_row, start, start - 1  # nothing to reuse: a new run
+        for c in range(last + 1, stop):
+            best_outer = values[i, j, c]
+            best_inner = best_outer
+            for a in range(max(i - half_outer, 0), min(i + half_outer + 1, n0)):
+                near_a = abs(a - i) <= half_inner
+                for b in range(max(j - half_outer, 0), min(j + half_outer + 1, n1)):
                     value = values[a, b, c]
                     best_outer = max(best_outer, value)
-                    if near_b and abs(c - k) <= half_inner:
+                    if near_a and abs(b - j) <= half_inner:
                         best_inner = max(best_inner, value)
+            outer_columns[c % width] = best_outer
+            inner_columns[c % width] = best_inner
+        last = max(last, stop - 1)
+        best_outer = outer_columns[start % width]
+        best_inner = values[i, j, k]
+        for c in range(start, stop):
+            best_outer = max(best_outer, outer_columns[c % width])
+            if abs(c - k) <= half_inner:
+                best_inner = max(best_inner, inner_columns[c % width])
         outer[n] = best_outer
         inner[n] = best_inner
     return outer, inner
