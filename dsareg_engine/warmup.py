@@ -206,10 +206,12 @@ def _compile_volumes() -> None:
     """The kernels of a volume reading, with the argument types it passes: the distance transform of its wide bands
     (:func:`.io.voxel_band.within_mm`: a C-ordered bool grid, three spacings, a float64 grid), the smoothing
     (:func:`.io.smoothing_kernels.smoothed`: a float32 grid as series, NIfTI and MetaImage volumes store it, whole or
-    a box of it) and the plate search's kernels (:func:`.io.medial_kernels.compile_medial_kernels`)."""
+    a box of it), the plate search's kernels (:func:`.io.medial_kernels.compile_medial_kernels`) and the labelling
+    by runs (:func:`.io.label_kernels.compile_label_kernels`)."""
     import numpy as np
 
     from .io.distance_kernels import squared_distances
+    from .io.label_kernels import compile_label_kernels
     from .io.medial_kernels import compile_medial_kernels
     from .io.smoothing_kernels import SMOOTHED_SIGMA_VOX, smoothed
 
@@ -219,6 +221,7 @@ def _compile_volumes() -> None:
         smoothed(grid, SMOOTHED_SIGMA_VOX)
         smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
     compile_medial_kernels()
+    compile_label_kernels()
 
 
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
@@ -241,10 +244,11 @@ def _group_dispatchers(name: str) -> list:
         return [_hits, _pair]
     if name == "volumes":
         from .io.distance_kernels import squared_distances
+        from .io.label_kernels import LABEL_KERNELS
         from .io.medial_kernels import MEDIAL_KERNELS
         from .io.smoothing_kernels import KERNELS
 
-        return [squared_distances, *MEDIAL_KERNELS, *KERNELS]
+        return [squared_distances, *MEDIAL_KERNELS, *LABEL_KERNELS, *KERNELS]
     if name == "tracking":
         from .render import jacobian_numba
 

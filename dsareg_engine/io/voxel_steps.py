@@ -31,10 +31,22 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
     """``ndimage.label(mask)`` (face neighbours); on a grid of more than ``narrow_above`` (``LABEL16_VOXELS``) voxels
     in 16-bit labels where the components fit (up to 65,535), else 32-bit. 16 bits take 2 bytes a voxel, not 4
     (0.25 GB less on a 600-slice head's box), and ~30 % more time (scipy labels a narrower type more slowly): on
-    smaller grids time wins, unless the caller labels at its reading's memory peak (:func:`.bone_plates.bone_plates`)."""
+    smaller grids time wins, unless the caller labels at its reading's memory peak (:func:`.bone_plates.bone_plates`).
+    A 3D mask where numba is loaded (:mod:`.volume_kernels`): by its runs (:func:`.label_kernels.runs_labelled`, the
+    same labels), unless it has too many."""
     from scipy import ndimage
 
-    if mask.size > (LABEL16_VOXELS if narrow_above is None else narrow_above):
+    from .volume_kernels import kernels_here, kernels_ready
+
+    narrow = mask.size > (LABEL16_VOXELS if narrow_above is None else narrow_above)
+    if mask.ndim == 3 and kernels_here():
+        from .label_kernels import runs_labelled
+
+        kernels_ready()
+        found = runs_labelled(mask, narrow)
+        if found is not None:
+            return found
+    if narrow:
         try:
             return ndimage.label(mask, output=np.uint16)
         except RuntimeError:  # scipy: "insufficient bit-depth in requested output type"
