@@ -206,14 +206,16 @@ def _compile_volumes() -> None:
     """The kernels of a volume reading, with the argument types it passes: the distance transform of its wide bands
     (:func:`.io.voxel_band.within_mm`: a C-ordered bool grid, three spacings, a float64 grid), the smoothing
     (:func:`.io.smoothing_kernels.smoothed`: a float32 grid as series, NIfTI and MetaImage volumes store it, whole or
-    a box of it), the plate search's kernels (:func:`.io.medial_kernels.compile_medial_kernels`) and the labelling
-    by runs (:func:`.io.label_kernels.compile_label_kernels`)."""
+    a box of it), the plate search's kernels (:func:`.io.medial_kernels.compile_medial_kernels`), the labelling
+    by runs (:func:`.io.label_kernels.compile_label_kernels`) and two whole-box steps
+    (:func:`.io.voxel_kernels.compile_voxel_kernels`)."""
     import numpy as np
 
     from .io.distance_kernels import squared_distances
     from .io.label_kernels import compile_label_kernels
     from .io.medial_kernels import compile_medial_kernels
     from .io.smoothing_kernels import SMOOTHED_SIGMA_VOX, smoothed
+    from .io.voxel_kernels import compile_voxel_kernels
 
     squared_distances(np.ones((2, 2, 2), bool), 1.0, 1.0, 1.0, np.empty((2, 2, 2)))
     for order in "FC":
@@ -222,6 +224,7 @@ def _compile_volumes() -> None:
         smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
     compile_medial_kernels()
     compile_label_kernels()
+    compile_voxel_kernels()
 
 
 KERNEL_GROUPS = {"forward": _compile_forward, "backward": _compile_backward, "tracking": _warm_up_tracking,
@@ -247,8 +250,9 @@ def _group_dispatchers(name: str) -> list:
         from .io.label_kernels import LABEL_KERNELS
         from .io.medial_kernels import MEDIAL_KERNELS
         from .io.smoothing_kernels import KERNELS
+        from .io.voxel_kernels import VOXEL_KERNELS
 
-        return [squared_distances, *MEDIAL_KERNELS, *LABEL_KERNELS, *KERNELS]
+        return [squared_distances, *MEDIAL_KERNELS, *LABEL_KERNELS, *VOXEL_KERNELS, *KERNELS]
     if name == "tracking":
         from .render import jacobian_numba
 

@@ -56,7 +56,16 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
 
 def map_labels(out: np.ndarray, table: np.ndarray, labels: np.ndarray) -> None:
     """``out[...] = table[labels]`` a slab of ``MAP_CHUNK`` voxels at a time (no temporary of ``labels``' size):
-    ``out`` a view of ``labels``' shape (a box of a larger grid)."""
+    ``out`` a view of ``labels``' shape (a box of a larger grid); in one pass where numba is loaded
+    (:func:`.voxel_kernels.mapped`)."""
+    from .volume_kernels import kernels_here, kernels_ready
+
+    if labels.ndim == 3 and kernels_here():
+        from .voxel_kernels import mapped
+
+        kernels_ready()
+        mapped(out, table, labels)
+        return
     step = max(1, MAP_CHUNK // max(labels[0].size, 1))
     for start in range(0, len(labels), step):
         out[start:start + step] = table[labels[start:start + step]]
@@ -91,7 +100,17 @@ def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) ->
 
 
 def _face_neighbours(mask: np.ndarray) -> np.ndarray:
-    """``mask`` or a face neighbour in it (one step of the cross), the outside empty."""
+    """``mask`` or a face neighbour in it (one step of the cross), the outside empty: one pass of
+    :func:`.voxel_kernels.face_step` over a 3D mask where numba is loaded, else a copy and six shifted ORs."""
+    from .volume_kernels import kernels_here, kernels_ready
+
+    if mask.ndim == 3 and kernels_here():
+        from .voxel_kernels import face_step
+
+        kernels_ready()
+        out = np.empty(mask.shape, bool)
+        face_step(np.ascontiguousarray(mask, bool), out)
+        return out
     out = mask.copy()
     for axis in range(mask.ndim):
         ahead = [slice(None)] * mask.ndim

@@ -7,6 +7,14 @@ from scipy import ndimage
 from dsareg_engine.io.voxel_steps import bounding_box, cube_maximum, cube_minimum, grown
 
 
+@pytest.fixture(params=[False, True], ids=["numpy", "kernels"])
+def kernels(request, monkeypatch):
+    """Both ways of the steps: numpy / scipy, and the ``volumes`` group's kernels where numba is loaded
+    (:mod:`dsareg_engine.io.voxel_kernels`, :mod:`dsareg_engine.io.label_kernels`)."""
+    monkeypatch.setattr("dsareg_engine.io.volume_kernels.kernels_here", lambda: request.param)
+    return request.param
+
+
 def _masks(count, seed):
     rng = np.random.default_rng(seed)
     for _ in range(count):
@@ -15,7 +23,7 @@ def _masks(count, seed):
 
 
 @pytest.mark.parametrize("steps", [1, 2, 5])
-def test_grown_is_binary_dilation_with_its_cross(steps):
+def test_grown_is_binary_dilation_with_its_cross(steps, kernels):
     for rng, mask in _masks(60, steps):
         assert np.array_equal(grown(mask, steps), ndimage.binary_dilation(mask, iterations=steps))
         within = rng.random(mask.shape) < 0.6
@@ -88,7 +96,7 @@ def test_label_sizes_are_the_counts_without_a_64_bit_copy_of_the_grid(monkeypatc
     assert sizes.sum() == labels.size and peak < 2 * labels.nbytes / 4, (peak, labels.nbytes)
 
 
-def test_labels_are_scipy_s_in_16_bits_where_they_fit_and_32_where_not(monkeypatch):
+def test_labels_are_scipy_s_in_16_bits_where_they_fit_and_32_where_not(monkeypatch, kernels):
     """Issue 41: a 600-slice head's box labelled in 16 bits (2 bytes a voxel, not 4); over 65,535 components, or a
     grid below ``LABEL16_VOXELS`` (16 bits label ~30 % slower): 32."""
     from dsareg_engine.io import voxel_steps
@@ -108,7 +116,7 @@ def test_labels_are_scipy_s_in_16_bits_where_they_fit_and_32_where_not(monkeypat
     assert count == 41 ** 3 and labels.dtype == np.int32 and np.array_equal(labels, ndimage.label(sparse)[0])
 
 
-def test_labels_are_mapped_into_a_box_a_slab_at_a_time(monkeypatch):
+def test_labels_are_mapped_into_a_box_a_slab_at_a_time(monkeypatch, kernels):
     """``map_labels`` writes ``table[labels]`` into a box of a larger grid, slab by slab (``MAP_CHUNK``)."""
     from dsareg_engine.io import voxel_steps
     from dsareg_engine.io.voxel_steps import labelled, map_labels
@@ -127,7 +135,7 @@ def test_labels_are_mapped_into_a_box_a_slab_at_a_time(monkeypatch):
 
 
 @pytest.mark.parametrize("shape", [(40, 37), (1, 9), (18, 21, 16), (1, 12, 14), (9, 1, 11)])
-def test_filled_holes_are_scipys(shape):
+def test_filled_holes_are_scipys(shape, kernels):
     """One labelling of the background gives what ``binary_fill_holes``' repeated dilation gives: random masks
     (holes, cavities, pockets open at a face), shells, and the empty and full grids."""
     from dsareg_engine.io.voxel_steps import filled_holes
@@ -145,7 +153,7 @@ def test_filled_holes_are_scipys(shape):
     assert filled_holes(shell).sum() >= shell.sum()
 
 
-def test_a_closing_by_grown_steps_is_scipys_away_from_the_faces():
+def test_a_closing_by_grown_steps_is_scipys_away_from_the_faces(kernels):
     """The MRA head mask's closing (``_head_mask``): ``~grown(~grown(x, n), n)`` on a grid padded by ``n`` is
     ``binary_closing(x, iterations=n)`` on every voxel of the unpadded grid (scipy erodes from the faces, which the
     padding takes)."""
