@@ -451,10 +451,19 @@ def _regrown(core: np.ndarray, window: np.ndarray, smooth: np.ndarray, level: fl
 
 
 def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gradient_per_mm: float) -> np.ndarray:
-    """The voxels of ``where`` whose gradient (central differences, per mm) is below ``max_gradient_per_mm``."""
-    values, out = np.ravel(smooth), np.zeros(smooth.shape, bool)
-    strides = np.cumprod((1,) + smooth.shape[:0:-1])[::-1]
+    """The voxels of ``where`` whose gradient (central differences, per mm) is below ``max_gradient_per_mm``: by
+    :func:`.voxel_kernels.flat_at` where numba is loaded (the same voxels), else gathered a chunk at a time."""
+    out = np.zeros(smooth.shape, bool)
     every = np.flatnonzero(where)  # flat indices: one gather per neighbour, not three
+    if kernels_here() and smooth.dtype == np.float32:
+        from .voxel_kernels import flat_at
+
+        kernels_ready()
+        out.reshape(-1)[every] = flat_at(smooth, every, np.asarray(spacing, np.float64),
+                                         np.float32(max_gradient_per_mm))
+        return out
+    values = np.ravel(smooth)
+    strides = np.cumprod((1,) + smooth.shape[:0:-1])[::-1]
     for start in range(0, len(every), GATHER_CHUNK):  # a chunk at a time: its index arrays stay small
         index = every[start:start + GATHER_CHUNK]
         position = np.unravel_index(index, smooth.shape)

@@ -1,8 +1,10 @@
 """Numba twins of two whole-box steps of :mod:`.voxel_steps` (cached on disk), used where numba is loaded
 (:mod:`.volume_kernels`): one face-neighbour step of a mask (:func:`face_step`: ``binary_dilation``'s cross, the
-outside empty) and a label table mapped onto a box (:func:`mapped`: ``out[...] = table[labels]``). Each gives the
-same voxels as the numpy steps in one pass over the box (the numpy step: a copy and six shifted ORs; a fancy-index
-gather and its temporary), where a whole-head reading's boxes (~40 M voxels) make them memory-bound.
+outside empty), a label table mapped onto a box (:func:`mapped`: ``out[...] = table[labels]``) and a CTA's
+plateau test at chosen voxels (:func:`flat_at`: its gradient's length below a limit). Each gives the same voxels as
+the numpy steps in one pass (the numpy steps: a copy and six shifted ORs; a fancy-index gather and its temporary;
+six gathers and a C-ordered copy of the grid), where a whole-head reading's boxes (~40 M voxels) make them
+memory-bound.
 """
 
 from __future__ import annotations
@@ -34,7 +36,35 @@ def mapped(out, table, labels):
                 out[i, j, k] = table[labels[i, j, k]]
 
 
-VOXEL_KERNELS = (face_step, mapped)
+@njit(cache=True)
+def flat_at(values, index, spacing, limit):
+    """For each flat ``index`` (C order) of the float32 grid ``values`` (3D, any layout): whether its gradient's
+    length is below ``limit`` (float32): per axis the difference of the neighbours ahead and behind (the voxel
+    itself at the grid's ends) over twice the spacing, formed as numpy forms it in
+    :func:`.volume_vessels._plateau` (the float32 difference, divided and squared in float64, summed into a
+    float32; the root in float32)."""
+    n0, n1, n2 = values.shape
+    out = np.empty(len(index), np.bool_)
+    for n in range(len(index)):
+        flat = index[n]
+        i, rest = flat // (n1 * n2), flat % (n1 * n2)
+        j, k = rest // n2, rest % n2
+        here = values[i, j, k]
+        squared = np.float32(0.0)
+        ahead, behind = (values[i + 1, j, k] if i < n0 - 1 else here), (values[i - 1, j, k] if i > 0 else here)
+        step = np.float64(ahead - behind) / (2.0 * spacing[0])
+        squared = np.float32(np.float64(squared) + step * step)
+        ahead, behind = (values[i, j + 1, k] if j < n1 - 1 else here), (values[i, j - 1, k] if j > 0 else here)
+        step = np.float64(ahead - behind) / (2.0 * spacing[1])
+        squared = np.float32(np.float64(squared) + step * step)
+        ahead, behind = (values[i, j, k + 1] if k < n2 - 1 else here), (values[i, j, k - 1] if k > 0 else here)
+        step = np.float64(ahead - behind) / (2.0 * spacing[2])
+        squared = np.float32(np.float64(squared) + step * step)
+        out[n] = np.sqrt(squared) < limit
+    return out
+
+
+VOXEL_KERNELS = (face_step, mapped, flat_at)
 """The dispatchers of this module (the warm-up's ``volumes`` group)."""
 
 
@@ -47,6 +77,8 @@ def compile_voxel_kernels() -> None:
     for labels in (np.uint16, np.int32):
         mapped(np.empty((2, 2, 3), bool), table, np.ones((2, 2, 3), labels))
         mapped(np.empty((2, 2, 4), bool)[:, :, 1:], table, np.ones((2, 2, 3), labels))
+    for order in "CF":  # a smoothed box: either order (:mod:`.smoothing_kernels`)
+        flat_at(np.zeros((2, 2, 3), np.float32, order=order), np.arange(3), np.ones(3), np.float32(1.0))
 
 
-__all__ = ["VOXEL_KERNELS", "compile_voxel_kernels", "face_step", "mapped"]
+__all__ = ["VOXEL_KERNELS", "compile_voxel_kernels", "face_step", "flat_at", "mapped"]
