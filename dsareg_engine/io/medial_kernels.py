@@ -25,6 +25,13 @@ from numba import njit
 
 
 @njit(cache=True)
+def _voxel(flat, n1, n2):
+    """The indices ``(i, j, k)`` of C-order flat index ``flat`` on a grid of ``(·, n1, n2)``."""
+    i, rest = flat // (n1 * n2), flat % (n1 * n2)
+    return i, rest // n2, rest % n2
+
+
+@njit(cache=True)
 def maxima_at(values, index, half_outer, half_inner):
     """For each flat ``index`` (C order, ascending) of ``values`` (3D, C order): the maximum over the cube of
     ``2 half_outer + 1`` voxels a side centred on it and over the cube of ``2 half_inner + 1`` (``half_inner ≤
@@ -78,9 +85,7 @@ def shell_depths(inside, index, offsets, squared_lengths):
     n0, n1, n2 = inside.shape
     out = np.full(len(index), -1, np.int32)
     for n in range(len(index)):
-        flat = index[n]
-        i, rest = flat // (n1 * n2), flat % (n1 * n2)
-        j, k = rest // n2, rest % n2
+        i, j, k = _voxel(index[n], n1, n2)
         for m in range(len(offsets)):
             a, b, c = i + offsets[m, 0], j + offsets[m, 1], k + offsets[m, 2]
             if a < 0 or a >= n0 or b < 0 or b >= n1 or c < 0 or c >= n2 or not inside[a, b, c]:
@@ -89,19 +94,17 @@ def shell_depths(inside, index, offsets, squared_lengths):
     return out
 
 
-
 @njit(cache=True)
 def nearer_marks(marks, index, offsets, squared_lengths):
     """For each flat ``index`` (C order) of the int8 grid ``marks`` (3D, C order; 1: a plate medial point, 2: a
     tube one, 0: none): 1 where its nearest marked voxel (itself, else by ``offsets`` ``(M, 3)`` in order of
-    ``squared_lengths``, shortest first; outside the grid is unmarked) is a plate point and no tube point is as near, 0 where a tube point
-    is at least as near, ``-1`` where no offset reaches a mark. int8, ``index``'s length."""
+    ``squared_lengths``, shortest first; outside the grid is unmarked) is a plate point and no tube point is as
+    near, 0 where a tube point is at least as near, ``-1`` where no offset reaches a mark. int8, ``index``'s
+    length."""
     n0, n1, n2 = marks.shape
     out = np.full(len(index), -1, np.int8)
     for n in range(len(index)):
-        flat = index[n]
-        i, rest = flat // (n1 * n2), flat % (n1 * n2)
-        j, k = rest // n2, rest % n2
+        i, j, k = _voxel(index[n], n1, n2)
         if marks[i, j, k] != 0:  # a medial point itself: its own mark is the nearest
             out[n] = 1 if marks[i, j, k] == 1 else 0
             continue
@@ -133,9 +136,7 @@ def corner_agreement(grid, index, shape, corners_0, corners_1, corners_2):
     n0, n1, n2 = grid.shape
     out = np.empty(len(index), np.int8)
     for n in range(len(index)):
-        flat = index[n]
-        i, rest = flat // (shape[1] * shape[2]), flat % (shape[1] * shape[2])
-        j, k = rest // shape[2], rest % shape[2]
+        i, j, k = _voxel(index[n], shape[1], shape[2])
         a, b, c = corners_0[i], corners_1[j], corners_2[k]
         ones = 0
         for a_ in (a, min(a + 1, n0 - 1)):
@@ -144,7 +145,6 @@ def corner_agreement(grid, index, shape, corners_0, corners_1, corners_2):
                     ones += 1 if grid[a_, b_, c_] else 0
         out[n] = 1 if ones == 8 else (0 if ones == 0 else -1)
     return out
-
 
 
 @njit(cache=True)
