@@ -1,8 +1,9 @@
 """When and how a volume reading uses the ``volumes`` kernel group (numba, :mod:`dsareg_engine.warmup`): the
-distance transform of its wide bands (:mod:`.distance_kernels`), its smoothing (:mod:`.smoothing_kernels`) and the
-medial measure's local tops, depths, nearer points, corners and ball counts (:mod:`.medial_kernels`).
+distance transform of its wide bands (:mod:`.distance_kernels`), its smoothing (:mod:`.smoothing_kernels`), the
+plate search's kernels (:mod:`.medial_kernels`), its labelling (:mod:`.label_kernels`) and whole-box steps
+(:mod:`.voxel_kernels`).
 
-The smoothing and the medial measure's kernels give the numpy / scipy values to the bit, so only the time differs:
+The smoothing and these kernels give the numpy / scipy values to the bit, so only the time differs:
 they run where numba's runtime is loaded already (a worker and ``dsareg register``: the renderer's kernels,
 :func:`kernels_here`), and for a grid of at least ``KERNEL_VOXELS`` voxels in any process (:func:`load_kernels_for`:
 the service's validator reading a whole head). A smaller volume read without numba keeps scipy's: loading numba
