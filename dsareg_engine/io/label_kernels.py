@@ -139,11 +139,12 @@ LABEL_KERNELS = (_run_count, _runs, _run_labels, _written)
 def compile_label_kernels() -> None:
     """Every kernel here compiled (or loaded from numba's cache) with the types the readings pass: 16- and 32-bit
     labels."""
-    mask = np.ones((2, 2, 3), bool)
-    mask[0, 1, 1] = False
+    mask = np.zeros((2, 3, 20), bool)  # few runs a voxel: under MAX_RUN_SHARE, so every kernel runs
+    mask[:, :, 2:9] = True
+    mask[0, 1, 5] = False
     for narrow in (False, True):
-        runs_labelled(mask, narrow)
-        runs_labelled(mask[:, :, 1:], narrow)  # a box of a larger grid
+        for grid in (mask, mask[:, :, 1:]):  # a whole grid and a box of a larger one
+            assert runs_labelled(grid, narrow) is not None
 
 
 __all__ = ["LABEL_KERNELS", "MAX_RUN_SHARE", "compile_label_kernels", "runs_labelled"]
