@@ -21,7 +21,7 @@ KERNEL_VOXELS = 60_000_000
 process. The whole-head CTA (512 × 512 × 440) read as the validator reads it: 11.2 → 8.4 CPU s, address space 712 →
 894 MB (its allowance: 1,633 MB), resident 668 → 771 MB. A 33 M-voxel crop without a skull (generator A's CTA at
 0.4 mm) gained nothing and paid numba's load (2.5 → 3.2 CPU s)."""
-KERNEL_WAIT_S = 20.0  # at most this long behind another process compiling the group (~12 s; more on a loaded machine)
+KERNEL_WAIT_S = 20.0  # at most this long behind another process compiling the group (~14 s; more on a loaded machine)
 
 
 def kernels_here() -> bool:
