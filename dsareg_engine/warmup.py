@@ -13,7 +13,7 @@ functions in one process so no two processes write one function's cache index at
 ``backward`` in a helper process while this one compiles ``forward``: two cores, half the wall time);
 ``tracking`` (the Gauss-Newton Jacobian, more than half of all the compile), ``search`` (the
 initial-pose search), ``hemodynamics`` (the ray-stretch kernels of ``options.hemodynamics``) and ``volumes`` (a
-volume reading's smoothing, the distance transform of its wide bands, the medial measure's local tops) are compiled
+volume reading's kernels: :mod:`.io.volume_kernels`) are compiled
 afterwards by a background helper (:func:`compile_later_groups`),
 so a worker is ready without them; a job that needs one before the helper is done compiles it itself.
 ``python -m dsareg_engine.warmup --threads N GROUP...`` is the helper.
@@ -205,23 +205,20 @@ def _compile_hemodynamics() -> None:
 def _compile_volumes() -> None:
     """The kernels of a volume reading, with the argument types it passes: the distance transform of its wide bands
     (:func:`.io.voxel_band.within_mm`: a C-ordered bool grid, three spacings, a float64 grid), the smoothing
-    (:func:`.io.smoothing_kernels.smoothed`: a float32 grid as series, NIfTI and MetaImage volumes store it, whole or
-    a box of it), the plate search's kernels (:func:`.io.medial_kernels.compile_medial_kernels`), the labelling
-    by runs (:func:`.io.label_kernels.compile_label_kernels`) and two whole-box steps
+    (:func:`.io.smoothing_kernels.compile_smoothing_kernels`), the plate search's kernels
+    (:func:`.io.medial_kernels.compile_medial_kernels`), the labelling by runs
+    (:func:`.io.label_kernels.compile_label_kernels`) and the whole-box steps
     (:func:`.io.voxel_kernels.compile_voxel_kernels`)."""
     import numpy as np
 
     from .io.distance_kernels import squared_distances
     from .io.label_kernels import compile_label_kernels
     from .io.medial_kernels import compile_medial_kernels
-    from .io.smoothing_kernels import SMOOTHED_SIGMA_VOX, smoothed
+    from .io.smoothing_kernels import compile_smoothing_kernels
     from .io.voxel_kernels import compile_voxel_kernels
 
     squared_distances(np.ones((2, 2, 2), bool), 1.0, 1.0, 1.0, np.empty((2, 2, 2)))
-    for order in "FC":
-        grid = np.zeros((4, 4, 4), np.float32, order=order)
-        smoothed(grid, SMOOTHED_SIGMA_VOX)
-        smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
+    compile_smoothing_kernels()
     compile_medial_kernels()
     compile_label_kernels()
     compile_voxel_kernels()

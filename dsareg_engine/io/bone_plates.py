@@ -57,12 +57,11 @@ def bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -
     ``bone``; ``box``: the part's bounding box (slices). Where numba is loaded (:mod:`.volume_kernels`): one visit of
     the box (:func:`.medial_kernels.surface_contact`); else flat indices, ``GATHER_CHUNK`` voxels at a time, one
     gather per neighbour (the grid's border is no neighbour: a voxel there is its own)."""
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
-    if kernels_here():
+    if kernels_in_use():
         from .medial_kernels import surface_contact
 
-        kernels_ready()
         low, high = (np.array([getattr(s, end) for s in box], np.int64) for end in ("start", "stop"))
         surface, touching = surface_contact(np.ascontiguousarray(labels), int(index), low, high,
                                             np.ascontiguousarray(bone, bool))

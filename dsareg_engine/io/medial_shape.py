@@ -118,12 +118,11 @@ def _ball_counts(work: np.ndarray, centres: np.ndarray, ball_vox: np.ndarray) ->
     else ``cKDTree.query_ball_point`` (the same counts)."""
     from scipy.spatial import cKDTree
 
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
-    if kernels_here() and work.shape[2] < np.iinfo(np.uint16).max:
+    if work.shape[2] < np.iinfo(np.uint16).max and kernels_in_use():
         from .medial_kernels import ball_counts
 
-        kernels_ready()
         return ball_counts(np.ascontiguousarray(work, bool), np.ascontiguousarray(centres, np.int64),
                            np.asarray(ball_vox, np.float64), np.asarray(ball_vox, np.float64) / 2.0)
     voxels = cKDTree(np.argwhere(work), balanced_tree=False, compact_nodes=False)  # counts: any tree's, built 3x faster
@@ -158,13 +157,12 @@ def _local_maxima(squared: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, n
     """The maxima of ``squared`` over the 5³ and the 3³ cube around each flat ``index`` (``maximum_filter``'s values
     there): :func:`.medial_kernels.maxima_at` where this process has numba loaded
     (:mod:`.volume_kernels`), else two whole-grid filters."""
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
-    if not kernels_here():
+    if not kernels_in_use():
         return cube_maximum(squared, 5).ravel()[index], cube_maximum(squared, 3).ravel()[index]
     from .medial_kernels import maxima_at
 
-    kernels_ready()
     return maxima_at(squared, index, 2, 1)
 
 
@@ -216,17 +214,16 @@ def _back_on_mask(work_plate: np.ndarray, zoom: np.ndarray, part: np.ndarray) ->
     (:func:`.medial_kernels.corner_agreement`; the weights sum to 1): only the others are interpolated."""
     from scipy import ndimage
 
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
     every = np.flatnonzero(part)
     zoomed = np.round(np.asarray(work_plate.shape) / np.asarray(zoom, float)).astype(int)
     plate, out = np.ascontiguousarray(work_plate, bool).view(np.uint8), np.zeros(part.shape, bool)  # (no float copy)
     tables = [(np.minimum(np.arange(size), zoomed[axis] - 1) + 0.5) * (work_plate.shape[axis] / zoomed[axis]) - 0.5
               for axis, size in enumerate(part.shape)]  # ``ndimage.zoom``'s coordinate of each index, per axis
-    if kernels_here():
+    if kernels_in_use():
         from .medial_kernels import corner_agreement
 
-        kernels_ready()
         corners = [np.clip(np.floor(table), 0, n - 1).astype(np.int64) for table, n in zip(tables, plate.shape)]
         agreed = corner_agreement(plate, every, np.array(part.shape, np.int64), *corners)
         out.ravel()[every[agreed == 1]] = True
@@ -248,14 +245,13 @@ def _depth_squared(work: np.ndarray) -> np.ndarray:
     loaded (:mod:`.volume_kernels`), :func:`.medial_kernels.shell_depths` visits each voxel's offsets up to
     ``KERNEL_SHELL_R2``; else every pending voxel is gathered once per offset up to ``SHELL_R2``. The same
     distances as the queries of every voxel, either way."""
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
     index = np.flatnonzero(work)
     squared = np.zeros(work.shape, np.int32)
-    if kernels_here():
+    if kernels_in_use():
         from .medial_kernels import shell_depths
 
-        kernels_ready()
         offsets, lengths = _shell_table(KERNEL_SHELL_R2)
         found = shell_depths(np.ascontiguousarray(work, bool), index, offsets, lengths)
         pending = index[found < 0]
@@ -325,7 +321,7 @@ def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) ->
     maximum filters). The others: where numba is loaded (:mod:`.volume_kernels`), each voxel's offsets in order of
     length up to ``KERNEL_SHELL_R2`` (:func:`.medial_kernels.nearer_marks`); the rest nearest-point queries
     (:func:`_queried_nearer`). The same voxels as comparing both unbounded distances."""
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
     if not (~is_plate).any():
         return work.copy()
@@ -338,10 +334,9 @@ def _nearer_plate(work: np.ndarray, points: np.ndarray, is_plate: np.ndarray) ->
     near_tube = cube_maximum(_marked(high - low, tubes - low), 2 * steps + 1)
     out[box] &= ~near_tube.view(bool)
     undecided = np.flatnonzero(work & ~out)
-    if len(undecided) and kernels_here():
+    if len(undecided) and kernels_in_use():
         from .medial_kernels import nearer_marks
 
-        kernels_ready()
         marks = _marked(work.shape, points[is_plate]).view(np.int8)
         marks[tuple(tubes.T)] = 2
         nearer = nearer_marks(marks, undecided, *_shell_table(KERNEL_SHELL_R2))

@@ -138,6 +138,15 @@ def _third_axis(grid, w0, w1, w2):
 
 
 KERNELS = (_first_axis_fortran, _first_axis, _second_axis, _third_axis)
+
+
+def compile_smoothing_kernels() -> None:
+    """The kernels compiled (or loaded from numba's cache) with the types a reading passes: a float32 grid as
+    series, NIfTI and MetaImage volumes store it (C or Fortran order), whole or a box of it."""
+    for order in "FC":
+        grid = np.zeros((4, 4, 4), np.float32, order=order)
+        smoothed(grid, SMOOTHED_SIGMA_VOX)
+        smoothed(grid[1:, 1:, 1:], SMOOTHED_SIGMA_VOX)
 """The dispatchers :func:`smoothed` calls (the warm-up's ``volumes`` group checks they are cached)."""
 
-__all__ = ["KERNELS", "SMOOTHED_SIGMA_VOX", "smoothed"]
+__all__ = ["KERNELS", "SMOOTHED_SIGMA_VOX", "compile_smoothing_kernels", "smoothed"]

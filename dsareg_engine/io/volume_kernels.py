@@ -29,6 +29,15 @@ def kernels_here() -> bool:
     return "numba" in sys.modules
 
 
+def kernels_in_use() -> bool:
+    """Whether this step of a reading uses the group's kernels (:func:`kernels_here`); when it does, the group is
+    ready (:func:`kernels_ready`: compiled, or waited for)."""
+    if not kernels_here():
+        return False
+    kernels_ready()
+    return True
+
+
 def load_kernels_for(voxels: int) -> None:
     """Before reading a grid of ``voxels`` voxels: numba loaded when the grid holds at least ``KERNEL_VOXELS`` (then
     :func:`kernels_here` holds for the whole reading)."""
@@ -45,4 +54,4 @@ def kernels_ready() -> None:
     wait_for_group("volumes", wait_limit_s=KERNEL_WAIT_S)
 
 
-__all__ = ["KERNEL_VOXELS", "KERNEL_WAIT_S", "kernels_here", "kernels_ready", "load_kernels_for"]
+__all__ = ["KERNEL_VOXELS", "KERNEL_WAIT_S", "kernels_here", "kernels_in_use", "kernels_ready", "load_kernels_for"]

@@ -39,7 +39,7 @@ from .bone_plates import PLATE_RIM_MM, plates_found, without_plates
 from .input_decisions import InputDecision
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
-from .volume_kernels import kernels_here, kernels_ready, load_kernels_for
+from .volume_kernels import kernels_in_use, load_kernels_for
 from .volume_kind import AIR_HU, MIN_AIR_FRACTION, VolumeReading, detect_volume_kind
 from .volume_labels import SURFACE_LEVEL, LabelMap, label_map, label_pieces
 from .voxel_band import within_mm
@@ -181,13 +181,12 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
 def _smoothed(voxels: np.ndarray) -> np.ndarray:
     """``ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)``: the numba kernel's bits where this process has numba
     loaded (:mod:`.volume_kernels`, :mod:`.smoothing_kernels`), else scipy's."""
-    if not kernels_here():
+    if not kernels_in_use():
         from scipy import ndimage
 
         return ndimage.gaussian_filter(voxels, SMOOTHING_SIGMA_VOX)
     from .smoothing_kernels import smoothed
 
-    kernels_ready()
     return smoothed(voxels, SMOOTHING_SIGMA_VOX)
 
 
@@ -455,10 +454,9 @@ def _plateau(smooth: np.ndarray, where: np.ndarray, spacing: np.ndarray, max_gra
     :func:`.voxel_kernels.flat_at` where numba is loaded (the same voxels), else gathered a chunk at a time."""
     out = np.zeros(smooth.shape, bool)
     every = np.flatnonzero(where)  # flat indices: one gather per neighbour, not three
-    if kernels_here() and smooth.dtype == np.float32:
+    if smooth.dtype == np.float32 and kernels_in_use():
         from .voxel_kernels import flat_at
 
-        kernels_ready()
         out.reshape(-1)[every] = flat_at(smooth, every, np.asarray(spacing, np.float64),
                                          np.float32(max_gradient_per_mm))
         return out

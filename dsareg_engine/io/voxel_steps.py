@@ -36,13 +36,12 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
     same labels), unless it has too many."""
     from scipy import ndimage
 
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
     narrow = mask.size > (LABEL16_VOXELS if narrow_above is None else narrow_above)
-    if mask.ndim == 3 and kernels_here():
+    if mask.ndim == 3 and kernels_in_use():
         from .label_kernels import runs_labelled
 
-        kernels_ready()
         found = runs_labelled(mask, narrow)
         if found is not None:
             return found
@@ -58,12 +57,11 @@ def map_labels(out: np.ndarray, table: np.ndarray, labels: np.ndarray) -> None:
     """``out[...] = table[labels]`` a slab of ``MAP_CHUNK`` voxels at a time (no temporary of ``labels``' size):
     ``out`` a view of ``labels``' shape (a box of a larger grid); in one pass where numba is loaded
     (:func:`.voxel_kernels.mapped`)."""
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
-    if labels.ndim == 3 and kernels_here():
+    if labels.ndim == 3 and kernels_in_use():
         from .voxel_kernels import mapped
 
-        kernels_ready()
         mapped(out, table, labels)
         return
     step = max(1, MAP_CHUNK // max(labels[0].size, 1))
@@ -102,12 +100,11 @@ def grown(mask: np.ndarray, steps: int = 1, within: np.ndarray | None = None) ->
 def _face_neighbours(mask: np.ndarray) -> np.ndarray:
     """``mask`` or a face neighbour in it (one step of the cross), the outside empty: one pass of
     :func:`.voxel_kernels.face_step` over a 3D mask where numba is loaded, else a copy and six shifted ORs."""
-    from .volume_kernels import kernels_here, kernels_ready
+    from .volume_kernels import kernels_in_use
 
-    if mask.ndim == 3 and kernels_here():
+    if mask.ndim == 3 and kernels_in_use():
         from .voxel_kernels import face_step
 
-        kernels_ready()
         out = np.empty(mask.shape, bool)
         face_step(np.ascontiguousarray(mask, bool), out)
         return out

@@ -10,7 +10,7 @@ import pytest
 def _numpy_plateau(smooth, where, spacing, limit, monkeypatch):
     from dsareg_engine.io import volume_vessels
 
-    monkeypatch.setattr(volume_vessels, "kernels_here", lambda: False)
+    monkeypatch.setattr("dsareg_engine.io.volume_kernels.kernels_here", lambda: False)
     try:
         return volume_vessels._plateau(smooth, where, spacing, limit)
     finally:
@@ -39,7 +39,7 @@ def test_the_plateau_is_the_numpy_paths(order, monkeypatch):
         limits += [float(np.nextafter(np.float32(limits[0]), np.float32(np.inf))), limits[0] * (1 + 1e-9)]
         for limit in limits:
             expected = _numpy_plateau(smooth, where, spacing, limit, monkeypatch)
-            monkeypatch.setattr(volume_vessels, "kernels_here", lambda: True)
+            monkeypatch.setattr("dsareg_engine.io.volume_kernels.kernels_here", lambda: True)
             got = volume_vessels._plateau(smooth, where, spacing, limit)
             monkeypatch.undo()
             assert np.array_equal(got, expected), (shape, limit)
