@@ -13,7 +13,7 @@ pydicom and PIL. Importing this module: 0.27 s (docs/concepts/layout.md, "Lazy n
 * options: :class:`RegistrationOptions`, :func:`parse_options`, :func:`validate_rigid`, :data:`PRESETS`
 * geometry: :func:`parse_geometry` (the one place a preset name, JSON or a file is told apart) →
   :class:`GeometrySpec`, stored as its canonical JSON (``to_json`` / ``from_json``, :func:`is_canonical_geometry`)
-* a case: :class:`CaseFiles` (inputs as bytes), :func:`load_case_files` / :func:`load_case`, :class:`InputLimits`, :func:`input_limits`;
+* a case: :class:`CaseFiles` (inputs as bytes; a volume's files also as :class:`FileParts`, read when used), :func:`load_case_files` / :func:`load_case`, :class:`InputLimits`, :func:`input_limits`;
   how multi-frame XA runs are read: :class:`ImageReading` (per-view frames, subtraction), :func:`image_reading` (from options)
 * running it: :func:`run_case` (files in, every output written, in one call), :func:`run_registration_case`
   (from a loaded case), :class:`RegistrationCanceled`
@@ -65,6 +65,7 @@ from .io.case_identity import case_identity, case_search_text, with_source
 from .io.dicom_identity import DicomIdentity, DicomSources, read_sources
 from .io.dicom_out import write_dicom_outputs
 from .io.dicom_xa import c_arm_rotation
+from .io.file_parts import FileParts
 from .io.limits import DEFAULT_LIMITS, InputLimits
 from .io.volume_kind import VolumeReading
 from .registration.options import RegistrationOptions, image_reading, parse_options
@@ -110,6 +111,7 @@ __all__ = [
     "DirectoryModelStore",
     "DicomSources",
     "DsaregInputError",
+    "FileParts",
     "GeometrySpec",
     "ImageReading",
     "InputLimits",

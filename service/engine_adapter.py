@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -102,7 +103,8 @@ def stored_case_files(inputs: list[InputFile], geometry: str | None, read: Any,
 
     Several files of one role (a DICOM series, a ``.rad`` + ``.raw`` pair) are passed as a
     list in the order they were uploaded; names are ``<role><sanitized suffix>``. Images
-    whose decoded size exceeds ``max_image_bytes`` are refused before decoding.
+    whose decoded size exceeds ``max_image_bytes`` are refused before decoding. A volume's files are an
+    ``engine.FileParts``: read from the store when the engine reads them, never held (a whole head's are 0.23 GB).
     """
     image_budget = (limits or {}).get("max_image_bytes")
     parts: dict[str, Any] = {"ap": None, "lat": None}
@@ -110,7 +112,12 @@ def stored_case_files(inputs: list[InputFile], geometry: str | None, read: Any,
         items = [f for f in inputs if f.role == role]
         if not items:
             continue
-        data = read(items[0].sha256) if role == "mesh" or len(items) == 1 else [read(item.sha256) for item in items]
+        if role == "volume":
+            data = engine.FileParts(partial(read, item.sha256) for item in items)
+        elif role == "mesh" or len(items) == 1:
+            data = read(items[0].sha256)
+        else:
+            data = [read(item.sha256) for item in items]
         if image_budget and role in ("ap", "lat"):
             for part in data if isinstance(data, list) else [data]:
                 check_image_budget(part, role, image_budget)

@@ -95,11 +95,18 @@ def _timed_runs(options, model: dict, ap: bytes, lat: bytes):
 def _model_inputs(args: argparse.Namespace) -> dict:
     if args.mesh:
         return {"mesh": Path(args.mesh).read_bytes(), "mesh_name": Path(args.mesh).name}
+    from ..io.file_parts import FileParts
+
     paths = [Path(p) for p in args.volume]
     if len(paths) == 1 and paths[0].is_dir():  # a DICOM series folder
         paths = sorted(p for p in paths[0].iterdir() if p.is_file())
-    parts = [p.read_bytes() for p in paths]
-    return {"volume": parts if len(parts) > 1 else parts[0], "volume_name": paths[0].name}
+        if not paths:
+            raise DsaregInputError(f"the folder '{args.volume[0]}' holds no files", field="--volume",
+                                   accepted="a volume file, or a folder with the files of a DICOM series")
+    for path in paths:  # a missing or unreadable file is named now, not when the series is read
+        with path.open("rb"):
+            pass
+    return {"volume": FileParts.from_paths(paths), "volume_name": paths[0].name}  # read when used, not held
 
 
 def frame_argument(value: str, flag: str) -> int | str:

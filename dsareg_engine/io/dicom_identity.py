@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
+from .file_parts import PART_LISTS
+
 # Patient module (and the Patient Study / clinical trial bits that travel with it), copied when present.
 PATIENT_KEYWORDS = (
     "PatientName", "PatientID", "IssuerOfPatientID", "PatientBirthDate", "PatientSex", "OtherPatientIDsSequence",
@@ -189,6 +191,26 @@ def parse_dicom(data: bytes, field_name: str):
         raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
 
 
+def parse_header(data: bytes, field_name: str):
+    """A DICOM file's header (everything before the pixel data) that holds no reference to ``data``: a series' headers
+    are all read before its pixels (:func:`.volume_io.read_dicom_series`), and a whole head's files are 0.23 GB.
+
+    Raises:
+        DsaregInputError: not readable as DICOM at all (as :func:`parse_dicom`).
+    """
+    import pydicom
+
+    from ..errors import DsaregInputError
+
+    stream = io.BytesIO(data)
+    try:
+        return pydicom.dcmread(stream, stop_before_pixels=True, force=True)
+    except Exception as exc:  # noqa: BLE001
+        raise DsaregInputError(f"is not readable DICOM ({str(exc)[:200]})", field=field_name) from None
+    finally:
+        stream.close()  # the dataset keeps the stream, which lets go of ``data`` once closed
+
+
 def identity_or_none(dataset) -> tuple[DicomIdentity | None, bool]:
     """``(identity, unreadable)``: :func:`identity_of`, with a malformed identity as ``(None, True)``."""
     try:
@@ -217,7 +239,7 @@ def read_sources(ap=None, lat=None, volume=None) -> DicomSources:
 
     A case read by :func:`dsareg_engine.io.case.load_case` carries them already (``case.sources``).
     """
-    parts = volume if isinstance(volume, (list, tuple)) else ([volume] if volume is not None else [])
+    parts = volume if isinstance(volume, PART_LISTS) else ([volume] if volume is not None else [])
     identities = [identity_of(_header(p)) for p in parts]
     return DicomSources(ap=identity_of(_header(ap)), lat=identity_of(_header(lat)),
                         volume=tuple(i for i in identities if i is not None))

@@ -26,6 +26,7 @@ import json
 import os
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol
@@ -33,6 +34,7 @@ from typing import Protocol
 import numpy as np
 
 from ..mesh import TriangleMesh
+from .file_parts import PART_LISTS
 from .input_decisions import InputDecision
 from .volume_kind import VolumeReading
 from .volume_vessels import VolumeReadout
@@ -51,9 +53,9 @@ class CachedModel:
     kind: str
 
 
-def model_key(volume: bytes | list[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:
+def model_key(volume: bytes | Sequence[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:
     """The cache key of a volume read with ``reading`` into at most ``working_faces`` faces (hex SHA-256)."""
-    parts = list(volume) if isinstance(volume, (list, tuple)) else [volume]
+    parts = volume if isinstance(volume, PART_LISTS) else [volume]  # read one at a time (``FileParts``)
     described = {"version": MODEL_VERSION, "files": [hashlib.sha256(bytes(p)).hexdigest() for p in parts],
                  "name": name or "", "reading": asdict(reading or VolumeReading()), "faces": int(working_faces)}
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=list).encode()).hexdigest()

@@ -31,7 +31,8 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from . import rad as rad_format
-from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom
+from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom, parse_header
+from .file_parts import PART_LISTS, volume_parts
 from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
 from .volume_formats import ACCEPTED as _ACCEPTED
@@ -95,14 +96,17 @@ def detect_volume_format(data: bytes) -> str | None:
 
 
 def read_volume(
-    data: bytes | list[bytes],
+    data: bytes | Sequence[bytes],
     name: str | None = None,
     limits: InputLimits = DEFAULT_LIMITS,
     *,
     field_name: str = "volume",
 ) -> Volume:
-    """Read any accepted volume: one file's bytes, or a list (DICOM series; ``.rad`` + ``.raw`` pair)."""
-    if isinstance(data, (list, tuple)):
+    """Read any accepted volume: one file's bytes, or a list (DICOM series; ``.rad`` + ``.raw`` pair) or
+    :class:`.file_parts.FileParts` of them (read here, and let go when this returns)."""
+    if isinstance(data, PART_LISTS):
+        if len(data) > 2:  # a DICOM series: its files read one by one (:func:`read_dicom_series`)
+            return read_dicom_series(data, limits, field_name=field_name)
         parts = [bytes(part) for part in data]
         if not parts or not any(parts):
             raise DsaregInputError("no files were given", field=field_name, accepted=_ACCEPTED)
@@ -139,12 +143,12 @@ def read_volume(
     raise DsaregInputError("content is not a recognised volume format", field=field_name, accepted=_ACCEPTED)
 
 
-def read_volume_identities(data: bytes | list[bytes], name: str | None = None, *,
+def read_volume_identities(data: bytes | Sequence[bytes], name: str | None = None, *,
                            field_name: str = "volume") -> tuple[tuple[DicomIdentity, ...], bool]:
     """The DICOM identities of a volume's files and whether one was unreadable, as :func:`read_volume` gives them
     (``Volume.dicom``, ``Volume.dicom_unreadable``), from the headers alone: no pixel decoded (a model cache hit,
     :mod:`.model_cache`). ``((), False)`` for a volume that is not DICOM."""
-    parts = [bytes(part) for part in data] if isinstance(data, (list, tuple)) else [data]
+    parts = volume_parts(data)
     if len(parts) == 1:
         fmt = detect_volume_format(parts[0]) or ("dicom" if (name or "").lower().endswith((".dcm", ".dicom", ".ima"))
                                                  else None)
@@ -279,69 +283,100 @@ def _series_affine(positions: np.ndarray, row_dir, col_dir, spacing, field_name:
 
 
 def read_dicom_series(
-    parts: list[bytes], limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
+    parts: Sequence[bytes], limits: InputLimits = DEFAULT_LIMITS, *, field_name: str = "volume"
 ) -> Volume:
-    """A volume from the files of one DICOM series (or one enhanced multi-frame file)."""
-    parsed = []
+    """A volume from the files of one DICOM series (or one enhanced multi-frame file).
+
+    A series' headers are read first, then its pixels file by file: ``parts`` may be a
+    :class:`.file_parts.FileParts`, whose files are then never all in memory at once (a whole head's are 0.23 GB).
+    """
+    if len(parts) == 1:
+        return _enhanced_volume(bytes(parts[0]), limits, field_name)
+    headers = []
     for index, part in enumerate(parts):
         if not part:
             raise DsaregInputError(f"file {index} of the series is empty", field=field_name)
-        parsed.append(parse_dicom(part, field_name))
-    headers = [dataset for dataset, _ in parsed]
-    series_warnings: list[str] = []
-    if len(parts) > 1:  # a folder may hold other series (the XA runs, a scout): take the volume series
-        chosen, series_warnings = pick_volume_series(headers, field_name=field_name)
-        parts, parsed = [parts[i] for i in chosen], [parsed[i] for i in chosen]
-        headers = [dataset for dataset, _ in parsed]
+        headers.append(parse_header(part, field_name))
+    chosen, series_warnings = pick_volume_series(headers, field_name=field_name)
+    headers = [headers[i] for i in chosen]
     first = headers[0]
-    rows, cols = int(getattr(first, "Rows", 0) or 0), int(getattr(first, "Columns", 0) or 0)
-    bits = int(getattr(first, "BitsAllocated", 16) or 16)
+    rows, cols = _image_size(first, field_name)
+    modality = str(getattr(first, "Modality", "") or "")  # a header probe's: the reading's kind (:mod:`.volume_cost`)
+    _check_bytes((cols, rows, len(headers)), max(4, _bits(first) // 8), limits, field_name, modality)
+    for header in headers[1:]:
+        if (int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)) != (rows, cols):
+            raise DsaregInputError("DICOM slices differ in size", field=field_name)
+    geometry = [_frame_geometry(header, None, field_name) for header in headers]
+    positions, order = _slice_order(geometry, field_name)
+    stored = np.empty((len(order), rows, cols), np.float32)  # slice by slice, each one contiguous
+    for k, index in enumerate(order):  # each file read again (a FileParts) and decoded into its slice
+        _store_slice(stored, k, _dicom_pixels(parse_dicom(parts[chosen[index]], field_name), field_name), field_name)
+    return _series_volume(stored, positions, geometry[0], "dicom-series", headers, series_warnings, field_name)
+
+
+def _enhanced_volume(data: bytes, limits: InputLimits, field_name: str) -> Volume:
+    """An enhanced multi-frame DICOM volume (one file holding every slice with its per-frame position)."""
+    parsed = parse_dicom(data, field_name)
+    first = parsed[0]
+    rows, cols = _image_size(first, field_name)
+    n_frames = int(getattr(first, "NumberOfFrames", 1) or 1)
+    if n_frames < 2:
+        raise DsaregInputError(
+            "a single-slice DICOM is not a volume",
+            field=field_name,
+            accepted="all files of a DICOM series, or an enhanced multi-frame file",
+        )
+    modality = str(getattr(first, "Modality", "") or "")
+    _check_bytes((cols, rows, n_frames), max(4, _bits(first) // 8), limits, field_name, modality)
+    if "PerFrameFunctionalGroupsSequence" not in first:
+        raise DsaregInputError("multi-frame DICOM lacks per-frame positions (not a volume)", field=field_name)
+    geometry = [_frame_geometry(first, f, field_name) for f in range(n_frames)]
+    pixels = _dicom_pixels(parsed, field_name)
+    if pixels.ndim != 3 or pixels.shape[0] != n_frames:
+        raise DsaregInputError("multi-frame pixel data does not match NumberOfFrames", field=field_name)
+    positions, order = _slice_order(geometry, field_name)
+    stored = np.empty((len(order), rows, cols), np.float32)
+    for k, index in enumerate(order):
+        _store_slice(stored, k, pixels[index], field_name)
+    return _series_volume(stored, positions, geometry[0], "dicom-enhanced", [first], [], field_name)
+
+
+def _image_size(header, field_name: str) -> tuple[int, int]:
+    rows, cols = int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)
     if rows < 1 or cols < 1:
         raise DsaregInputError("DICOM file has no Rows/Columns (not an image)", field=field_name)
-    n_frames = int(getattr(first, "NumberOfFrames", 1) or 1)
-    modality = str(getattr(first, "Modality", "") or "")  # a header probe's: the reading's kind (:mod:`.volume_cost`)
-    if len(parts) == 1 and n_frames > 1:
-        _check_bytes((cols, rows, n_frames), max(4, bits // 8), limits, field_name, modality)
-        if "PerFrameFunctionalGroupsSequence" not in first:
-            raise DsaregInputError("multi-frame DICOM lacks per-frame positions (not a volume)", field=field_name)
-        geometry = [_frame_geometry(first, f, field_name) for f in range(n_frames)]
-        pixels = _dicom_pixels(parsed[0], field_name)
-        if pixels.ndim != 3 or pixels.shape[0] != n_frames:
-            raise DsaregInputError("multi-frame pixel data does not match NumberOfFrames", field=field_name)
-        slices = list(pixels)
-        kind = "dicom-enhanced"
-    else:
-        if len(parts) < 2:
-            raise DsaregInputError(
-                "a single-slice DICOM is not a volume",
-                field=field_name,
-                accepted="all files of a DICOM series, or an enhanced multi-frame file",
-            )
-        _check_bytes((cols, rows, len(parts)), max(4, bits // 8), limits, field_name, modality)
-        for header in headers[1:]:
-            if (int(getattr(header, "Rows", 0) or 0), int(getattr(header, "Columns", 0) or 0)) != (rows, cols):
-                raise DsaregInputError("DICOM slices differ in size", field=field_name)
-        geometry = [_frame_geometry(header, None, field_name) for header in headers]
-        slices = parsed  # decoded one at a time into the volume below (not all held as float32 at once)
-        kind = "dicom-series"
-    row_dir, col_dir, spacing = geometry[0][1], geometry[0][2], geometry[0][3]
+    return rows, cols
+
+
+def _bits(header) -> int:
+    return int(getattr(header, "BitsAllocated", 16) or 16)
+
+
+def _slice_order(geometry: list, field_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(positions in slice order, order)``: the slices sorted along their normal (one orientation for all)."""
+    row_dir, col_dir = geometry[0][1], geometry[0][2]
     for _, other_row, other_col, _ in geometry[1:]:
         if np.abs(other_row - row_dir).max() > 1e-3 or np.abs(other_col - col_dir).max() > 1e-3:
             raise DsaregInputError("DICOM slices have different orientations", field=field_name)
-    normal = np.cross(row_dir, col_dir)
     positions = np.array([g[0] for g in geometry])
-    order = np.argsort(positions @ normal)
-    positions = positions[order]
-    stored = np.empty((len(order), rows, cols), np.float32)  # slice by slice, each one contiguous
-    for k, index in enumerate(order):
-        one = slices[index] if kind == "dicom-enhanced" else _dicom_pixels(slices[index], field_name)
-        if one.shape != (rows, cols):
-            raise DsaregInputError("a DICOM slice has pixel data of the wrong size", field=field_name)
-        stored[k] = one
+    order = np.argsort(positions @ np.cross(row_dir, col_dir))
+    return positions[order], order
+
+
+def _store_slice(stored: np.ndarray, k: int, pixels: np.ndarray, field_name: str) -> None:
+    if pixels.shape != stored.shape[1:]:
+        raise DsaregInputError("a DICOM slice has pixel data of the wrong size", field=field_name)
+    stored[k] = pixels
+
+
+def _series_volume(stored: np.ndarray, positions: np.ndarray, first_geometry: tuple, kind: str, headers: list,
+                   warnings: list[str], field_name: str) -> Volume:
+    """The volume of slices ``stored`` [k, row, col] at ``positions``, with the headers' DICOM identities."""
+    _, row_dir, col_dir, spacing = first_geometry
     voxels = stored.transpose(2, 1, 0)  # [i=col, j=row, k], a view (Fortran order, as NIfTI volumes come)
     affine = _series_affine(positions, row_dir, col_dir, spacing, field_name)
     identities = [identity_or_none(header) for header in headers]
-    return Volume(voxels, affine, kind, warnings=series_warnings, tags=_identity_tags(first),
+    return Volume(voxels, affine, kind, warnings=warnings, tags=_identity_tags(headers[0]),
                   dicom=tuple(identity for identity, _ in identities if identity is not None),
                   dicom_unreadable=any(unreadable for _, unreadable in identities))
 

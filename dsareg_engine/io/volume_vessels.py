@@ -123,10 +123,32 @@ class VolumeReadout:
 
 @dataclass
 class VesselExtraction:
+    """A volume's vessel surface and readout, and its masks in the box that was read. ``kept`` / ``excluded`` on the
+    volume's whole grid are made when asked for (a whole head's are 0.12 GB each; a job needs neither)."""
+
     mesh: TriangleMesh
     readout: VolumeReadout
-    kept: np.ndarray  # bool, the volume's shape: the vessel voxels the surface encloses
-    excluded: np.ndarray | None = None  # bool: what was set aside (CTA bone + band, the MRA scalp shell)
+    kept_in_box: np.ndarray  # bool, ``box`` of the grid: the vessel voxels the surface encloses
+    excluded_in_box: np.ndarray | None = None  # bool, ``box``: what was set aside (CTA bone + band, MRA scalp shell)
+    box: tuple[slice, ...] | None = None  # where the masks lie in the volume's grid; None: they are the whole grid
+    shape: tuple[int, ...] | None = None  # the volume's grid
+
+    @property
+    def kept(self) -> np.ndarray:
+        """bool, the volume's shape: the vessel voxels the surface encloses."""
+        return self._on_grid(self.kept_in_box)
+
+    @property
+    def excluded(self) -> np.ndarray | None:
+        """bool, the volume's shape: what was set aside (CTA bone + band, the MRA scalp shell), or None."""
+        return None if self.excluded_in_box is None else self._on_grid(self.excluded_in_box)
+
+    def _on_grid(self, mask: np.ndarray) -> np.ndarray:
+        if self.box is None or self.shape is None or mask.shape == tuple(self.shape):
+            return mask
+        out = np.zeros(self.shape, bool)
+        out[self.box] = mask
+        return out
 
 
 def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, field_name: str = "volume",
@@ -174,8 +196,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     mesh = surface_from_mask(field, mask, levels["min"], affine, field_name=field_name)
     del field  # before the full-grid masks below
     readout.faces = mesh.n_faces
-    kept = _uncropped(mask, head, shape)
-    return VesselExtraction(mesh, readout, kept, None if excluded is None else _uncropped(excluded, head, shape))
+    return VesselExtraction(mesh, readout, mask, excluded, head, tuple(shape))
 
 
 def _smoothed(voxels: np.ndarray) -> np.ndarray:
@@ -206,14 +227,6 @@ def _cropped_affine(affine: np.ndarray, box: tuple[slice, ...]) -> np.ndarray:
     """The affine of the sub-grid ``box`` (its voxel 0 is the grid's voxel ``box.start``)."""
     out = np.array(affine, float)
     out[:3, 3] = affine[:3, :3] @ np.array([b.start for b in box], float) + affine[:3, 3]
-    return out
-
-
-def _uncropped(mask: np.ndarray, box: tuple[slice, ...], shape) -> np.ndarray:
-    if mask.shape == tuple(shape):
-        return mask
-    out = np.zeros(shape, bool)
-    out[box] = mask
     return out
 
 

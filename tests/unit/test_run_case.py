@@ -58,19 +58,27 @@ def dicom_files():
 
 
 def test_each_dicom_input_is_parsed_once_in_a_registration(dicom_files, tmp_path, monkeypatch):
+    """Each XA run is parsed once; each slice of the volume's series twice: its header (the series is chosen and
+    ordered from the headers alone) and then its pixels, so that the files are never all held at once."""
     import pydicom
 
-    parsed: list[bytes] = []
+    parsed: list[tuple[bytes, bool]] = []
     real = pydicom.dcmread
 
     def counting(source, *args, **kwargs):
-        parsed.append(source.getvalue() if hasattr(source, "getvalue") else bytes(source))
+        data = source.getvalue() if hasattr(source, "getvalue") else bytes(source)
+        parsed.append((data, bool(kwargs.get("stop_before_pixels"))))
         return real(source, *args, **kwargs)
 
     monkeypatch.setattr(pydicom, "dcmread", counting)
     data = run_case(dicom_files, QUICK, tmp_path, dicom="required")
     assert {"reg.dcm", "overlay_ap.dcm", "overlay_lat.dcm"} <= set(data["dicom"]["instances"])
-    inputs = [dicom_files.ap, dicom_files.lat, *dicom_files.volume]
-    counts = [sum(one == given for one in parsed) for given in inputs]
-    assert counts == [1] * len(inputs), f"parses per input (AP, LAT, slices): {counts}"
-    assert len(parsed) == len(inputs)  # and nothing else is parsed again
+    runs, slices = [dicom_files.ap, dicom_files.lat], list(dicom_files.volume)
+
+    def counts(given, header_only):
+        return [sum(one == item and only == header_only for one, only in parsed) for item in given]
+
+    assert counts(runs, False) == [1, 1] and counts(runs, True) == [0, 0], "parses per XA run"
+    assert counts(slices, True) == [1] * len(slices), "header parses per slice"
+    assert counts(slices, False) == [1] * len(slices), "full parses per slice"
+    assert len(parsed) == len(runs) + 2 * len(slices)  # and nothing else is parsed again

@@ -62,6 +62,21 @@ def test_errors_are_one_line_without_traceback(argv, code, needles, tmp_path):
     assert len([line for line in proc.stderr.splitlines() if "error" in line]) == 1, proc.stderr
 
 
+def test_a_volume_folder_without_files_or_a_missing_slice_is_named(tmp_path):
+    """``--volume`` files are read when the series is (not held through the job): what cannot be read is still
+    named before any work, exit 2."""
+    empty = tmp_path / "series"
+    empty.mkdir()
+    proc = _dsareg("register", "--volume", str(empty), *CASE[2:], "--out", str(tmp_path / "out"))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "--volume" in proc.stderr and "holds no files" in proc.stderr and "DICOM series" in proc.stderr
+    (tmp_path / "a.dcm").write_bytes(b"x")
+    proc = _dsareg("register", "--volume", str(tmp_path / "a.dcm"), str(tmp_path / "gone.dcm"), *CASE[2:],
+                   "--out", str(tmp_path / "out"))
+    assert proc.returncode == 2 and "file not found" in proc.stderr and "gone.dcm" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_debug_shows_the_traceback(tmp_path):
     proc = _dsareg("--debug", "submit", "--server", f"http://127.0.0.1:{_closed_port()}", *CASE, "--geometry", "paper")
     assert proc.returncode != 0 and "Traceback" in proc.stderr
