@@ -53,6 +53,19 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
     return ndimage.label(mask)
 
 
+def component_runs_here(mask: np.ndarray):
+    """The components of a 3D bool ``mask`` by its runs, with no label grid (:func:`.label_kernels.component_runs`:
+    sizes, contact, kept ones written), where this process uses the volume kernels; else None (use
+    :func:`labelled`), as for a mask of too many runs."""
+    from .volume_kernels import kernels_in_use
+
+    if mask.ndim != 3 or not kernels_in_use():
+        return None
+    from .label_kernels import component_runs
+
+    return component_runs(mask)
+
+
 def map_labels(out: np.ndarray, table: np.ndarray, labels: np.ndarray) -> None:
     """``out[...] = table[labels]`` a slab of ``MAP_CHUNK`` voxels at a time (no temporary of ``labels``' size):
     ``out`` a view of ``labels``' shape (a box of a larger grid); in one pass where numba is loaded
@@ -163,5 +176,5 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["bounding_box", "cube_maximum", "cube_minimum", "filled_holes", "grown", "label_sizes", "labelled",
+__all__ = ["bounding_box", "component_runs_here", "cube_maximum", "cube_minimum", "filled_holes", "grown", "label_sizes", "labelled",
            "map_labels"]

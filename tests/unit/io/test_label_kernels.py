@@ -56,3 +56,43 @@ def test_a_noise_like_mask_is_left_to_scipy():
     mask = np.zeros((10, 10, 40), bool)
     mask[..., ::2] = True  # a run every other voxel: 0.5 runs a voxel
     assert 0.5 > MAX_RUN_SHARE and runs_labelled(mask) is None
+
+
+def test_component_runs_size_mark_and_write_as_the_label_grid_does(monkeypatch):
+    """Without a label grid: each component's size is ``label_sizes``', the components touching a second mask are
+    those its labels there name, and the chosen components are written as ``map_labels`` writes them — into a
+    whole grid and into a box of a larger one; random masks, C and non-contiguous views."""
+    from dsareg_engine.io import label_kernels
+    from dsareg_engine.io.label_kernels import component_runs
+    from dsareg_engine.io.voxel_steps import label_sizes
+
+    monkeypatch.setattr(label_kernels, "MAX_RUN_SHARE", 1.0)
+    rng = np.random.default_rng(23)
+    for n in range(80):
+        shape = tuple(int(s) for s in rng.integers(1, 24, 3))
+        mask = rng.random(shape) < rng.uniform(0.05, 0.9)
+        if n % 4 == 0 and min(shape) > 2:
+            mask = mask[1:, ::-1, 1:]
+        near = rng.random(mask.shape) < 0.05
+        labels, count = ndimage.label(mask)
+        found = component_runs(mask)
+        assert found.count == count, (shape, n)
+        assert np.array_equal(found.sizes(), label_sizes(labels, count)), (shape, n)
+        expected_touching = np.bincount(labels[near], minlength=count + 1) > 0
+        assert np.array_equal(found.touching(near)[1:], expected_touching[1:]), (shape, n)
+        chosen = rng.random(count + 1) < 0.5
+        chosen[0] = False
+        whole = np.zeros(mask.shape, bool)
+        found.write(whole, chosen)
+        assert np.array_equal(whole, chosen[labels]), (shape, n)
+        larger = np.zeros(tuple(s + 2 for s in mask.shape), bool)
+        found.write(larger[1:-1, 1:-1, 1:-1], chosen)
+        assert np.array_equal(larger[1:-1, 1:-1, 1:-1], chosen[labels]) and larger.sum() == whole.sum(), (shape, n)
+
+
+def test_component_runs_leave_a_noise_like_mask_to_scipy():
+    from dsareg_engine.io.label_kernels import component_runs
+
+    mask = np.zeros((10, 10, 40), bool)
+    mask[..., ::2] = True
+    assert component_runs(mask) is None
