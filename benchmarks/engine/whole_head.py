@@ -98,14 +98,17 @@ def run_job(case_path: str, models: str) -> dict:
 
     with open(case_path, "rb") as stream:  # streamed: the pickle's bytes and the files are never held together
         case = pickle.load(stream)
+    files, truth = series_on_disk(case.files, Path(case_path).parent / "series"), case.mesh_to_world
+    del case  # the files as `dsareg register` and a worker give them: read when used (`FileParts`), not held
+    _reset_peak_rss()  # the unpickled files' peak is not the job's
 
     def cpu() -> float:
         usage = resource.getrusage(resource.RUSAGE_SELF)
         return usage.ru_utime + usage.ru_stime
 
-    options = parse_options({"device": "cpu", "ground_truth_mesh_to_world": case.mesh_to_world.tolist()})
+    options = parse_options({"device": "cpu", "ground_truth_mesh_to_world": truth.tolist()})
     start, wall = cpu(), time.perf_counter()
-    loaded = load_case_files(case.files, options.segmentation, model_store=DirectoryModelStore(models))
+    loaded = load_case_files(files, options.segmentation, model_store=DirectoryModelStore(models))
     read_cpu = cpu() - start
     result = register(loaded.mesh, loaded.fitted, loaded.rig, options)
     confidence = with_close_calls({"metrics": {"confidence": dict(result.metrics.get("confidence") or {})}},
@@ -114,6 +117,22 @@ def run_job(case_path: str, models: str) -> dict:
             "peak_rss_gb": peak_rss_kb() / 1e6,
             "add_mm": result.metrics["ground_truth"]["add_mm"], "verdict": confidence.get("verdict", "?"),
             "voxels_kept": loaded.volume.voxels_kept, "faces": loaded.mesh.n_faces}
+
+
+def series_on_disk(files, folder: Path):
+    """``files`` with its volume's series written to ``folder`` (once) and given as ``FileParts`` of those files."""
+    import dataclasses
+
+    from dsareg_engine.io.file_parts import FileParts
+
+    if not isinstance(files.volume, list):
+        return files
+    folder.mkdir(exist_ok=True)
+    paths = [folder / f"{index:05d}.dcm" for index in range(len(files.volume))]
+    for path, part in zip(paths, files.volume):
+        if not path.is_file():
+            path.write_bytes(part)
+    return dataclasses.replace(files, volume=FileParts.from_paths(paths))
 
 
 def read_as_validator(case_path: str, models: str) -> dict:
