@@ -27,6 +27,9 @@ DAMPING_START = 1e-3
 DAMPING_DOWN = 0.3
 DAMPING_UP = 10.0
 DAMPING_MIN = 1e-6
+SETTLED_STEPS = 3
+"""A stage that meets its iteration cap reports the largest of its last this many accepted steps, when each was a
+Gauss–Newton step (damping at most ``DAMPING_START``): how far the fit's own model still puts the optimum."""
 
 
 def normal_equations(problem, stage, pose: np.ndarray, dtype: torch.dtype) -> tuple[float, np.ndarray, np.ndarray]:
@@ -79,30 +82,33 @@ def _blurred_sums(log_keep: np.ndarray, log_keep_tangents: np.ndarray, image: to
 
 def levenberg_marquardt(
     problem, stage, pose: np.ndarray, dtype: torch.dtype, pose_tolerance: float, report: Callable[[int, float], None],
-) -> tuple[np.ndarray, float, list[float], bool]:
+) -> tuple[np.ndarray, float, list[float], bool, float | None]:
     """Minimize the stage's loss from ``pose`` ``(4, 4)``; each evaluation is one render with its Jacobian.
 
     Stops when the next step would change every increment component by less than ``pose_tolerance``
     (mm units; that step is taken) or after ``stage.max_iterations`` evaluations. Returns (pose, its loss
-    — before the last, unchecked step if it ended on one —, loss per evaluation, stopped on the tolerance).
+    — before the last, unchecked step if it ended on one —, loss per evaluation, stopped on the tolerance, and at
+    the cap the largest of the last ``SETTLED_STEPS`` accepted Gauss–Newton steps in mm units, else None).
     """
     loss, gradient, hessian = normal_equations(problem, stage, pose, dtype)
     losses = [loss]
     report(1, loss)
     damping = DAMPING_START
+    recent: list[float] = []  # the last accepted steps' sizes, while each was a Gauss–Newton step
     while len(losses) < stage.max_iterations:
         step = -np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)) + 1e-12 * np.eye(6), gradient)
         candidate = PoseIncrement(pose[None], problem.centre, problem.radius_mm).poses(torch.as_tensor(step[None]))[0]
         if float(np.abs(step).max()) < pose_tolerance:
             # Converged: the model's step is below the tolerance. Taking it unchecked is safe at this
             # size (the quadratic model is exact to first order) and saves an evaluation.
-            return candidate, loss, losses, True
+            return candidate, loss, losses, True, None
         candidate_loss, candidate_gradient, candidate_hessian = normal_equations(problem, stage, candidate, dtype)
         losses.append(candidate_loss)
         report(len(losses), candidate_loss)
         if candidate_loss <= loss:
             pose, loss, gradient, hessian = candidate, candidate_loss, candidate_gradient, candidate_hessian
+            recent = (recent + [float(np.abs(step).max())])[-SETTLED_STEPS:] if damping <= DAMPING_START else []
             damping = max(damping * DAMPING_DOWN, DAMPING_MIN)
         else:
             damping *= DAMPING_UP
-    return pose, loss, losses, False
+    return pose, loss, losses, False, max(recent) if len(recent) == SETTLED_STEPS else None

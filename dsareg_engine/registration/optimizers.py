@@ -27,6 +27,9 @@ class _StageOutcome:
     losses: list[float]
     final_loss: float | None = None
     """The one start's loss at the end, when the runner knows it (Gauss–Newton); else it is re-evaluated."""
+    last_steps_mm: float | None = None
+    """Gauss–Newton stopped by its cap: the largest of its last accepted steps (:data:`.gauss_newton.SETTLED_STEPS`),
+    mm units; None otherwise."""
 
 
 def _run_adam(problem, stage, increment, delta, dtype, report) -> _StageOutcome:
@@ -97,12 +100,12 @@ def _run_gauss_newton(problem, stage, increment, delta, dtype, report) -> _Stage
     start = time.perf_counter()
     pose = increment.poses(delta.detach())[0]
     tolerance = LBFGS_POSE_TOLERANCE if stage.pose_tolerance is None else stage.pose_tolerance
-    pose, final_loss, losses, converged = levenberg_marquardt(
+    pose, final_loss, losses, converged, last_steps_mm = levenberg_marquardt(
         problem, stage, pose, dtype, tolerance, lambda iteration, loss: report(stage, iteration, loss))
     with torch.no_grad():
         delta.copy_(torch.as_tensor(increment.delta_of(pose[None])))
     return _StageOutcome(len(losses), time.perf_counter() - start, "tolerance" if converged else "iterations", losses,
-                         final_loss)
+                         final_loss, last_steps_mm)
 
 
 _RUNNERS = {"adam": _run_adam, "lbfgs": _run_lbfgs, "gauss_newton": _run_gauss_newton}

@@ -9,7 +9,7 @@ import torch
 from ..geometry.pose import validate_rigid
 from ..metrics import dice, ground_truth_errors, iou, mean_distance_mm
 from ..render import Camera, render_hard_silhouette
-from .confidence import assess, outside_fraction
+from .confidence import ConfidenceThresholds, assess, outside_fraction, settled
 from .optimizers import _StageOutcome
 from .options import RegistrationOptions
 from .partial import match_fractions
@@ -79,10 +79,18 @@ def _confidence(problem, estimate, views, other, outcome, used_views, searched: 
         "border_shift_px": {name: round(problem.border_shift_px[name], 3) for name in used_views},
         "outside_fraction": {name: round(outside_fraction(problem.rig.views[name], world), 4) for name in used_views},
         "stopped_on_tolerance": outcome is not None and outcome.stopped_by == "tolerance",
+        "final_step_mm": _final_step_mm(outcome),
         **_match_signals({name: match_fractions(views[name].silhouette, problem.masks[name]) for name in used_views}),
         "partial_loss": problem.partial,
         "part_runner_up": (searched.branch or {}).get("runner_up") if searched is not None else None,
     })
+
+
+def _final_step_mm(outcome: _StageOutcome | None) -> float | None:
+    """A final stage stopped by its cap: the largest of its last Gauss–Newton steps, mm (None: not known)."""
+    if outcome is None or outcome.stopped_by == "tolerance" or outcome.last_steps_mm is None:
+        return None
+    return round(float(outcome.last_steps_mm), 5)
 
 
 def _match_signals(fractions: dict[str, dict]) -> dict:
@@ -118,6 +126,9 @@ def _convergence(outcome: _StageOutcome | None, views: dict[str, ViewResult]) ->
     low = ", ".join(f"{name} {result.dice:.3f}" for name, result in views.items() if result.dice < MIN_CONVERGED_DICE)
     if low:
         return False, f"silhouettes overlap poorly after optimization (dice {low}); the pose is likely wrong"
+    if outcome is not None and outcome.stopped_by != "tolerance" and settled({"final_step_mm": _final_step_mm(outcome)}):
+        return True, (f"pose settled: the final stage's last steps moved less than "
+                      f"{ConfidenceThresholds().settled_step_mm} mm (its iteration limit came first)")
     if outcome is None or outcome.stopped_by != "tolerance":
         return False, "iteration limit reached before the pose stopped changing"
     return True, "pose change below tolerance in the final stage"

@@ -65,6 +65,10 @@ class ConfidenceSignals(BaseModel):
         default_factory=dict, description="Per view: fraction (0–1) of the model's vertices projecting outside the image.")
     stopped_on_tolerance: bool | None = Field(
         None, description="True when the final stage stopped because the pose stopped changing (not the iteration cap).")
+    final_step_mm: float | None = Field(
+        None, description="When the iteration cap stopped the final stage: the largest of its last three Gauss–Newton "
+                          "steps, mm (how far the fit's own model still puts the optimum); below 0.01 the pose has "
+                          "settled and the cap is no reason to check. Null otherwise.")
     unmatched_fraction: dict[str, float] | None = Field(
         None, description="Per view: fraction (0–1) of the model's registered silhouette farther than 2 px from any "
                           "vessel of the mask (model branches the run did not fill, or a wrong pose).")
@@ -87,7 +91,7 @@ class Confidence(BaseModel):
     images do not show"): every view has `unmatched_fraction` ≥ 0.1 and `uncovered_fraction` ≤ 0.05, consistently
     across views (the Dice rules are then skipped). Otherwise `failed`: some view's Dice < 0.5; `check`: any
     view's Dice < 0.7, a distinct pose fits almost as well, a border shift ≥ 1.5 px, > 25 % of the model outside
-    an image, or the iteration cap was hit; else `ok`."""
+    an image, or the iteration cap was hit before the pose settled (`final_step_mm` null or ≥ 0.01); else `ok`."""
 
     model_config = ConfigDict(CLOSED, json_schema_extra={"examples": [{
         "verdict": "failed", "reasons": ["ap: the model's silhouette overlaps the vessels poorly (dice 0.25)"],

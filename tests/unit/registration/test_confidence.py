@@ -73,6 +73,12 @@ def test_assess_rules_and_tolerant_fit():
     assert assess(signals)["verdict"] == "ok"
     assert assess({**signals, "stopped_on_tolerance": False})["verdict"] == "check"
     assert assess({**signals, "dice": {"ap": 0.3, "lat": 0.9}})["verdict"] == "failed"
+    # the cap met by a fit whose last Gauss-Newton steps moved the model by microns: settled, no reason to check
+    capped = {**signals, "stopped_on_tolerance": False}
+    assert assess({**capped, "final_step_mm": 0.002})["verdict"] == "ok"
+    for travelling in (0.01, 0.3, None):
+        verdict = assess({**capped, "final_step_mm": travelling})
+        assert verdict["verdict"] == "check" and "iteration limit" in verdict["reasons"][0], travelling
     mask = np.zeros((40, 40), bool)
     mask[10:30, 18:22] = True
     assert tolerant_f_score(np.roll(mask, 2, axis=1), mask, 3.0) == 1.0

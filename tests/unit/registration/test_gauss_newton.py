@@ -47,9 +47,9 @@ def test_levenberg_marquardt_recovers_a_small_offset_in_few_evaluations(problem)
     assert mean_distance_mm(pose, np.eye(4), problem.mesh.vertices) > 1.0
     reports = []
     for stage, most in ((_stage(1.0), 12), (_stage(0.0, sigma_px=0.1), 20)):
-        pose, loss, losses, converged = levenberg_marquardt(problem, stage, pose, torch.float64, 1e-3,
-                                                            lambda iteration, value: reports.append(value))
-        assert converged and len(losses) <= most and loss == pytest.approx(min(losses))
+        pose, loss, losses, converged, last_steps = levenberg_marquardt(
+            problem, stage, pose, torch.float64, 1e-3, lambda iteration, value: reports.append(value))
+        assert converged and last_steps is None and len(losses) <= most and loss == pytest.approx(min(losses))
     assert len(reports) >= 4
     # the same optimum as L-BFGS (the full registration's final fit, tighter tolerance) from there
     sharp = _stage(0.0, sigma_px=0.1)
@@ -60,3 +60,23 @@ def test_levenberg_marquardt_recovers_a_small_offset_in_few_evaluations(problem)
     reference = increment.poses(delta.detach())[0]
     assert mean_distance_mm(pose, reference, problem.mesh.vertices) < 0.02
     assert mean_distance_mm(pose, np.eye(4), problem.mesh.vertices) < 0.15  # ADD at 200 px
+
+
+def test_a_stage_stopped_by_its_cap_reports_how_far_its_last_steps_moved(problem):
+    """At the cap, the largest of the last three accepted Gauss–Newton steps: large while the pose still travels (1.5
+    mm off, four evaluations), tiny where it has settled (from the optimum, a tolerance no step meets: under 0.01 mm); None when
+    fewer than three steps were taken."""
+    far = random_start_poses(np.eye(4), problem.centre, 2, 1.5, 1.5, seed=5)[1]
+    blurred = Stage(**{**vars(_stage(1.0)), "max_iterations": 4})
+    _, _, losses, converged, travelling = levenberg_marquardt(problem, blurred, far, torch.float64, 1e-12,
+                                                              lambda *args: None)
+    assert not converged and len(losses) == 4 and travelling is not None and travelling > 0.05
+    sharp = Stage(**{**vars(_stage(0.0, sigma_px=0.1)), "max_iterations": 30})
+    settled_pose, _, _, _, _ = levenberg_marquardt(problem, sharp, far, torch.float64, 1e-3, lambda *args: None)
+    capped = Stage(**{**vars(sharp), "max_iterations": 6})
+    _, _, losses, converged, settled = levenberg_marquardt(problem, capped, settled_pose, torch.float64, 1e-12,
+                                                           lambda *args: None)
+    assert not converged and len(losses) == 6
+    assert settled is not None and settled < 0.01
+    short = Stage(**{**vars(sharp), "max_iterations": 2})
+    assert levenberg_marquardt(problem, short, far, torch.float64, 1e-12, lambda *args: None)[4] is None
