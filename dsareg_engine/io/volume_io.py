@@ -298,6 +298,8 @@ def read_dicom_series(
             raise DsaregInputError(f"file {index} of the series is empty", field=field_name)
         headers.append(parse_header(part, field_name))
     chosen, series_warnings = pick_volume_series(headers, field_name=field_name)
+    if len(chosen) == 1:  # one enhanced multi-frame file beside other series (the XA runs, a scout)
+        return _enhanced_volume(bytes(parts[chosen[0]]), limits, field_name, series_warnings)
     headers = [headers[i] for i in chosen]
     first = headers[0]
     rows, cols = _image_size(first, field_name)
@@ -314,7 +316,7 @@ def read_dicom_series(
     return _series_volume(stored, positions, geometry[0], "dicom-series", headers, series_warnings, field_name)
 
 
-def _enhanced_volume(data: bytes, limits: InputLimits, field_name: str) -> Volume:
+def _enhanced_volume(data: bytes, limits: InputLimits, field_name: str, warnings: list[str] | None = None) -> Volume:
     """An enhanced multi-frame DICOM volume (one file holding every slice with its per-frame position)."""
     parsed = parse_dicom(data, field_name)
     first = parsed[0]
@@ -338,7 +340,7 @@ def _enhanced_volume(data: bytes, limits: InputLimits, field_name: str) -> Volum
     stored = np.empty((len(order), rows, cols), np.float32)
     for k, index in enumerate(order):
         _store_slice(stored, k, pixels[index], field_name)
-    return _series_volume(stored, positions, geometry[0], "dicom-enhanced", [first], [], field_name)
+    return _series_volume(stored, positions, geometry[0], "dicom-enhanced", [first], list(warnings or []), field_name)
 
 
 def _image_size(header, field_name: str) -> tuple[int, int]:

@@ -2,7 +2,8 @@
 (the XA runs of the same study, a CT scout, a reformat).
 
 :func:`pick_volume_series` groups the files by Series Instance UID and takes the volume series: of the CT / MR
-series whose slices share one size, the one with the most slices. The others are named in a warning. When two
+series whose slices share one size, the one with the most slices (an enhanced multi-frame file: its frames). The
+others are named in a warning. When two
 such series are close in size (the second has at least ``AMBIGUOUS_SHARE`` of the first's slices: a soft-tissue
 and a bone kernel, a CTA and an MRA), which one is meant cannot be told: the error names the series found
 (number, modality, description, files) so the user can send one.
@@ -29,6 +30,7 @@ class SeriesFound:
     description: str
     indices: tuple[int, ...]
     sizes: frozenset
+    slices: int = 0  # its files' frames (NumberOfFrames, 1 for a classic slice)
 
     def name(self) -> str:
         description = f" '{self.description}'" if self.description else ""
@@ -36,7 +38,7 @@ class SeriesFound:
 
     @property
     def is_volume(self) -> bool:
-        return self.modality in VOLUME_MODALITIES and len(self.sizes) == 1 and len(self.indices) >= 2
+        return self.modality in VOLUME_MODALITIES and len(self.sizes) == 1 and self.slices >= 2
 
 
 def group_series(headers: list) -> list[SeriesFound]:
@@ -50,10 +52,18 @@ def group_series(headers: list) -> list[SeriesFound]:
         first = headers[indices[0]]
         sizes = frozenset((int(getattr(headers[i], "Rows", 0) or 0), int(getattr(headers[i], "Columns", 0) or 0))
                           for i in indices)
+        slices = sum(_frames(headers[i]) for i in indices)
         found.append(SeriesFound(uid, str(getattr(first, "SeriesNumber", "") or ""),
                                  str(getattr(first, "Modality", "") or "").upper(),
-                                 str(getattr(first, "SeriesDescription", "") or "")[:64], tuple(indices), sizes))
-    return sorted(found, key=lambda series: -len(series.indices))
+                                 str(getattr(first, "SeriesDescription", "") or "")[:64], tuple(indices), sizes, slices))
+    return sorted(found, key=lambda series: -series.slices)
+
+
+def _frames(header) -> int:
+    try:
+        return max(1, int(getattr(header, "NumberOfFrames", 1) or 1))
+    except (TypeError, ValueError):
+        return 1
 
 
 def pick_volume_series(headers: list, *, field_name: str = "volume") -> tuple[tuple[int, ...], list[str]]:
@@ -71,7 +81,7 @@ def pick_volume_series(headers: list, *, field_name: str = "volume") -> tuple[tu
         raise DsaregInputError(f"holds {len(found)} DICOM series and none is a CT or MR volume: {named}",
                                field=field_name, accepted=ACCEPTED)
     chosen = volumes[0]
-    rivals = [series for series in volumes[1:] if len(series.indices) >= AMBIGUOUS_SHARE * len(chosen.indices)]
+    rivals = [series for series in volumes[1:] if series.slices >= AMBIGUOUS_SHARE * chosen.slices]
     if rivals:
         raise DsaregInputError(f"holds {len(volumes)} CT/MR series of similar size; which is the volume cannot be "
                                f"told: {named}", field=field_name, accepted=ACCEPTED)

@@ -202,6 +202,26 @@ def test_enhanced_multiframe_dicom(phantom_volume):
         read_volume(_enhanced_bytes(volume, affine), "enhanced.dcm", InputLimits(max_volume_bytes=10_000))
 
 
+def test_an_enhanced_volume_among_other_series_is_read_with_a_warning(phantom_volume, build):
+    """A folder holding an enhanced multi-frame CT and the XA runs: the CT is the volume (its frames are its
+    slices), also given as ``FileParts``, and the warning names what was left out."""
+    import pydicom
+
+    from dsareg_engine.io.file_parts import FileParts
+
+    volume, affine, _ = phantom_volume
+    enhanced = pydicom.dcmread(io.BytesIO(_enhanced_bytes(volume, affine)))
+    enhanced.Modality = "CT"
+    out = io.BytesIO()
+    enhanced.save_as(out, enforce_file_format=True)
+    files = [build.xa(primary=0.0), out.getvalue(), build.xa(primary=90.0)]
+    for given in (files, FileParts(lambda f=f: f for f in files)):
+        loaded = read_volume(given, "folder")
+        assert loaded.kind == "dicom-enhanced" and loaded.data.shape == volume.shape
+        np.testing.assert_allclose(loaded.data, np.round(volume), atol=1e-3)
+        assert any("left out" in warning and "XA" in warning for warning in loaded.warnings), loaded.warnings
+
+
 def test_limits_are_validated():
     with pytest.raises(ValueError):
         InputLimits(max_faces=0)

@@ -67,3 +67,23 @@ def test_anisotropic_voxels_are_read_per_axis(build):
     loaded = read_volume(parts[::-1])  # slices in any order: spacing from the positions, 0.5 x 0.5 x 0.8
     assert loaded.spacing_mm == pytest.approx((0.5, 0.5, 0.8), abs=1e-5)
     np.testing.assert_allclose(loaded.data, volume, atol=1e-3)
+
+
+def test_an_enhanced_file_counts_its_frames_as_slices():
+    """A single multi-frame CT is a volume series (its frames are its slices); beside a classic series of as many
+    slices, which one is meant cannot be told."""
+    from types import SimpleNamespace
+
+    from dsareg_engine.io.volume_series import group_series, pick_volume_series
+
+    def header(uid, modality, frames=None):
+        return SimpleNamespace(SeriesInstanceUID=uid, Modality=modality, Rows=8, Columns=8, NumberOfFrames=frames)
+
+    xa = [header("xa", "XA", 30), header("xa", "XA", 30)]
+    assert [s.slices for s in group_series([*xa, header("ct", "CT", 40)])] == [60, 40]
+    chosen, warnings = pick_volume_series([*xa, header("ct", "CT", 40)])
+    assert chosen == (2,) and "XA" in warnings[0]
+    with pytest.raises(DsaregInputError, match="similar size"):
+        pick_volume_series([*xa, header("ct", "CT", 40), *(header("ct2", "CT") for _ in range(40))])
+    with pytest.raises(DsaregInputError, match="none is a CT or MR volume"):
+        pick_volume_series([*xa, header("one", "CT")])  # a single classic slice is no volume
