@@ -421,11 +421,11 @@ def _mesh(args: argparse.Namespace) -> int:
     mesh.save(args.out)
     out = Path(args.out)
     picture = Path(args.mip) if args.mip else out.with_name(out.stem + "_mip.png")
-    readout = extraction.readout
+    readout, excluded = extraction.readout, extraction.excluded  # (each made on the whole grid when asked for)
     write_png(picture, mip_picture(volume.data, volume.affine, extraction.kept,
                                    f"{readout.kind}: {readout.voxels_kept} vessel voxels kept (red), {extracted} faces"
                                    + ("; MIP without what was set aside (bone / scalp)"
-                                      if extraction.excluded is not None else ""), extraction.excluded))
+                                      if excluded is not None else ""), excluded))
     for warning in volume.warnings:
         print(f"warning: {warning}")
     print(f"volume: {readout.text()}")

@@ -19,7 +19,7 @@ import numpy as np
 from .medial_shape import medial_shape
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND
 from .volume_io import largest_components
-from .voxel_steps import bounding_box, component_runs_here, grown, label_sizes, labelled, map_labels
+from .voxel_steps import bounding_box, components, grown, label_sizes, labelled, map_labels
 
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
@@ -128,25 +128,18 @@ def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tup
     if found.rest is None:
         return mask, found.share
     box, large = found.box, found.plates
-    runs = component_runs_here(found.rest)  # no label grid where numba is loaded: the reading's peak is here
-    labels, count = (None, runs.count) if runs is not None else labelled(found.rest)
-    sizes = runs.sizes() if runs is not None else label_sizes(labels, count, found.rest)
+    parts = components(found.rest)  # no label grid where numba is loaded: the reading's peak is here
+    sizes = parts.sizes()
     sizes[0] = 0  # the background
     near = grown(large[box], found.rim_steps)
-    if runs is not None:
-        touching = np.flatnonzero(runs.touching(near)[1:]) + 1
-    else:
-        touching = 1 + np.flatnonzero(np.bincount(labels[near], minlength=count + 1)[1:])  # the labels near it
+    touching = 1 + np.flatnonzero(parts.touching(near)[1:])  # the parts near it
     del near  # (memory: the box's masks are the reading's peak on a whole head)
-    keep = np.ones(count + 1, bool)
+    keep = np.ones(parts.count + 1, bool)
     keep[0] = False
     keep[touching[touching != int(np.argmax(sizes))]] = False
     kept = np.zeros(mask.shape, bool)
-    if runs is not None:
-        runs.write(kept[box], keep)
-    else:
-        map_labels(kept[box], keep, labels)
-    del labels, runs  # the box's labels are not held through the next labelling
+    parts.write(kept[box], keep)
+    del parts  # the box's labels, where there are any, are not held through the next labelling
     return largest_components(kept, field_name=field_name), None
 
 

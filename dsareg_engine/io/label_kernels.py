@@ -44,7 +44,8 @@ class ComponentRuns:
         return _touching(np.asarray(near, bool), self.row_first, self.starts, self.stops, self.labels, self.count)
 
     def write(self, out: np.ndarray, chosen: np.ndarray) -> None:
-        """``out[...] = chosen[labels]`` where the mask was (``out`` bool, the mask's shape, zero elsewhere)."""
+        """``out[...] = chosen[labels]`` where the mask was (``out`` bool, the mask's shape, zero elsewhere;
+        ``chosen[0]``, the background's, is not written)."""
         _written(out, self.row_first, self.starts, self.stops, np.asarray(chosen, bool)[self.labels])
 
 

@@ -47,7 +47,7 @@ from .volume_formats import (
 from .volume_formats import check_affine as _check_affine
 from .volume_formats import check_bytes as _check_bytes
 from .volume_series import pick_volume_series
-from .voxel_steps import bounding_box, component_runs_here, filled_holes, label_sizes, labelled, map_labels
+from .voxel_steps import bounding_box, components, filled_holes
 
 __all__ = ["RAS_TO_LPS", "Volume", "read_volume", "read_volume_identities", "volume_to_mesh"]
 
@@ -148,7 +148,8 @@ def read_volume_identities(data: bytes | Sequence[bytes], name: str | None = Non
     """The DICOM identities of a volume's files and whether one was unreadable, as :func:`read_volume` gives them
     (``Volume.dicom``, ``Volume.dicom_unreadable``), from the headers alone: no pixel decoded (a model cache hit,
     :mod:`.model_cache`). ``((), False)`` for a volume that is not DICOM."""
-    parts = volume_parts(data) if not isinstance(data, PART_LISTS) or len(data) <= 2 else data  # a series: one by one
+    series = isinstance(data, PART_LISTS) and len(data) > 2  # its headers read one file at a time
+    parts = data if series else volume_parts(data)
     if len(parts) == 1:
         fmt = detect_volume_format(parts[0]) or ("dicom" if (name or "").lower().endswith((".dcm", ".dicom", ".ima"))
                                                  else None)
@@ -469,23 +470,17 @@ def largest_components(inside: np.ndarray, min_component_fraction: float = 0.05,
     """The connected components of ``inside`` (6-connected) bigger than ``min_component_fraction`` of the
     largest, at most ``max_components`` of them."""
     box = bounding_box(inside)
-    if box is None:
+    found = components(inside[box]) if box is not None else None
+    if found is None or found.count == 0:
         raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    runs = component_runs_here(inside[box])  # where numba is loaded: no label grid (a 600-slice head's: 0.26 GB)
-    labels, count = (None, runs.count) if runs is not None else labelled(inside[box])
-    if count == 0:
-        raise DsaregInputError("nothing lies above the threshold", field=field_name)
-    sizes = (runs.sizes() if runs is not None else label_sizes(labels, count, inside[box]))[1:]  # (0: the background)
+    sizes = found.sizes()[1:]  # (0: the background)
     ranked = np.argsort(sizes)[::-1][:max_components]
     kept = [int(r) + 1 for r in ranked if sizes[r] >= min_component_fraction * sizes.max()]
-    chosen = np.zeros(count + 1, bool)
+    chosen = np.zeros(found.count + 1, bool)
     chosen[kept] = True
     mask = np.zeros(inside.shape, bool)
-    if runs is not None:
-        runs.write(mask[box], chosen)
-    else:
-        map_labels(mask[box], chosen, labels)
-    del labels, runs
+    found.write(mask[box], chosen)
+    del found  # (its label grid, where there is one)
     if np.count_nonzero(mask) < 8:
         raise DsaregInputError("only a few isolated voxels lie above the threshold", field=field_name)
     return mask

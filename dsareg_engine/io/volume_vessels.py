@@ -194,7 +194,7 @@ def extract_vessels(volume: Volume, reading: VolumeReading | None = None, *, fie
     readout.plate_share = measures["plate_fraction"]
     readout.decisions = _decisions(readout, reading, air, levels)
     mesh = surface_from_mask(field, mask, levels["min"], affine, field_name=field_name)
-    del field  # before the full-grid masks below
+    del field
     readout.faces = mesh.n_faces
     return VesselExtraction(mesh, readout, mask, excluded, head, tuple(shape))
 

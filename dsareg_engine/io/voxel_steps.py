@@ -34,8 +34,6 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
     smaller grids time wins, unless the caller labels at its reading's memory peak (:func:`.bone_plates.bone_plates`).
     A 3D mask where numba is loaded (:mod:`.volume_kernels`): by its runs (:func:`.label_kernels.runs_labelled`, the
     same labels), unless it has too many."""
-    from scipy import ndimage
-
     from .volume_kernels import kernels_in_use
 
     narrow = mask.size > (LABEL16_VOXELS if narrow_above is None else narrow_above)
@@ -45,6 +43,12 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
         found = runs_labelled(mask, narrow)
         if found is not None:
             return found
+    return _scipy_labelled(mask, narrow)
+
+
+def _scipy_labelled(mask: np.ndarray, narrow: bool) -> tuple[np.ndarray, int]:
+    from scipy import ndimage
+
     if narrow:
         try:
             return ndimage.label(mask, output=np.uint16)
@@ -53,17 +57,41 @@ def labelled(mask: np.ndarray, *, narrow_above: int | None = None) -> tuple[np.n
     return ndimage.label(mask)
 
 
-def component_runs_here(mask: np.ndarray):
-    """The components of a 3D bool ``mask`` by its runs, with no label grid (:func:`.label_kernels.component_runs`:
-    sizes, contact, kept ones written), where this process uses the volume kernels; else None (use
-    :func:`labelled`), as for a mask of too many runs."""
+class LabelledComponents:
+    """A mask's components as a label grid (:func:`labelled`), asked what :class:`.label_kernels.ComponentRuns`
+    is asked: ``count``, ``sizes()``, ``touching(near)``, ``write(out, chosen)``."""
+
+    def __init__(self, mask: np.ndarray, labels: np.ndarray, count: int):
+        self.mask, self.labels, self.count = mask, labels, int(count)
+
+    def sizes(self) -> np.ndarray:
+        """Voxels per component ``0 … count`` (int64; 0: the background)."""
+        return label_sizes(self.labels, self.count, self.mask)
+
+    def touching(self, near: np.ndarray) -> np.ndarray:
+        """bool per component ``0 … count``: whether one of its voxels is in ``near``."""
+        return np.bincount(self.labels[near], minlength=self.count + 1) > 0
+
+    def write(self, out: np.ndarray, chosen: np.ndarray) -> None:
+        """``out[...] = chosen[labels]`` (:func:`map_labels`; ``chosen[0]``, the background's, False)."""
+        map_labels(out, chosen, self.labels)
+
+
+def components(mask: np.ndarray):
+    """A bool ``mask``'s components (face neighbours, ``ndimage.label``'s numbering) to be sized, tested for contact
+    and written back: from its runs with no label grid (:func:`.label_kernels.component_runs`; a 600-slice head's box
+    labelled in 16 bits is 0.26 GB) where this process uses the volume kernels and the mask has few enough runs,
+    else from :func:`labelled`'s grid (:class:`LabelledComponents`)."""
     from .volume_kernels import kernels_in_use
 
-    if mask.ndim != 3 or not kernels_in_use():
-        return None
-    from .label_kernels import component_runs
+    narrow = mask.size > LABEL16_VOXELS
+    if mask.ndim == 3 and kernels_in_use():
+        from .label_kernels import component_runs
 
-    return component_runs(mask)
+        found = component_runs(mask)
+        if found is not None:
+            return found
+    return LabelledComponents(mask, *_scipy_labelled(mask, narrow))
 
 
 def map_labels(out: np.ndarray, table: np.ndarray, labels: np.ndarray) -> None:
@@ -176,5 +204,5 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
     return out
 
 
-__all__ = ["bounding_box", "component_runs_here", "cube_maximum", "cube_minimum", "filled_holes", "grown", "label_sizes", "labelled",
-           "map_labels"]
+__all__ = ["LabelledComponents", "bounding_box", "components", "cube_maximum", "cube_minimum", "filled_holes", "grown",
+           "label_sizes", "labelled", "map_labels"]

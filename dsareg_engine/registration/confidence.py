@@ -145,17 +145,16 @@ def assess(signals: dict, thresholds: ConfidenceThresholds = ConfidenceThreshold
     for name, fraction in signals["outside_fraction"].items():
         if fraction > thresholds.outside_fraction:
             check.append(f"{name}: {fraction:.0%} of the model projects outside the image and is unconstrained")
-    if not signals.get("stopped_on_tolerance", True) and not settled(signals, thresholds):
+    if not signals.get("stopped_on_tolerance", True) and not settled(signals.get("final_step_mm"), thresholds):
         check.append("the optimizer hit its iteration limit before the pose settled")
     verdict = "failed" if failed else "check" if check else "ok"
     return {"verdict": verdict, "reasons": failed + check, "signals": signals}
 
 
-def settled(signals: dict, thresholds: ConfidenceThresholds = ConfidenceThresholds()) -> bool:
-    """Whether a final stage stopped by its cap had settled: ``final_step_mm`` (its last steps) below
-    ``settled_step_mm``."""
-    step = signals.get("final_step_mm")
-    return step is not None and step < thresholds.settled_step_mm
+def settled(final_step_mm: float | None, thresholds: ConfidenceThresholds = ConfidenceThresholds()) -> bool:
+    """Whether a final stage stopped by its cap had settled: its last steps (``final_step_mm``, None: not known)
+    under ``settled_step_mm``."""
+    return final_step_mm is not None and final_step_mm < thresholds.settled_step_mm
 
 
 def _partial_visibility(signals: dict, thresholds: ConfidenceThresholds) -> str | None:

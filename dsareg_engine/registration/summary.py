@@ -126,7 +126,7 @@ def _convergence(outcome: _StageOutcome | None, views: dict[str, ViewResult]) ->
     low = ", ".join(f"{name} {result.dice:.3f}" for name, result in views.items() if result.dice < MIN_CONVERGED_DICE)
     if low:
         return False, f"silhouettes overlap poorly after optimization (dice {low}); the pose is likely wrong"
-    if outcome is not None and outcome.stopped_by != "tolerance" and settled({"final_step_mm": _final_step_mm(outcome)}):
+    if settled(_final_step_mm(outcome)):  # (None unless the cap stopped a Gauss–Newton stage)
         return True, (f"pose settled: the final stage's last steps moved less than "
                       f"{ConfidenceThresholds().settled_step_mm} mm (its iteration limit came first)")
     if outcome is None or outcome.stopped_by != "tolerance":

@@ -166,3 +166,31 @@ def test_a_closing_by_grown_steps_is_scipys_away_from_the_faces(kernels):
             inner = (slice(pad, -pad),) * 3
             expected = ndimage.binary_closing(padded, iterations=pad)[inner]
             assert np.array_equal((~grown(~grown(padded, pad), pad))[inner], expected)
+
+
+def test_components_answer_alike_from_runs_and_from_a_label_grid(monkeypatch):
+    """``components``: by runs where the volume kernels are in use, else a label grid: the same count, sizes,
+    contact and written components."""
+    from dsareg_engine.io import volume_kernels
+    from dsareg_engine.io.label_kernels import ComponentRuns
+    from dsareg_engine.io.voxel_steps import LabelledComponents, components
+
+    rng = np.random.default_rng(41)
+    for n in range(20):
+        shape = tuple(int(s) for s in rng.integers(2, 20, 3))
+        mask = ndimage.binary_opening(rng.random(shape) < 0.5) | (rng.random(shape) < 0.02)
+        near, chosen = rng.random(shape) < 0.05, None
+        answers = []
+        for in_use, kind in ((True, ComponentRuns), (False, LabelledComponents)):
+            monkeypatch.setattr(volume_kernels, "kernels_in_use", lambda in_use=in_use: in_use)
+            found = components(mask)
+            assert isinstance(found, kind), (n, kind)
+            if chosen is None:
+                chosen = rng.random(found.count + 1) < 0.5
+                chosen[0] = False  # the background is never chosen
+            out = np.zeros(shape, bool)
+            found.write(out, chosen)
+            answers.append((found.count, found.sizes(), found.touching(near), out))
+        (count_a, sizes_a, touch_a, out_a), (count_b, sizes_b, touch_b, out_b) = answers
+        assert count_a == count_b and np.array_equal(sizes_a, sizes_b), n
+        assert np.array_equal(touch_a[1:], touch_b[1:]) and np.array_equal(out_a, out_b), n
