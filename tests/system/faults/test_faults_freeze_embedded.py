@@ -299,3 +299,71 @@ def test_worker_frozen_holding_the_sqlite_write_lock(shared, case, slow_case):
         topo.assert_invariants(ids)
     assert topo.events_of(resumed).count("claimed") == 1
     assert topo.events_of(killed).count("claimed") == 2
+
+
+@pytest.fixture(scope="module")
+def cta_series():
+    from dsareg_engine.simulation.synthetic_volumes import make_volume_case
+
+    return make_volume_case("cta", "a", voxel_mm=0.8, depth=2, image_px=160, pixel_spacing_mm=0.9,
+                            min_head_mm=(30.0, 30.0, 40.0))
+
+
+def _post_series(client, series, seed: int):
+    import json
+
+    files = [("ap", ("ap.dcm", series.ap, "application/dicom")), ("lat", ("lat.dcm", series.lat, "application/dicom"))]
+    files += [("volume", (f"s{i:03d}.dcm", part, "application/dicom")) for i, part in enumerate(series.volume.parts)]
+    return client.post("/v1/registrations", files=files, data={"options": json.dumps({**FAST, "seed": seed})})
+
+
+def _frozen_while_reading(topo: Embedded, client, series, seed: int, tries: int = 4) -> tuple[str, int, list[str]]:
+    """A volume job's worker SIGSTOPped as soon as it claimed the job, before its first progress (it is reading the
+    series' stored files, which it reads when used: ``engine.FileParts``). ``(job, pid, ids of every try)``."""
+    ids = []
+    for attempt in range(tries):
+        response = _post_series(client, series, seed * 10 + attempt)
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        ids.append(job_id)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            rows = _rows(topo.db, "SELECT worker_id, progress FROM jobs WHERE id=?", (job_id,))
+            if rows and rows[0][0]:
+                break
+            time.sleep(0.002)
+        pid = int(rows[0][0].split("-")[-3])
+        stop([pid])
+        (progress,) = _rows(topo.db, "SELECT progress FROM jobs WHERE id=?", (job_id,))[0]
+        if not progress:  # frozen inside the read
+            return job_id, pid, ids
+        resume([pid])
+        wait_for(client, job_id, timeout=120)
+    raise AssertionError(f"the worker was never frozen before its first progress ({tries} tries)")
+
+
+def test_worker_frozen_or_killed_while_reading_a_volume_series(shared, case, cta_series):
+    """A worker reads a volume's stored series when it uses each file: frozen in that read, requests are answered
+    within 2 s and the job finishes once it resumes (or on a fresh worker once its lease ends); killed in it, the
+    job is claimed again and finishes; nothing lost, stuck or run twice, and the results say how the volume was read."""
+    topo = shared  # 3 s leases, 1 worker
+    with topo.srv.client() as client:
+        resumed, pid, ids = _frozen_while_reading(topo, client, cta_series, 1)
+        try:
+            response, took = timed(lambda: submit(client, case, {**FAST, "seed": 7}))
+            assert_answered(response, took, ok=(202,), what="POST while a worker is frozen in a volume's read")
+            ids.append(response.json()["id"])
+            time.sleep(allowed(4.0))  # past the lease
+        finally:
+            resume([pid])
+        killed, pid, more = _frozen_while_reading(topo, client, cta_series, 2)
+        ids += more
+        os.kill(pid, signal.SIGKILL)
+        response, took = timed(lambda: submit(client, case, {**FAST, "seed": 8}))
+        assert_answered(response, took, ok=(202,), what="POST after the reading worker was killed")
+        ids.append(response.json()["id"])
+        topo.assert_invariants(ids)
+        for job_id in (resumed, killed):
+            result = client.get(f"/v1/registrations/{job_id}/result").json()
+            assert result["volume"]["kind"] == "cta" and result["volume"]["voxels_kept"] > 0, result.get("volume")
+    assert topo.events_of(killed).count("claimed") == 2
