@@ -133,6 +133,7 @@ def test_openapi_types_the_whole_result(contract_server):
     signals = _schema(doc, "ConfidenceSignals")["properties"]
     assert signals["dice"]["additionalProperties"] == {"type": "number"}
     assert {"outside_fraction", "border_shift_px", "runner_up", "stopped_on_tolerance"} <= set(signals)
+    assert {"type": "number"} in signals["final_step_mm"]["anyOf"]  # a capped final stage's last steps, mm
     for partial in ("unmatched_fraction", "uncovered_fraction"):  # partial visibility, per view 0-1
         assert {"type": "object", "additionalProperties": {"type": "number"}} in signals[partial]["anyOf"], partial
     assert {"type": "boolean"} in signals["partial_loss"]["anyOf"]
