@@ -186,6 +186,22 @@ def submit(client: httpx.Client, case: ExampleCase, options: dict | None = None,
     return client.post("/v1/registrations", files=files, data=data, headers=headers or {})
 
 
+def small_cta_case(voxel_mm: float = 1.2):
+    """A small CTA (generator A, the phantom's tree to depth 2, a 60 × 60 × 80 mm head) as a DICOM series beside its
+    XA pair (160 px, geometry in their tags): ``make_volume_case``'s."""
+    from dsareg_engine.simulation.synthetic_volumes import make_volume_case
+
+    return make_volume_case("cta", "a", voxel_mm=voxel_mm, depth=2, image_px=160, pixel_spacing_mm=0.9,
+                            min_head_mm=(30.0, 30.0, 40.0))
+
+
+def submit_volume(client: httpx.Client, case, options: dict) -> httpx.Response:
+    """POST a volume case (``make_volume_case``'s: its series as the ``volume`` parts, the XA pair as DICOM)."""
+    files = [("ap", ("ap.dcm", case.ap, "application/dicom")), ("lat", ("lat.dcm", case.lat, "application/dicom"))]
+    files += [("volume", (f"s{i:03d}.dcm", part, "application/dicom")) for i, part in enumerate(case.volume.parts)]
+    return client.post("/v1/registrations", files=files, data={"options": json.dumps(options)})
+
+
 def wait_for(client: httpx.Client, job_id: str, statuses=("succeeded", "failed", "canceled"), timeout: float = 120.0,
              predicate=None) -> dict:
     deadline = time.monotonic() + timeout

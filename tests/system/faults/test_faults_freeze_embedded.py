@@ -34,7 +34,7 @@ from tests.support.faults_kit import (
     variant,
     wait_gone,
 )
-from tests.support.service_testkit import Server, needs_engine, submit, wait_for
+from tests.support.service_testkit import Server, needs_engine, small_cta_case, submit, submit_volume, wait_for
 from tests.support.time_bounds import allowed
 
 pytestmark = [needs_engine, pytest.mark.slow]
@@ -303,18 +303,7 @@ def test_worker_frozen_holding_the_sqlite_write_lock(shared, case, slow_case):
 
 @pytest.fixture(scope="module")
 def cta_series():
-    from dsareg_engine.simulation.synthetic_volumes import make_volume_case
-
-    return make_volume_case("cta", "a", voxel_mm=0.8, depth=2, image_px=160, pixel_spacing_mm=0.9,
-                            min_head_mm=(30.0, 30.0, 40.0))
-
-
-def _post_series(client, series, seed: int):
-    import json
-
-    files = [("ap", ("ap.dcm", series.ap, "application/dicom")), ("lat", ("lat.dcm", series.lat, "application/dicom"))]
-    files += [("volume", (f"s{i:03d}.dcm", part, "application/dicom")) for i, part in enumerate(series.volume.parts)]
-    return client.post("/v1/registrations", files=files, data={"options": json.dumps({**FAST, "seed": seed})})
+    return small_cta_case(voxel_mm=0.8)
 
 
 def _frozen_while_reading(topo: Embedded, client, series, seed: int, tries: int = 4) -> tuple[str, int, list[str]]:
@@ -322,7 +311,7 @@ def _frozen_while_reading(topo: Embedded, client, series, seed: int, tries: int 
     series' stored files, which it reads when used: ``engine.FileParts``). ``(job, pid, ids of every try)``."""
     ids = []
     for attempt in range(tries):
-        response = _post_series(client, series, seed * 10 + attempt)
+        response = submit_volume(client, series, {**FAST, "seed": seed * 10 + attempt})
         assert response.status_code == 202, response.text
         job_id = response.json()["id"]
         ids.append(job_id)

@@ -13,27 +13,19 @@ import re
 import numpy as np
 import pytest
 
-from dsareg_engine.simulation.synthetic_volumes import make_volume_case
-from tests.support.service_testkit import Server, wait_for
+from tests.support.service_testkit import Server, small_cta_case, submit_volume, wait_for
 
 
 @pytest.fixture(scope="module")
 def cta():
-    return make_volume_case("cta", "a", voxel_mm=1.2, depth=2, image_px=160, pixel_spacing_mm=0.9,
-                            min_head_mm=(30.0, 30.0, 40.0))
-
-
-def _post(client, case, options: dict):
-    files = [("ap", ("ap.dcm", case.ap, "application/dicom")), ("lat", ("lat.dcm", case.lat, "application/dicom"))]
-    files += [("volume", (f"s{i:03d}.dcm", part, "application/dicom")) for i, part in enumerate(case.volume.parts)]
-    return client.post("/v1/registrations", files=files, data={"options": json.dumps(options)})
+    return small_cta_case()
 
 
 def test_a_cta_registers_and_the_result_says_how_it_was_read(server, cta):
     options = {"initialization": "given", "initial_mesh_to_world": np.eye(4).tolist(), "starts": 1,
                "ground_truth_mesh_to_world": cta.mesh_to_world.tolist()}
     with server.client() as client:
-        response = _post(client, cta, options)
+        response = submit_volume(client, cta, options)
         assert response.status_code == 202, response.text
         job = wait_for(client, response.json()["id"], timeout=300)
     assert job["status"] == "succeeded", job
@@ -53,7 +45,7 @@ def _the_second_job_takes_the_model(server, cta, options, volume):
     assert len(models) == 1, models
     used = models[0].stat().st_mtime_ns
     with server.client() as client:
-        response = _post(client, cta, options)
+        response = submit_volume(client, cta, options)
         assert response.status_code == 202, response.text
         job = wait_for(client, response.json()["id"], timeout=300)
     assert job["status"] == "succeeded", job
@@ -64,14 +56,14 @@ def _the_second_job_takes_the_model(server, cta, options, volume):
 
 def test_no_vessels_in_the_window_is_refused_at_submission(server, cta):
     with server.client() as client:
-        response = _post(client, cta, {"volume_kind": "cta", "volume_vessel_min": 2000, "volume_vessel_max": 3000})
+        response = submit_volume(client, cta, {"volume_kind": "cta", "volume_vessel_min": 2000, "volume_vessel_max": 3000})
         assert response.status_code == 422, response.text
         problem = response.json()
         assert problem["field"] == "volume" and "no vessels" in problem["detail"], problem
-        response = _post(client, cta, {"volume_kind": "3d-dsa"})  # read as already subtracted: the head itself
+        response = submit_volume(client, cta, {"volume_kind": "3d-dsa"})  # read as already subtracted: the head itself
         assert response.status_code == 422, response.text
         assert response.json()["field"] == "volume" and "far more than vessels" in response.json()["detail"], response.text
-        response = _post(client, cta, {"volume_kind": "pet"})
+        response = submit_volume(client, cta, {"volume_kind": "pet"})
         assert response.status_code == 422 and response.json()["field"] == "options.volume_kind", response.text
 
 
@@ -156,7 +148,7 @@ def test_a_volume_above_the_base_limits_is_accepted_with_the_default_volume_sett
     options = {"initialization": "given", "initial_mesh_to_world": np.eye(4).tolist(), "starts": 1,
                "max_iterations": 10}  # the job's outcome is the point here, not its accuracy
     with small_base_server.client() as client:
-        response = _post(client, cta, options)
+        response = submit_volume(client, cta, options)
         assert response.status_code == 202, response.text
         job = wait_for(client, response.json()["id"], timeout=300)
     assert job["status"] == "succeeded", job
