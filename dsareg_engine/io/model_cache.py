@@ -34,7 +34,7 @@ from typing import Protocol
 import numpy as np
 
 from ..mesh import TriangleMesh
-from .file_parts import PART_LISTS
+from .file_parts import PART_LISTS, file_digests
 from .input_decisions import InputDecision
 from .volume_kind import VolumeReading
 from .volume_vessels import VolumeReadout
@@ -55,8 +55,8 @@ class CachedModel:
 
 def model_key(volume: bytes | Sequence[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:
     """The cache key of a volume read with ``reading`` into at most ``working_faces`` faces (hex SHA-256)."""
-    parts = volume if isinstance(volume, PART_LISTS) else [volume]  # read one at a time (``FileParts``)
-    described = {"version": MODEL_VERSION, "files": [hashlib.sha256(bytes(p)).hexdigest() for p in parts],
+    parts = volume if isinstance(volume, PART_LISTS) else [volume]  # read one at a time, or a store's digests
+    described = {"version": MODEL_VERSION, "files": file_digests(parts),
                  "name": name or "", "reading": asdict(reading or VolumeReading()), "faces": int(working_faces)}
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=list).encode()).hexdigest()
 

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from . import rad as rad_format
-from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom, parse_header
+from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom, series_header
 from .file_parts import PART_LISTS, volume_parts
 from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
@@ -157,7 +157,7 @@ def read_volume_identities(data: bytes | Sequence[bytes], name: str | None = Non
             return (), False
     elif len(parts) == 2 and any(_detached_format(p) or rad_format.looks_like_rad(p[:4096]) for p in parts):
         return (), False
-    headers = [parse_header(part, field_name) for part in parts]
+    headers = [series_header(parts, index, field_name) for index in range(len(parts))]
     if len(parts) > 1:
         headers = [headers[i] for i in pick_volume_series(headers, field_name=field_name)[0]]
     identities = [identity_or_none(header) for header in headers]
@@ -293,11 +293,7 @@ def read_dicom_series(
     """
     if len(parts) == 1:
         return _enhanced_volume(bytes(parts[0]), limits, field_name)
-    headers = []
-    for index, part in enumerate(parts):
-        if not part:
-            raise DsaregInputError(f"file {index} of the series is empty", field=field_name)
-        headers.append(parse_header(part, field_name))
+    headers = [series_header(parts, index, field_name) for index in range(len(parts))]
     chosen, series_warnings = pick_volume_series(headers, field_name=field_name)
     if len(chosen) == 1:  # one enhanced multi-frame file beside other series (the XA runs, a scout)
         return _enhanced_volume(bytes(parts[chosen[0]]), limits, field_name, series_warnings)

@@ -126,13 +126,14 @@ def _answer(conn: Connection, request: dict, policy: AllowancePolicy, start: int
     try:
         blobs = BlobStore(request["blob_root"])
         inputs = [InputFile(**item) for item in request["inputs"]]
-        allowance = _allowance(inputs, request, blobs.read, policy)
+        allowance = _allowance(inputs, request, blobs, policy)
         if allowance.raised:
             conn.send({"allowance": allowance.as_json()})
             _allow_memory(start, allowance.memory_mb)
         case = load_job_case(inputs, request["geometry"], request["segmentation"], blobs.read, request.get("limits"),
                              request.get("reading"), request.get("volume_reading"), request.get("mesh_units"),
-                             hemodynamics=bool(request.get("hemodynamics")), models=request.get("models"))
+                             hemodynamics=bool(request.get("hemodynamics")), models=request.get("models"),
+                             read_head=blobs.read_head)
         reply = {"ok": True, "summary": case_summary(case)}
     except TooLarge as exc:
         reply = {"ok": False, "message": exc.message, "field": "volume", "accepted": exc.accepted}
@@ -149,14 +150,15 @@ def _answer(conn: Connection, request: dict, policy: AllowancePolicy, start: int
     return reply
 
 
-def _allowance(inputs: list, request: dict, read: Any, policy: AllowancePolicy) -> Allowance:
+def _allowance(inputs: list, request: dict, blobs: Any, policy: AllowancePolicy) -> Allowance:
     """The base limits, or more for a volume whose header says its first read needs more (:mod:`.allowance`)."""
     from ..engine_adapter import volume_cost
 
     volume = [item for item in inputs if item.role == "volume"]
     if not volume or (policy.volume_memory_mb <= 0 and policy.volume_timeout_s <= 0):
         return policy.base()
-    cost = volume_cost(inputs, read, request.get("limits"), request.get("volume_reading"), request.get("models"))
+    cost = volume_cost(inputs, blobs.read, request.get("limits"), request.get("volume_reading"), request.get("models"),
+                       blobs.read_head)
     return size_allowance(cost, sum(item.size for item in volume), policy)
 
 

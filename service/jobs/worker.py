@@ -264,7 +264,7 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
     pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
     dimse = dimse_job(job, blobs.read, settings)  # made from a study received over DIMSE, or None
     if pacs is None:
-        files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.limits.input_limits)
+        files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.limits.input_limits, blobs.read_head)
     else:
         files = pacs.fetch()
         _record_case(finish.store, job, files, "dicomweb" if isinstance(pacs, PacsJob) else "dimse", settings)

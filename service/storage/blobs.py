@@ -125,6 +125,11 @@ class BlobStore:
     def read(self, digest: str) -> bytes:
         return self.path(digest).read_bytes()
 
+    def read_head(self, digest: str, size: int) -> bytes:
+        """The blob's first ``size`` bytes (all of it when shorter): a DICOM slice's header without its pixels."""
+        with open(self.path(digest), "rb") as stream:
+            return stream.read(size)
+
     def local_path(self, digest: str) -> Path | None:
         """A local file with the blob's content (None when not stored)."""
         path = self.path(digest)

@@ -35,6 +35,34 @@ def test_database_blobs_are_shared_without_a_shared_filesystem(tmp_path, cache):
     assert api.collect_garbage(set(), min_age_seconds=0) == 1 and not api.exists(artifact)
 
 
+def _assert_heads(engine: sa.Engine, root, cache: bool) -> str:
+    """``read_head``: a blob's first bytes (a series' header without its pixels), from the table or the cache."""
+    DatabaseBlobStore(root / "api", engine, cache=True)  # the schema
+    worker = DatabaseBlobStore(root / "worker", engine, create_schema=False, cache=cache)
+    data = bytes(range(256)) * 40
+    digest, _ = worker.put_bytes(data)
+    assert worker.read_head(digest, 1000) == data[:1000] and worker.read_head(digest, 20_000) == data
+    assert worker.read(digest) == data
+    with pytest.raises(FileNotFoundError, match="is not stored"):
+        worker.read_head("0" * 64, 10)
+    return digest
+
+
+@pytest.mark.parametrize("cache", [True, False])
+def test_a_database_blobs_head_is_its_first_bytes(tmp_path, cache):
+    _assert_heads(sa.create_engine(f"sqlite:///{tmp_path / 'db.sqlite3'}"), tmp_path, cache)
+
+
+def test_a_database_blobs_head_on_postgresql(postgres_server, tmp_path):
+    engine = sa.create_engine(postgres_server.url, poolclass=sa.pool.NullPool)
+    try:
+        digest = _assert_heads(engine, tmp_path, cache=False)
+        with engine.begin() as conn:  # the session's database is shared with the other scale-out tests
+            conn.execute(sa.text("DELETE FROM blob_data WHERE sha256 = :digest"), {"digest": digest})
+    finally:
+        engine.dispose()
+
+
 def test_settings_for_scale_out(tmp_path, monkeypatch):
     plain = ServiceSettings(data_dir=tmp_path)
     assert plain.jobs.executor == "embedded" and plain.effective_blob_backend == "files"

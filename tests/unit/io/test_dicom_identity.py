@@ -80,3 +80,47 @@ def test_a_uid_with_several_values_is_unreadable_not_a_list_repr():
     assert identity_or_none(ds) == (None, True)  # the outputs start a new study instead of writing "['1.2.3', …]"
     ds.StudyInstanceUID = "1.2.3"
     assert identity_or_none(ds)[0].study_instance_uid == "1.2.3"
+
+
+def _slice_with_comment(build, comment: str) -> bytes:
+    """A CT slice whose header carries ``comment`` (Image Comments) before its pixels."""
+    import io
+
+    import pydicom
+
+    part = build.ct_series(np.zeros((60, 60, 2), np.float32), np.eye(4))[0]
+    dataset = pydicom.dcmread(io.BytesIO(part))
+    dataset.ImageComments = comment
+    out = io.BytesIO()
+    dataset.save_as(out, enforce_file_format=True)
+    return out.getvalue()
+
+
+def _same_header(first, second) -> bool:
+    return [(e.tag, e.value) for e in first] == [(e.tag, e.value) for e in second]
+
+
+def test_a_series_header_from_a_files_first_bytes_is_the_whole_files(build, monkeypatch):
+    """:func:`series_header` takes the file's first bytes only where pydicom stopped at the pixel data inside them;
+    a header longer than them, or one cut exactly between two elements (pydicom then reads a shorter header with no
+    error), is read from the whole file: the same dataset as the whole file's parse in every case."""
+    from dsareg_engine.errors import DsaregInputError
+    from dsareg_engine.io import dicom_identity
+    from dsareg_engine.io.dicom_identity import parse_header, series_header
+    from dsareg_engine.io.file_parts import FileParts
+
+    part = _slice_with_comment(build, "x" * 3000)
+    comment_at, pixels_at = part.find(b"\x20\x00\x00\x40"), part.find(b"\xe0\x7f\x10\x00")
+    assert 0 < comment_at < pixels_at < len(part) - 1000
+    whole = parse_header(part, "volume")
+    for size, whole_reads in ((pixels_at + 12, 0), (pixels_at + 4, 1), (comment_at, 1), (comment_at + 100, 1),
+                              (len(part) + 10, 0)):
+        monkeypatch.setattr(dicom_identity, "HEADER_BYTES", size)
+        reads = []
+        parts = FileParts([lambda: reads.append(1) or part], heads=[lambda n: part[:n]])
+        header = series_header(parts, 0, "volume")
+        assert _same_header(header, whole) and len(reads) == whole_reads, size
+    assert "ImageComments" in whole and "PixelData" not in whole
+    monkeypatch.setattr(dicom_identity, "HEADER_BYTES", 64)
+    with pytest.raises(DsaregInputError, match="file 0 of the series is empty"):
+        series_header(FileParts([lambda: b""], heads=[lambda n: b""]), 0, "volume")

@@ -101,3 +101,52 @@ def test_file_parts_of_one_or_two_files_read_as_lists_do(phantom_volume, build):
         read_volume(FileParts([]), "ct")
     with pytest.raises(DsaregInputError, match="empty"):
         read_volume(FileParts([lambda: files[0], lambda: files[1], lambda: b""]), "ct")
+
+
+def test_a_stores_digests_make_the_model_key_without_reading_a_file(tmp_path):
+    import hashlib
+
+    files = [b"first slice", b"second slice", b"third slice"]
+
+    def unread():
+        raise AssertionError("a file was read for the key")
+
+    known = FileParts([unread] * 3, digests=[hashlib.sha256(f).hexdigest() for f in files])
+    assert model_key(known, "ct", None, 20_000) == model_key(list(files), "ct", None, 20_000)
+    assert known[1:].digests == known.digests[1:] and FileParts([unread]).digests is None
+    with pytest.raises(ValueError, match="2 digests or heads for 3 files"):
+        FileParts([unread] * 3, digests=["a", "b"])
+    with pytest.raises(ValueError, match="1 digests or heads for 3 files"):
+        FileParts([unread] * 3, heads=[lambda n: b""])
+
+
+def test_heads_read_only_a_files_first_bytes(tmp_path):
+    (tmp_path / "a").write_bytes(b"0123456789")
+    parts = FileParts.from_paths([tmp_path / "a"])
+    assert parts.head(0, 4) == b"0123" and parts.head(0, 100) == b"0123456789" and parts[0:1].head(0, 2) == b"01"
+    assert FileParts([lambda: b"whole file"]).head(0, 5) == b"whole"  # no head loader: the whole file, cut
+    assert volume_parts(FileParts([lambda: b"x"], heads=[lambda n: b"?"])) == [b"x"]
+
+
+def test_a_series_with_heads_reads_each_file_whole_once(build, monkeypatch):
+    """Headers from the files' first bytes, pixels from the whole files: one whole read a file, and the volume
+    the list of the same files gives."""
+    from dsareg_engine.io import dicom_identity
+
+    monkeypatch.setattr(dicom_identity, "HEADER_BYTES", 2048)  # the slices are 20 KB, their headers under 1 KB
+    volume = np.random.default_rng(4).integers(0, 1200, (100, 100, 8)).astype(np.float32)
+    files = build.ct_series(volume, np.diag([0.5, 0.5, 1.0, 1.0]))
+    loads, heads = _Loads(files), []
+
+    def head(index):
+        return lambda size: heads.append(index) or files[index][:size]
+
+    parts = FileParts((loads.loader(i) for i in range(len(files))), heads=[head(i) for i in range(len(files))])
+    read = read_volume(parts, "ct")
+    assert loads.reads == len(files) and sorted(heads) == list(range(len(files)))
+    from_list = read_volume(list(files), "ct")
+    np.testing.assert_array_equal(read.data, from_list.data)
+    assert read.dicom == from_list.dicom and read.tags == from_list.tags
+    heads.clear()
+    assert read_volume_identities(parts, "ct") == read_volume_identities(list(files), "ct")
+    assert loads.reads == len(files) and len(heads) == len(files)  # the identities: heads alone
