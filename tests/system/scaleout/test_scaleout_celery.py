@@ -12,7 +12,8 @@ import time
 import numpy as np
 import pytest
 from tests.support.scaleout_kit import CeleryTopology, CeleryWorker, RedisServer, pid_of_worker_id
-from tests.support.service_testkit import Server, make_example_case, needs_engine, submit, wait_for
+from tests.support.service_testkit import (Server, make_example_case, needs_engine, small_cta_case, submit,
+                                          submit_volume, wait_for)
 from tests.support.time_bounds import allowed
 
 pytestmark = [needs_engine, pytest.mark.slow]
@@ -217,3 +218,21 @@ def test_progress_events_from_a_celery_worker(topology, case):
     assert any(f["data"]["status"] == "running" and (f["data"]["progress"] or {}).get("iteration", 0) > 0
                for f in frames[:-1]), frames
     assert frames[-1]["data"]["status"] == "succeeded" and frames[-1]["data"]["verdict"] in ("ok", "check", "failed")
+
+
+def test_a_volume_series_is_read_from_the_database_blobs(topology):
+    """A CTA series through the blob table (no shared filesystem): the Celery worker reads its slices' headers from
+    their first bytes and their pixels whole (``BlobStore.read_head``, ``FileParts``), and registers it."""
+    cta = small_cta_case()
+    if not topology.workers:
+        topology.add_worker()
+    topology.wait_workers(1)
+    options = {"initialization": "given", "initial_mesh_to_world": np.eye(4).tolist(), "starts": 1,
+               "ground_truth_mesh_to_world": cta.mesh_to_world.tolist()}
+    with topology.api.client() as client:
+        response = submit_volume(client, cta, options)
+        assert response.status_code == 202, response.text
+        job = wait_for(client, response.json()["id"], timeout=300)
+    assert job["status"] == "succeeded", (job, topology.logs())
+    assert job["result"]["volume"]["kind"] == "cta" and job["result"]["volume"]["faces"] > 500
+    assert job["result"]["metrics"]["ground_truth"]["add_mm"] < 0.6
