@@ -15,6 +15,7 @@ pydicom and PIL. Importing this module: 0.27 s (docs/concepts/layout.md, "Lazy n
   :class:`GeometrySpec`, stored as its canonical JSON (``to_json`` / ``from_json``, :func:`is_canonical_geometry`)
 * a case: :class:`CaseFiles` (inputs as bytes; a volume's files also as :class:`FileParts`, read when used), :func:`load_case_files` / :func:`load_case`, :class:`InputLimits`, :func:`input_limits`;
   how multi-frame XA runs are read: :class:`ImageReading` (per-view frames, subtraction), :func:`image_reading` (from options)
+  a volume's kept model: :class:`DirectoryModelStore`, keyed by :func:`model_key` (the files' digests, the reading)
 * running it: :func:`run_case` (files in, every output written, in one call), :func:`run_registration_case`
   (from a loaded case), :class:`RegistrationCanceled`
 * outputs: :data:`ARTIFACTS` and the other names of :mod:`dsareg_engine.artifacts`;
@@ -67,6 +68,7 @@ from .io.dicom_out import write_dicom_outputs
 from .io.dicom_xa import c_arm_rotation
 from .io.file_parts import FileParts
 from .io.limits import DEFAULT_LIMITS, InputLimits
+from .io.model_key import model_key
 from .io.volume_kind import VolumeReading
 from .registration.options import RegistrationOptions, image_reading, parse_options
 from .threads import default_cpu_threads, set_cpu_threads
@@ -133,6 +135,7 @@ __all__ = [
     "image_png",
     "layers_png",
     "mask_png",
+    "model_key",
     "overlay_dcm",
     "overlay_png",
     "parse_geometry",

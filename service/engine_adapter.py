@@ -134,6 +134,21 @@ def volume_parts(items: list[InputFile], read: Any, read_head: Any = None) -> An
                             heads=None if read_head is None else [partial(read_head, item.sha256) for item in items])
 
 
+def volume_model_key(inputs: list[InputFile], options: Any, limits: dict[str, int] | None = None) -> str | None:
+    """The key the engine keeps this job's volume model under (``engine.model_key`` of the files as
+    :func:`stored_case_files` gives them, read as the parsed ``options`` say), from the inputs' digests alone; None
+    without a volume."""
+    items = [f for f in inputs if f.role == "volume"]
+    if not items:
+        return None
+    return engine.model_key(volume_parts(items, _not_read), "volume" + items[0].suffix,
+                            engine.VolumeReading(**volume_reading(options)), input_limits(limits).working_faces)
+
+
+def _not_read(digest: str) -> bytes:
+    raise AssertionError(f"blob {digest[:12]}… read for a model key")  # the key takes the digests
+
+
 def fetched_case_files(ap: bytes, lat: bytes, volume: list[bytes], frames: tuple[Any, Any],
                        warnings: list[str]) -> Any:
     """Inputs fetched from a PACS as ``engine.CaseFiles`` (the geometry comes from the XA headers);

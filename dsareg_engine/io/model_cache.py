@@ -4,7 +4,7 @@ A hospital registers one CTA against several runs; each job read it again (a who
 GBs). Here a volume's model is kept under a key made of the volume's content and of everything its reading depends
 on, and a later job with the same key takes the model instead of reading the volume:
 
-* **key** (:func:`model_key`): SHA-256 of ``MODEL_VERSION``, the volume's files (each one's SHA-256, in order), its
+* **key** (:func:`.model_key.model_key`): SHA-256 of ``MODEL_VERSION``, the volume's files (each one's SHA-256, in order), its
   file name, the :class:`~.volume_kind.VolumeReading` (kind, window, labels) and the working face budget;
 * **value** (:class:`CachedModel`): the surface (after decimation), the readout with its decisions, the reader's
   warnings and the volume's format. No DICOM identity is kept (patient data stays with the uploads): a hit reads
@@ -15,18 +15,16 @@ on, and a later job with the same key takes the model instead of reading the vol
   read without pickle. An unreadable entry is a miss (and removed); a temporary file a killed writer left is
   removed by the next write once it is an hour old.
 
-Bump ``MODEL_VERSION`` whenever the extraction's output for the same input changes.
+Bump ``MODEL_VERSION`` (:mod:`.model_key`) whenever the extraction's output for the same input changes.
 """
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import os
 import tempfile
 import time
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol
@@ -34,12 +32,10 @@ from typing import Protocol
 import numpy as np
 
 from ..mesh import TriangleMesh
-from .file_parts import PART_LISTS, file_digests
 from .input_decisions import InputDecision
-from .volume_kind import VolumeReading
+from .model_key import MODEL_VERSION, model_key
 from .volume_vessels import VolumeReadout
 
-MODEL_VERSION = "volume-model-1"
 STALE_TEMPORARY_S = 3600.0  # a temporary file this old is no write in progress (a model is written in seconds)
 
 
@@ -51,14 +47,6 @@ class CachedModel:
     readout: VolumeReadout
     warnings: tuple[str, ...]
     kind: str
-
-
-def model_key(volume: bytes | Sequence[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:
-    """The cache key of a volume read with ``reading`` into at most ``working_faces`` faces (hex SHA-256)."""
-    parts = volume if isinstance(volume, PART_LISTS) else [volume]  # read one at a time, or a store's digests
-    described = {"version": MODEL_VERSION, "files": file_digests(parts),
-                 "name": name or "", "reading": asdict(reading or VolumeReading()), "faces": int(working_faces)}
-    return hashlib.sha256(json.dumps(described, sort_keys=True, default=list).encode()).hexdigest()
 
 
 def to_bytes(model: CachedModel) -> bytes:

@@ -19,11 +19,13 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 from ..budgets import check_job_cost
-from ..engine_adapter import check_options, engine, image_reading_json, job_case, model_cache, volume_reading
+from ..engine_adapter import (check_options, engine, image_reading_json, job_case, model_cache, volume_model_key,
+                              volume_reading)
 from ..jobs.callbacks import url_problem
 from ..pacs.instance_check import InstanceLimits, refusal_of_file
 from ..storage.blobs import safe_suffix
 from ..storage.diskspace import ensure_room
+from ..storage.shared_models import shared_models_for
 from ..storage.store import ConflictError, InputFile, JobRecord, new_job_id
 from .context import ANONYMOUS, IntakeContext
 from .refusals import IdempotencyConflict, InvalidInput, Overloaded, QuotaExceeded
@@ -157,6 +159,10 @@ async def validate_inputs(ctx: IntakeContext, inputs: list[InputFile], geometry:
     warnings and the case identity the headers gave (source ``upload``, no file names: :func:`job_case` sets them)."""
     if ctx.validator is None:
         return [], None
+    shared = shared_models_for(ctx.settings, ctx.blobs)  # scale-out: a model another node kept serves this check
+    key = volume_model_key(inputs, options, ctx.settings.limits.input_limits) if shared is not None else None
+    if key is not None:
+        await asyncio.to_thread(shared.pull, key)
     outcome = await ctx.validator.validate({
         "inputs": [vars(f) for f in inputs], "geometry": geometry, "segmentation": options.segmentation,
         "reading": image_reading_json(options),
@@ -175,6 +181,8 @@ async def validate_inputs(ctx: IntakeContext, inputs: list[InputFile], geometry:
                          kind="validator-unavailable", retry_after_s=ctx.validator.RETRY_AFTER_SECONDS)
     if not outcome.ok:
         raise InvalidInput(outcome.message or "invalid input", field=outcome.field, accepted=outcome.accepted)
+    if key is not None:  # the model this check kept, for the workers of other nodes
+        await asyncio.to_thread(shared.push, key)
     views = (outcome.summary or {}).get("views") or {}
     check_job_cost(options, [tuple(size) for size in views.values()], ctx.settings.limits.max_job_cost)
     return list((outcome.summary or {}).get("warnings", [])), (outcome.summary or {}).get("case")

@@ -22,6 +22,8 @@ import shutil
 import socket
 import threading
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +33,9 @@ from ..pacs.dicomweb import PacsError
 from ..pacs.dimse.export import dimse_job
 from .exports import export_target, source_of
 from ..storage.diskspace import has_room, is_disk_full
-from ..engine_adapter import collect_artifacts, engine, fetched_case, model_cache, run_job, stored_case_files
+from ..storage.shared_models import shared_models_for
+from ..engine_adapter import (collect_artifacts, engine, fetched_case, model_cache, run_job, stored_case_files,
+                              volume_model_key)
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
 from ..storage.interfaces import Leases
@@ -258,13 +262,36 @@ def _thread_budget() -> str:
         return "unknown threads"
 
 
+def _no_share() -> None:
+    return None
+
+
+def _shared_model(blobs: BlobStore, job: JobRecord, settings: ServiceSettings) -> Callable[[], None]:
+    """Scale-out (the database blob backend): the model another node kept for this job's volume, pulled into this
+    node's model folder before the job; returns what puts the model the job kept into the shared store."""
+    shared = shared_models_for(settings, blobs)
+    if shared is None:
+        return _no_share
+    try:
+        key = volume_model_key(job.inputs, engine.parse_options(job.options), settings.limits.input_limits)
+    except Exception:  # noqa: BLE001 - options the engine refuses: the job reports them
+        return _no_share
+    if key is None:
+        return _no_share
+    if shared.pull(key):
+        log.info("job %s: the volume's model from the shared store", job.id)
+    return partial(shared.push, key)
+
+
 def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, control: _JobControl, finish: _Finisher,
               out_dir: Path) -> str:
     """Inputs → one engine call → artifacts and result into the store (both retried across store outages)."""
     pacs = pacs_job(job, blobs.read, settings)  # inputs by DICOMweb reference, or None
     dimse = dimse_job(job, blobs.read, settings)  # made from a study received over DIMSE, or None
+    share = _no_share
     if pacs is None:
         files = stored_case_files(job.inputs, job.geometry, blobs.read, settings.limits.input_limits, blobs.read_head)
+        share = _shared_model(blobs, job, settings)
     else:
         files = pacs.fetch()
         _record_case(finish.store, job, files, "dicomweb" if isinstance(pacs, PacsJob) else "dimse", settings)
@@ -273,6 +300,7 @@ def _register(blobs: BlobStore, job: JobRecord, settings: ServiceSettings, contr
                      models=model_cache(settings.storage))
     if control.lost:
         return "lost"
+    share()
     carried_images(result, job.case)
     export = export_target(pacs, dimse, after_review=settings.jobs.export_after_review)  # sent by the exporter
     if pacs is not None or dimse is not None:

@@ -43,8 +43,10 @@ class StorageSettings(_Group):
     model_cache_entries: int = Field(
         16, ge=0, description="Vessel models read from volumes kept in <data_dir>/models for the next job on the same "
                               "volume (same files, same volume options): the submission's check reads the volume, "
-                              "the worker and later jobs take the model (a whole-head CTA: about a minute of CPU "
-                              "each time otherwise). The least recently used go first; 0: off.")
+                              "the worker and later jobs take the model (a whole-head CTA: 7–11 CPU s and ~1 GB "
+                              "each time otherwise). With the database blob backend also in the job database "
+                              "(table volume_models), shared by every node. The least recently used go first; "
+                              "0: off.")
 
     @property
     def model_dir(self) -> Path | None:

@@ -52,7 +52,7 @@ def quiet_alembic_setup() -> None:
 
 quiet_alembic_setup()
 
-HEAD = "0002"
+HEAD = "0003"
 """The newest revision (migrations/versions; ``tests/unit/service/test_service_migrations.py`` checks it): a
 database stamped with it needs nothing, and a start-up that finds it does not load Alembic."""
 PG_LOCK_KEY = 0x6473_6172_6567  # "dsareg": the advisory lock every dsareg process migrates under

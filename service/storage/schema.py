@@ -137,6 +137,16 @@ blob_data = sa.Table(
 )
 """Inputs and artifacts when ``blob_backend`` is ``database`` (scale-out without a shared filesystem)."""
 
+volume_models = sa.Table(
+    "volume_models", metadata,
+    sa.Column("model_key", sa.String(64), primary_key=True),
+    sa.Column("size", sa.BigInteger, nullable=False),
+    sa.Column("used_at", sa.Float, nullable=False),
+    sa.Column("data", sa.LargeBinary, nullable=False),
+)
+"""Vessel models read from volumes (``engine.model_key`` → the model file's bytes), shared by the nodes of a
+deployment with the database blob backend (:mod:`service.storage.shared_models`); no patient data."""
+
 dimse_instances = sa.Table(
     "dimse_instances", metadata,
     sa.Column("sop_instance_uid", sa.String(64), primary_key=True),

@@ -221,8 +221,10 @@ def test_progress_events_from_a_celery_worker(topology, case):
 
 
 def test_a_volume_series_is_read_from_the_database_blobs(topology):
-    """A CTA series through the blob table (no shared filesystem): the Celery worker reads its slices' headers from
-    their first bytes and their pixels whole (``BlobStore.read_head``, ``FileParts``), and registers it."""
+    """A CTA series through the blob table (no shared filesystem): the API's check reads it and keeps its model in
+    the database (``volume_models``), the Celery worker (another data folder) takes that model instead of reading
+    the series again, and registers it; the series' blobs are read by headers and whole files
+    (``BlobStore.read_head``, ``FileParts``) wherever it is read."""
     cta = small_cta_case()
     if not topology.workers:
         topology.add_worker()
@@ -236,3 +238,7 @@ def test_a_volume_series_is_read_from_the_database_blobs(topology):
     assert job["status"] == "succeeded", (job, topology.logs())
     assert job["result"]["volume"]["kind"] == "cta" and job["result"]["volume"]["faces"] > 500
     assert job["result"]["metrics"]["ground_truth"]["add_mm"] < 0.6
+    with topology.store.engine.connect() as conn:
+        assert conn.exec_driver_sql("SELECT count(*) FROM volume_models").scalar() >= 1
+    worker_logs = "\n".join(worker.logs() for worker in topology.workers)
+    assert f"job {job['id']}: the volume's model from the shared store" in worker_logs, topology.logs()

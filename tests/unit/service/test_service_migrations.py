@@ -15,6 +15,7 @@ from service.storage.migrate import HEAD, locked, migration_engine, upgrade_data
 from service.storage.revisions import alembic_config, head
 from service.storage.schema import SchemaError, metadata
 from tests.support.migration_kit import (
+    APPLIED,
     assert_concurrent_starts_migrate_once,
     assert_upgrade_loses_nothing,
     make_release_database,
@@ -114,7 +115,7 @@ def test_a_database_older_than_the_release_gains_its_nullable_columns(tmp_path):
             conn.exec_driver_sql(f"ALTER TABLE {table} DROP COLUMN {column}")
         conn.exec_driver_sql("DROP TABLE blob_data")  # made only with the database blob backend
     report = upgrade_database(url)
-    assert report.adopted == "0001" and report.applied == ("0002",) and schema_diff(engine, metadata) == []
+    assert report.adopted == "0001" and report.applied == APPLIED and schema_diff(engine, metadata) == []
     assert snapshot(engine)["blob_data"] == []
 
 
@@ -126,7 +127,7 @@ def test_an_unversioned_database_made_after_the_release_is_recognised_past_it(tm
         conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN case_identity TEXT")
         conn.exec_driver_sql("ALTER TABLE jobs ADD COLUMN case_search TEXT")
     report = upgrade_database(url)
-    assert (report.adopted, report.applied) == ("0002", ()) and schema_diff(engine, metadata) == []
+    assert (report.adopted, report.applied) == ("0002", ("0003",)) and schema_diff(engine, metadata) == []
 
 
 def test_a_start_at_head_does_not_load_alembic(tmp_path):
@@ -161,10 +162,11 @@ def test_an_upgrade_logs_the_revisions_it_runs_and_no_alembic_set_up_lines(tmp_p
             "from service.storage.revisions import alembic_config\n"
             "with sa.create_engine(sys.argv[1]).begin() as conn:\n"
             "    command.upgrade(alembic_config(conn), '0001')\n"
-            "assert upgrade_database(sys.argv[1]).applied == ('0002',)\n")
+            "assert upgrade_database(sys.argv[1]).applied == ('0002', '0003')\n")
     done = subprocess.run([sys.executable, "-c", code, f"sqlite:///{tmp_path / 'jobs.db'}"], capture_output=True,
                           text=True, timeout=60, cwd=Path(__file__).resolve().parents[3], check=False)
     assert done.returncode == 0, done.stderr
     lines = [line for line in done.stderr.splitlines() if "alembic" in line]
     assert [line.split(",")[0] for line in lines] == ["INFO:alembic.runtime.migration:Running upgrade  -> 0001",
-                                                     "INFO:alembic.runtime.migration:Running upgrade 0001 -> 0002"]
+                                                     "INFO:alembic.runtime.migration:Running upgrade 0001 -> 0002",
+                                                     "INFO:alembic.runtime.migration:Running upgrade 0002 -> 0003"]

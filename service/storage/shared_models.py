@@ -1,0 +1,121 @@
+"""Vessel models shared by the nodes of a scale-out deployment, through the job database.
+
+Each process keeps a volume's model in its node's ``<data_dir>/models`` (``engine.DirectoryModelStore``, keyed by
+``engine.model_key``: the files' digests and the volume options). With the database blob backend the API replicas
+and the workers share no filesystem, so a model kept on one node served no other: the API's validator read the
+volume, then the worker read it again, and every worker node once more. :class:`SharedModels` copies a model's file
+between a node's folder and the ``volume_models`` table: **pull** before the engine runs (a model another node kept
+becomes this node's file), **push** after (a model this node made goes to the table).
+
+The table holds the model files' bytes (a surface and its readout; no DICOM identity, no patient data), at most
+``max_entries`` rows: the least recently used go first. A damaged row is a miss for the engine (its reader
+rejects the file and removes it); nothing here is needed for a job to succeed, so every database error is a miss,
+logged by type only.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import sqlalchemy as sa
+
+from .dbtimeouts import bulk_statements
+from .schema import volume_models
+
+log = logging.getLogger("dsareg.service.models")
+
+
+class SharedModels:
+    """A node's model folder ``folder`` mirrored through the ``volume_models`` table of ``engine``."""
+
+    def __init__(self, engine: sa.Engine, folder: Path, max_entries: int):
+        self.engine, self.folder, self.max_entries = engine, Path(folder), int(max_entries)
+
+    def _file(self, key: str) -> Path:
+        if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
+            raise ValueError("a model key is a hex SHA-256")
+        return self.folder / f"{key}.npz"
+
+    def pull(self, key: str) -> bool:
+        """The table's model ``key`` written to this node's folder when the folder lacks it: whether it was."""
+        path = self._file(key)
+        if path.is_file():
+            return False
+        try:
+            with self.engine.begin() as conn:
+                data = bulk_statements(conn).execute(
+                    sa.select(volume_models.c.data).where(volume_models.c.model_key == key)).scalar()
+                if data is not None:
+                    conn.execute(volume_models.update().where(volume_models.c.model_key == key)
+                                 .values(used_at=time.time()))
+        except sa.exc.SQLAlchemyError as exc:
+            log.warning("the shared model store could not be read (%s): the volume is read here", type(exc).__name__)
+            return False
+        if data is None:
+            return False
+        return _written(path, bytes(data))
+
+    def push(self, key: str) -> bool:
+        """This node's model ``key`` put in the table when the table lacks it (the oldest rows beyond
+        ``max_entries`` then removed): whether it was."""
+        path = self._file(key)
+        try:
+            data = path.read_bytes()
+        except OSError:
+            return False
+        now = time.time()
+        try:
+            with self.engine.begin() as conn:
+                if conn.execute(volume_models.update().where(volume_models.c.model_key == key)
+                                .values(used_at=now)).rowcount:
+                    return False
+            with self.engine.begin() as conn:
+                bulk_statements(conn).execute(volume_models.insert().values(model_key=key, size=len(data),
+                                                                            used_at=now, data=data))
+            self._evict()
+        except sa.exc.IntegrityError:  # another node put the same model meanwhile
+            return False
+        except sa.exc.SQLAlchemyError as exc:
+            log.warning("the shared model store could not be written (%s)", type(exc).__name__)
+            return False
+        return True
+
+    def _evict(self) -> None:
+        with self.engine.begin() as conn:
+            kept = sa.select(volume_models.c.model_key).order_by(volume_models.c.used_at.desc()).limit(self.max_entries)
+            conn.execute(volume_models.delete().where(volume_models.c.model_key.not_in(kept.scalar_subquery())))
+
+    def keys(self) -> list[str]:
+        """The keys in the table, most recently used first."""
+        with self.engine.connect() as conn:
+            return list(conn.execute(sa.select(volume_models.c.model_key)
+                                     .order_by(volume_models.c.used_at.desc())).scalars())
+
+
+def _written(path: Path, data: bytes) -> bool:
+    """``data`` at ``path`` by a rename (a reader never sees half a file)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".model-", suffix=".tmp")
+        try:
+            with os.fdopen(handle, "wb") as out:
+                out.write(data)
+            os.replace(temporary, path)
+        finally:
+            Path(temporary).unlink(missing_ok=True)
+    except OSError:
+        return False
+    return True
+
+
+def shared_models_for(settings, blobs) -> SharedModels | None:
+    """The shared model store of a deployment with the database blob backend and the model cache on, else None
+    (one node: its ``<data_dir>/models`` is shared by its processes already)."""
+    folder, engine = settings.storage.model_dir, getattr(blobs, "engine", None)
+    if folder is None or engine is None or settings.effective_blob_backend != "database":
+        return None
+    return SharedModels(engine, folder, settings.storage.model_cache_entries)
