@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
-from .bone_plates import PLATE_RIM_MM, plates_found, without_plates
+from .bone_plates import BONE_CONTACT_SHARE, PLATE_RIM_MM, plates_found, without_bone_pieces, without_plates
 from .input_decisions import InputDecision
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
@@ -58,6 +58,7 @@ VESSEL_CONTRAST_BAND = {"cta": 50.0, "mra": 1.5}  # closer to the least contrast
 DARK_SPREADS = 3.0  # MRA: darker than the tissue by this many of its noise spreads: bone, air (CSF too)
 VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the way from the noise floor to the tissue
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
+PIECE_CONTACT_BAND = 0.15  # a separate piece this close to BONE_CONTACT_SHARE of its surface against bone: a close call
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
 HEAD_MARGIN_VOX = 6  # CTA: the head's box (above air) grown by this: past the smoothing (2 voxels) and the skin
 
@@ -289,6 +290,12 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     del earlier
     mask, plate_share = without_plates(mask, found, field_name)
     del found
+    pieces_bone = (lambda box: excluded[box]) if kind == "cta" else bone_of(excluded, levels, mask)
+    mask, pieces = without_bone_pieces(mask, pieces_bone)
+    if pieces.set_aside is not None:
+        excluded |= pieces.set_aside
+        plate_share = None  # measured again on what is kept
+    levels["bone_pieces"] = pieces
     return field, mask, levels, excluded, plate_share
 
 
@@ -330,6 +337,12 @@ def _decisions(readout: VolumeReadout, reading: VolumeReading, air: float, level
             "volume", "bone threshold", f"{readout.vessel_max:.0f} HU",
             "the vessels' level (HU) against the bone threshold", levels.get("vessel"), readout.vessel_max,
             BONE_MARGIN_HU, "option" if reading.vessel_max is not None else "measured"))
+    pieces = levels.get("bone_pieces")
+    if pieces is not None and pieces.nearest_share is not None:
+        decisions.append(InputDecision(
+            "volume", "pieces in bone", f"{pieces.count} set aside" if pieces.count else "none",
+            "share of a separate piece's surface against bone (cancellous bone ~1, a vessel tree ~0.3); the piece "
+            "nearest the threshold", pieces.nearest_share, BONE_CONTACT_SHARE, PIECE_CONTACT_BAND))
     decisions.append(InputDecision(
         "volume", "vessel shape", "tubes", "plate share of the kept voxels' medial axis", readout.plate_share,
         MAX_PLATE_FRACTION, PLATE_BAND))

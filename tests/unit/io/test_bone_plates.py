@@ -92,3 +92,42 @@ def test_a_mask_of_tubes_is_left_as_read():
     assert not found.plates.any() and found.share is not None and found.share < 0.5
     kept, share = without_plates(mask, found, "volume")
     assert kept is mask and share == found.share
+
+
+def _tube_block_and_bone():
+    """A vessel (a bent tube) in tissue touching bone along a stretch (its canal), a block of cancellous bone inside
+    a cortical shell, and the shell: the mask read as vessels and what bone is there."""
+    mask = np.zeros((60, 60, 60), bool)
+    mask[10:50, 10:13, 10:13] = True  # the tube's trunk
+    mask[47:50, 10:40, 10:13] = True  # a branch
+    bone = np.zeros(mask.shape, bool)
+    bone[20:30, 9, 9:14] = bone[20:30, 13, 9:14] = True  # the canal: a stretch of the trunk between two walls
+    bone[30:46, 30:46, 30:46] = True  # the cortical shell (its inside is the block)
+    bone[32:44, 32:44, 32:44] = False
+    mask[32:44, 32:44, 32:44] = True  # the block, all of it in the vessels' window
+    return mask, bone
+
+
+def test_a_separate_piece_inside_bone_is_set_aside_and_the_tree_kept():
+    from dsareg_engine.io.bone_plates import BONE_CONTACT_SHARE, without_bone_pieces
+
+    mask, bone = _tube_block_and_bone()
+    kept, pieces = without_bone_pieces(mask, lambda box: bone[box])
+    assert pieces.count == 1 and not kept[32:44, 32:44, 32:44].any() and pieces.set_aside[32:44, 32:44, 32:44].all()
+    assert np.array_equal(kept, mask & ~pieces.set_aside) and kept[10:50, 10:13, 10:13].all()
+    assert 0.0 < pieces.nearest_share < BONE_CONTACT_SHARE  # the tree's share, the nearer to the threshold
+    tree_only = mask.copy()
+    tree_only[32:44, 32:44, 32:44] = False
+    same, none = without_bone_pieces(tree_only, lambda box: bone[box])  # one piece: nothing to decide
+    assert same is tree_only and none.count == 0 and none.nearest_share is None
+    block_only = mask & ~tree_only
+    block_only[10:20, 50:53, 50:53] = True  # a second piece, in tissue: the block goes, it stays
+    kept, pieces = without_bone_pieces(block_only, lambda box: bone[box])
+    assert pieces.count == 1 and kept[10:20, 50:53, 50:53].all() and not kept[32:44, 32:44, 32:44].any()
+    both_in_bone = mask & ~tree_only
+    both_in_bone[2:5, 2:5, 2:5] = True
+    enclosing = bone.copy()
+    enclosing[1:6, 1:6, 1:6] = True
+    enclosing[2:5, 2:5, 2:5] = False
+    kept, pieces = without_bone_pieces(both_in_bone, lambda box: enclosing[box])  # every piece in bone: kept
+    assert kept is both_in_bone and pieces.count == 0 and pieces.nearest_share == 1.0
