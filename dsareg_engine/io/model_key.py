@@ -17,7 +17,7 @@ from dataclasses import asdict
 from .file_parts import PART_LISTS, file_digests
 from .volume_kind import VolumeReading
 
-MODEL_VERSION = "volume-model-1"
+MODEL_VERSION = "volume-model-2"  # 2: separate pieces in bone set aside (session 23)
 
 
 def model_key(volume: bytes | Sequence[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:
