@@ -132,12 +132,13 @@ class BonePieces:
     nearest_share: float | None
 
 
-def without_bone_pieces(mask: np.ndarray, bone_of) -> tuple[np.ndarray, BonePieces]:
-    """``mask`` without its separate pieces that lie in bone: at least ``BONE_CONTACT_SHARE`` of a piece's surface
-    voxels touch ``bone_of(box)`` (as :func:`bone_plates`'s). A block of cancellous bone (a clivus, a petrous apex,
-    a marrow space) is thick, not a plate, and its interior lies far enough from the cortex around it to be read
-    as vessel; cortex and its band enclose it (shares ~0.95–1). A vessel tree lies in tissue and touches bone
-    along its canals only (~0.3). Kept when every piece would go (the reading is then judged as it is)."""
+def without_bone_pieces(mask: np.ndarray, spacing: np.ndarray, bone_of) -> tuple[np.ndarray, BonePieces]:
+    """``mask`` without its separate pieces that are bone: bone-sized (at least ``PLATE_PART_MM3``) and in bone (at
+    least ``BONE_CONTACT_SHARE`` of a piece's surface voxels touch ``bone_of(box)``, as :func:`bone_plates`'s). A
+    block of cancellous bone (a clivus, a petrous apex, a marrow space) is thick, not a plate, and its interior
+    lies far enough from the cortex around it to be read as vessel; cortex and its band enclose it (shares
+    ~0.95–1). A vessel tree lies in tissue and touches bone along its canals only (~0.3); a small fragment beside
+    bone stays. Kept when every piece would go (the reading is then judged as it is)."""
     box = bounding_box(mask, margin=1)
     if box is None:
         return mask, BonePieces(0, None, None)
@@ -149,7 +150,8 @@ def without_bone_pieces(mask: np.ndarray, bone_of) -> tuple[np.ndarray, BonePiec
     bone = np.ascontiguousarray(bone_of(box))
     boxes = ndimage.find_objects(labels)
     shares = np.array([bone_contact(labels, index, boxes[index - 1], bone) for index in range(1, count + 1)])
-    placed = np.concatenate([[False], shares >= BONE_CONTACT_SHARE])
+    sizes_mm3 = label_sizes(labels, count, mask[box])[1:] * float(np.prod(spacing))
+    placed = np.concatenate([[False], (shares >= BONE_CONTACT_SHARE) & (sizes_mm3 >= PLATE_PART_MM3)])
     nearest = float(shares[np.argmin(np.abs(shares - BONE_CONTACT_SHARE))])
     if not placed.any() or placed[1:].all():
         return mask, BonePieces(0, None, nearest)

@@ -283,6 +283,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     if field is None:  # CTA: the surface's field, of the last reading, made in ``smooth`` (no longer read)
         field = _cta_field(smooth, ground, mask, levels)
         excluded = ground.near_bone & ~mask  # bone and its band beyond the reading's voxels (⊇ bone)
+    air = None if kind == "cta" else ground.air  # (an MRA's bone, below, is found from it)
     ground = None  # (memory: bone's band is not held through the last labelling)
     excluded |= found.plates
     if earlier is not None:
@@ -290,8 +291,11 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     del earlier
     mask, plate_share = without_plates(mask, found, field_name)
     del found
-    pieces_bone = (lambda box: excluded[box]) if kind == "cta" else bone_of(excluded, levels, mask)
-    mask, pieces = without_bone_pieces(mask, pieces_bone)
+    if kind == "cta":  # bone and its band beyond the reading's voxels, the plates
+        mask, pieces = without_bone_pieces(mask, spacing, lambda box: excluded[box])
+    else:  # the voids and the scalp shell, the plates (marrow)
+        mask, pieces = without_bone_pieces(mask, spacing, lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box,
+                                                                             air))
     if pieces.set_aside is not None:
         excluded |= pieces.set_aside
         plate_share = None  # measured again on what is kept

@@ -111,23 +111,31 @@ def _tube_block_and_bone():
 def test_a_separate_piece_inside_bone_is_set_aside_and_the_tree_kept():
     from dsareg_engine.io.bone_plates import BONE_CONTACT_SHARE, without_bone_pieces
 
+    spacing = np.ones(3)  # the block: 1,728 mm³
     mask, bone = _tube_block_and_bone()
-    kept, pieces = without_bone_pieces(mask, lambda box: bone[box])
+    kept, pieces = without_bone_pieces(mask, spacing, lambda box: bone[box])
     assert pieces.count == 1 and not kept[32:44, 32:44, 32:44].any() and pieces.set_aside[32:44, 32:44, 32:44].all()
     assert np.array_equal(kept, mask & ~pieces.set_aside) and kept[10:50, 10:13, 10:13].all()
     assert 0.0 < pieces.nearest_share < BONE_CONTACT_SHARE  # the tree's share, the nearer to the threshold
     tree_only = mask.copy()
     tree_only[32:44, 32:44, 32:44] = False
-    same, none = without_bone_pieces(tree_only, lambda box: bone[box])  # one piece: nothing to decide
+    same, none = without_bone_pieces(tree_only, spacing, lambda box: bone[box])  # one piece: nothing to decide
     assert same is tree_only and none.count == 0 and none.nearest_share is None
+    small = tree_only.copy()
+    small[2:5, 2:5, 2:5] = True  # a 27-mm³ piece in bone, not bone-sized: it stays
+    cavity = bone.copy()
+    cavity[1:6, 1:6, 1:6] = True
+    cavity[2:5, 2:5, 2:5] = False
+    same, none = without_bone_pieces(small, spacing, lambda box: cavity[box])
+    assert same is small and none.count == 0 and none.nearest_share < BONE_CONTACT_SHARE
     block_only = mask & ~tree_only
     block_only[10:20, 50:53, 50:53] = True  # a second piece, in tissue: the block goes, it stays
-    kept, pieces = without_bone_pieces(block_only, lambda box: bone[box])
+    kept, pieces = without_bone_pieces(block_only, spacing, lambda box: bone[box])
     assert pieces.count == 1 and kept[10:20, 50:53, 50:53].all() and not kept[32:44, 32:44, 32:44].any()
-    both_in_bone = mask & ~tree_only
-    both_in_bone[2:5, 2:5, 2:5] = True
+    two_blocks = mask & ~tree_only
+    two_blocks[2:14, 2:14, 2:14] = True
     enclosing = bone.copy()
-    enclosing[1:6, 1:6, 1:6] = True
-    enclosing[2:5, 2:5, 2:5] = False
-    kept, pieces = without_bone_pieces(both_in_bone, lambda box: enclosing[box])  # every piece in bone: kept
-    assert kept is both_in_bone and pieces.count == 0 and pieces.nearest_share == 1.0
+    enclosing[1:15, 1:15, 1:15] = True
+    enclosing[2:14, 2:14, 2:14] = False
+    kept, pieces = without_bone_pieces(two_blocks, spacing, lambda box: enclosing[box])  # every piece in bone: kept
+    assert kept is two_blocks and pieces.count == 0 and pieces.nearest_share == 1.0

@@ -290,17 +290,7 @@ def test_a_block_of_cancellous_bone_apart_from_the_tree_is_set_aside():
 
     volume, plain = _read("cta", "a")
     data = np.array(volume.data, np.float32)
-    tree = _case("cta", "a").volume.tree.vertices
-    tree_index = (np.linalg.inv(volume.affine) @ np.c_[tree, np.ones(len(tree))].T)[:3].T
-
-
-    def fits(corner):  # in the brain's tissue, well apart from the tree
-        block = tuple(slice(c - 8, c + 8) for c in corner)
-        return (min(corner) >= 8 and all(c + 8 <= n for c, n in zip(corner, data.shape))
-                and np.all(np.abs(data[block] - 40.0) < 150.0)
-                and np.min(np.linalg.norm(tree_index - corner, axis=1)) > 10.0)
-
-    corner = next(c for c in np.ndindex(*data.shape) if c[0] % 4 == c[1] % 4 == c[2] % 4 == 0 and fits(c))
+    corner = _apart_from_the_tree("cta", volume, data, 40.0, 150.0)
     block = tuple(slice(c - 6, c + 6) for c in corner)
     core = tuple(slice(c - 4, c + 4) for c in corner)
     data[block] = 1500.0  # the cortex ...
@@ -314,3 +304,35 @@ def test_a_block_of_cancellous_bone_apart_from_the_tree_is_set_aside():
     (pieces,) = [d for d in extraction.readout.decisions if d.what == "pieces in bone"]
     assert pieces.chosen == "1 set aside" and pieces.measure < pieces.threshold
     assert not [d for d in plain.readout.decisions if d.what == "pieces in bone"]  # one piece: nothing decided
+
+
+def _apart_from_the_tree(kind: str, volume, data: np.ndarray, tissue: float, spread: float) -> tuple[int, ...]:
+    """A voxel whose 16³ neighbourhood is the brain's tissue (within ``spread`` of ``tissue``), 10 voxels or more
+    from the tree."""
+    tree = _case(kind, "a").volume.tree.vertices
+    tree_index = (np.linalg.inv(volume.affine) @ np.c_[tree, np.ones(len(tree))].T)[:3].T
+
+    def fits(corner):
+        block = tuple(slice(c - 8, c + 8) for c in corner)
+        return (min(corner) >= 8 and all(c + 8 <= n for c, n in zip(corner, data.shape))
+                and np.all(np.abs(data[block] - tissue) < spread)
+                and np.min(np.linalg.norm(tree_index - corner, axis=1)) > 10.0)
+
+    return next(c for c in np.ndindex(*data.shape) if c[0] % 4 == c[1] % 4 == c[2] % 4 == 0 and fits(c))
+
+
+def test_a_second_vessel_piece_in_an_mra_s_tissue_stays():
+    """An MRA reading of two pieces (the tree and a short vessel apart from it, in tissue): the pieces' bone is the
+    MRA's (its voids and scalp shell), and the piece in tissue is kept, recorded as a decision with its margin."""
+    import dataclasses
+
+    volume, plain = _read("mra", "a")
+    data = np.array(volume.data, np.float32)
+    tissue = float(np.median(data[data > np.percentile(data, 60)]))
+    centre = _apart_from_the_tree("mra", volume, data, tissue, 0.5 * tissue)
+    bright = float(np.percentile(data[plain.kept], 75))
+    data[centre[0] - 6:centre[0] + 6, centre[1] - 1:centre[1] + 2, centre[2] - 1:centre[2] + 2] = bright
+    extraction = extract_vessels(dataclasses.replace(volume, data=data))
+    (pieces,) = [d for d in extraction.readout.decisions if d.what == "pieces in bone"]
+    assert pieces.chosen == "none" and pieces.measure < pieces.threshold
+    assert extraction.readout.components == 2 and extraction.readout.voxels_kept > plain.readout.voxels_kept
