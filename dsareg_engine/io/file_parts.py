@@ -12,7 +12,7 @@ Two things make a :class:`FileParts` cheaper than reading every file whole each 
 from the PostgreSQL blob table: 2.2 s a pass over its 440 files):
 
 * **digests** (optional): each file's SHA-256 (hex) as a content-addressed store already knows it: a model key
-  (:func:`.model_cache.model_key`) takes them instead of reading and hashing the files;
+  (:func:`.model_key.model_key`) takes them instead of reading and hashing the files;
 * **heads** (optional): ``head(n)`` loaders giving a file's first ``n`` bytes (a local file's first bytes, a database
   row's first bytes): a series' headers are read from those (:func:`file_head`), its pixels from the whole files.
 """
