@@ -182,15 +182,16 @@ def cube_maximum(values: np.ndarray, size: int) -> np.ndarray:
     return _cube_extreme(values, size, np.maximum)
 
 
-def cube_minimum(values: np.ndarray, size: int) -> np.ndarray:
-    """``minimum_filter(values, size=size)`` (``size`` odd, ``mode="reflect"``), as :func:`cube_maximum`."""
-    return _cube_extreme(values, size, np.minimum)
+def cube_minimum(values: np.ndarray, size: int, *, in_place: bool = False) -> np.ndarray:
+    """``minimum_filter(values, size=size)`` (``size`` odd, ``mode="reflect"``), as :func:`cube_maximum`;
+    ``in_place``: written into ``values`` (a caller's temporary: one grid fewer at a reading's memory peak)."""
+    return _cube_extreme(values, size, np.minimum, in_place)
 
 
-def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
+def _cube_extreme(values: np.ndarray, size: int, extreme, in_place: bool = False) -> np.ndarray:
     if size % 2 != 1:
         raise ValueError(f"an odd cube side is needed, got {size}")
-    out = np.array(values)
+    out = values if in_place else np.array(values)
     for axis in range(values.ndim):
         source = out.copy() if size > 1 else out
         for shift in range(1, size // 2 + 1):
@@ -201,6 +202,7 @@ def _cube_extreme(values: np.ndarray, size: int, extreme) -> np.ndarray:
             ahead[axis], behind[axis] = slice(shift, None), slice(None, -shift)
             extreme(out[tuple(ahead)], source[tuple(behind)], out=out[tuple(ahead)])
             extreme(out[tuple(behind)], source[tuple(ahead)], out=out[tuple(behind)])
+        del source  # (memory: one copy of the grid at a time, not two while the next is made)
     return out
 
 

@@ -37,6 +37,8 @@ def test_a_cube_extreme_is_the_reflecting_filter(size):
         assert np.array_equal(cube_maximum(values, size), ndimage.maximum_filter(values, size=size))
         assert np.array_equal(cube_minimum(values, size), ndimage.minimum_filter(values, size=size))
         assert np.array_equal(cube_minimum(mask, size), ndimage.minimum_filter(mask, size=size))
+        expected, temporary = ndimage.minimum_filter(mask, size=size), mask.copy()
+        assert cube_minimum(temporary, size, in_place=True) is temporary and np.array_equal(temporary, expected)
         assert np.array_equal(cube_maximum(mask.view(np.uint8), size),
                               ndimage.maximum_filter(mask.view(np.uint8), size=size, mode="constant"))
 
