@@ -128,6 +128,8 @@ def _old_schema() -> sa.MetaData:
            ("jobs", "case_search")}
     old = sa.MetaData()
     for table in metadata.sorted_tables:
+        if table.name == "volume_models":  # revision 0003
+            continue
         columns = [c for c in table.columns if (table.name, c.name) not in new]
         sa.Table(table.name, old, *[sa.Column(c.name, c.type, primary_key=c.primary_key, nullable=c.nullable)
                                     for c in columns])

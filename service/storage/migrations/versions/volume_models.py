@@ -20,6 +20,8 @@ depends_on = None
 
 
 def upgrade() -> None:
+    if sa.inspect(op.get_bind()).has_table("volume_models"):  # an unversioned database made with it (adopted at 0001)
+        return
     op.create_table(
         "volume_models",
         sa.Column("model_key", sa.String(64), primary_key=True),
