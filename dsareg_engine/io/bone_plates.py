@@ -34,8 +34,6 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
     cortical plates); in a TOF-MRA, dark voxels or the scalp shell (marrow and fat lie inside dark cortical bone,
     or under the skin). A close-packed or bulging stretch of a vessel tree can read plate-like on the medial
     measure; it lies in tissue (or against bone on one side: a vessel in a bony groove), so it stays with its tree."""
-    from scipy import ndimage
-
     out = np.zeros(plate.shape, bool)
     box = bounding_box(plate, margin=1)  # a part's surface voxels' neighbours lie in it
     labels, count = labelled(plate[box], narrow_above=0)  # the reading's memory peak: 16 bits where they do
@@ -43,13 +41,19 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
     large = 1 + np.flatnonzero(sizes_mm3 >= PLATE_PART_MM3)
     if len(large) == 0:
         return out
-    bone = np.ascontiguousarray(bone_of(box))  # gathered at flat indices (:func:`bone_contact`)
-    boxes = ndimage.find_objects(labels)
     placed = np.zeros(count + 1, bool)
-    for index in large:
-        placed[index] = bone_contact(labels, index, boxes[index - 1], bone) >= BONE_CONTACT_SHARE
+    placed[large] = _contact_shares(labels, large, bone_of(box)) >= BONE_CONTACT_SHARE
     map_labels(out[box], placed, labels)
     return out
+
+
+def _contact_shares(labels: np.ndarray, indices, bone: np.ndarray) -> np.ndarray:
+    """:func:`bone_contact` of each part in ``indices`` (labels of ``labels``)."""
+    from scipy import ndimage
+
+    bone = np.ascontiguousarray(bone)  # gathered at flat indices (:func:`bone_contact`)
+    boxes = ndimage.find_objects(labels)
+    return np.array([bone_contact(labels, int(index), boxes[index - 1], bone) for index in indices], float)
 
 
 def bone_contact(labels: np.ndarray, index: int, box: tuple, bone: np.ndarray) -> float:
@@ -145,11 +149,7 @@ def without_bone_pieces(mask: np.ndarray, spacing: np.ndarray, bone_of) -> tuple
     labels, count = labelled(mask[box], narrow_above=0)
     if count < 2:
         return mask, BonePieces(0, None, None)
-    from scipy import ndimage
-
-    bone = np.ascontiguousarray(bone_of(box))
-    boxes = ndimage.find_objects(labels)
-    shares = np.array([bone_contact(labels, index, boxes[index - 1], bone) for index in range(1, count + 1)])
+    shares = _contact_shares(labels, range(1, count + 1), bone_of(box))
     sizes_mm3 = label_sizes(labels, count, mask[box])[1:] * float(np.prod(spacing))
     placed = np.concatenate([[False], (shares >= BONE_CONTACT_SHARE) & (sizes_mm3 >= PLATE_PART_MM3)])
     nearest = float(shares[np.argmin(np.abs(shares - BONE_CONTACT_SHARE))])

@@ -237,6 +237,11 @@ def series_header(parts, index: int, field_name: str):
     return header if header is not None else parse_header(parts[index], field_name)
 
 
+def series_headers(parts, field_name: str) -> list:
+    """:func:`series_header` of every file of ``parts``, in order."""
+    return [series_header(parts, index, field_name) for index in range(len(parts))]
+
+
 def _header_within(head: bytes):
     """The header parsed from ``head``, a file's first bytes, or None where it may not end within them."""
     import pydicom

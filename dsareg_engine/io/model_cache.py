@@ -27,14 +27,16 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from ..mesh import TriangleMesh
 from .input_decisions import InputDecision
 from .model_key import MODEL_VERSION, model_key
-from .volume_vessels import VolumeReadout
+
+if TYPE_CHECKING:  # the readers are imported where a model is read back (:func:`from_bytes`), not for the files
+    from .volume_vessels import VolumeReadout
 
 STALE_TEMPORARY_S = 3600.0  # a temporary file this old is no write in progress (a model is written in seconds)
 
@@ -66,6 +68,8 @@ def from_bytes(data: bytes) -> CachedModel:
         meta = json.loads(bytes(stored["meta"]).decode())
     readout = dict(meta["readout"])
     readout["decisions"] = [InputDecision(**item) for item in readout.get("decisions", [])]
+    from .volume_vessels import VolumeReadout
+
     return CachedModel(TriangleMesh(vertices, faces), VolumeReadout(**readout), tuple(meta["warnings"]),
                        str(meta["kind"]))
 
@@ -84,13 +88,14 @@ class DirectoryModelStore:
     def __init__(self, root: str | os.PathLike, max_entries: int = 32, max_bytes: int = 256 << 20):
         self.root, self.max_entries, self.max_bytes = Path(root), int(max_entries), int(max_bytes)
 
-    def _path(self, key: str) -> Path:
+    def path(self, key: str) -> Path:
+        """Where the model of ``key`` is kept (whether or not it is there)."""
         if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
             raise ValueError("a model key is a hex SHA-256")
         return self.root / f"{key}.npz"
 
     def get(self, key: str) -> CachedModel | None:
-        path = self._path(key)
+        path = self.path(key)
         try:
             model = from_bytes(path.read_bytes())
         except FileNotFoundError:
@@ -105,19 +110,24 @@ class DirectoryModelStore:
         return model
 
     def put(self, key: str, model: CachedModel) -> None:
-        data = to_bytes(model)
+        self.put_bytes(key, to_bytes(model))
+
+    def put_bytes(self, key: str, data: bytes) -> bool:
+        """A model file's bytes (:func:`to_bytes`'s) kept under ``key``: written to a temporary name, then renamed;
+        whether it was (not when larger than ``max_bytes`` or the folder cannot be written)."""
         if len(data) > self.max_bytes:
-            return
+            return False
         self.root.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(dir=self.root, prefix=".model-", suffix=".tmp")
         try:
             with os.fdopen(handle, "wb") as out:
                 out.write(data)
-            os.replace(temporary, self._path(key))
+            os.replace(temporary, self.path(key))
         except OSError:
             Path(temporary).unlink(missing_ok=True)
-            return
+            return False
         self._evict()
+        return True
 
     def _evict(self) -> None:
         stale = time.time() - STALE_TEMPORARY_S  # a writer killed between its write and its rename left these

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from . import rad as rad_format
-from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom, series_header
+from .dicom_identity import DicomIdentity, identity_or_none, parse_dicom, series_headers
 from .file_parts import PART_LISTS, volume_parts
 from .image_io import dicom_number
 from .limits import DEFAULT_LIMITS, InputLimits
@@ -157,7 +157,7 @@ def read_volume_identities(data: bytes | Sequence[bytes], name: str | None = Non
             return (), False
     elif len(parts) == 2 and any(_detached_format(p) or rad_format.looks_like_rad(p[:4096]) for p in parts):
         return (), False
-    headers = [series_header(parts, index, field_name) for index in range(len(parts))]
+    headers = series_headers(parts, field_name)
     if len(parts) > 1:
         headers = [headers[i] for i in pick_volume_series(headers, field_name=field_name)[0]]
     identities = [identity_or_none(header) for header in headers]
@@ -293,7 +293,7 @@ def read_dicom_series(
     """
     if len(parts) == 1:
         return _enhanced_volume(bytes(parts[0]), limits, field_name)
-    headers = [series_header(parts, index, field_name) for index in range(len(parts))]
+    headers = series_headers(parts, field_name)
     chosen, series_warnings = pick_volume_series(headers, field_name=field_name)
     if len(chosen) == 1:  # one enhanced multi-frame file beside other series (the XA runs, a scout)
         return _enhanced_volume(bytes(parts[chosen[0]]), limits, field_name, series_warnings)

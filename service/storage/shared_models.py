@@ -16,12 +16,12 @@ logged by type only.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import time
 from pathlib import Path
 
 import sqlalchemy as sa
+
+from dsareg_engine.io.model_cache import DirectoryModelStore
 
 from .dbtimeouts import bulk_statements
 from .schema import volume_models
@@ -30,20 +30,20 @@ log = logging.getLogger("dsareg.service.models")
 
 
 class SharedModels:
-    """A node's model folder ``folder`` mirrored through the ``volume_models`` table of ``engine``."""
+    """A node's model folder ``folder`` (``engine.DirectoryModelStore``'s files) mirrored through the
+    ``volume_models`` table of ``engine``."""
 
     def __init__(self, engine: sa.Engine, folder: Path, max_entries: int):
-        self.engine, self.folder, self.max_entries = engine, Path(folder), int(max_entries)
+        self.engine, self.max_entries = engine, int(max_entries)
+        self.local = DirectoryModelStore(folder, max_entries=self.max_entries)
 
-    def _file(self, key: str) -> Path:
-        if len(key) != 64 or any(c not in "0123456789abcdef" for c in key):
-            raise ValueError("a model key is a hex SHA-256")
-        return self.folder / f"{key}.npz"
+    @property
+    def folder(self) -> Path:
+        return self.local.root
 
     def pull(self, key: str) -> bool:
         """The table's model ``key`` written to this node's folder when the folder lacks it: whether it was."""
-        path = self._file(key)
-        if path.is_file():
+        if self.local.path(key).is_file():
             return False
         try:
             with self.engine.begin() as conn:
@@ -55,16 +55,13 @@ class SharedModels:
         except sa.exc.SQLAlchemyError as exc:
             log.warning("the shared model store could not be read (%s): the volume is read here", type(exc).__name__)
             return False
-        if data is None:
-            return False
-        return _written(path, bytes(data))
+        return data is not None and self.local.put_bytes(key, bytes(data))
 
     def push(self, key: str) -> bool:
         """This node's model ``key`` put in the table when the table lacks it (the oldest rows beyond
         ``max_entries`` then removed): whether it was."""
-        path = self._file(key)
         try:
-            data = path.read_bytes()
+            data = self.local.path(key).read_bytes()
         except OSError:
             return False
         now = time.time()
@@ -94,22 +91,6 @@ class SharedModels:
         with self.engine.connect() as conn:
             return list(conn.execute(sa.select(volume_models.c.model_key)
                                      .order_by(volume_models.c.used_at.desc())).scalars())
-
-
-def _written(path: Path, data: bytes) -> bool:
-    """``data`` at ``path`` by a rename (a reader never sees half a file)."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".model-", suffix=".tmp")
-        try:
-            with os.fdopen(handle, "wb") as out:
-                out.write(data)
-            os.replace(temporary, path)
-        finally:
-            Path(temporary).unlink(missing_ok=True)
-    except OSError:
-        return False
-    return True
 
 
 def shared_models_for(settings, blobs) -> SharedModels | None:
