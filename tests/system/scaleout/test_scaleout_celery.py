@@ -242,3 +242,51 @@ def test_a_volume_series_is_read_from_the_database_blobs(topology):
         assert conn.exec_driver_sql("SELECT count(*) FROM volume_models").scalar() >= 1
     worker_logs = "\n".join(worker.logs() for worker in topology.workers)
     assert f"job {job['id']}: the volume's model from the shared store" in worker_logs, topology.logs()
+
+
+def test_a_worker_frozen_then_killed_on_a_volume_job_loses_nothing(topology):
+    """A Celery worker running a CTA series' job (the model pulled from the shared store, the series read from the
+    blob table) is SIGSTOPped, then SIGKILLed past its lease: the API answers meanwhile, the other worker takes the
+    job and finishes it once, the shared store holds the model once, no temporary model file is left, and the
+    killed process is gone."""
+    import os
+
+    import sqlalchemy as sa
+
+    from service.engine_adapter import engine, volume_model_key
+
+    cta = small_cta_case(0.9)
+    first, second = _two_idle_workers(topology)
+    options = {"starts": 8, "max_iterations": 600, "coarse_to_fine": False,
+               "ground_truth_mesh_to_world": cta.mesh_to_world.tolist()}
+    with topology.api.client() as client:
+        response = submit_volume(client, cta, options)
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        deadline, job = time.monotonic() + 60, None
+        while time.monotonic() < deadline:
+            job = topology.store.get(job_id)
+            if job.status == "running" and job.worker_id:
+                break
+            time.sleep(0.02)
+        assert job is not None and job.status == "running", job
+        victim = first if first.pid == pid_of_worker_id(job.worker_id) else second
+        survivor = second if victim is first else first
+        os.kill(victim.pid, signal.SIGSTOP)
+        started = time.monotonic()
+        assert client.get(f"/v1/registrations/{job_id}").status_code == 200
+        assert time.monotonic() - started < allowed(2.0)  # answered while the worker is frozen
+        time.sleep(5.0)  # past its 4-s lease
+        victim.kill()  # SIGKILL, frozen as it is
+        assert victim.process.poll() == -signal.SIGKILL  # reaped: no process left
+        body = wait_for(client, job_id, timeout=240)
+    assert body["status"] == "succeeded", (body, topology.logs())
+    events = [e["event"] for e in topology.store.events(job_id)]
+    assert events.count("succeeded") == 1 and "lease_expired" in events, events
+    assert pid_of_worker_id(topology.store.get(job_id).worker_id) == survivor.pid
+    key = volume_model_key(topology.store.get(job_id).inputs, engine.parse_options(options))
+    with topology.store.engine.connect() as conn:
+        rows = conn.execute(sa.text("SELECT count(*) FROM volume_models WHERE model_key = :key"), {"key": key}).scalar()
+    assert rows == 1
+    assert list((survivor.data_dir / "models").glob(".model-*.tmp")) == []
+    assert (survivor.data_dir / "models" / f"{key}.npz").is_file()
