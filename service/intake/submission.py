@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 from ..budgets import check_job_cost
-from ..engine_adapter import (check_options, engine, image_reading_json, job_case, model_cache, volume_model_key,
-                              volume_reading)
+from ..engine_adapter import (check_options, engine, image_reading_json, job_case, model_cache, model_store,
+                              volume_model_key, volume_reading)
 from ..jobs.callbacks import url_problem
 from ..pacs.instance_check import InstanceLimits, refusal_of_file
 from ..storage.blobs import safe_suffix
@@ -159,7 +159,7 @@ async def validate_inputs(ctx: IntakeContext, inputs: list[InputFile], geometry:
     warnings and the case identity the headers gave (source ``upload``, no file names: :func:`job_case` sets them)."""
     if ctx.validator is None:
         return [], None
-    shared = shared_models_for(ctx.settings, ctx.blobs)  # scale-out: a model another node kept serves this check
+    shared = shared_models_for(ctx.settings, ctx.blobs, model_store(model_cache(ctx.settings.storage)))  # scale-out: a model another node kept serves this check
     key = volume_model_key(inputs, options, ctx.settings.limits.input_limits) if shared is not None else None
     if key is not None:
         await asyncio.to_thread(shared.pull, key)

@@ -34,8 +34,8 @@ from ..pacs.dimse.export import dimse_job
 from .exports import export_target, source_of
 from ..storage.diskspace import has_room, is_disk_full
 from ..storage.shared_models import shared_models_for
-from ..engine_adapter import (collect_artifacts, engine, fetched_case, model_cache, run_job, stored_case_files,
-                              volume_model_key)
+from ..engine_adapter import (collect_artifacts, engine, fetched_case, model_cache, model_store, run_job,
+                              stored_case_files, volume_model_key)
 from ..problems import TYPE_BASE
 from ..settings import ServiceSettings
 from ..storage.interfaces import Leases
@@ -269,7 +269,7 @@ def _no_share() -> None:
 def _shared_model(blobs: BlobStore, job: JobRecord, settings: ServiceSettings) -> Callable[[], None]:
     """Scale-out (the database blob backend): the model another node kept for this job's volume, pulled into this
     node's model folder before the job; returns what puts the model the job kept into the shared store."""
-    shared = shared_models_for(settings, blobs)
+    shared = shared_models_for(settings, blobs, model_store(model_cache(settings.storage)))
     if shared is None:
         return _no_share
     try:

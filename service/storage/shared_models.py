@@ -18,10 +18,9 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import Any
 
 import sqlalchemy as sa
-
-from dsareg_engine.io.model_cache import DirectoryModelStore
 
 from .dbtimeouts import bulk_statements
 from .schema import volume_models
@@ -30,12 +29,12 @@ log = logging.getLogger("dsareg.service.models")
 
 
 class SharedModels:
-    """A node's model folder ``folder`` (``engine.DirectoryModelStore``'s files) mirrored through the
-    ``volume_models`` table of ``engine``."""
+    """A node's model folder mirrored through the ``volume_models`` table of ``engine``; ``local``: the node's
+    ``engine.DirectoryModelStore`` (``path(key)``, ``put_bytes(key, data)``, ``root``, ``max_entries``; made by
+    ``service.engine_adapter.model_store``: only the adapter imports the engine)."""
 
-    def __init__(self, engine: sa.Engine, folder: Path, max_entries: int):
-        self.engine, self.max_entries = engine, int(max_entries)
-        self.local = DirectoryModelStore(folder, max_entries=self.max_entries)
+    def __init__(self, engine: sa.Engine, local: Any):
+        self.engine, self.local, self.max_entries = engine, local, int(local.max_entries)
 
     @property
     def folder(self) -> Path:
@@ -93,10 +92,11 @@ class SharedModels:
                                      .order_by(volume_models.c.used_at.desc())).scalars())
 
 
-def shared_models_for(settings, blobs) -> SharedModels | None:
-    """The shared model store of a deployment with the database blob backend and the model cache on, else None
-    (one node: its ``<data_dir>/models`` is shared by its processes already)."""
-    folder, engine = settings.storage.model_dir, getattr(blobs, "engine", None)
-    if folder is None or engine is None or settings.effective_blob_backend != "database":
+def shared_models_for(settings, blobs, local: Any) -> SharedModels | None:
+    """The shared model store of a deployment with the database blob backend and the model cache on (``local``: the
+    node's model store, or None when the cache is off), else None (one node: its ``<data_dir>/models`` is shared by
+    its processes already)."""
+    engine = getattr(blobs, "engine", None)
+    if local is None or engine is None or settings.effective_blob_backend != "database":
         return None
-    return SharedModels(engine, folder, settings.storage.model_cache_entries)
+    return SharedModels(engine, local)

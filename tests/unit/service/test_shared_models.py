@@ -9,13 +9,17 @@ import logging
 import pytest
 import sqlalchemy as sa
 
-from service.engine_adapter import engine, load_job_case, volume_model_key, volume_reading
+from service.engine_adapter import engine, load_job_case, model_cache, model_store, volume_model_key, volume_reading
 from service.settings import ServiceSettings
 from service.storage.blobs import BlobStore
 from service.storage.dbblobs import DatabaseBlobStore
 from service.storage.migrate import upgrade_database
 from service.storage.records import InputFile
 from service.storage.shared_models import SharedModels, shared_models_for
+
+
+def _node(database, folder, entries: int) -> SharedModels:
+    return SharedModels(database, model_store({"dir": str(folder), "entries": entries}))
 
 
 def _key(n: int) -> str:
@@ -32,7 +36,7 @@ def database(tmp_path):
 
 
 def test_a_model_one_node_kept_is_pulled_by_another(database, tmp_path):
-    api, worker = SharedModels(database, tmp_path / "api", 4), SharedModels(database, tmp_path / "worker", 4)
+    api, worker = _node(database, tmp_path / "api", 4), _node(database, tmp_path / "worker", 4)
     key = _key(1)
     assert not worker.pull(key) and not api.push(key)  # nothing anywhere yet
     (tmp_path / "api").mkdir()
@@ -47,7 +51,7 @@ def test_a_model_one_node_kept_is_pulled_by_another(database, tmp_path):
 
 
 def test_the_table_keeps_the_most_recently_used(database, tmp_path):
-    node, other = SharedModels(database, tmp_path / "node", 2), SharedModels(database, tmp_path / "other", 2)
+    node, other = _node(database, tmp_path / "node", 2), _node(database, tmp_path / "other", 2)
     (tmp_path / "node").mkdir()
     for n in range(3):
         (tmp_path / "node" / f"{_key(n)}.npz").write_bytes(b"m%d" % n)
@@ -57,7 +61,7 @@ def test_the_table_keeps_the_most_recently_used(database, tmp_path):
 
 
 def test_a_database_error_is_a_miss(database, tmp_path, caplog):
-    node = SharedModels(database, tmp_path / "node", 2)
+    node = _node(database, tmp_path / "node", 2)
     (tmp_path / "node").mkdir()
     (tmp_path / "node" / f"{_key(5)}.npz").write_bytes(b"m")
     with database.begin() as conn:
@@ -72,14 +76,15 @@ def test_a_database_error_is_a_miss(database, tmp_path, caplog):
 def test_only_a_deployment_with_database_blobs_shares_models(database, tmp_path, monkeypatch):
     monkeypatch.delenv("DSAREG_BLOB_BACKEND", raising=False)
     files = ServiceSettings(data_dir=tmp_path)
-    assert shared_models_for(files, BlobStore(tmp_path)) is None
+    assert shared_models_for(files, BlobStore(tmp_path), model_store({"dir": str(tmp_path / 'models'), "entries": 16})) is None
     monkeypatch.setenv("DSAREG_BLOB_BACKEND", "database")
     scaled = ServiceSettings(data_dir=tmp_path)
     blobs = DatabaseBlobStore(tmp_path, database, create_schema=False)
-    shared = shared_models_for(scaled, blobs)
+    shared = shared_models_for(scaled, blobs, model_store(model_cache(scaled.storage)))
     assert shared is not None and shared.folder == tmp_path / "models" and shared.max_entries == 16
     monkeypatch.setenv("DSAREG_MODEL_CACHE_ENTRIES", "0")
-    assert shared_models_for(ServiceSettings(data_dir=tmp_path), blobs) is None
+    off = ServiceSettings(data_dir=tmp_path)
+    assert shared_models_for(off, blobs, model_store(model_cache(off.storage))) is None
 
 
 @pytest.mark.parametrize("given", [{}, {"volume_kind": "mra"}, {"volume_kind": "cta", "volume_vessel_min": 180},
