@@ -42,12 +42,12 @@ def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
     if len(large) == 0:
         return out
     placed = np.zeros(count + 1, bool)
-    placed[large] = _contact_shares(labels, large, bone_of(box)) >= BONE_CONTACT_SHARE
+    placed[large] = contact_shares(labels, large, bone_of(box)) >= BONE_CONTACT_SHARE
     map_labels(out[box], placed, labels)
     return out
 
 
-def _contact_shares(labels: np.ndarray, indices, bone: np.ndarray) -> np.ndarray:
+def contact_shares(labels: np.ndarray, indices, bone: np.ndarray) -> np.ndarray:
     """:func:`bone_contact` of each part in ``indices`` (labels of ``labels``)."""
     from scipy import ndimage
 
@@ -125,41 +125,6 @@ def plates_found(mask: np.ndarray, spacing: np.ndarray, bone_of) -> PlatesFound:
     return PlatesFound(large, None, box, rest, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
 
 
-@dataclass(frozen=True)
-class BonePieces:
-    """The separate pieces of a reading set aside as bone (:func:`without_bone_pieces`): how many, their voxels
-    (a bool grid of the mask's shape, or None when none), and the bone-contact share of the piece nearest
-    ``BONE_CONTACT_SHARE`` on either side (the decision's margin), or None with a single piece."""
-
-    count: int
-    set_aside: np.ndarray | None
-    nearest_share: float | None
-
-
-def without_bone_pieces(mask: np.ndarray, spacing: np.ndarray, bone_of) -> tuple[np.ndarray, BonePieces]:
-    """``mask`` without its separate pieces that are bone: bone-sized (at least ``PLATE_PART_MM3``) and in bone (at
-    least ``BONE_CONTACT_SHARE`` of a piece's surface voxels touch ``bone_of(box)``, as :func:`bone_plates`'s). A
-    block of cancellous bone (a clivus, a petrous apex, a marrow space) is thick, not a plate, and its interior
-    lies far enough from the cortex around it to be read as vessel; cortex and its band enclose it (shares
-    ~0.95–1). A vessel tree lies in tissue and touches bone along its canals only (~0.3); a small fragment beside
-    bone stays. Kept when every piece would go (the reading is then judged as it is)."""
-    box = bounding_box(mask, margin=1)
-    if box is None:
-        return mask, BonePieces(0, None, None)
-    labels, count = labelled(mask[box], narrow_above=0)
-    if count < 2:
-        return mask, BonePieces(0, None, None)
-    shares = _contact_shares(labels, range(1, count + 1), bone_of(box))
-    sizes_mm3 = label_sizes(labels, count, mask[box])[1:] * float(np.prod(spacing))
-    placed = np.concatenate([[False], (shares >= BONE_CONTACT_SHARE) & (sizes_mm3 >= PLATE_PART_MM3)])
-    nearest = float(shares[np.argmin(np.abs(shares - BONE_CONTACT_SHARE))])
-    if not placed.any() or placed[1:].all():
-        return mask, BonePieces(0, None, nearest)
-    set_aside = np.zeros(mask.shape, bool)
-    map_labels(set_aside[box], placed, labels)
-    return mask & ~set_aside, BonePieces(int(placed.sum()), set_aside, nearest)
-
-
 def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tuple[np.ndarray, float | None]:
     """``mask`` without the plates ``found`` in it, its largest tube components kept, and the plate share of the
     mask returned when it is ``mask`` itself (else None: measure it again). What the plate leaves behind (its rim,
@@ -182,5 +147,5 @@ def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tup
     return largest_components(kept, field_name=field_name), None
 
 
-__all__ = ["BONE_CONTACT_SHARE", "PLATE_PART_MM3", "PLATE_RIM_MM", "BonePieces", "PlatesFound", "bone_contact",
-           "bone_plates", "plates_found", "without_bone_pieces", "without_plates"]
+__all__ = ["BONE_CONTACT_SHARE", "PLATE_PART_MM3", "PLATE_RIM_MM", "PlatesFound", "bone_contact", "bone_plates",
+           "contact_shares", "plates_found", "without_plates"]

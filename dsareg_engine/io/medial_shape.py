@@ -98,7 +98,7 @@ def medial_ratio(work: np.ndarray, work_mm: float = WORK_MM) -> tuple[np.ndarray
     scaling exponent ``(N,)`` and their radius ``(N,)`` in working voxels."""
     from scipy.spatial import cKDTree
 
-    points, radius_vox = _medial_points(work, work_mm)
+    points, radius_vox = medial_points(work, work_mm)
     if len(points) == 0:
         return points, np.zeros(0), np.zeros(0)
     sample = np.arange(len(points))
@@ -130,7 +130,7 @@ def _ball_counts(work: np.ndarray, centres: np.ndarray, ball_vox: np.ndarray) ->
             voxels.query_ball_point(centres, ball_vox / 2.0, return_length=True))
 
 
-def _medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.ndarray]:
+def medial_points(work: np.ndarray, work_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """The medial points ``(N, 3)`` of ``work`` and their radius (working voxels): the voxels of ``work`` as deep as
     the deepest within 2 voxels less 0.75 voxel, on the ridge of the depth (``|∇ depth|`` below ``MEDIAL_SLOPE``,
     central differences as ``np.gradient``) or in a structure two voxels across. The depth's local tops are
@@ -376,4 +376,5 @@ def _box(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
     return np.array([b.start for b in box]), np.array([b.stop for b in box])
 
 
-__all__ = ["PLATE_RATIO", "WORK_MM", "MedialShape", "medial_ratio", "medial_shape", "to_working_grid", "working_mm"]
+__all__ = ["PLATE_RATIO", "WORK_MM", "MedialShape", "medial_points", "medial_ratio", "medial_shape", "to_working_grid",
+           "working_mm"]

@@ -17,7 +17,9 @@ from dataclasses import asdict
 from .file_parts import PART_LISTS, file_digests
 from .volume_kind import VolumeReading
 
-MODEL_VERSION = "volume-model-2"  # 2: separate pieces in bone set aside (session 23)
+# 2: separate pieces in bone set aside (session 23); 3: venous sinuses set aside, the volume read again without
+# the pieces set aside (session 24)
+MODEL_VERSION = "volume-model-3"
 
 
 def model_key(volume: bytes | Sequence[bytes], name: str | None, reading: VolumeReading | None, working_faces: int) -> str:

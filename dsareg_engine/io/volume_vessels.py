@@ -29,14 +29,16 @@ piece but specks kept, the decisions the labels read as vessels and the pieces k
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
 from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
-from .bone_plates import BONE_CONTACT_SHARE, PLATE_RIM_MM, plates_found, without_bone_pieces, without_plates
+from .bone_plates import BONE_CONTACT_SHARE, PLATE_RIM_MM, plates_found, without_plates
 from .input_decisions import InputDecision
+from .separate_pieces import PiecesSetAside, without_pieces
+from .venous_sinuses import ALONG_BONE_BAND, ALONG_BONE_SHARE
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
 from .volume_kernels import kernels_in_use, load_kernels_for
@@ -250,57 +252,136 @@ def _labelled(volume: Volume, voxels: np.ndarray, labels: LabelMap, field_name: 
 
 def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, reading: VolumeReading,
            field_name: str):
-    """CTA / MRA: ``(field, mask, levels, excluded, plate_share)``. Bone in the window (a diploë, a cancellous skull
-    base, marrow fat) is a plate: set aside (:func:`.bone_plates.without_plates`). When plates were set aside and the vessel
-    level was estimated (not given), it was estimated with their voxels among the vessels' (a cancellous skull
-    base outweighs the vessels: the level lands above thin vessels, and the distal tree falls apart at coarse
-    voxels): the reading is done again with the plates and their rim left out of the estimate."""
-
+    """CTA / MRA: ``(field, mask, levels, excluded, plate_share)``, read by :func:`_tubes_pass`. When that set
+    separate pieces aside (bone, venous sinuses) and the vessels' level was estimated (not given), the level was
+    estimated with the pieces' voxels among the vessels' (a venous system outweighs a carotid territory: the window
+    starts low enough to take noise in): the reading is done again with the pieces and their rim left out of the
+    estimate and of the seeds."""
     ground = (_cta_ground if kind == "cta" else _mra_ground)(smooth, affine, spacing, reading, field_name)
+    field, mask, levels, excluded, plate_share, read_mask = _tubes_pass(kind, smooth, spacing, reading, field_name,
+                                                                        ground, None)
+    first = levels["pieces"]
+    if reading.vessel_min is None and any(found.set_aside is not None for found in first.values()):
+        shape, rim = mask.shape, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
+        pieces = np.zeros(shape, bool)
+        for found in first.values():
+            if found.set_aside is not None:
+                pieces |= found.set_aside
+        left_out, box = np.zeros(shape, bool), bounding_box(pieces, margin=rim)
+        left_out[box] = grown(pieces[box], rim)
+        pieces = np.packbits(pieces)  # (only the picture needs them: ``excluded``)
+        first = {name: replace(found, set_aside=None) for name, found in first.items()}
+        del field, mask, excluded, read_mask  # the first reading's: not held through the second
+        _unpack(ground, shape)
+        field, mask, levels, excluded, plate_share, read_mask = _tubes_pass(kind, smooth, spacing, reading,
+                                                                            field_name, ground, left_out)
+        del left_out
+        excluded |= _bits(pieces, shape)
+        levels["pieces"] = {name: first[name].then(found) for name, found in levels["pieces"].items()}
+    if kind == "cta":  # the surface's field, of the last reading, made in ``smooth`` (no longer read)
+        _unpack(ground, mask.shape)
+        field = _cta_field(smooth, ground, _bits(read_mask, mask.shape), levels)
+    return field, mask, levels, excluded, plate_share
+
+
+def _tubes_pass(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground,
+                left_out: np.ndarray | None):
+    """One CTA / MRA reading: ``(field, mask, levels, excluded, plate_share, read_mask)``; ``left_out``:
+    voxels out of the level's estimate and the seeds (pieces an earlier pass set aside, their rim), or None.
+
+    Bone in the window (a diploë, a cancellous skull base, marrow fat) is a plate: set aside
+    (:func:`.bone_plates.without_plates`); when plates were set aside and the level was estimated, it was estimated
+    with their voxels among the vessels' (a cancellous skull base outweighs the vessels: the level lands above thin
+    vessels, and the distal tree falls apart at coarse voxels): read again with the plates and their rim left out of
+    the estimate. Then separate pieces of bone and venous sinuses are set aside (:func:`_without_pieces`).
+    ``read_mask``: CTA, the voxels read before any was set aside, packed (the surface's field, :func:`_cta_field`);
+    the ``ground``'s grid is left packed (:func:`_pack`: not held whole through the last labelling)."""
+    field, mask, levels, excluded, found, earlier = _plates_read(kind, smooth, spacing, reading, field_name, ground,
+                                                                 left_out)
+    read_mask = None
+    if kind == "cta":
+        excluded = ground.near_bone & ~mask  # bone and its band beyond the reading's voxels (⊇ bone)
+        read_mask = np.packbits(mask)
+    _pack(ground)  # (memory: bone's band is not held whole through the last labelling)
+    excluded |= found.plates
+    if earlier is not None:
+        excluded |= _bits(earlier, excluded.shape)
+    del earlier
+    mask, plate_share = without_plates(mask, found, field_name)
+    del found
+    mask, levels["pieces"] = _without_pieces(kind, smooth, spacing, mask, excluded, levels, ground)
+    if any(found.set_aside is not None for found in levels["pieces"].values()):
+        plate_share = None  # measured again on what is kept
+    return field, mask, levels, excluded, plate_share, read_mask
+
+
+def _plates_read(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground,
+                 left_out: np.ndarray | None):
+    """A reading and its plates (:func:`.bone_plates.plates_found`), read again without the plates in the estimate
+    when there are any and the level was estimated: ``(field, mask, levels, excluded, found, earlier)``; ``earlier``:
+    the first reading's plates, packed (only the picture needs them), or None."""
 
     def read(not_vessels):  # the ground (bone and its band; the head's interior) is the same in both readings
-        if kind == "cta":
-            return _cta(smooth, spacing, reading, field_name, ground, not_vessels)
-        return _mra(smooth, spacing, reading, field_name, ground, not_vessels)
+        reader = _cta if kind == "cta" else _mra
+        return reader(smooth, spacing, reading, field_name, ground, not_vessels, left_out)
 
     def bone_of(excluded, levels, mask):  # what a plate of bone lies against (:func:`.bone_plates.bone_plates`), in a box
         if kind == "cta":  # bone and its band beyond the reading's voxels (not held as a grid of its own)
             return lambda box: ground.near_bone[box] & ~mask[box]
         return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
 
-    field, mask, levels, excluded = read(None)  # CTA: excluded None; MRA: the scalp shell
+    field, mask, levels, excluded = read(left_out)  # CTA: excluded None; MRA: the scalp shell
     found = plates_found(mask, spacing, bone_of(excluded, levels, mask))
-    earlier = None  # the first reading's plates, packed 8 to a byte: only the picture needs them (``excluded``)
+    earlier = None
     if found.plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside, box = np.zeros(mask.shape, bool), bounding_box(found.plates, margin=rim)
         set_aside[box] = grown(found.plates[box], rim)
+        if left_out is not None:
+            set_aside |= left_out
         earlier = np.packbits(found.plates)
         del field, mask, excluded, found  # the first reading's: not held through the second
         field, mask, levels, excluded = read(set_aside)
         del set_aside
         found = plates_found(mask, spacing, bone_of(excluded, levels, mask))
-    if field is None:  # CTA: the surface's field, of the last reading, made in ``smooth`` (no longer read)
-        field = _cta_field(smooth, ground, mask, levels)
-        excluded = ground.near_bone & ~mask  # bone and its band beyond the reading's voxels (⊇ bone)
-    air = None if kind == "cta" else ground.air  # (an MRA's bone, below, is found from it)
-    ground = None  # (memory: bone's band is not held through the last labelling)
-    excluded |= found.plates
-    if earlier is not None:
-        excluded |= np.unpackbits(earlier, count=excluded.size).reshape(excluded.shape).view(bool)
-    del earlier
-    mask, plate_share = without_plates(mask, found, field_name)
-    del found
-    if kind == "cta":  # bone and its band beyond the reading's voxels, the plates
-        mask, pieces = without_bone_pieces(mask, spacing, lambda box: excluded[box])
-    else:  # the voids and the scalp shell, the plates (marrow)
-        mask, pieces = without_bone_pieces(mask, spacing, lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box,
-                                                                             air))
-    if pieces.set_aside is not None:
-        excluded |= pieces.set_aside
-        plate_share = None  # measured again on what is kept
-    levels["bone_pieces"] = pieces
-    return field, mask, levels, excluded, plate_share
+    return field, mask, levels, excluded, found, earlier
+
+
+def _without_pieces(kind: str, smooth: np.ndarray, spacing: np.ndarray, mask: np.ndarray, excluded: np.ndarray,
+                    levels: dict, ground) -> tuple[np.ndarray, dict]:
+    """``mask`` without its separate pieces of bone and venous sinuses (:func:`.separate_pieces.without_pieces`),
+    both added to ``excluded``; and the two records (``bone``, ``sinuses``). Bone: CTA, bone and its band beyond the
+    reading's voxels and the plates (``excluded``); MRA, the voids and the scalp shell (:func:`_dark_or_surface`)."""
+    if kind == "cta":
+        def bone_of(box):
+            return excluded[box]
+    else:
+        def bone_of(box):
+            return _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
+    mask, records = without_pieces(mask, spacing, bone_of)
+    for found in records.values():
+        if found.set_aside is not None:
+            excluded |= found.set_aside
+    return mask, records
+
+
+def _pack(ground) -> None:
+    """Packs ``ground``'s grid (CTA: ``near_bone``; MRA: ``interior``) 8 voxels to a byte, in place."""
+    name = "near_bone" if isinstance(ground, _CtaGround) else "interior"
+    if getattr(ground, name).dtype == bool:
+        setattr(ground, name, np.packbits(getattr(ground, name)))
+
+
+def _unpack(ground, shape: tuple[int, ...]) -> None:
+    """Unpacks ``ground``'s grid (:func:`_pack`) to ``shape``, in place."""
+    name = "near_bone" if isinstance(ground, _CtaGround) else "interior"
+    if getattr(ground, name).dtype != bool:
+        setattr(ground, name, _bits(getattr(ground, name), shape))
+
+
+def _bits(packed: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """A bool grid of ``shape`` from its ``np.packbits``."""
+    return np.unpackbits(packed, count=int(np.prod(shape))).reshape(shape).view(bool)
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
@@ -341,16 +422,26 @@ def _decisions(readout: VolumeReadout, reading: VolumeReading, air: float, level
             "volume", "bone threshold", f"{readout.vessel_max:.0f} HU",
             "the vessels' level (HU) against the bone threshold", levels.get("vessel"), readout.vessel_max,
             BONE_MARGIN_HU, "option" if reading.vessel_max is not None else "measured"))
-    pieces = levels.get("bone_pieces")
-    if pieces is not None and pieces.nearest_share is not None:
+    pieces = levels.get("pieces", {})
+    if pieces.get("bone") is not None and pieces["bone"].nearest_share is not None:
         decisions.append(InputDecision(
-            "volume", "pieces in bone", f"{pieces.count} set aside" if pieces.count else "none",
+            "volume", "pieces in bone", _set_aside(pieces["bone"]),
             "share of a separate piece's surface against bone (cancellous bone ~1, a vessel tree ~0.3); the piece "
-            "nearest the threshold", pieces.nearest_share, BONE_CONTACT_SHARE, PIECE_CONTACT_BAND))
+            "nearest the threshold", pieces["bone"].nearest_share, BONE_CONTACT_SHARE, PIECE_CONTACT_BAND))
+    if pieces.get("sinuses") is not None and pieces["sinuses"].nearest_share is not None:
+        decisions.append(InputDecision(
+            "volume", "venous sinuses", _set_aside(pieces["sinuses"]),
+            "share of a separate piece's medial axis whose lumen touches bone (dural sinuses ~1, a vessel tree "
+            "~0.1-0.2); the piece nearest the threshold", pieces["sinuses"].nearest_share, ALONG_BONE_SHARE,
+            ALONG_BONE_BAND))
     decisions.append(InputDecision(
         "volume", "vessel shape", "tubes", "plate share of the kept voxels' medial axis", readout.plate_share,
         MAX_PLATE_FRACTION, PLATE_BAND))
     return decisions
+
+
+def _set_aside(pieces: PiecesSetAside) -> str:
+    return f"{pieces.count} set aside" if pieces.count else "none"
 
 
 def _kind_decision(readout: VolumeReadout, reading: VolumeReading, air: float) -> InputDecision:
@@ -392,7 +483,7 @@ def _dsa3d(smooth: np.ndarray, reading: VolumeReading, field_name: str):
     return smooth, mask, {"min": level}
 
 
-@dataclass(frozen=True)
+@dataclass
 class _CtaGround:
     """What a CTA reading stands on, whatever the vessels' level: bone (above ``bone_hu``), the voxels within
     its partial-volume band (``PV_BAND_MM`` plus a voxel; bone included) and the soft tissue's level (HU)."""
@@ -416,8 +507,9 @@ def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
 
 
 def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _CtaGround,
-         not_vessels: np.ndarray | None = None):
-    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
+         not_vessels: np.ndarray | None = None, not_seeds: np.ndarray | None = None):
+    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None; ``not_seeds``:
+    voxels that seed no vessel (pieces set aside by an earlier pass, their rim), or None."""
     bone_hu, tissue, near_bone = ground.bone_hu, ground.tissue, ground.near_bone
     candidates = (smooth > tissue + 100.0) & (smooth < bone_hu) & ~near_bone
     if not_vessels is not None:
@@ -440,6 +532,8 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     # at a bone surface sits on a steep ramp from tissue to bone
     seeds = window & ~near_bone
     seeds |= _plateau(smooth, window & near_bone, spacing, PLATEAU_FRACTION * (peak - tissue))
+    if not_seeds is not None:
+        seeds &= ~not_seeds
     core = largest_components(seeds, field_name=field_name)
     del seeds
     # regrow into the band only through voxels with no tissue-level voxel near: the lumen and wall of a vessel
@@ -541,7 +635,7 @@ def _head_mask(smooth: np.ndarray, affine: np.ndarray) -> np.ndarray:
     return filled
 
 
-@dataclass(frozen=True)
+@dataclass
 class _MraGround:
     """What a TOF-MRA reading stands on, whatever the vessels' level: the head's interior (deeper than
     ``MRA_SHELL_MM`` under its surface) and the tissue's level and noise spread there; ``air``: the noise floor
@@ -592,8 +686,9 @@ def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
 
 
 def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _MraGround,
-         not_vessels: np.ndarray | None = None):
-    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None."""
+         not_vessels: np.ndarray | None = None, not_seeds: np.ndarray | None = None):
+    """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None; ``not_seeds``:
+    voxels that are no vessel (pieces set aside by an earlier pass, their rim), or None."""
     interior, tissue, spread = ground.interior, ground.tissue, ground.spread
     values = smooth[interior]
     if not_vessels is not None:
@@ -610,6 +705,8 @@ def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     del values, bright  # (memory: the interior's values, 4 bytes a voxel of it, are not held through the labelling)
     low = level if reading.vessel_min is not None else tissue + MRA_EXTENT * (vessel - tissue)
     candidates = interior & (smooth > low)
+    if not_seeds is not None:
+        candidates &= ~not_seeds
     if np.count_nonzero(candidates) < 8:
         raise _no_vessels(f"no voxels above {low:.0f} inside the head", field_name, "MRA")
     peak = vessel if vessel is not None else float(np.percentile(smooth[candidates], 75))
