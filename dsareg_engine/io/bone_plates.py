@@ -24,7 +24,7 @@ from .voxel_steps import bounding_box, components, grown, label_sizes, labelled,
 PLATE_PART_MM3 = 200.0  # a plate part this large may be bone (a vessel's false plate spots are mostly smaller)
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
 BONE_CONTACT_SHARE = 0.5  # CTA/MRA: a plate part is bone when this share of its surface touches bone (bone ~1, vessels ~0)
-PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest)
+PLATE_RIM_MM = 2.0  # a component within this of a plate set aside is its rim (unless it is the largest or a vessel)
 
 
 def bone_plates(plate: np.ndarray, spacing: np.ndarray, bone_of) -> np.ndarray:
@@ -125,10 +125,15 @@ def plates_found(mask: np.ndarray, spacing: np.ndarray, bone_of) -> PlatesFound:
     return PlatesFound(large, None, box, rest, max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min())))))
 
 
-def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tuple[np.ndarray, float | None]:
+def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str, spacing: np.ndarray | None = None,
+                   bone_of=None) -> tuple[np.ndarray, float | None]:
     """``mask`` without the plates ``found`` in it, its largest tube components kept, and the plate share of the
     mask returned when it is ``mask`` itself (else None: measure it again). What the plate leaves behind (its rim,
-    fragments) touches it; a vessel apart from the largest does not."""
+    fragments) touches it and lies in bone; so does a vessel's end (a trunk through a cancellous skull base), but a
+    vessel runs on through tissue. The largest component stays; with ``bone_of(box)`` (what bone lies where
+    ``mask[box]`` lies) and ``spacing``, so does a touching component of at least ``PLATE_PART_MM3`` whose medial
+    axis does not run along bone (:func:`.venous_sinuses.along_bone`): a venous sinus can outweigh the arterial tree
+    (:mod:`.separate_pieces` judges what stays)."""
     if found.rest is None:
         return mask, found.share
     box, large = found.box, found.plates
@@ -141,10 +146,32 @@ def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str) -> tup
     keep = np.ones(parts.count + 1, bool)
     keep[0] = False
     keep[touching[touching != int(np.argmax(sizes))]] = False
+    if bone_of is not None:
+        keep[_vessels_among(parts, touching[touching != int(np.argmax(sizes))], sizes, box, spacing, bone_of)] = True
     kept = np.zeros(mask.shape, bool)
     parts.write(kept[box], keep)
     del parts  # the box's labels, where there are any, are not held through the next labelling
     return largest_components(kept, field_name=field_name), None
+
+
+def _vessels_among(parts, indices: np.ndarray, sizes: np.ndarray, box: tuple[slice, ...], spacing: np.ndarray,
+                   bone_of) -> list[int]:
+    """The ``indices`` (components of ``parts``, in ``box`` of the mask) of at least ``PLATE_PART_MM3`` whose medial
+    axis does not run along bone (:func:`.venous_sinuses.along_bone` below ``ALONG_BONE_SHARE``)."""
+    from .venous_sinuses import ALONG_BONE_SHARE, along_bone
+
+    out = []
+    for index in indices[sizes[indices] * float(np.prod(spacing)) >= PLATE_PART_MM3]:
+        chosen = np.zeros(parts.count + 1, bool)
+        chosen[index] = True
+        part = np.zeros(tuple(s.stop - s.start for s in box), bool)
+        parts.write(part, chosen)
+        near = bounding_box(part, margin=1)
+        piece = part[near]
+        whole = tuple(slice(b.start + n.start, b.start + n.stop) for b, n in zip(box, near))
+        if along_bone(piece, np.asarray(spacing, float), piece & grown(bone_of(whole))).share < ALONG_BONE_SHARE:
+            out.append(int(index))
+    return out
 
 
 __all__ = ["BONE_CONTACT_SHARE", "PLATE_PART_MM3", "PLATE_RIM_MM", "PlatesFound", "bone_contact", "bone_plates",

@@ -66,14 +66,16 @@ def without_pieces(mask: np.ndarray, spacing: np.ndarray, bone_of) -> tuple[np.n
     bone = np.ascontiguousarray(bone_of(box))
     contact = contact_shares(labels, range(1, count + 1), bone)
     large = label_sizes(labels, count, mask[box])[1:] * float(np.prod(spacing)) >= PIECE_MM3
-    in_bone = large & (contact >= BONE_CONTACT_SHARE)
-    along = np.full(count, np.nan)  # the along-bone share of the thick pieces judged by it
-    sinus = np.zeros(count, bool)
-    judged = np.flatnonzero(large & ~in_bone)
+    along = np.full(count, np.nan)  # the along-bone share of the pieces judged by it
+    runs_along = np.zeros(count, bool)
+    thick = np.zeros(count, bool)
+    judged = np.flatnonzero(large)
     for index, measure in zip(judged, along_bone_of(labels, judged + 1, bone, spacing)):
-        sinus[index] = measure.sinus
-        if measure.radius_mm >= SINUS_RADIUS_MM:  # a thinner piece's share decides nothing
-            along[index] = measure.share
+        runs_along[index] = measure.share >= ALONG_BONE_SHARE
+        thick[index] = measure.radius_mm >= SINUS_RADIUS_MM
+        along[index] = measure.share if thick[index] else np.nan  # a thinner piece's share decides nothing
+    in_bone = large & runs_along & (contact >= BONE_CONTACT_SHARE)  # enclosed, all along: a block of bone
+    sinus = large & runs_along & thick & ~in_bone
     del bone
     if (in_bone | sinus).all():  # every piece would go: the reading is judged as it is
         in_bone[:], sinus[:] = False, False

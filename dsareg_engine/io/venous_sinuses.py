@@ -61,8 +61,10 @@ def along_bone(piece: np.ndarray, spacing: np.ndarray, touching: np.ndarray) -> 
     work_mm = max(working_mm(piece.shape, spacing), (box_mm3 / PIECE_WORK_VOXELS) ** (1.0 / 3.0))
     work, zoom = to_working_grid(piece, spacing, work_mm)
     points, radius_vox = medial_points(work, work_mm)
-    if len(points) == 0:
-        return AlongBone(0.0, 0.0)
+    if len(points) == 0:  # no ridge (a box-shaped block): its deepest voxel stands for it
+        points, radius_vox = _deepest(work)
+        if len(points) == 0:
+            return AlongBone(0.0, 0.0)
     weight = np.maximum(radius_vox, 1.0) ** 2
     radius_mm = float((weight * radius_vox).sum() / weight.sum()) * work_mm
     if not touching.any():
@@ -71,6 +73,17 @@ def along_bone(piece: np.ndarray, spacing: np.ndarray, touching: np.ndarray) -> 
     distance_mm = cKDTree(np.argwhere(touching) * spacing).query(at_mm)[0]
     along = distance_mm <= radius_vox * work_mm + TOUCH_MM
     return AlongBone(float((weight * along).sum() / weight.sum()), radius_mm)
+
+
+def _deepest(work: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The deepest voxel of ``work`` (``(1, 3)``, or none when empty) and its depth (working voxels)."""
+    from scipy import ndimage
+
+    if not work.any():
+        return np.zeros((0, 3), int), np.zeros(0)
+    depth = ndimage.distance_transform_edt(np.pad(work, 1))[1:-1, 1:-1, 1:-1]
+    at = np.unravel_index(int(np.argmax(depth)), work.shape)
+    return np.array([at]), np.array([float(depth[at]) - 0.25])
 
 
 def along_bone_of(labels: np.ndarray, indices, bone: np.ndarray, spacing: np.ndarray) -> list[AlongBone]:

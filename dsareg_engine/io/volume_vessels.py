@@ -21,7 +21,9 @@ vessel voxels → a shape check (:mod:`.vessel_shape`) → marching cubes (:func
 CTA and MRA: when the kept voxels are largely plate-shaped (:mod:`.medial_shape`, in mm: a diploë or a
 cancellous skull base inside the HU window, skull-base marrow fat in a TOF-MRA), the plate parts and what
 touches them are set aside before the shape check; the shape check refuses only when nothing tube-like remains.
-The decisions (kind, vessel window, bone threshold, vessel shape) go to ``VolumeReadout.decisions``.
+Then separate pieces that are not arteries (blocks of bone, venous sinuses: :mod:`.separate_pieces`) are set aside,
+and the volume read again without them in the level's estimate. The decisions (kind, vessel window, bone threshold,
+pieces in bone, venous sinuses, vessel shape) go to ``VolumeReadout.decisions``.
 
 A label map or 0/1 mask (:mod:`.volume_labels`) is read as its labels, not by intensity: kind ``labels``, every
 piece but specks kept, the decisions the labels read as vessels and the pieces kept.
@@ -269,14 +271,14 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
                 pieces |= found.set_aside
         left_out, box = np.zeros(shape, bool), bounding_box(pieces, margin=rim)
         left_out[box] = grown(pieces[box], rim)
-        pieces = np.packbits(pieces)  # (only the picture needs them: ``excluded``)
         first = {name: replace(found, set_aside=None) for name, found in first.items()}
         del field, mask, excluded, read_mask  # the first reading's: not held through the second
         _unpack(ground, shape)
         field, mask, levels, excluded, plate_share, read_mask = _tubes_pass(kind, smooth, spacing, reading,
-                                                                            field_name, ground, left_out)
+                                                                            field_name, ground, (left_out, pieces))
         del left_out
-        excluded |= _bits(pieces, shape)
+        excluded |= pieces
+        del pieces
         levels["pieces"] = {name: first[name].then(found) for name, found in levels["pieces"].items()}
     if kind == "cta":  # the surface's field, of the last reading, made in ``smooth`` (no longer read)
         _unpack(ground, mask.shape)
@@ -285,9 +287,10 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
 
 
 def _tubes_pass(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground,
-                left_out: np.ndarray | None):
-    """One CTA / MRA reading: ``(field, mask, levels, excluded, plate_share, read_mask)``; ``left_out``:
-    voxels out of the level's estimate and the seeds (pieces an earlier pass set aside, their rim), or None.
+                left_out: tuple[np.ndarray, np.ndarray] | None):
+    """One CTA / MRA reading: ``(field, mask, levels, excluded, plate_share, read_mask)``; ``left_out``: the
+    pieces an earlier pass set aside, ``(with their rim, themselves)``: out of the level's estimate and out of the
+    seeds; or None.
 
     Bone in the window (a diploë, a cancellous skull base, marrow fat) is a plate: set aside
     (:func:`.bone_plates.without_plates`); when plates were set aside and the level was estimated, it was estimated
@@ -307,38 +310,44 @@ def _tubes_pass(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: Vol
     if earlier is not None:
         excluded |= _bits(earlier, excluded.shape)
     del earlier
-    mask, plate_share = without_plates(mask, found, field_name)
+    bone_of = _bone_of(kind, smooth, spacing, excluded, levels, ground)
+    mask, plate_share = without_plates(mask, found, field_name, spacing, bone_of)
     del found
-    mask, levels["pieces"] = _without_pieces(kind, smooth, spacing, mask, excluded, levels, ground)
+    mask, levels["pieces"] = without_pieces(mask, spacing, bone_of)
+    for pieces in levels["pieces"].values():
+        if pieces.set_aside is not None:
+            excluded |= pieces.set_aside
     if any(found.set_aside is not None for found in levels["pieces"].values()):
         plate_share = None  # measured again on what is kept
     return field, mask, levels, excluded, plate_share, read_mask
 
 
 def _plates_read(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground,
-                 left_out: np.ndarray | None):
+                 left_out: tuple[np.ndarray, np.ndarray] | None):
     """A reading and its plates (:func:`.bone_plates.plates_found`), read again without the plates in the estimate
     when there are any and the level was estimated: ``(field, mask, levels, excluded, found, earlier)``; ``earlier``:
     the first reading's plates, packed (only the picture needs them), or None."""
 
+    around, pieces = (None, None) if left_out is None else left_out
+
     def read(not_vessels):  # the ground (bone and its band; the head's interior) is the same in both readings
         reader = _cta if kind == "cta" else _mra
-        return reader(smooth, spacing, reading, field_name, ground, not_vessels, left_out)
+        return reader(smooth, spacing, reading, field_name, ground, not_vessels, pieces)
 
     def bone_of(excluded, levels, mask):  # what a plate of bone lies against (:func:`.bone_plates.bone_plates`), in a box
         if kind == "cta":  # bone and its band beyond the reading's voxels (not held as a grid of its own)
             return lambda box: ground.near_bone[box] & ~mask[box]
         return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
 
-    field, mask, levels, excluded = read(left_out)  # CTA: excluded None; MRA: the scalp shell
+    field, mask, levels, excluded = read(around)  # CTA: excluded None; MRA: the scalp shell
     found = plates_found(mask, spacing, bone_of(excluded, levels, mask))
     earlier = None
     if found.plates.any() and reading.vessel_min is None:
         rim = max(1, int(np.ceil(PLATE_RIM_MM / float(spacing.min()))))
         set_aside, box = np.zeros(mask.shape, bool), bounding_box(found.plates, margin=rim)
         set_aside[box] = grown(found.plates[box], rim)
-        if left_out is not None:
-            set_aside |= left_out
+        if around is not None:
+            set_aside |= around
         earlier = np.packbits(found.plates)
         del field, mask, excluded, found  # the first reading's: not held through the second
         field, mask, levels, excluded = read(set_aside)
@@ -347,22 +356,13 @@ def _plates_read(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: Vo
     return field, mask, levels, excluded, found, earlier
 
 
-def _without_pieces(kind: str, smooth: np.ndarray, spacing: np.ndarray, mask: np.ndarray, excluded: np.ndarray,
-                    levels: dict, ground) -> tuple[np.ndarray, dict]:
-    """``mask`` without its separate pieces of bone and venous sinuses (:func:`.separate_pieces.without_pieces`),
-    both added to ``excluded``; and the two records (``bone``, ``sinuses``). Bone: CTA, bone and its band beyond the
-    reading's voxels and the plates (``excluded``); MRA, the voids and the scalp shell (:func:`_dark_or_surface`)."""
+def _bone_of(kind: str, smooth: np.ndarray, spacing: np.ndarray, excluded: np.ndarray, levels: dict, ground):
+    """What bone lies where a box of the reading lies (``bone_of(box)``, bool): CTA, bone and its band beyond the
+    reading's voxels and the plates (``excluded``, which the pieces set aside then join); MRA, the voids and the
+    scalp shell (:func:`_dark_or_surface`)."""
     if kind == "cta":
-        def bone_of(box):
-            return excluded[box]
-    else:
-        def bone_of(box):
-            return _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
-    mask, records = without_pieces(mask, spacing, bone_of)
-    for found in records.values():
-        if found.set_aside is not None:
-            excluded |= found.set_aside
-    return mask, records
+        return lambda box: excluded[box]
+    return lambda box: _dark_or_surface(smooth, excluded, levels, spacing, box, ground.air)
 
 
 def _pack(ground) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..mesh import TriangleMesh
 from .cisterns import CSF_HU, Cisterns, cistern_mask
+from .dural_sinuses import VENOUS_HU, dural_sinuses
 from .synthetic_volumes import SyntheticVolume, _smooth_field, vessel_tree
 
 CTA_LEVELS = {"air": -1000.0, "scalp": 30.0, "table": 1600.0, "diploe": 450.0, "brain": 38.0, "vessel": 380.0,
@@ -39,8 +40,7 @@ def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.
     ``grid_vox``: a scanner's grid (e.g. 512 × 512 × 440) instead of the head's box: the head centred in x and y,
     the grid's first slice ``8 mm`` below the tree (a head CTA starts at the skull base), air around."""
     low, high = tree.vertices.min(0), tree.vertices.max(0)
-    inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
-    centre = (low + high) / 2.0 + np.array([0.0, 0.0, 8.0])
+    centre, inner = _skull(tree, min_head_mm)
     outer = inner + 2 * TABLE_MM + diploe_mm + SCALP_MM + 6.0
     origin = np.array([centre[0] - outer[0], centre[1] - outer[1], low[2] - 8.0])
     shape = np.ceil((np.array([2 * outer[0], 2 * outer[1], centre[2] + outer[2] - origin[2]])) / voxel_mm).astype(int)
@@ -53,6 +53,14 @@ def _grid(tree: TriangleMesh, voxel_mm: np.ndarray, min_head_mm=(45.0, 55.0, 45.
     axes = [axis.reshape([-1 if b == a else 1 for b in range(3)]) for a, axis in enumerate(axes)]
     depth = (np.sqrt(sum(((axes[a] - centre[a]) / inner[a]) ** 2 for a in range(3))) - 1.0) * float(np.mean(inner))
     return axes, depth.astype(np.float32), affine, _occupancy(tree, affine, shape), (low, high)
+
+
+def _skull(tree: TriangleMesh, min_head_mm) -> tuple[np.ndarray, np.ndarray]:
+    """The skull's centre and inner half-extents (LPS mm) around ``tree``: 14 mm beside it, 10 mm above and below,
+    at least ``min_head_mm``; the centre 8 mm above the tree's (the vault is higher than the skull base is low)."""
+    low, high = tree.vertices.min(0), tree.vertices.max(0)
+    inner = np.maximum((high - low) / 2.0 + np.array([14.0, 14.0, 10.0]), min_head_mm)
+    return (low + high) / 2.0 + np.array([0.0, 0.0, 8.0]), inner
 
 
 def _occupancy(tree: TriangleMesh, affine: np.ndarray, shape) -> np.ndarray:
@@ -111,10 +119,11 @@ def _fill_cisterns(volume, brain, occupancy, spacing, z, floor_z_mm: float, cist
 
 def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, seed: int = 3,
                           min_head_mm=(45.0, 55.0, 45.0), cisterns: Cisterns | None = None,
-                          grid_vox=None, diploe_mm: float = DIPLOE_MM) -> SyntheticVolume:
+                          grid_vox=None, diploe_mm: float = DIPLOE_MM, sinuses: str | None = None) -> SyntheticVolume:
     """A CTA series of ``tree`` (default: the phantom's) in a skull with diploë (``diploe_mm`` thick: 2–8 mm in
     adults, most of a whole head's voxels in the vessels' window) and a cancellous skull base; CSF cisterns around
-    its proximal part when ``cisterns`` is given."""
+    its proximal part when ``cisterns`` is given; filled dural venous sinuses (:mod:`.dural_sinuses`: a CTA taken
+    late) when ``sinuses`` names their section (``"triangle"``, ``"round"``)."""
     from .synthetic_volume_dicom import cta_series
 
     rng = np.random.default_rng(seed + 303)
@@ -136,6 +145,10 @@ def make_layered_cta_head(*, voxel_mm=0.6, tree: TriangleMesh | None = None, see
     core = brain & (z >= low[2] + 4.0 + BASE_CORTEX_MM) & (z < low[2] + 4.0 + BASE_MM - BASE_CORTEX_MM)
     volume[core] = level["base_core"] + 80.0 * texture[core]
     _fill_cisterns(volume, brain, occupancy, spacing, z, low[2] + 4.0 + BASE_MM, cisterns, level["csf"])
+    if sinuses:
+        veins = dural_sinuses(axes, depth, *_skull(tree, min_head_mm), section=sinuses)
+        volume[veins] = VENOUS_HU + 20.0 * texture[veins]
+        del veins
     volume = volume * (1.0 - occupancy) + level["vessel"] * occupancy
     sigma = 9.0 + 10.0 * np.clip(1.0 - (z - low[2]) / 40.0, 0.0, 1.0)  # noisier toward the skull base
     data = _finish(volume, sigma.astype(np.float32), rng, streak_axis=2, rician=False)

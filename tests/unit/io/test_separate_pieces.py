@@ -114,3 +114,18 @@ def test_a_record_followed_by_a_later_reading_s():
     assert both.count == 1 and both.set_aside is None and both.kept_shares == (0.15,)
     assert both.set_aside_shares == (0.98,) and both.nearest_share == 0.98  # the later reading's 0.15 is further
     assert PiecesSetAside(ALONG_BONE_SHARE).nearest_share is None
+
+
+def test_a_vessel_whose_trunk_runs_in_bone_is_not_a_block_of_bone():
+    """A small tree whose trunk lies in a bony canal for much of its length has most of its surface against bone
+    (as a block's is), but its medial axis leaves the bone: it stays beside another piece."""
+    spacing = np.ones(3)
+    mask = np.zeros((70, 40, 40), bool)
+    mask[5:65, 18:23, 18:23] = True  # a vessel 60 mm long, 5 mm across
+    bone = np.zeros(mask.shape, bool)
+    bone[5:38, 16:25, 16:25] = True  # a canal around 33 mm of it (55 %)
+    bone &= ~mask
+    mask[10:20, 2:12, 30:38] = True  # another piece, in tissue (800 mm³)
+    kept, records = without_pieces(mask, spacing, lambda box: bone[box])
+    assert kept is mask and records["bone"].count == 0 and records["sinuses"].count == 0
+    assert max(records["bone"].kept_shares) >= BONE_CONTACT_SHARE  # in bone by its surface alone
