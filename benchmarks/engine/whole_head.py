@@ -23,7 +23,10 @@ import numpy as np
 GRID_VOX = (512, 512, 440)
 VOXEL_MM = 0.45
 HEAD_MM = (70.0, 85.0, 70.0)  # the skull's inner half-extents (a head, not the tree's box)
-SWEEP = (  # (kind, voxel mm per axis, scanner grid): the issue's 512² × 300–600 slices at 0.3–0.6 mm, anisotropic
+SWEEP = (  # (kind, voxel mm per axis, scanner grid[, dural sinuses]): the issue's 512² × 300–600 slices at 0.3–0.6
+    # mm, anisotropic; a CTA taken late (its dural sinuses filled, triangular or round in section)
+    ("cta", (0.45, 0.45, 0.45), (512, 512, 440), "triangle"),
+    ("cta", (0.45, 0.45, 0.45), (512, 512, 440), "round"),
     ("cta", (0.4, 0.4, 0.3), (512, 512, 600)),
     ("cta", (0.4, 0.4, 0.45), (512, 512, 400)),
     ("cta", (0.4, 0.4, 0.6), (512, 512, 300)),
@@ -33,7 +36,8 @@ SWEEP = (  # (kind, voxel mm per axis, scanner grid): the issue's 512² × 300�
     ("mra", (0.4, 0.4, 0.5), (512, 512, 160)),  # a TOF slab: 80 mm from the skull base up, the head cut above
     ("mra", (0.35, 0.35, 0.3), (512, 512, 300)),  # 90 mm
 )
-"""The ``--sweep`` cells: whole-head CTAs 180 mm tall (a 205 or 256 mm field), TOF-MRA slabs through the head."""
+"""The ``--sweep`` cells: whole-head CTAs 180 mm tall (a 205 or 256 mm field), two of them taken late (venous
+sinuses filled, :mod:`dsareg_engine.simulation.dural_sinuses`), TOF-MRA slabs through the head."""
 
 
 def add_parser(which) -> None:
@@ -50,6 +54,9 @@ def add_parser(which) -> None:
     sub.add_argument("--diploe", type=float, default=None,
                      help="the CTA skull's diploë, mm (2-8 in adults; default 3): cancellous bone in the vessels' "
                           "window, what a whole head's plate search measures")
+    sub.add_argument("--sinuses", choices=("triangle", "round"), default=None,
+                     help="a CTA taken late: its dural venous sinuses filled, triangular (superior sagittal) or round "
+                          "in section (what the reading must set aside: an arterial run shows none of it)")
     sub.add_argument("--intake", action="store_true",
                      help="each job's read only, as the service's validator makes it (warmed up first): its address-"
                           "space and RSS growth, CPU s and wall s (the costs dsareg_engine/io/volume_cost.py sizes "
@@ -64,7 +71,7 @@ def voxel_argument(text) -> float | tuple[float, float, float]:
 
 
 def _write_case(folder: Path, voxel_mm, grid: tuple[int, int, int], kind: str = "cta",
-                diploe_mm: float | None = None) -> Path:
+                diploe_mm: float | None = None, sinuses: str | None = None) -> Path:
     from dsareg_engine.io.case import CaseFiles
     from dsareg_engine.simulation.synthetic_heads_layered import DIPLOE_MM, make_layered_cta_head, make_layered_mra_head
     from dsareg_engine.simulation.synthetic_volumes import fitting_pixel_spacing_mm, vessel_tree, volume_case_of
@@ -74,7 +81,7 @@ def _write_case(folder: Path, voxel_mm, grid: tuple[int, int, int], kind: str = 
     tree = vessel_tree(TREE_DEPTH, 3)
     if kind == "cta":
         volume = make_layered_cta_head(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid,
-                                       diploe_mm=DIPLOE_MM if diploe_mm is None else diploe_mm)
+                                       diploe_mm=DIPLOE_MM if diploe_mm is None else diploe_mm, sinuses=sinuses)
     else:
         volume = make_layered_mra_head(voxel_mm=voxel_mm, tree=tree, seed=3, min_head_mm=HEAD_MM, grid_vox=grid)
     case = volume_case_of(volume, image_px=256, pixel_spacing_mm=fitting_pixel_spacing_mm(tree, 256))
@@ -193,7 +200,8 @@ def bench_whole_head(args) -> int:
     kind = getattr(args, "kind", "cta")
     with tempfile.TemporaryDirectory() as folder:
         print(f"writing a {grid[0]} x {grid[1]} x {grid[2]} {kind.upper()} at {args.voxel} mm ...", flush=True)
-        case_path = _write_case(Path(folder), voxel, grid, kind, getattr(args, "diploe", None))
+        case_path = _write_case(Path(folder), voxel, grid, kind, getattr(args, "diploe", None),
+                                getattr(args, "sinuses", None))
         if getattr(args, "intake", False):
             return _bench_intake(case_path, Path(folder) / "models")
         print("| job | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | voxels kept | faces |")
@@ -224,12 +232,13 @@ def _bench_sweep() -> int:
     print("| kind | grid | voxel mm | voxels M | read CPU s | job CPU s | wall s | peak RSS GB | ADD mm | verdict | "
           "voxels kept |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for kind, voxel, grid in SWEEP:
+    for kind, voxel, grid, *sinuses in SWEEP:
         with tempfile.TemporaryDirectory() as folder:
-            case_path = _write_case(Path(folder), voxel, grid, kind)
+            case_path = _write_case(Path(folder), voxel, grid, kind, sinuses=(sinuses or [None])[0])
             row = _job_row(case_path, Path(folder) / "models")
         size = " × ".join(map(str, grid))
-        cell = f"| {kind} | {size} | {' × '.join(f'{v:g}' for v in voxel)} | {np.prod(grid) / 1e6:.0f} | "
+        late = f", sinuses {sinuses[0]}" if sinuses else ""
+        cell = f"| {kind}{late} | {size} | {' × '.join(f'{v:g}' for v in voxel)} | {np.prod(grid) / 1e6:.0f} | "
         if "error" in row:
             print(cell + f"{row['error'][:160]} | | | | | | |", flush=True)
             continue

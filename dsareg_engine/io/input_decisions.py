@@ -13,6 +13,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+NO_OPTION = frozenset({"pieces in bone", "venous sinuses", "vessel shape"})
+"""Decisions no option states (what the reading set aside, the shape it measured): a close call is checked only."""
+
 
 @dataclass(frozen=True)
 class InputDecision:
@@ -53,9 +56,9 @@ class InputDecision:
 
     def reason(self) -> str:
         """The verdict reason a close call gives."""
+        state = "" if self.what in NO_OPTION else " or state it in the options"
         return (f"{self.input}: {self.what} read as {self.chosen!s} on a close call ({self.basis} "
-                f"{self.measure:.3g}, threshold {self.threshold:.3g}); check that this is right or state it "
-                "in the options")
+                f"{self.measure:.3g}, threshold {self.threshold:.3g}); check that this is right{state}")
 
     def to_dict(self) -> dict:
         """JSON-ready (the ``result.input_decisions`` item)."""

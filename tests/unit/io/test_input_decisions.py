@@ -31,3 +31,12 @@ def test_failed_stays_failed_and_clear_decisions_change_nothing():
     data = with_close_calls(_result("ok"), [far])
     assert data["verdict"] == "ok" and data["metrics"]["confidence"]["reasons"] == []
     assert with_close_calls(_result("ok"), []) == _result("ok")
+
+
+def test_a_close_call_no_option_states_asks_for_a_check_only():
+    optionless = InputDecision("volume", "venous sinuses", "1 set aside", "share along bone", measure=0.75,
+                               threshold=0.7, band=0.15)
+    assert optionless.reason().endswith("check that this is right")
+    stated = InputDecision("volume", "vessel window", "180 and up HU", "contrast", measure=110.0, threshold=100.0,
+                           band=50.0)
+    assert stated.reason().endswith("or state it in the options")
