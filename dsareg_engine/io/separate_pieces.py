@@ -1,17 +1,20 @@
 """Separate pieces of a CTA / TOF-MRA reading that are not arteries: blocks of bone and dural venous sinuses.
 
-A reading's separate pieces of at least ``PIECE_MM3`` are judged against what bone lies against (``bone_of``):
+A reading's separate pieces of at least ``PIECE_MM3`` are measured against what bone lies against (``bone_of``)
+twice: the share of their surface voxels touching bone (:func:`.bone_plates.contact_shares`) and how far their
+medial axis runs with the lumen against bone, and how thick they are (:func:`.venous_sinuses.along_bone`). A
+piece that runs along bone (``ALONG_BONE_SHARE``) is set aside:
 
-* **in bone** (:func:`.bone_plates.contact_shares`): at least ``BONE_CONTACT_SHARE`` of the piece's surface voxels
-  touch bone. A block of cancellous bone (a clivus, a petrous apex, a marrow space) is thick, not a plate, and its
-  interior lies far enough from the cortex around it to be read as vessel; cortex and its band enclose it (shares
-  ~0.95–1). A vessel tree touches bone along its canals only (~0.3).
-* **along bone**, thick (:func:`.venous_sinuses.along_bone`): a dural venous sinus runs with its lumen against the
-  skull's inner table along its whole course (a CTA with venous filling).
+* **in bone** when half its surface or more touches bone (``BONE_CONTACT_SHARE``): a block of cancellous bone (a
+  clivus, a petrous apex, a marrow space) is thick, not a plate, and its interior lies far enough from the cortex
+  around it to be read as vessel; cortex and its band enclose it (surface ~0.95–1). A vessel whose trunk lies in a
+  bony canal can have half its surface against bone too, but its axis leaves the bone: it stays.
+* a **venous sinus** when thick (``SINUS_RADIUS_MM``): a dural sinus runs with its lumen against the skull's inner
+  table along its whole course (a CTA with venous filling); it touches bone on one side only.
 
-A piece set aside by one measure is no close call of the other. When every piece would go, the reading is kept as
-it is (and judged as it is). :func:`.volume_vessels._tubes` reads the volume again without the pieces in the
-vessels' level estimate.
+A thick piece along bone goes whatever its surface's share: it is no close call of that share; a block of bone is
+no close call of the sinuses' measure. When every piece would go, the reading is kept as it is (and judged as it
+is). :func:`.volume_vessels._tubes` reads the volume again without the pieces in the vessels' level estimate.
 """
 
 from __future__ import annotations
@@ -80,7 +83,8 @@ def without_pieces(mask: np.ndarray, spacing: np.ndarray, bone_of) -> tuple[np.n
     if (in_bone | sinus).all():  # every piece would go: the reading is judged as it is
         in_bone[:], sinus[:] = False, False
     out = mask.copy() if (in_bone | sinus).any() else mask
-    for name, chosen, shares, others in (("bone", in_bone, contact, sinus), ("sinuses", sinus, along, in_bone)):
+    either = large & runs_along & thick  # set aside by either measure: no close call of the surface's
+    for name, chosen, shares, others in (("bone", in_bone, contact, either), ("sinuses", sinus, along, in_bone)):
         set_aside = None
         if chosen.any():
             set_aside = np.zeros(mask.shape, bool)

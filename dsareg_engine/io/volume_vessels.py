@@ -39,7 +39,7 @@ from ..errors import DsaregInputError
 from ..mesh import TriangleMesh
 from .bone_plates import BONE_CONTACT_SHARE, PLATE_RIM_MM, plates_found, without_plates
 from .input_decisions import InputDecision
-from .separate_pieces import PiecesSetAside, without_pieces
+from .separate_pieces import without_pieces
 from .venous_sinuses import ALONG_BONE_BAND, ALONG_BONE_SHARE
 from .vessel_shape import MAX_PLATE_FRACTION, PLATE_BAND, check_vessel_shape, crop_to
 from .volume_io import Volume, bounding_box, largest_components, surface_from_mask
@@ -64,6 +64,12 @@ VOID_SHARE = 0.3  # MRA: bone and air give no signal: within this share of the w
 BONE_MARGIN_HU = 150.0  # the vessels' estimated level within this of the bone threshold: a close call
 PIECE_CONTACT_BAND = 0.15  # a separate piece this close to BONE_CONTACT_SHARE of its surface against bone: a close call
 GATHER_CHUNK = 1 << 20  # voxels whose neighbours are gathered at a time (their index arrays: ~50 MB)
+PIECE_DECISIONS = (  # (record, decision, basis, threshold, close-call band) of :mod:`.separate_pieces`
+    ("bone", "pieces in bone", ("share of a separate piece's surface against bone (a block of bone ~1, a vessel "
+                                "tree ~0.3); the piece nearest the threshold"), BONE_CONTACT_SHARE, PIECE_CONTACT_BAND),
+    ("sinuses", "venous sinuses", ("share of a separate piece's medial axis whose lumen touches bone (dural sinuses "
+                                   "~1, a vessel tree ~0.1-0.2); the piece nearest the threshold"), ALONG_BONE_SHARE,
+     ALONG_BONE_BAND))
 HEAD_MARGIN_VOX = 6  # CTA: the head's box (above air) grown by this: past the smoothing (2 voxels) and the skin
 
 
@@ -422,26 +428,15 @@ def _decisions(readout: VolumeReadout, reading: VolumeReading, air: float, level
             "volume", "bone threshold", f"{readout.vessel_max:.0f} HU",
             "the vessels' level (HU) against the bone threshold", levels.get("vessel"), readout.vessel_max,
             BONE_MARGIN_HU, "option" if reading.vessel_max is not None else "measured"))
-    pieces = levels.get("pieces", {})
-    if pieces.get("bone") is not None and pieces["bone"].nearest_share is not None:
-        decisions.append(InputDecision(
-            "volume", "pieces in bone", _set_aside(pieces["bone"]),
-            "share of a separate piece's surface against bone (cancellous bone ~1, a vessel tree ~0.3); the piece "
-            "nearest the threshold", pieces["bone"].nearest_share, BONE_CONTACT_SHARE, PIECE_CONTACT_BAND))
-    if pieces.get("sinuses") is not None and pieces["sinuses"].nearest_share is not None:
-        decisions.append(InputDecision(
-            "volume", "venous sinuses", _set_aside(pieces["sinuses"]),
-            "share of a separate piece's medial axis whose lumen touches bone (dural sinuses ~1, a vessel tree "
-            "~0.1-0.2); the piece nearest the threshold", pieces["sinuses"].nearest_share, ALONG_BONE_SHARE,
-            ALONG_BONE_BAND))
+    for name, what, basis, threshold, band in PIECE_DECISIONS:
+        found = levels.get("pieces", {}).get(name)
+        if found is not None and (found.count or found.nearest_share is not None):
+            decisions.append(InputDecision("volume", what, f"{found.count} set aside" if found.count else "none",
+                                           basis, found.nearest_share, threshold, band))
     decisions.append(InputDecision(
         "volume", "vessel shape", "tubes", "plate share of the kept voxels' medial axis", readout.plate_share,
         MAX_PLATE_FRACTION, PLATE_BAND))
     return decisions
-
-
-def _set_aside(pieces: PiecesSetAside) -> str:
-    return f"{pieces.count} set aside" if pieces.count else "none"
 
 
 def _kind_decision(readout: VolumeReadout, reading: VolumeReading, air: float) -> InputDecision:
