@@ -275,25 +275,29 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
         for found in first.values():
             if found.set_aside is not None:
                 pieces |= found.set_aside
-        left_out, box = np.zeros(shape, bool), bounding_box(pieces, margin=rim)
-        left_out[box] = grown(pieces[box], rim)
+        around, box = np.zeros(shape, bool), bounding_box(pieces, margin=rim)
+        around[box] = grown(pieces[box], rim)
+        left_out = (_Packed.of(around), _Packed.of(pieces))  # (memory: 1 bit a voxel through the second reading)
         first = {name: replace(found, set_aside=None) for name, found in first.items()}
-        del field, mask, excluded, read_mask  # the first reading's: not held through the second
+        del field, mask, levels, excluded, read_mask, around, pieces  # the first reading's: not held through the second
         _unpack(ground, shape)
         field, mask, levels, excluded, plate_share, read_mask = _tubes_pass(kind, smooth, spacing, reading,
-                                                                            field_name, ground, (left_out, pieces))
+                                                                            field_name, ground, left_out)
+        excluded[left_out[1].grid()] = True
         del left_out
-        excluded |= pieces
-        del pieces
         levels["pieces"] = {name: first[name].then(found) for name, found in levels["pieces"].items()}
     if kind == "cta":  # the surface's field, of the last reading, made in ``smooth`` (no longer read)
+        held = _Packed.of(excluded)  # (memory: 1 bit a voxel while the field is made)
+        del excluded
         _unpack(ground, mask.shape)
         field = _cta_field(smooth, ground, _bits(read_mask, mask.shape), levels)
+        ground.near_bone = None  # type: ignore[assignment]
+        excluded = held.grid()
     return field, mask, levels, excluded, plate_share
 
 
 def _tubes_pass(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground,
-                left_out: tuple[np.ndarray, np.ndarray] | None):
+                left_out: tuple[_Packed, _Packed] | None):
     """One CTA / MRA reading: ``(field, mask, levels, excluded, plate_share, read_mask)``; ``left_out``: the
     pieces an earlier pass set aside, ``(with their rim, themselves)``: out of the level's estimate and out of the
     seeds; or None.
@@ -329,7 +333,7 @@ def _tubes_pass(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: Vol
 
 
 def _plates_read(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground,
-                 left_out: tuple[np.ndarray, np.ndarray] | None):
+                 left_out: tuple[_Packed, _Packed] | None):
     """A reading and its plates (:func:`.bone_plates.plates_found`), read again without the plates in the estimate
     when there are any and the level was estimated: ``(field, mask, levels, excluded, found, earlier)``; ``earlier``:
     the first reading's plates, packed (only the picture needs them), or None."""
@@ -353,9 +357,10 @@ def _plates_read(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: Vo
         set_aside, box = np.zeros(mask.shape, bool), bounding_box(found.plates, margin=rim)
         set_aside[box] = grown(found.plates[box], rim)
         if around is not None:
-            set_aside |= around
+            set_aside |= around.grid()
         earlier = np.packbits(found.plates)
         del field, mask, excluded, found  # the first reading's: not held through the second
+        set_aside = _Packed.of(set_aside)  # (memory: 1 bit a voxel through the reading)
         field, mask, levels, excluded = read(set_aside)
         del set_aside
         found = plates_found(mask, spacing, bone_of(excluded, levels, mask))
@@ -383,6 +388,26 @@ def _unpack(ground, shape: tuple[int, ...]) -> None:
     name = "near_bone" if isinstance(ground, _CtaGround) else "interior"
     if getattr(ground, name).dtype != bool:
         setattr(ground, name, _bits(getattr(ground, name), shape))
+
+
+@dataclass(frozen=True)
+class _Packed:
+    """A bool grid packed 8 voxels to a byte (``np.packbits``), held through a reading and unpacked where used."""
+
+    bits: np.ndarray
+    shape: tuple[int, ...]
+
+    @classmethod
+    def of(cls, grid: np.ndarray) -> _Packed:
+        return cls(np.packbits(grid), tuple(grid.shape))
+
+    def grid(self) -> np.ndarray:
+        return _bits(self.bits, self.shape)
+
+
+def _grid(mask) -> np.ndarray:
+    """A bool grid of ``mask``: itself, or a :class:`_Packed` unpacked."""
+    return mask.grid() if isinstance(mask, _Packed) else mask
 
 
 def _bits(packed: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -502,13 +527,13 @@ def _cta_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
 
 
 def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _CtaGround,
-         not_vessels: np.ndarray | None = None, not_seeds: np.ndarray | None = None):
+         not_vessels=None, not_seeds=None):
     """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None; ``not_seeds``:
-    voxels that seed no vessel (pieces set aside by an earlier pass, their rim), or None."""
+    voxels that seed no vessel (pieces set aside by an earlier pass), or None; each a bool grid or :class:`_Packed`."""
     bone_hu, tissue, near_bone = ground.bone_hu, ground.tissue, ground.near_bone
     candidates = (smooth > tissue + 100.0) & (smooth < bone_hu) & ~near_bone
     if not_vessels is not None:
-        candidates &= ~not_vessels
+        candidates[_grid(not_vessels)] = False
     if reading.vessel_min is not None:
         level = float(reading.vessel_min)
         vessel = None
@@ -528,7 +553,7 @@ def _cta(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     seeds = window & ~near_bone
     seeds |= _plateau(smooth, window & near_bone, spacing, PLATEAU_FRACTION * (peak - tissue))
     if not_seeds is not None:
-        seeds &= ~not_seeds
+        seeds[_grid(not_seeds)] = False
     core = largest_components(seeds, field_name=field_name)
     del seeds
     # regrow into the band only through voxels with no tissue-level voxel near: the lumen and wall of a vessel
@@ -681,13 +706,13 @@ def _mra_ground(smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarray, rea
 
 
 def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_name: str, ground: _MraGround,
-         not_vessels: np.ndarray | None = None, not_seeds: np.ndarray | None = None):
+         not_vessels=None, not_seeds=None):
     """``not_vessels``: voxels left out of the vessels' level estimate (plates set aside), or None; ``not_seeds``:
-    voxels that are no vessel (pieces set aside by an earlier pass, their rim), or None."""
+    voxels that are no vessel (pieces set aside by an earlier pass), or None; each a bool grid or :class:`_Packed`."""
     interior, tissue, spread = ground.interior, ground.tissue, ground.spread
     values = smooth[interior]
     if not_vessels is not None:
-        values = smooth[interior & ~not_vessels]
+        values = smooth[interior & ~_grid(not_vessels)]
     bright = values[values > tissue + 6.0 * spread]
     if reading.vessel_min is not None:
         level, vessel = float(reading.vessel_min), None
@@ -701,7 +726,7 @@ def _mra(smooth: np.ndarray, spacing: np.ndarray, reading: VolumeReading, field_
     low = level if reading.vessel_min is not None else tissue + MRA_EXTENT * (vessel - tissue)
     candidates = interior & (smooth > low)
     if not_seeds is not None:
-        candidates &= ~not_seeds
+        candidates[_grid(not_seeds)] = False
     if np.count_nonzero(candidates) < 8:
         raise _no_vessels(f"no voxels above {low:.0f} inside the head", field_name, "MRA")
     peak = vessel if vessel is not None else float(np.percentile(smooth[candidates], 75))
