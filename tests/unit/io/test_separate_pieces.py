@@ -106,6 +106,10 @@ def test_a_thin_tube_along_bone_is_no_sinus_and_a_lone_sinus_stays():
     kept, records = without_pieces(two, spacing, lambda box: bone[box])
     assert kept is two and records["sinuses"].count == 0  # every piece would go: the reading is judged as it is
     assert min(records["sinuses"].kept_shares) > ALONG_BONE_SHARE
+    speck = two.copy()
+    speck[2:4, 2:4, 2:4] = True  # and a speck: next to nothing would stay
+    kept, records = without_pieces(speck, spacing, lambda box: bone[box])
+    assert kept is speck and records["sinuses"].count == 0
 
 
 def test_a_record_followed_by_a_later_reading_s():
