@@ -13,7 +13,7 @@ from dsareg_engine.simulation.synthetic_volumes import vessel_tree
 def test_the_sinuses_lie_against_the_inner_table_apart_from_the_tree(section):
     tree = vessel_tree(2, 3)
     spacing = np.full(3, 0.5)
-    axes, depth, affine, occupancy, _ = _grid(tree, spacing, (30.0, 30.0, 40.0))
+    axes, depth, _, occupancy, _ = _grid(tree, spacing, (30.0, 30.0, 40.0))
     centre, inner = _skull(tree, (30.0, 30.0, 40.0))
     veins = dural_sinuses(axes, depth, centre, inner, section)
     assert ndimage.label(veins)[1] == 1  # one venous system: the sagittal sinus meets the transverse at the torcula
