@@ -145,9 +145,10 @@ def without_plates(mask: np.ndarray, found: PlatesFound, field_name: str, spacin
     del near  # (memory: the box's masks are the reading's peak on a whole head)
     keep = np.ones(parts.count + 1, bool)
     keep[0] = False
-    keep[touching[touching != int(np.argmax(sizes))]] = False
+    others = touching[touching != int(np.argmax(sizes))]
+    keep[others] = False
     if bone_of is not None:
-        keep[_vessels_among(parts, touching[touching != int(np.argmax(sizes))], sizes, box, spacing, bone_of)] = True
+        keep[_vessels_among(parts, others, sizes, box, spacing, bone_of)] = True
     kept = np.zeros(mask.shape, bool)
     parts.write(kept[box], keep)
     del parts  # the box's labels, where there are any, are not held through the next labelling
@@ -158,7 +159,7 @@ def _vessels_among(parts, indices: np.ndarray, sizes: np.ndarray, box: tuple[sli
                    bone_of) -> list[int]:
     """The ``indices`` (components of ``parts``, in ``box`` of the mask) of at least ``PLATE_PART_MM3`` whose medial
     axis does not run along bone (:func:`.venous_sinuses.along_bone` below ``ALONG_BONE_SHARE``)."""
-    from .venous_sinuses import ALONG_BONE_SHARE, along_bone
+    from .venous_sinuses import ALONG_BONE_SHARE, along_bone_in
 
     out = []
     for index in indices[sizes[indices] * float(np.prod(spacing)) >= PLATE_PART_MM3]:
@@ -167,9 +168,8 @@ def _vessels_among(parts, indices: np.ndarray, sizes: np.ndarray, box: tuple[sli
         part = np.zeros(tuple(s.stop - s.start for s in box), bool)
         parts.write(part, chosen)
         near = bounding_box(part, margin=1)
-        piece = part[near]
         whole = tuple(slice(b.start + n.start, b.start + n.stop) for b, n in zip(box, near))
-        if along_bone(piece, np.asarray(spacing, float), piece & grown(bone_of(whole))).share < ALONG_BONE_SHARE:
+        if along_bone_in(part[near], spacing, bone_of(whole)).share < ALONG_BONE_SHARE:
             out.append(int(index))
     return out
 

@@ -72,21 +72,20 @@ def without_pieces(mask: np.ndarray, spacing: np.ndarray, bone_of) -> tuple[np.n
     contact = contact_shares(labels, range(1, count + 1), bone)
     sizes = label_sizes(labels, count, mask[box])[1:]
     large = sizes * float(np.prod(spacing)) >= PIECE_MM3
-    along = np.full(count, np.nan)  # the along-bone share of the pieces judged by it
+    along = np.full(count, np.nan)  # the along-bone share of the thick pieces (a thinner one's decides nothing)
     runs_along = np.zeros(count, bool)
-    thick = np.zeros(count, bool)
+    either = np.zeros(count, bool)  # thick and along bone: set aside by either measure
     judged = np.flatnonzero(large)
     for index, measure in zip(judged, along_bone_of(labels, judged + 1, bone, spacing)):
-        runs_along[index] = measure.share >= ALONG_BONE_SHARE
-        thick[index] = measure.radius_mm >= SINUS_RADIUS_MM
-        along[index] = measure.share if thick[index] else np.nan  # a thinner piece's share decides nothing
-    in_bone = large & runs_along & (contact >= BONE_CONTACT_SHARE)  # enclosed, all along: a block of bone
-    sinus = large & runs_along & thick & ~in_bone
+        runs_along[index], either[index] = measure.share >= ALONG_BONE_SHARE, measure.sinus
+        if measure.radius_mm >= SINUS_RADIUS_MM:
+            along[index] = measure.share
+    in_bone = runs_along & (contact >= BONE_CONTACT_SHARE)  # enclosed, all along: a block of bone
+    sinus = either & ~in_bone
     del bone
     if sizes[~(in_bone | sinus)].sum() < KEPT_SHARE_MIN * sizes.sum():  # next to nothing would stay: the reading
         in_bone[:], sinus[:] = False, False  # is judged as it is
     out = mask.copy() if (in_bone | sinus).any() else mask
-    either = large & runs_along & thick  # set aside by either measure: no close call of the surface's
     for name, chosen, shares, others in (("bone", in_bone, contact, either), ("sinuses", sinus, along, in_bone)):
         set_aside = None
         if chosen.any():

@@ -86,6 +86,12 @@ def _deepest(work: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([at]), np.array([float(depth[at]) - 0.25])
 
 
+def along_bone_in(piece: np.ndarray, spacing: np.ndarray, bone: np.ndarray) -> AlongBone:
+    """:func:`along_bone` of ``piece`` (bool, its box grown by a voxel: its surface voxels' neighbours) beside
+    ``bone`` (bool, the same box)."""
+    return along_bone(piece, np.asarray(spacing, float), piece & grown(bone))
+
+
 def along_bone_of(labels: np.ndarray, indices, bone: np.ndarray, spacing: np.ndarray) -> list[AlongBone]:
     """:func:`along_bone` of each piece in ``indices`` (labels of ``labels``), each in its box grown by a voxel
     (its surface voxels' neighbours); ``bone``: bool, ``labels``' shape."""
@@ -95,10 +101,9 @@ def along_bone_of(labels: np.ndarray, indices, bone: np.ndarray, spacing: np.nda
     out = []
     for index in indices:
         near = tuple(slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(boxes[index - 1], labels.shape))
-        piece = labels[near] == index
-        out.append(along_bone(piece, np.asarray(spacing, float), piece & grown(bone[near])))
+        out.append(along_bone_in(labels[near] == index, spacing, bone[near]))
     return out
 
 
 __all__ = ["ALONG_BONE_BAND", "ALONG_BONE_SHARE", "SINUS_RADIUS_MM", "TOUCH_MM", "AlongBone", "along_bone",
-           "along_bone_of"]
+           "along_bone_in", "along_bone_of"]

@@ -280,7 +280,7 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
         left_out = (_Packed.of(around), _Packed.of(pieces))  # (memory: 1 bit a voxel through the second reading)
         first = {name: replace(found, set_aside=None) for name, found in first.items()}
         del field, mask, levels, excluded, read_mask, around, pieces  # the first reading's: not held through the second
-        _unpack(ground, shape)
+        _unpack(ground)
         field, mask, levels, excluded, plate_share, read_mask = _tubes_pass(kind, smooth, spacing, reading,
                                                                             field_name, ground, left_out)
         excluded[left_out[1].grid()] = True
@@ -289,8 +289,8 @@ def _tubes(kind: str, smooth: np.ndarray, affine: np.ndarray, spacing: np.ndarra
     if kind == "cta":  # the surface's field, of the last reading, made in ``smooth`` (no longer read)
         held = _Packed.of(excluded)  # (memory: 1 bit a voxel while the field is made)
         del excluded
-        _unpack(ground, mask.shape)
-        field = _cta_field(smooth, ground, _bits(read_mask, mask.shape), levels)
+        _unpack(ground)
+        field = _cta_field(smooth, ground, read_mask.grid(), levels)
         ground.near_bone = None  # type: ignore[assignment]
         excluded = held.grid()
     return field, mask, levels, excluded, plate_share
@@ -314,11 +314,11 @@ def _tubes_pass(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: Vol
     read_mask = None
     if kind == "cta":
         excluded = ground.near_bone & ~mask  # bone and its band beyond the reading's voxels (⊇ bone)
-        read_mask = np.packbits(mask)
+        read_mask = _Packed.of(mask)
     _pack(ground)  # (memory: bone's band is not held whole through the last labelling)
     excluded |= found.plates
     if earlier is not None:
-        excluded |= _bits(earlier, excluded.shape)
+        excluded |= earlier.grid()
     del earlier
     bone_of = _bone_of(kind, smooth, spacing, excluded, levels, ground)
     mask, plate_share = without_plates(mask, found, field_name, spacing, bone_of)
@@ -358,7 +358,7 @@ def _plates_read(kind: str, smooth: np.ndarray, spacing: np.ndarray, reading: Vo
         set_aside[box] = grown(found.plates[box], rim)
         if around is not None:
             set_aside |= around.grid()
-        earlier = np.packbits(found.plates)
+        earlier = _Packed.of(found.plates)
         del field, mask, excluded, found  # the first reading's: not held through the second
         set_aside = _Packed.of(set_aside)  # (memory: 1 bit a voxel through the reading)
         field, mask, levels, excluded = read(set_aside)
@@ -377,17 +377,16 @@ def _bone_of(kind: str, smooth: np.ndarray, spacing: np.ndarray, excluded: np.nd
 
 
 def _pack(ground) -> None:
-    """Packs ``ground``'s grid (CTA: ``near_bone``; MRA: ``interior``) 8 voxels to a byte, in place."""
+    """Packs ``ground``'s grid (CTA: ``near_bone``; MRA: ``interior``) as a :class:`_Packed`, in place."""
     name = "near_bone" if isinstance(ground, _CtaGround) else "interior"
-    if getattr(ground, name).dtype == bool:
-        setattr(ground, name, np.packbits(getattr(ground, name)))
+    if not isinstance(getattr(ground, name), _Packed):
+        setattr(ground, name, _Packed.of(getattr(ground, name)))
 
 
-def _unpack(ground, shape: tuple[int, ...]) -> None:
-    """Unpacks ``ground``'s grid (:func:`_pack`) to ``shape``, in place."""
+def _unpack(ground) -> None:
+    """Unpacks ``ground``'s grid (:func:`_pack`), in place."""
     name = "near_bone" if isinstance(ground, _CtaGround) else "interior"
-    if getattr(ground, name).dtype != bool:
-        setattr(ground, name, _bits(getattr(ground, name), shape))
+    setattr(ground, name, _grid(getattr(ground, name)))
 
 
 @dataclass(frozen=True)
@@ -402,17 +401,12 @@ class _Packed:
         return cls(np.packbits(grid), tuple(grid.shape))
 
     def grid(self) -> np.ndarray:
-        return _bits(self.bits, self.shape)
+        return np.unpackbits(self.bits, count=int(np.prod(self.shape))).reshape(self.shape).view(bool)
 
 
 def _grid(mask) -> np.ndarray:
     """A bool grid of ``mask``: itself, or a :class:`_Packed` unpacked."""
     return mask.grid() if isinstance(mask, _Packed) else mask
-
-
-def _bits(packed: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """A bool grid of ``shape`` from its ``np.packbits``."""
-    return np.unpackbits(packed, count=int(np.prod(shape))).reshape(shape).view(bool)
 
 
 def _dark_or_surface(smooth: np.ndarray, shell: np.ndarray, levels: dict, spacing: np.ndarray,
